@@ -1,0 +1,212 @@
+"""The calibration pipeline: a session in, a coefficient set and a report out.
+
+Pure: no files, no printing. Steps: find the settled plateaus, measure V0 on the
+zero-rate ones, reduce to plateau means, choose the model size by held-out
+error (or take the one asked for), fit, and gather the statistics a user needs
+to trust the result.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from canical.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
+from canical.cross_validation import cross_validate, prediction_errors
+from canical.errors import CanicalError
+from canical.fit_points import FitPoints, fit_points
+from canical.model_fit import FittedModel, ModelSpec, fit_model
+from canical.model_selection import select_model
+from canical.models.forward_poly import ForwardPoly
+from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
+from canical.plateaus import Plateaus, detect_plateaus
+from canical.segment_points import rate_noise
+from canical.session import Session
+from canical.zero_bias import zero_bias
+
+FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """What the user chose; ``None`` for segments/order means choose by held-out error."""
+
+    model: str = "segmented-inverse"
+    segments: int | None = None
+    order: int | None = None
+    smoothness: int | None = 0
+    breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS
+    rate_tol: float = 0.05
+    min_duration_s: float = 1.0
+    settle_s: float = 0.5
+
+
+@dataclass(frozen=True)
+class BaseFit:
+    """Everything the base (rate-only) calibration found, for the report and the closed loop."""
+
+    plateaus: Plateaus
+    v0: float
+    points: FitPoints
+    fitted: FittedModel
+    candidates: list[dict[str, Any]] = field(default_factory=list)
+
+
+ProgressFn = Callable[[str], None]
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn = _quiet) -> BaseFit:
+    """Plateaus, V0, points, and the fitted rate model (size chosen or given)."""
+    if session.ref_dps is None:
+        raise CanicalError("the session has no reference rate column: cannot calibrate")
+    progress("finding plateaus")
+    plateaus = detect_plateaus(
+        session.time_s, session.ref_dps,
+        rate_tol=options.rate_tol, min_duration_s=options.min_duration_s, settle_s=options.settle_s,
+    )
+    if plateaus.count == 0:
+        raise CanicalError("no constant-rate plateau found (check the ref_dps column and --ref-column)")
+    v0 = zero_bias(session.raw, plateaus)
+    points = fit_points(session.raw, v0, plateaus)
+    n_rates = int(points.rate_groups().max()) + 1
+    if n_rates < 4:
+        raise CanicalError(f"only {n_rates} distinct plateau rates: at least 4 are needed to calibrate")
+    progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
+    spec, candidates = _choose_spec(points, options)
+    fitted, _ = fit_model(points, spec)
+    return BaseFit(plateaus, v0, points, fitted, candidates)
+
+
+def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, list[dict[str, Any]]]:
+    base = ModelSpec(o.model, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
+    if o.model == "segmented-linear":
+        return replace(base, order=1), []
+    if o.model == "forward-poly":
+        if o.order is not None:
+            return replace(base, order=o.order), []
+        spec, cands = select_model(points, base, segments=(1,), orders=FORWARD_ORDERS)
+        return spec, [_candidate_row(c) for c in cands]
+    if o.segments is not None and o.order is not None:
+        return base, []
+    segments = (o.segments,) if o.segments is not None else (1, 2, 3, 4, 5, 6)
+    orders = (o.order,) if o.order is not None else (1, 2, 3)
+    spec, cands = select_model(points, base, segments=segments, orders=orders)
+    return spec, [_candidate_row(c) for c in cands]
+
+
+def _candidate_row(c) -> dict[str, Any]:
+    return {
+        "segments": c.spec.n_segments,
+        "order": c.spec.order,
+        "coefficients": c.n_coefficients,
+        "held_out_rms_dps": c.held_out.rms_dps,
+        "held_out_max_dps": c.held_out.max_dps,
+        "monotone": c.monotone,
+    }
+
+
+def model_dict(fitted: FittedModel, v0: float) -> dict[str, Any]:
+    """The coefficient-file form of a fitted model."""
+    model = fitted.model
+    if isinstance(model, ForwardPoly):
+        return forward_model_dict(model, v0)
+    points_dps = (
+        [e.rate_dps for e in fitted.extrema]
+        if fitted.spec.kind == "segmented-inverse"
+        else [b for b in fitted.spec.breakpoints_dps if model.span[0] < b]
+    )
+    smooth = fitted.spec.smoothness if fitted.spec.kind == "segmented-inverse" else None
+    return piecewise_model_dict(fitted.spec.kind, model, v0, smoothness=smooth, segment_points_dps=points_dps)
+
+
+def error_stats(errors: np.ndarray) -> dict[str, float]:
+    return {"rms_dps": float(np.sqrt(np.mean(errors**2))), "max_dps": float(np.max(np.abs(errors)))}
+
+
+def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
+    """Report fields of the base fit: samples, model, segment points, errors, noise."""
+    spec = base.fitted.spec
+    held = cross_validate(base.points, lambda p: fit_model(p, spec)[0].model)
+    train = prediction_errors(base.fitted.model, base.points)
+    slope = float(np.polyfit(base.points.rate, base.points.dv, 1)[0])
+    per_sample_noise = float(np.median(base.points.dv_sem * np.sqrt(base.points.weight))) / abs(slope)
+    report: dict[str, Any] = {
+        "model": spec.kind,
+        "spec": spec.describe(),
+        "segments": spec.n_segments,
+        "order": spec.order,
+        "smoothness": spec.smoothness if spec.kind == "segmented-inverse" else None,
+        "v0": base.v0,
+        "samples": {
+            "total": len(session),
+            "used": base.plateaus.n_used,
+            "transition": base.plateaus.n_transition,
+            "settling": base.plateaus.n_settling,
+        },
+        "plateaus": base.plateaus.count,
+        "rates": int(base.points.rate_groups().max()) + 1,
+        "segment_points": [
+            {"rate_dps": e.rate_dps, "raw": e.dv + base.v0, "prominence_dps": e.prominence_dps, "source": e.source}
+            for e in base.fitted.extrema
+        ],
+        "training": error_stats(train),
+        "held_out": {**error_stats(held.errors), "method": "leave-rates-out cross-validation"},
+        "noise": {
+            "per_sample_dps": per_sample_noise,
+            "plateau_mean_dps": float(np.median(rate_noise(base.points))),
+        },
+        "candidates": base.candidates,
+        "effects": [],
+    }
+    jumps = getattr(base.fitted.model, "jumps", None)
+    if jumps is not None:
+        report["max_jump_at_segment_points_dps"] = float(np.max(np.abs(jumps()), initial=0.0))
+    return report
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    coefficients: CoefficientSet
+    report: dict[str, Any]
+    base: BaseFit
+
+
+def calibrate(
+    session: Session,
+    options: CalibrateOptions,
+    *,
+    sensor_id: str,
+    axis: str,
+    raw_units: str = "counts",
+    progress: ProgressFn = _quiet,
+) -> CalibrationResult:
+    """Fit the chosen model to a session and package the coefficient set with its report."""
+    base = fit_base(session, options, progress)
+    progress("cross-validating the chosen model")
+    report = base_report(session, base)
+    fit_stats = {
+        "samples_used": report["samples"]["used"],
+        "plateaus": report["plateaus"],
+        "training_rms_dps": report["training"]["rms_dps"],
+        "training_max_dps": report["training"]["max_dps"],
+        "held_out_rms_dps": report["held_out"]["rms_dps"],
+        "held_out_max_dps": report["held_out"]["max_dps"],
+    }
+    cset = CoefficientSet(
+        sensor_id=sensor_id,
+        axis=axis,
+        v0=base.v0,
+        model=model_dict(base.fitted, base.v0),
+        fit=fit_stats,
+        created=dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        raw_units=raw_units,
+    )
+    return CalibrationResult(cset, report, base)

@@ -1,0 +1,27 @@
+"""The paper's three calibration models, each a fitter returning a run-time model.
+
+* :mod:`~canical.models.forward_poly` — ΔV(ω) as one polynomial (eq. 5), inverted numerically;
+* :mod:`~canical.models.segmented_linear` — the common model (eq. 6), linear per rate segment;
+* :mod:`~canical.models.segmented_inverse` — the improved model (eqs. 10, 11), ω(ΔV) per segment.
+
+A run-time model maps ΔV to ω, vectorised (:meth:`RateModel.evaluate`) and one
+sample at a time (:meth:`RateModel.evaluate_one`, the daemon's per-frame path).
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+MODEL_KINDS = ("segmented-inverse", "segmented-linear", "forward-poly")
+
+
+class RateModel(Protocol):
+    """ΔV → ω, with a flag for values outside the calibrated span."""
+
+    span: tuple[float, float]
+
+    def evaluate(self, dv: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def evaluate_one(self, dv: float) -> tuple[float, bool]: ...

@@ -1,0 +1,88 @@
+"""The improved model (paper eqs. 10, 11): ω as a polynomial of ΔV in each segment.
+
+Fitting ω(ΔV) directly means the run time needs no inverse. Beyond the paper,
+the segments can be joined: with ``smoothness=0`` the fitted polynomials agree
+at every segment point (C0), with ``smoothness=1`` their slopes agree too (C1).
+That is a constrained least-squares problem; we solve it in the null space of
+the constraint matrix, so every solution satisfies the joins exactly and the
+remaining freedom is fitted by ordinary weighted least squares. ``smoothness=None``
+fits each segment on its own, as the paper does.
+
+Extra design columns (effect terms of the closed loop) can be fitted jointly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import null_space
+
+from canical.piecewise import PiecewisePoly
+
+
+@dataclass(frozen=True)
+class SegmentedFit:
+    """A fitted piecewise polynomial and the coefficients of any extra columns."""
+
+    poly: PiecewisePoly
+    extra: np.ndarray
+
+
+def design(dv: np.ndarray, knots: np.ndarray, order: int, scale: float) -> np.ndarray:
+    """Block design matrix: the powers of u fill the columns of each point's segment."""
+    n_seg = len(knots) + 1
+    seg = np.searchsorted(knots, dv, side="right")
+    powers = np.vander(dv / scale, order + 1, increasing=True)
+    a = np.zeros((len(dv), n_seg * (order + 1)))
+    cols = seg[:, None] * (order + 1) + np.arange(order + 1)
+    np.put_along_axis(a, cols, powers, axis=1)
+    return a
+
+
+def join_constraints(knots: np.ndarray, order: int, scale: float, smoothness: int) -> np.ndarray:
+    """Rows C such that C @ coeffs = 0 makes neighbouring segments agree at each knot."""
+    n_seg = len(knots) + 1
+    width = order + 1
+    rows = []
+    for j, knot in enumerate(knots):
+        u = knot / scale
+        for d in range(min(smoothness, order) + 1):
+            # d-th derivative of u**k at u: k!/(k-d)! u**(k-d)
+            vals = np.array(
+                [np.prod(np.arange(k - d + 1, k + 1)) * u ** (k - d) if k >= d else 0.0 for k in range(width)]
+            )
+            row = np.zeros(n_seg * width)
+            row[j * width : (j + 1) * width] = vals
+            row[(j + 1) * width : (j + 2) * width] = -vals
+            rows.append(row)
+    return np.array(rows).reshape(len(rows), n_seg * width)
+
+
+def fit_segmented_inverse(
+    dv: np.ndarray,
+    rate: np.ndarray,
+    weight: np.ndarray,
+    knots: np.ndarray,
+    order: int,
+    *,
+    scale: float,
+    span: tuple[float, float],
+    smoothness: int | None = 0,
+    extra: np.ndarray | None = None,
+) -> SegmentedFit:
+    """Weighted least-squares fit of ω(ΔV) per segment, optionally joined and with extra columns."""
+    knots = np.sort(np.asarray(knots, dtype=float))
+    a = design(dv, knots, order, scale)
+    n_base = a.shape[1]
+    basis = np.eye(n_base)
+    if smoothness is not None and len(knots):
+        basis = null_space(join_constraints(knots, order, scale, smoothness))
+    x = a @ basis
+    if extra is not None and extra.size:
+        x = np.hstack([x, extra])
+    sw = np.sqrt(np.asarray(weight, dtype=float))
+    solution, *_ = np.linalg.lstsq(x * sw[:, None], rate * sw, rcond=None)
+    coeffs = basis @ solution[: basis.shape[1]]
+    poly = PiecewisePoly(knots, coeffs.reshape(len(knots) + 1, order + 1), scale, span)
+    return SegmentedFit(poly, solution[basis.shape[1] :])

@@ -1,0 +1,47 @@
+"""A calibration session as plain data: what the rate table and the sensor recorded.
+
+One row per sample. ``ref_dps`` is the table's rate (absent when the data comes
+from the field, where there is no reference); ``raw`` is the sensor output for
+the calibrated axis before any correction; ``aux`` holds every other numeric
+channel by its column name, whose meaning the calibrator is not told.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Session:
+    """Samples of one axis, in time order."""
+
+    time_s: np.ndarray
+    raw: np.ndarray
+    ref_dps: np.ndarray | None = None
+    aux: dict[str, np.ndarray] = field(default_factory=dict)
+    meta: dict[str, str] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.raw.shape[0])
+
+    @property
+    def sensor_id(self) -> str | None:
+        """The sensor's identifier when the recording declares one."""
+        return self.meta.get("sensor")
+
+    @property
+    def axis(self) -> str | None:
+        """The recorded axis when the recording declares it."""
+        return self.meta.get("axis")
+
+    def take(self, index: np.ndarray) -> Session:
+        """The samples selected by a boolean mask or index array."""
+        return Session(
+            time_s=self.time_s[index],
+            raw=self.raw[index],
+            ref_dps=None if self.ref_dps is None else self.ref_dps[index],
+            aux={name: values[index] for name, values in self.aux.items()},
+            meta=dict(self.meta),
+        )

@@ -1,0 +1,91 @@
+"""A single-axis MEMS gyro model, output in raw counts.
+
+The scale factor is nonlinear the way real parts are: a smooth difference
+between positive and negative rates (drive/sense asymmetry), plus quadratic and
+cubic terms from structure and electronics, plus a gentle ripple. Dynamics are a
+first-order low-pass (the sensor's bandwidth); output is noisy, quantised and
+clipped at the converter's rails.
+
+Effects the calibrator is not told about (temperature, warm-up, supply,
+direction...) plug in as :class:`Effect` objects: each adds a rate error and a
+relative scale-factor error computed from the time, the true rate and the
+auxiliary channels of the environment.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from scipy.signal import lfilter
+
+
+class Effect(Protocol):
+    """Something the sensor does that the declared model does not know about."""
+
+    def errors(
+        self, time_s: np.ndarray, rate_dps: np.ndarray, aux: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(additive rate error in deg/s, relative scale-factor error) per sample."""
+        ...
+
+
+@dataclass(frozen=True)
+class GyroModel:
+    """Parameters of the simulated sensor."""
+
+    sensitivity: float = 400.0  # counts per deg/s
+    bias_counts: float = 37.0  # zero bias V0
+    asymmetry: float = 0.03  # relative scale difference, positive vs negative rates
+    asymmetry_width_dps: float = 6.0  # how smoothly the asymmetry sets in around 0
+    quadratic: float = 0.015  # relative ΔV error at full scale, even part
+    cubic: float = -0.035  # relative ΔV error at full scale, odd part
+    ripple: float = 0.0  # relative sinusoidal nonlinearity
+    ripple_period_dps: float = 40.0
+    full_scale_dps: float = 60.0
+    noise_dps: float = 0.08  # white noise per sample, deg/s rms
+    bandwidth_hz: float = 40.0
+    lsb: float = 1.0  # quantisation step, counts
+    rail_counts: float = 32767.0
+    effects: tuple[Effect, ...] = field(default_factory=tuple)
+
+    def transfer(self, rate_dps: np.ndarray) -> np.ndarray:
+        """Static ΔV(ω) in counts, without noise: the curve calibration must invert."""
+        w = np.asarray(rate_dps, dtype=float)
+        x = w / self.full_scale_dps
+        shape = (
+            w * (1.0 + self.asymmetry * np.tanh(w / self.asymmetry_width_dps))
+            + self.full_scale_dps * (self.quadratic * x**2 + self.cubic * x**3)
+            + self.full_scale_dps * self.ripple * np.sin(2 * np.pi * w / self.ripple_period_dps)
+        )
+        return self.sensitivity * shape
+
+    def output(
+        self,
+        time_s: np.ndarray,
+        rate_dps: np.ndarray,
+        *,
+        aux: dict[str, np.ndarray] | None = None,
+        rng: np.random.Generator | None = None,
+        fs_hz: float | None = None,
+    ) -> np.ndarray:
+        """Raw counts for a table rate history."""
+        rng = rng if rng is not None else np.random.default_rng(0)
+        aux = aux or {}
+        w = np.asarray(rate_dps, dtype=float)
+        if fs_hz is None:
+            fs_hz = 1.0 / float(np.median(np.diff(time_s))) if len(time_s) > 1 else 200.0
+        alpha = 1.0 - np.exp(-2 * np.pi * self.bandwidth_hz / fs_hz)
+        sensed = lfilter([alpha], [1.0, alpha - 1.0], w, zi=[w[0] * (1 - alpha)])[0] if len(w) else w
+        bias = np.zeros_like(w)
+        scale = np.ones_like(w)
+        for effect in self.effects:
+            b, s = effect.errors(time_s, sensed, aux)
+            bias = bias + b
+            scale = scale * (1.0 + s)
+        dv = self.transfer(sensed) * scale + self.sensitivity * bias
+        dv = dv + self.sensitivity * self.noise_dps * rng.standard_normal(w.shape)
+        raw = self.bias_counts + dv
+        raw = np.round(raw / self.lsb) * self.lsb
+        return np.clip(raw, -self.rail_counts - 1, self.rail_counts)

@@ -1,0 +1,64 @@
+"""Ready-made simulated sessions, as :class:`canical.session.Session` objects."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from canical.session import Session
+from canical.sim.gyro import GyroModel
+from canical.sim.rate_table import constant_profile, step_profile
+
+
+def paper_rates(step: float = 3.0, limit: float = 60.0) -> np.ndarray:
+    """−limit…limit in ``step`` increments: the paper's calibration protocol."""
+    n = int(round(2 * limit / step))
+    return np.linspace(-limit, limit, n + 1)
+
+
+def sweep_session(
+    gyro: GyroModel,
+    rates_dps: np.ndarray,
+    *,
+    dwell_s: float = 10.0,
+    fs_hz: float = 200.0,
+    seed: int = 0,
+    sensor: str = "SIM-0001",
+    axis: str = "z",
+    aux: dict[str, object] | None = None,
+) -> Session:
+    """A turntable session visiting ``rates_dps`` in order.
+
+    ``aux`` maps channel names to callables ``f(time_s, rate_dps, rng) -> values``
+    (environment signals such as a temperature); they feed the gyro's effects and
+    are recorded as auxiliary columns.
+    """
+    rng = np.random.default_rng(seed)
+    t, w = step_profile(rates_dps, dwell_s=dwell_s, fs_hz=fs_hz)
+    channels = {name: np.asarray(f(t, w, rng), dtype=float) for name, f in (aux or {}).items()}
+    raw = gyro.output(t, w, aux=channels, rng=rng, fs_hz=fs_hz)
+    return Session(t, raw, w, channels, {"sensor": sensor, "axis": axis})
+
+
+def paper_session(gyro: GyroModel | None = None, *, seed: int = 0, sweeps: int = 1, **kw) -> Session:
+    """The paper's protocol: −60…60 deg/s in 3 deg/s steps, zero plateaus included."""
+    rates = np.concatenate([paper_rates() if i % 2 == 0 else paper_rates()[::-1] for i in range(sweeps)])
+    return sweep_session(gyro or GyroModel(), rates, seed=seed, **kw)
+
+
+def between_rates_session(gyro: GyroModel | None = None, *, seed: int = 1, **kw) -> Session:
+    """Held-out plateaus midway between the protocol's rates (−58.5…58.5), plus zero."""
+    rates = paper_rates()[:-1] + 1.5
+    rates = np.sort(np.concatenate([rates, [0.0]]))
+    return sweep_session(gyro or GyroModel(), rates, seed=seed, **kw)
+
+
+def constant_session(
+    gyro: GyroModel | None, rate_dps: float, n: int = 50_000, *, fs_hz: float = 200.0, seed: int = 2,
+    sensor: str = "SIM-0001", axis: str = "z",
+) -> Session:
+    """A long constant-rate record (the paper's validation at ±25 deg/s, 50,000 samples)."""
+    gyro = gyro or GyroModel()
+    rng = np.random.default_rng(seed)
+    t, w = constant_profile(rate_dps, n, fs_hz=fs_hz)
+    raw = gyro.output(t, w, rng=rng, fs_hz=fs_hz)
+    return Session(t, raw, w, {}, {"sensor": sensor, "axis": axis})
