@@ -69,8 +69,11 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
         raise CanicalError("the session has no reference rate column: cannot calibrate")
     progress("finding plateaus")
     plateaus = detect_plateaus(
-        session.time_s, session.ref_dps,
-        rate_tol=options.rate_tol, min_duration_s=options.min_duration_s, settle_s=options.settle_s,
+        session.time_s,
+        session.ref_dps,
+        rate_tol=options.rate_tol,
+        min_duration_s=options.min_duration_s,
+        settle_s=options.settle_s,
     )
     if plateaus.count == 0:
         raise CanicalError("no constant-rate plateau found (check the ref_dps column and --ref-column)")
@@ -154,7 +157,12 @@ def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
         "plateaus": base.plateaus.count,
         "rates": int(base.points.rate_groups().max()) + 1,
         "segment_points": [
-            {"rate_dps": e.rate_dps, "raw": e.dv + base.v0, "prominence_dps": e.prominence_dps, "source": e.source}
+            {
+                "rate_dps": e.rate_dps,
+                "raw": e.dv + base.v0,
+                "prominence_dps": e.prominence_dps,
+                "source": e.source,
+            }
             for e in base.fitted.extrema
         ],
         "training": error_stats(train),

@@ -9,6 +9,7 @@ line naming what is wrong.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import zlib
@@ -160,7 +161,7 @@ def _check_model(model: dict, fail) -> None:
         raise fail("model.span_raw must be ascending [low, high]")
     if kind in PIECEWISE_KINDS:
         knots = _numbers(model, "knots_raw", fail)
-        if any(b <= a for a, b in zip(knots, knots[1:], strict=False)):
+        if any(b <= a for a, b in itertools.pairwise(knots)):
             raise fail("model.knots_raw must be strictly ascending")
         if knots and not (lo < knots[0] and knots[-1] < hi):
             raise fail("model.knots_raw must lie inside model.span_raw")

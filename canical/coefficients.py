@@ -73,7 +73,12 @@ class CoefficientSet:
 
 
 def piecewise_model_dict(
-    kind: str, poly: PiecewisePoly, v0: float, *, smoothness: int | None, segment_points_dps: list[float]
+    kind: str,
+    poly: PiecewisePoly,
+    v0: float,
+    *,
+    smoothness: int | None,
+    segment_points_dps: list[float],
 ) -> dict[str, Any]:
     """Model part of a set for a segmented model, segment points in absolute raw units."""
     return {

@@ -45,9 +45,22 @@ class FittedModel:
     extrema: list[Extremum] = field(default_factory=list)
 
 
+SPAN_MARGIN_SIGMA = 4.0
+
+
 def dv_span(points: FitPoints) -> tuple[float, float]:
-    """The calibrated ΔV span: from the lowest to the highest plateau mean."""
-    return float(np.min(points.dv)), float(np.max(points.dv))
+    """The calibrated ΔV span: the extreme plateau means widened by their sample noise.
+
+    Single samples at the extreme table rates scatter around the plateau mean;
+    without the margin half of them would be flagged out of span although the
+    rate they measure was calibrated.
+    """
+    lo, hi = int(np.argmin(points.dv)), int(np.argmax(points.dv))
+    sample_sd = points.dv_sem * np.sqrt(points.weight)
+    return (
+        float(points.dv[lo] - SPAN_MARGIN_SIGMA * sample_sd[lo]),
+        float(points.dv[hi] + SPAN_MARGIN_SIGMA * sample_sd[hi]),
+    )
 
 
 def fit_model(
@@ -64,6 +77,12 @@ def fit_model(
     scale = max(abs(span[0]), abs(span[1])) or 1.0
     if spec.kind == "forward-poly":
         model = fit_forward_poly(points.rate, points.dv, points.weight, spec.order)
+        # Widen the rate bracket by the same sample-noise margin as the ΔV span.
+        lo, hi = model.rate_span
+        slope = abs(float(np.polyfit(points.rate, points.dv, 1)[0])) or 1.0
+        margin_lo = (model.span[0] - span[0]) / slope
+        margin_hi = (span[1] - model.span[1]) / slope
+        model = replace(model, rate_span=(lo - max(margin_lo, 0.0), hi + max(margin_hi, 0.0)))
         return FittedModel(model, spec), np.zeros(0)
     if spec.kind == "segmented-linear":
         model = fit_segmented_linear(
@@ -80,8 +99,15 @@ def fit_model(
 
     def fit_with(knots: np.ndarray):
         return fit_segmented_inverse(
-            points.dv, points.rate, points.weight, knots, spec.order,
-            scale=scale, span=span, smoothness=spec.smoothness, extra=extra,
+            points.dv,
+            points.rate,
+            points.weight,
+            knots,
+            spec.order,
+            scale=scale,
+            span=span,
+            smoothness=spec.smoothness,
+            extra=extra,
         )
 
     merged = points.by_rate()

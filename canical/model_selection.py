@@ -4,7 +4,8 @@ More segments and higher orders always lower the training error; only error on
 rates the fit did not see says whether they describe the sensor or its noise.
 Each candidate size is cross-validated (segment points re-chosen inside every
 fold, since choosing them is part of the fit), and the *smallest* candidate whose
-held-out rms is within ``tolerance`` of the best wins: fewer coefficients are
+held-out rms is within one standard error of the best wins (the rms of n
+held-out errors is uncertain by about 1/sqrt(2n) of itself): fewer coefficients are
 cheaper on the device and safer between the calibrated rates. A candidate whose
 ω(ΔV) is not monotone over the span, while the data is, is never chosen.
 """
@@ -22,7 +23,6 @@ from canical.model_fit import ModelSpec, fit_model
 
 SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
 ORDER_CHOICES = (1, 2, 3)
-TOLERANCE = 0.05
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,6 @@ def select_model(
     *,
     segments: tuple[int, ...] = SEGMENT_CHOICES,
     orders: tuple[int, ...] = ORDER_CHOICES,
-    tolerance: float = TOLERANCE,
 ) -> tuple[ModelSpec, list[Candidate]]:
     """The chosen spec and every candidate tried (for the report)."""
     candidates = []
@@ -80,7 +79,8 @@ def select_model(
         raise CanicalError("no model size fits this session: too few plateau rates")
     usable = [c for c in candidates if c.monotone] if data_monotone(points) else candidates
     usable = usable or candidates
-    best = min(c.held_out.rms_dps for c in usable)
-    good = [c for c in usable if c.held_out.rms_dps <= best * (1.0 + tolerance)]
+    best = min(usable, key=lambda c: c.held_out.rms_dps)
+    tolerance = 1.0 / np.sqrt(2.0 * best.held_out.errors.size)
+    good = [c for c in usable if c.held_out.rms_dps <= best.held_out.rms_dps * (1.0 + tolerance)]
     chosen = min(good, key=lambda c: (c.n_coefficients, c.held_out.rms_dps))
     return chosen.spec, candidates

@@ -6,7 +6,8 @@ global curve departs most from the sensor and its curvature changes, so a
 segment boundary there buys the most. On real, noisy data the residual has
 wiggles from noise too. An extremum is *suitable* only when its prominence (how
 far it rises above the lower of the neighbouring troughs) exceeds
-``prominence_sigma`` standard errors of the plateau means; the most prominent
+``prominence_sigma`` standard errors of the plateau means (a prominence is a
+difference of noisy points, and a sweep offers dozens of chances for a fluke); the most prominent
 come first.
 
 When more segments are asked for than the global residual offers, the search
@@ -24,7 +25,7 @@ from scipy.signal import find_peaks
 
 from canical.fit_points import FitPoints
 
-PROMINENCE_SIGMA = 3.0
+PROMINENCE_SIGMA = 5.0
 
 
 @dataclass(frozen=True)
@@ -38,8 +39,13 @@ class Extremum:
 
 
 def residual_extrema(
-    rate: np.ndarray, dv: np.ndarray, residual: np.ndarray, noise: np.ndarray, *,
-    prominence_sigma: float = PROMINENCE_SIGMA, source: str = "global-quadratic",
+    rate: np.ndarray,
+    dv: np.ndarray,
+    residual: np.ndarray,
+    noise: np.ndarray,
+    *,
+    prominence_sigma: float = PROMINENCE_SIGMA,
+    source: str = "global-quadratic",
 ) -> list[Extremum]:
     """Interior extrema of ``residual`` over ``rate`` (sorted), most prominent first."""
     floor = prominence_sigma * float(np.median(noise)) if noise.size else 0.0
@@ -110,8 +116,12 @@ def choose_knots(
     while refit_residual is not None and len(knots) < n_segments - 1:
         resid = refit_residual(np.sort(np.array(knots)))
         cands = residual_extrema(
-            merged.rate, merged.dv, resid, noise,
-            prominence_sigma=prominence_sigma, source="segmented-residual",
+            merged.rate,
+            merged.dv,
+            resid,
+            noise,
+            prominence_sigma=prominence_sigma,
+            source="segmented-residual",
         )
         if not try_add(cands):
             break

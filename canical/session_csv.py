@@ -36,8 +36,12 @@ class CsvTable:
     first_data_line: int
 
 
-def read_table(path: str | os.PathLike[str]) -> CsvTable:
-    """Read a numeric CSV file, keeping each row's text so it can be echoed unchanged."""
+def read_table(path: str | os.PathLike[str], columns: list[str] | None = None) -> CsvTable:
+    """Read a CSV file, keeping each row's text so it can be echoed unchanged.
+
+    Only ``columns`` (all when ``None``) are parsed as numbers; the other cells
+    are not looked at, so ``canical apply`` never reads a reference column.
+    """
     name = str(path)
     try:
         text = Path(path).read_text(encoding="utf-8")
@@ -68,36 +72,43 @@ def read_table(path: str | os.PathLike[str]) -> CsvTable:
     if not rows:
         raise CanicalError(f"{name}: no data rows after the header")
     first = line_no + 2
-    columns = _parse_numeric(name, header, rows, first)
-    return CsvTable(name, meta, preamble, header, rows, columns, first)
+    wanted = header if columns is None else columns
+    for column in wanted:
+        if column not in header:
+            raise CanicalError(f"{name}: missing column {column!r} (columns: {', '.join(header)})")
+    parsed = _parse_numeric(name, header, rows, first, [header.index(c) for c in wanted])
+    return CsvTable(name, meta, preamble, header, rows, parsed, first)
 
 
-def _parse_numeric(name: str, header: list[str], rows: list[str], first: int) -> dict[str, np.ndarray]:
-    """Parse all cells as floats with numpy's fast reader; on failure, find the bad cell."""
+def _parse_numeric(
+    name: str, header: list[str], rows: list[str], first: int, usecols: list[int]
+) -> dict[str, np.ndarray]:
+    """Parse the chosen cells as floats with numpy's fast reader; on failure, find the bad cell."""
+    if not usecols:
+        return {}
     try:
-        data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2, dtype=float)
-    except ValueError:
+        data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2, dtype=float, usecols=usecols)
+    except (ValueError, IndexError):
         data = None
-    if data is None or data.shape[1] != len(header):
-        _locate_bad_cell(name, header, rows, first)
+    if data is None or data.shape[0] != len(rows):
+        _locate_bad_cell(name, header, rows, first, usecols)
         raise CanicalError(f"{name}: malformed CSV")  # pragma: no cover - locate raises
     finite = np.isfinite(data)
     if not finite.all():
         row, col = np.argwhere(~finite)[0]
         raise CanicalError(
-            f"{name}: line {first + row}, column {header[col]}: value is not finite ({data[row, col]})"
+            f"{name}: line {first + row}, column {header[usecols[col]]}: "
+            f"value is not finite ({data[row, col]})"
         )
-    return {column: data[:, i] for i, column in enumerate(header)}
+    return {header[c]: data[:, i] for i, c in enumerate(usecols)}
 
 
-def _locate_bad_cell(name: str, header: list[str], rows: list[str], first: int) -> None:
+def _locate_bad_cell(name: str, header: list[str], rows: list[str], first: int, usecols: list[int]) -> None:
     """Walk the rows to name the first cell that is not a number."""
     for offset, cells in enumerate(csv.reader(rows)):
         if len(cells) != len(header):
-            raise CanicalError(
-                f"{name}: line {first + offset}: {len(cells)} cells, header has {len(header)}"
-            )
-        for column, cell in zip(header, cells, strict=True):
+            raise CanicalError(f"{name}: line {first + offset}: {len(cells)} cells, header has {len(header)}")
+        for column, cell in ((header[c], cells[c]) for c in usecols):
             try:
                 value = float(cell)
             except ValueError:

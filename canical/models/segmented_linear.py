@@ -9,6 +9,8 @@ where the two neighbouring lines are, on average, at the chosen rate.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from canical.errors import CanicalError
@@ -31,12 +33,10 @@ def fit_segmented_linear(
     inner = [b for b in sorted(breakpoints_dps) if lo < b < hi]
     edges = [-np.inf, *inner, np.inf]
     lines = []
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
+    for a, b in itertools.pairwise(edges):
         sel = (rate >= a) & (rate <= b)
         if np.unique(rate[sel]).size < 2:
-            raise CanicalError(
-                f"segmented-linear: fewer than 2 plateau rates between {a:g} and {b:g} deg/s"
-            )
+            raise CanicalError(f"segmented-linear: fewer than 2 plateau rates between {a:g} and {b:g} deg/s")
         sw = np.sqrt(weight[sel])
         x = np.column_stack([np.ones(sel.sum()), rate[sel]])
         (k0, k), *_ = np.linalg.lstsq(x * sw[:, None], dv[sel] * sw, rcond=None)

@@ -32,7 +32,7 @@ def step_profile(
             segments_t.append(tt)
             segments_w.append(current + (target - current) * frac)
             t += n_ramp * dt
-        n_dwell = int(round(dwell_s * fs_hz))
+        n_dwell = round(dwell_s * fs_hz)
         segments_t.append(t + dt * np.arange(n_dwell))
         segments_w.append(np.full(n_dwell, target))
         t += n_dwell * dt

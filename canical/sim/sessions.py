@@ -11,7 +11,7 @@ from canical.sim.rate_table import constant_profile, step_profile
 
 def paper_rates(step: float = 3.0, limit: float = 60.0) -> np.ndarray:
     """−limit…limit in ``step`` increments: the paper's calibration protocol."""
-    n = int(round(2 * limit / step))
+    n = round(2 * limit / step)
     return np.linspace(-limit, limit, n + 1)
 
 
@@ -53,8 +53,14 @@ def between_rates_session(gyro: GyroModel | None = None, *, seed: int = 1, **kw)
 
 
 def constant_session(
-    gyro: GyroModel | None, rate_dps: float, n: int = 50_000, *, fs_hz: float = 200.0, seed: int = 2,
-    sensor: str = "SIM-0001", axis: str = "z",
+    gyro: GyroModel | None,
+    rate_dps: float,
+    n: int = 50_000,
+    *,
+    fs_hz: float = 200.0,
+    seed: int = 2,
+    sensor: str = "SIM-0001",
+    axis: str = "z",
 ) -> Session:
     """A long constant-rate record (the paper's validation at ±25 deg/s, 50,000 samples)."""
     gyro = gyro or GyroModel()

@@ -1,0 +1,41 @@
+"""The ``canical`` command line: one module per command under :mod:`canical.commands`.
+
+A :class:`~canical.errors.CanicalError` (bad input the user can fix) is printed
+as one line on stderr with exit status 2; anything else is a bug and keeps its
+traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from canical import __version__
+from canical.commands import COMMANDS
+from canical.errors import CanicalError
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="canical",
+        description="Scale-factor calibration of MEMS gyroscopes on the CAN bus.",
+    )
+    parser.add_argument("--version", action="version", version=f"canical {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in COMMANDS:
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.run(args) or 0)
+    except CanicalError as exc:
+        print(f"canical {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_status
+    except KeyboardInterrupt:
+        print(f"canical {args.command}: interrupted", file=sys.stderr)
+        return 130

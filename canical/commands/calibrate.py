@@ -1,0 +1,134 @@
+"""``canical calibrate``: fit a session, write one coefficient set and a report."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from canical import coefficient_file
+from canical.atomic_file import write_text_atomic
+from canical.calibration import CalibrateOptions, calibrate
+from canical.errors import CanicalError
+from canical.models import MODEL_KINDS
+from canical.progress import Progress
+from canical.session_csv import read_session
+
+JOINS = {"free": None, "C0": 0, "C1": 1}
+
+
+def _auto_or_int(name: str, low: int, high: int):
+    def parse(text: str) -> int | None:
+        if text == "auto":
+            return None
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be 'auto' or a whole number") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{name} must be from {low} to {high}")
+        return value
+
+    return parse
+
+
+def add_session_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options shared by commands that read a session."""
+    parser.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
+    parser.add_argument("--ref-column", default="ref_dps", help="column with the table rate, deg/s")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("calibrate", help="fit a turntable session and write a coefficient set")
+    p.add_argument("session", help="session CSV (time_s, ref_dps, raw, auxiliary columns)")
+    p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
+    p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
+    p.add_argument(
+        "--segments",
+        type=_auto_or_int("--segments", 1, 12),
+        default=None,
+        help="number of segments, or 'auto' (held-out error) [auto]",
+    )
+    p.add_argument(
+        "--order",
+        type=_auto_or_int("--order", 1, 9),
+        default=None,
+        help="polynomial order, or 'auto' [auto]",
+    )
+    p.add_argument(
+        "--joins",
+        choices=tuple(JOINS),
+        default="C0",
+        help="continuity at segment points: free (the paper), C0, C1 [C0]",
+    )
+    p.add_argument(
+        "--breakpoints",
+        type=lambda s: tuple(float(x) for x in s.split(",")),
+        default=(-10.0, 0.0, 10.0),
+        help="segment rates of segmented-linear, deg/s",
+    )
+    p.add_argument(
+        "--no-extend",
+        action="store_true",
+        help="fit the chosen model alone, without searching for undeclared effects",
+    )
+    p.add_argument("--report", help="JSON report to write")
+    p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
+    p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
+    add_session_arguments(p)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    progress = Progress("calibrate", 1)
+    progress.step(f"reading {args.session}")
+    session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column)
+    sensor = args.sensor or session.sensor_id
+    if args.sensor and session.sensor_id and args.sensor != session.sensor_id:
+        raise CanicalError(f"--sensor {args.sensor} but {args.session} was recorded from {session.sensor_id}")
+    if not sensor:
+        print(
+            "calibrate: no sensor id given (--sensor) or recorded; using 'unspecified'",
+            file=sys.stderr,
+        )
+        sensor = "unspecified"
+    options = CalibrateOptions(
+        model=args.model,
+        segments=args.segments,
+        order=args.order,
+        smoothness=JOINS[args.joins],
+        breakpoints_dps=args.breakpoints,
+    )
+    result = calibrate(
+        session,
+        options,
+        sensor_id=sensor,
+        axis=args.axis or session.axis or "z",
+        progress=progress.step,
+    )
+    report = {"session": str(args.session), "coefficients": str(args.output), **result.report}
+    coefficient_file.save(args.output, result.coefficients)
+    if args.report:
+        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
+    print(summary(report))
+    return 0
+
+
+def summary(report: dict) -> str:
+    """A few lines a calibration engineer reads first."""
+    s = report["samples"]
+    lines = [
+        f"model      {report['spec']}",
+        f"samples    {s['used']} of {s['total']} used "
+        f"({s['transition']} at changing rate, {s['settling']} settling), {report['plateaus']} plateaus",
+        f"V0         {report['v0']:.3f}",
+    ]
+    if report["segment_points"]:
+        pts = ", ".join(f"{p['rate_dps']:g}" for p in report["segment_points"])
+        lines.append(f"segments   at {pts} deg/s")
+    tr, ho = report["training"], report["held_out"]
+    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s")
+    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s")
+    lines.append(f"wrote      {Path(report['coefficients'])}")
+    return "\n".join(lines)

@@ -1,0 +1,90 @@
+"""Judge calibrations on data they were not fitted to: the paper's comparisons.
+
+* :func:`compare_models` — each model fitted on a training session, judged on the
+  plateau means of a second session at other rates (the paper's Fig. 2 question);
+* :func:`validation_record` — the paper's Fig. 3 test: a long record at one rate,
+  smoothed by a sliding mean, corrected sample by sample.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from canical.calibration import CalibrateOptions, fit_base
+from canical.cross_validation import prediction_errors
+from canical.fit_points import FitPoints, fit_points
+from canical.plateaus import detect_plateaus
+from canical.session import Session
+
+# The models the paper discusses, and ours: (label, options).
+PAPER_MODELS: tuple[tuple[str, CalibrateOptions], ...] = (
+    ("forward-poly (eq. 5, order 3)", CalibrateOptions(model="forward-poly", order=3)),
+    ("segmented-linear (eq. 6, 0, ±10 deg/s)", CalibrateOptions(model="segmented-linear")),
+    (
+        "segmented-inverse (eq. 11, 4 seg, quadratic)",
+        CalibrateOptions(segments=4, order=2, smoothness=None),
+    ),
+    ("segmented-inverse, C0 joins, auto size", CalibrateOptions()),
+)
+
+
+@dataclass(frozen=True)
+class ModelScore:
+    label: str
+    spec: str
+    train_rms_dps: float
+    test_rms_dps: float
+    test_max_dps: float
+    model: object
+    v0: float
+
+
+def held_out_points(session: Session, v0: float) -> FitPoints:
+    """Plateau means of an evaluation session, with the training session's V0."""
+    plateaus = detect_plateaus(session.time_s, session.ref_dps)
+    return fit_points(session.raw, v0, plateaus)
+
+
+def compare_models(train: Session, test: Session, models=PAPER_MODELS) -> list[ModelScore]:
+    """Fit each model on ``train``, score it on the plateaus of ``test``."""
+    scores = []
+    for label, options in models:
+        base = fit_base(train, options)
+        test_points = held_out_points(test, base.v0)
+        e_train = prediction_errors(base.fitted.model, base.points)
+        e_test = prediction_errors(base.fitted.model, test_points)
+        scores.append(
+            ModelScore(
+                label,
+                base.fitted.spec.describe(),
+                float(np.sqrt(np.mean(e_train**2))),
+                float(np.sqrt(np.mean(e_test**2))),
+                float(np.max(np.abs(e_test))),
+                base.fitted.model,
+                base.v0,
+            )
+        )
+    return scores
+
+
+def sliding_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean over a sliding window (fully covered positions only)."""
+    kernel = np.full(window, 1.0 / window)
+    return np.convolve(values, kernel, mode="valid")
+
+
+@dataclass(frozen=True)
+class ValidationResult:
+    rate_dps: float
+    mean_error_dps: float
+    std_dps: float
+
+
+def validation_record(model, v0: float, record: Session, window: int = 100) -> ValidationResult:
+    """Smooth the raw record, correct every sample, and compare with the table rate."""
+    smoothed = sliding_mean(record.raw, window)
+    rate, _ = model.evaluate(smoothed - v0)
+    true = float(np.median(record.ref_dps))
+    return ValidationResult(true, float(np.mean(rate) - true), float(np.std(rate)))
