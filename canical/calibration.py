@@ -23,7 +23,7 @@ from canical.model_fit import FittedModel, ModelSpec, fit_model
 from canical.model_selection import select_model
 from canical.models.forward_poly import ForwardPoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
-from canical.plateaus import Plateaus, detect_plateaus
+from canical.plateaus import Plateaus, detect_plateaus, saturated
 from canical.segment_points import rate_noise
 from canical.session import Session
 from canical.zero_bias import zero_bias
@@ -51,8 +51,9 @@ class BaseFit:
 
     plateaus: Plateaus
     v0: float
-    points: FitPoints
+    points: FitPoints  # unsaturated plateaus only
     fitted: FittedModel
+    saturated_rates: tuple[float, ...] = ()
     candidates: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -78,14 +79,19 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
     if plateaus.count == 0:
         raise CanicalError("no constant-rate plateau found (check the ref_dps column and --ref-column)")
     v0 = zero_bias(session.raw, plateaus)
-    points = fit_points(session.raw, v0, plateaus)
+    clipped = saturated(session.raw, plateaus)
+    points = fit_points(session.raw, v0, plateaus).take(~clipped)
+    if clipped.any():
+        rates = ", ".join(f"{r:g}" for r in np.unique(plateaus.rate_dps[clipped]))
+        progress(f"left out {int(clipped.sum())} plateaus where the sensor saturates ({rates} deg/s)")
     n_rates = int(points.rate_groups().max()) + 1
     if n_rates < 4:
         raise CanicalError(f"only {n_rates} distinct plateau rates: at least 4 are needed to calibrate")
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
     spec, candidates = _choose_spec(points, options)
     fitted, _ = fit_model(points, spec)
-    return BaseFit(plateaus, v0, points, fitted, candidates)
+    sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
+    return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates)
 
 
 def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, list[dict[str, Any]]]:
@@ -155,6 +161,7 @@ def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
             "settling": base.plateaus.n_settling,
         },
         "plateaus": base.plateaus.count,
+        "saturated_rates_dps": list(base.saturated_rates),
         "rates": int(base.points.rate_groups().max()) + 1,
         "segment_points": [
             {

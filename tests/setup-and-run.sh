@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Install what the tests need on a fresh machine, then lint and run the whole suite.
+# Debian packages (user-mode Linux for the vcan tests, systemd for unit checks) are
+# installed with apt-get when running as root and missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+need=()
+command -v linux.uml >/dev/null 2>&1 || need+=(user-mode-linux)
+command -v insmod >/dev/null 2>&1 || need+=(kmod)
+command -v ip >/dev/null 2>&1 || need+=(iproute2)
+command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
+command -v cc >/dev/null 2>&1 || need+=(gcc libc6-dev)
+if [ "${#need[@]}" -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then
+    echo "installing Debian packages: ${need[*]}"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq >/dev/null
+    apt-get install -y -qq --no-install-recommends "${need[@]}" >/dev/null
+  else
+    echo "warning: not root, cannot apt-get install ${need[*]}" >&2
+  fi
+fi
+
+python3 -m pip install -q --disable-pip-version-check -e '.[test]'
+ruff check canical tests
+python3 -m pytest -q -p no:cacheprovider "$@"
