@@ -22,8 +22,7 @@ from canical.atomic_file import write_text_atomic
 from canical.coefficients import PIECEWISE_KINDS, SCHEMA_VERSION, CoefficientSet, finite
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
-
-TERM_KINDS = ("channel", "time", "direction")
+from canical.terms import term_from_dict
 
 
 def canonical_bytes(content: dict[str, Any]) -> bytes:
@@ -116,9 +115,14 @@ def from_content(content: Any, source: str) -> CoefficientSet:
     if not isinstance(terms, list):
         raise fail("terms must be a list")
     for i, term in enumerate(terms):
-        if not isinstance(term, dict) or term.get("kind") not in TERM_KINDS:
-            kind = term.get("kind") if isinstance(term, dict) else term
-            raise fail(f"terms[{i}]: kind {kind!r} not supported by this canical version")
+        if not isinstance(term, dict):
+            raise fail(f"terms[{i}] must be a mapping")
+        try:
+            term_from_dict(term, f"terms[{i}]")
+        except ValueError as exc:
+            raise fail(str(exc)) from None
+    if terms and model.get("kind") not in PIECEWISE_KINDS:
+        raise fail("effect terms need a segmented model")
     fit = content.get("fit", {})
     if not isinstance(fit, dict):
         raise fail("fit must be a mapping")

@@ -3,6 +3,11 @@
 Built once from a validated set (everything that can be computed at load is
 computed here), then called per block of samples (``correct``) or per frame
 (``correct_one``). It never sees a reference rate: in the field there is none.
+
+Effect terms add to the model's rate (see :mod:`canical.terms`). A direction
+term has state, so one Corrector serves one stream of samples in time order;
+``correct`` on a block starts from a fresh state, exactly as ``correct_one``
+does on a new Corrector, so the two agree sample for sample.
 """
 
 from __future__ import annotations
@@ -13,28 +18,69 @@ import numpy as np
 
 from canical.coefficient_file import set_crc
 from canical.coefficients import CoefficientSet
+from canical.errors import CanicalError
+from canical.terms import DirectionTracker, Term, feature_values, term_from_dict
 
 
 class Corrector:
-    """ΔV = raw − V0 → ω through the set's rate model."""
+    """ΔV = raw − V0 → ω through the set's rate model, plus its effect terms."""
 
     def __init__(self, cset: CoefficientSet) -> None:
         self.cset = cset
         self.v0 = float(cset.v0)
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
+        self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
+        self.term_scale = float(getattr(self.model, "scale", 1.0))
+        names = [t.input_name for t in self.terms if t.input_name]
+        self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
+        self._trackers = [
+            DirectionTracker(t.threshold_raw or 1.0) if t.kind == "direction" else None for t in self.terms
+        ]
 
-    @property
-    def required_inputs(self) -> tuple[str, ...]:
-        """Auxiliary inputs (by name) the set's terms need at run time."""
-        return ()
+    def reset(self) -> None:
+        """Forget the direction state (a new stream of samples begins)."""
+        self._trackers = [
+            DirectionTracker(t.threshold_raw or 1.0) if t.kind == "direction" else None for t in self.terms
+        ]
 
     def correct(
         self, raw: np.ndarray, inputs: Mapping[str, np.ndarray] | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
         """Calibrated rate (deg/s) and out-of-span flags for a block of samples in time order."""
-        return self.model.evaluate(np.asarray(raw, dtype=float) - self.v0)
+        raw = np.asarray(raw, dtype=float)
+        inputs = inputs or {}
+        missing = [n for n in self.required_inputs if n not in inputs]
+        if missing:
+            raise CanicalError(f"the coefficient set needs input(s) {', '.join(missing)}")
+        dv = raw - self.v0
+        rate, oos = self.model.evaluate(dv)
+        for term in self.terms:
+            x = feature_values(term, inputs, raw)
+            if term.form == "scale":
+                x = x * (dv / self.term_scale)
+            rate = rate + term.coefficient * x
+        return rate, oos
 
     def correct_one(self, raw: float, inputs: Mapping[str, float] | None = None) -> tuple[float, bool]:
-        """Calibrated rate and out-of-span flag for one sample."""
-        return self.model.evaluate_one(float(raw) - self.v0)
+        """Calibrated rate and out-of-span flag for the next sample of the stream."""
+        raw = float(raw)
+        dv = raw - self.v0
+        rate, oos = self.model.evaluate_one(dv)
+        for term, tracker in zip(self.terms, self._trackers, strict=True):
+            if tracker is not None:
+                x = tracker.update(raw)
+            else:
+                value = float(inputs[term.input_name])  # type: ignore[index]
+                if term.kind == "channel":
+                    x = value - term.reference
+                    if term.feature == "square":
+                        x = x * x
+                elif term.feature == "warmup":
+                    x = 1.0 - np.exp(-value / term.tau_s)  # type: ignore[operator]
+                else:
+                    x = value
+            if term.form == "scale":
+                x = x * dv / self.term_scale
+            rate += term.coefficient * x
+        return rate, oos

@@ -1,0 +1,154 @@
+"""Effect terms: what the closed loop adds to a rate model, evaluated at run time.
+
+A term turns something the vehicle can provide into a feature x, and adds it
+to the rate either as a bias (ω += c·x) or on the scale factor (ω += c·x·u,
+u = ΔV/scale, i.e. a relative gain error proportional to x). Features:
+
+* ``channel`` — an auxiliary signal by name, minus its reference value:
+  ``offset`` x = v − ref, ``square`` x = (v − ref)²;
+* ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
+  ``linear`` x = t;
+* ``direction`` — the direction of the last significant change of the raw output
+  (x = +1 after a rise, −1 after a fall, 0 before either), a hysteresis tracker
+  with a threshold in raw units. It has state, so samples must come in time order.
+
+Terms are plain dicts in the coefficient file (see :data:`TERM_FIELDS`); this
+module validates them and evaluates them, vectorised or one sample at a time.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+TIME_INPUT = "time_s"
+FEATURES = {"channel": ("offset", "square"), "time": ("warmup", "linear"), "direction": ("sign",)}
+FORMS = ("bias", "scale")
+TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw")
+
+
+@dataclass(frozen=True)
+class Term:
+    """One validated term."""
+
+    kind: str
+    feature: str
+    form: str
+    coefficient: float
+    channel: str | None = None
+    reference: float = 0.0
+    tau_s: float | None = None
+    threshold_raw: float | None = None
+
+    @property
+    def input_name(self) -> str | None:
+        """The run-time input this term reads (None: derived from raw alone)."""
+        if self.kind == "channel":
+            return self.channel
+        if self.kind == "time":
+            return TIME_INPUT
+        return None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "channel": self.channel,
+            "feature": self.feature,
+            "form": self.form,
+            "coefficient": self.coefficient,
+            "reference": self.reference,
+            "tau_s": self.tau_s,
+            "threshold_raw": self.threshold_raw,
+        }
+
+
+def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
+    """Validate a term dict; raises ValueError with a message naming the field."""
+    kind = d.get("kind")
+    if kind not in FEATURES:
+        raise ValueError(f"{where}: kind {kind!r} not supported by this canical version")
+    feature = d.get("feature")
+    if feature not in FEATURES[kind]:
+        raise ValueError(
+            f"{where}: feature {feature!r} not valid for kind {kind} ({', '.join(FEATURES[kind])})"
+        )
+    form = d.get("form")
+    if form not in FORMS:
+        raise ValueError(f"{where}: form {form!r} must be bias or scale")
+
+    def number(key: str, required: bool = False, positive: bool = False) -> float | None:
+        v = d.get(key)
+        if v is None and not required:
+            return None
+        if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+            raise ValueError(f"{where}: {key} must be a finite number")
+        if positive and v <= 0:
+            raise ValueError(f"{where}: {key} must be positive")
+        return float(v)
+
+    channel = d.get("channel")
+    if kind == "channel" and (not isinstance(channel, str) or not channel):
+        raise ValueError(f"{where}: channel must name an input")
+    tau = number("tau_s", required=feature == "warmup", positive=True)
+    threshold = number("threshold_raw", required=kind == "direction", positive=True)
+    return Term(
+        kind=kind,
+        feature=feature,
+        form=form,
+        coefficient=number("coefficient", required=True),  # type: ignore[arg-type]
+        channel=channel if kind == "channel" else None,
+        reference=number("reference") or 0.0,
+        tau_s=tau,
+        threshold_raw=threshold,
+    )
+
+
+def feature_values(term: Term, inputs: Mapping[str, np.ndarray], raw: np.ndarray) -> np.ndarray:
+    """The term's feature x for a block of samples in time order (fresh direction state)."""
+    if term.kind == "direction":
+        return direction_state(raw, term.threshold_raw or 1.0)
+    values = np.asarray(inputs[term.input_name], dtype=float)
+    if term.kind == "channel":
+        x = values - term.reference
+        return x * x if term.feature == "square" else x
+    if term.feature == "warmup":
+        return 1.0 - np.exp(-values / term.tau_s)
+    return values
+
+
+def direction_state(raw: np.ndarray, threshold: float, state: DirectionTracker | None = None) -> np.ndarray:
+    """+1/−1/0 per sample: the direction of the last change of ``raw`` larger than ``threshold``."""
+    tracker = state or DirectionTracker(threshold)
+    out = np.empty(len(raw))
+    for i, v in enumerate(np.asarray(raw, dtype=float).tolist()):
+        out[i] = tracker.update(v)
+    return out
+
+
+class DirectionTracker:
+    """Hysteresis on the raw signal: flips only after a move of ``threshold`` from the last extreme."""
+
+    __slots__ = ("high", "low", "state", "threshold")
+
+    def __init__(self, threshold: float) -> None:
+        self.threshold = float(threshold)
+        self.state = 0.0
+        self.low = math.inf
+        self.high = -math.inf
+
+    def update(self, value: float) -> float:
+        if value > self.high:
+            self.high = value
+        if value < self.low:
+            self.low = value
+        if self.state <= 0.0 and value - self.low > self.threshold:
+            self.state = 1.0
+            self.high = value
+        elif self.state >= 0.0 and self.high - value > self.threshold:
+            self.state = -1.0
+            self.low = value
+        return self.state
