@@ -1,0 +1,178 @@
+"""The IMU's CANopen object dictionary, as the EDS file declares it.
+
+The EDS (``services/canical-imu.eds``, shipped as package data) is the one
+place that fixes indexes and types: this module loads it and finds every
+manufacturer-specific object by its ParameterName, so the emulated device, the
+download tool and the daemon cannot disagree on an offset. What an EDS cannot
+say (store/restore signatures, the bit layout of the active-bank selector, the
+abort codes the device answers with, how a serial number names a sensor) is
+defined here, once, for both sides.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import canopen
+
+from canical.errors import CanicalError
+
+EDS_NAME = "canical-imu.eds"
+AXES = ("x", "y", "z")
+BANKS = ("A", "B")
+BANK_NONE = 0  # selector value: no set active for the axis
+BITS_PER_AXIS = 2
+
+#: CiA 301 signatures: "save" / "load" as little-endian UNSIGNED32.
+STORE_SIGNATURE = int.from_bytes(b"save", "little")
+RESTORE_SIGNATURE = int.from_bytes(b"load", "little")
+
+# Bank status (sub-index "Status" of each bank record).
+STATUS_EMPTY = 0
+STATUS_VALID = 1
+STATUS_CRC_MISMATCH = 2
+STATUS_REFUSED = 3
+STATUS_TEXT = {
+    STATUS_EMPTY: "empty",
+    STATUS_VALID: "valid",
+    STATUS_CRC_MISMATCH: "CRC mismatch",
+    STATUS_REFUSED: "content refused",
+}
+
+# SDO abort codes the device answers its refusals with (CiA 301 meanings).
+ABORT_REFUSED = 0x08000020  # data cannot be stored: the bank's content or CRC does not check out
+ABORT_DEVICE_STATE = 0x08000022  # not now: the bank is active, or another download holds the lock
+ABORT_TOO_LONG = 0x06070012  # content longer than the bank's capacity
+ABORT_VALUE_RANGE = 0x06090030  # selector or signature value not allowed
+ABORT_NO_DATA = 0x08000024  # an empty bank read
+
+
+def sensor_id_for_serial(serial: int) -> str:
+    """The ``sensor.id`` a coefficient set must carry for the device with this serial number.
+
+    The rule is the serial number (0x1018 sub 4) as plain decimal text, so the
+    id printed on the sensor's label, read over SDO and written in the YAML agree.
+    """
+    return str(int(serial))
+
+
+def eds_path() -> Path:
+    """The EDS file shipped inside the package (``services/`` links to it for deployment)."""
+    return Path(str(resources.files("canical") / "data" / EDS_NAME))
+
+
+def object_dictionary(node_id: int) -> canopen.ObjectDictionary:
+    """A fresh object dictionary for one node (COB-IDs resolved for ``node_id``)."""
+    path = eds_path()
+    if not path.is_file():
+        raise CanicalError(f"{path}: IMU EDS file missing from the installation")
+    return canopen.import_od(str(path), node_id)
+
+
+@dataclass(frozen=True)
+class BankRef:
+    """Where one bank lives: its record index and the sub-indexes of its entries."""
+
+    axis: str
+    bank: str
+    index: int
+    content: int
+    crc: int
+    status: int
+    size: int
+
+
+@dataclass(frozen=True)
+class ImuObjects:
+    """The (index, sub-index) of every object the tools use, resolved from the EDS by name."""
+
+    serial: tuple[int, int]
+    store: tuple[int, int]
+    restore: tuple[int, int]
+    capacity: tuple[int, int]
+    rated_range: dict[str, tuple[int, int]]
+    banks: dict[tuple[str, str], BankRef]
+    active_banks: tuple[int, int]
+    active_set_id: dict[str, tuple[int, int]]
+    activation_count: tuple[int, int]
+    last_refusal: tuple[int, int]
+    download_lock: tuple[int, int]
+    correction_mode: tuple[int, int]
+    stored_state: tuple[int, int]
+    tpdo_cob_ids: tuple[int, ...]
+
+    def bank(self, axis: str, bank: str) -> BankRef:
+        return self.banks[(axis, bank)]
+
+
+def _var(od: canopen.ObjectDictionary, name: str, member: str | None = None) -> tuple[int, int]:
+    obj = od[name]
+    if member is not None:
+        obj = obj[member]
+    return obj.index, obj.subindex
+
+
+@functools.cache
+def imu_objects() -> ImuObjects:
+    """Resolve the object addresses once (they do not depend on the node id)."""
+    od = object_dictionary(1)
+    banks = {}
+    for axis in AXES:
+        for bank in BANKS:
+            record = od[f"Coefficient bank {axis.upper()} {bank}"]
+            banks[(axis, bank)] = BankRef(
+                axis,
+                bank,
+                record.index,
+                record["Content"].subindex,
+                record["CRC32"].subindex,
+                record["Status"].subindex,
+                record["Size"].subindex,
+            )
+    return ImuObjects(
+        serial=_var(od, "Identity object", "Serial number"),
+        store=_var(od, "Store parameters", "Save all parameters"),
+        restore=_var(od, "Restore default parameters", "Restore all default parameters"),
+        capacity=_var(od, "Coefficient bank capacity"),
+        rated_range={a: _var(od, "Rated range", f"Rated range {a.upper()}") for a in AXES},
+        banks=banks,
+        active_banks=_var(od, "Active banks"),
+        active_set_id={a: _var(od, "Active set id", f"Active set id {a.upper()}") for a in AXES},
+        activation_count=_var(od, "Activation count"),
+        last_refusal=_var(od, "Last refusal"),
+        download_lock=_var(od, "Download lock"),
+        correction_mode=_var(od, "Correction mode"),
+        stored_state=_var(od, "Stored state"),
+        tpdo_cob_ids=tuple(od[0x1800 + i][1].default - 1 for i in range(3)),  # COB-ID base, node id 1
+    )
+
+
+def pack_active(selection: dict[str, str | None]) -> int:
+    """Active-bank selector value: ``{"x": "A", "y": None, ...}`` → one UNSIGNED8."""
+    value = 0
+    for i, axis in enumerate(AXES):
+        bank = selection.get(axis)
+        code = BANK_NONE if bank is None else BANKS.index(bank) + 1
+        value |= code << (BITS_PER_AXIS * i)
+    return value
+
+
+def unpack_active(value: int) -> dict[str, str | None]:
+    """Inverse of :func:`pack_active`; raises ValueError on a code that names no bank."""
+    if value >> (BITS_PER_AXIS * len(AXES)):
+        raise ValueError(f"active-bank value 0x{value:02x} has bits beyond the three axes")
+    out: dict[str, str | None] = {}
+    for i, axis in enumerate(AXES):
+        code = (value >> (BITS_PER_AXIS * i)) & ((1 << BITS_PER_AXIS) - 1)
+        if code > len(BANKS):
+            raise ValueError(f"active-bank value 0x{value:02x}: axis {axis} code {code} names no bank")
+        out[axis] = None if code == BANK_NONE else BANKS[code - 1]
+    return out
+
+
+def other_bank(bank: str | None) -> str:
+    """The bank a download may write: never the active one (A when none is active)."""
+    return "A" if bank in (None, "B") else "B"
