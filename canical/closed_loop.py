@@ -1,0 +1,417 @@
+"""Close the loop: find what the rate model lacks, add it, and prove it on held-out data.
+
+Starting from the fitted base model, each round scores every candidate
+explanation (auxiliary channels, warm-up, drift, direction of approach — and, as
+the competing explanation, more capacity in the base model) by the rms error on
+plateaus left out of the fit. A candidate is accepted only when
+
+* it lowers the held-out rms by at least ``MIN_GAIN`` (relative), and by two
+  standard errors of the rms estimate itself (about 1/sqrt(2·plateaus)), and
+* a nested-model F-test on the training blocks, which charges it for its extra
+  terms, rejects "no effect" at ``ALPHA`` divided by the number of candidates.
+
+The winner's terms are pruned (a column stays only if leaving it out costs held-
+out error), added, and the model is refitted jointly; rounds repeat until
+nothing passes. When another candidate explains the same residual — it passes
+alone, yet neither adds anything once the other is in — the two are reported as
+*confounded*, with the session that would separate them, and neither is added
+unless the user names one with ``prefer``: a guess would be wrong in the field.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from canical.blocks import Blocks
+from canical.effect_candidates import Candidate, build_candidates, columns, tau_grid, with_tau
+from canical.errors import CanicalError
+from canical.fit_points import FitPoints
+from canical.model_fit import ModelSpec, fit_model
+from canical.model_selection import select_model
+from canical.models.segmented_inverse import fit_segmented_inverse
+from canical.piecewise import PiecewisePoly
+from canical.terms import Term
+
+MIN_GAIN = 0.10
+ALPHA = 1e-3
+FOLDS = 5
+PRUNE_TOLERANCE = 0.02
+CONFOUND_GAIN = MIN_GAIN / 2
+
+
+@dataclass(frozen=True)
+class Structure:
+    """The model being grown: base size, segment points and effect term templates."""
+
+    spec: ModelSpec
+    knots: np.ndarray
+    scale: float
+    span: tuple[float, float]
+    terms: tuple[Term, ...] = ()
+
+
+@dataclass(frozen=True)
+class Fit:
+    poly: PiecewisePoly
+    terms: tuple[Term, ...]  # with fitted coefficients (and τ)
+
+
+def _solve(blocks: Blocks, s: Structure, terms: tuple[Term, ...]) -> tuple[PiecewisePoly, np.ndarray, float]:
+    p = blocks.points
+    fit = fit_segmented_inverse(
+        p.dv,
+        p.rate,
+        p.weight,
+        s.knots,
+        s.spec.order,
+        scale=s.scale,
+        span=s.span,
+        smoothness=s.spec.smoothness,
+        extra=columns(terms, blocks, s.scale),
+    )
+    resid = p.rate - fit.poly.evaluate(p.dv)[0] - columns(terms, blocks, s.scale) @ fit.extra
+    return fit.poly, fit.extra, float(np.sum(p.weight * resid**2))
+
+
+def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
+    """Joint least squares of base model and terms; a warm-up's τ by grid search on these blocks."""
+    terms = s.terms
+    if any(t.feature == "warmup" for t in terms):
+        best = min(tau_grid(duration_s), key=lambda tau: _solve(blocks, s, with_tau(terms, tau))[2])
+        terms = with_tau(terms, float(best))
+    poly, coef, _ = _solve(blocks, s, terms)
+    return Fit(poly, tuple(replace(t, coefficient=float(c)) for t, c in zip(terms, coef, strict=True)))
+
+
+def predict(fit: Fit, blocks: Blocks, scale: float) -> np.ndarray:
+    base = fit.poly.evaluate(blocks.points.dv)[0]
+    if not fit.terms:
+        return base
+    return base + columns(fit.terms, blocks, scale) @ np.array([t.coefficient for t in fit.terms])
+
+
+def plateau_folds(blocks: Blocks, k: int = FOLDS) -> list[np.ndarray]:
+    """Held-out masks leaving whole plateaus out, interleaved in time; the extreme rates always train."""
+    plateaus = np.unique(blocks.plateau)
+    rates = np.array([blocks.points.rate[blocks.plateau == p][0] for p in plateaus])
+    edge = np.isin(rates, [rates.min(), rates.max()])
+    inner = plateaus[~edge]
+    k = max(2, min(k, inner.size))
+    return [np.isin(blocks.plateau, inner[f::k]) for f in range(k)]
+
+
+def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], duration_s: float) -> np.ndarray:
+    errors = np.zeros(len(blocks))
+    for held in folds:
+        fit = fit_structure(blocks.take(~held), s, duration_s)
+        errors[held] = predict(fit, blocks.take(held), s.scale) - blocks.points.rate[held]
+    return errors
+
+
+def rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e**2)))
+
+
+@dataclass
+class Scorer:
+    """Held-out rms and training RSS of structures, cached by their terms and size."""
+
+    blocks: Blocks
+    folds: list[np.ndarray]
+    duration_s: float
+    cache: dict[Any, tuple[float, float, int]] = field(default_factory=dict)
+
+    def score(self, s: Structure) -> tuple[float, float, int]:
+        """(held-out rms, training RSS of plateau-mean residuals, number of coefficients)."""
+        key = (s.spec, tuple(s.knots), s.terms)
+        if key not in self.cache:
+            err = held_out_errors(self.blocks, s, self.folds, self.duration_s)
+            fit = fit_structure(self.blocks, s, self.duration_s)
+            resid = self.blocks.points.rate - predict(fit, self.blocks, s.scale)
+            n_par = (len(s.knots) + 1) * (s.spec.order + 1) + len(s.terms)
+            self.cache[key] = (rms(err), plateau_rss(self.blocks, resid), n_par)
+        return self.cache[key]
+
+    @property
+    def n_plateaus(self) -> int:
+        return int(np.unique(self.blocks.plateau).size)
+
+
+def plateau_rss(blocks: Blocks, resid: np.ndarray) -> float:
+    """Weighted RSS of per-plateau mean residuals.
+
+    Blocks of one plateau share its table-rate error and slow disturbances, so
+    they are not independent; the F-test counts plateaus, not blocks.
+    """
+    _, idx = np.unique(blocks.plateau, return_inverse=True)
+    w = np.bincount(idx, blocks.points.weight)
+    mean = np.bincount(idx, blocks.points.weight * resid) / w
+    return float(np.sum(w * mean**2))
+
+
+def f_test(small: tuple[float, float, int], big: tuple[float, float, int], n: int) -> tuple[float, float]:
+    """Nested-model F statistic and p-value (RSS from weighted least squares)."""
+    k = max(big[2] - small[2], 1)
+    dof = max(n - big[2], 1)
+    f = ((small[1] - big[1]) / k) / max(big[1] / dof, 1e-300)
+    return float(f), float(stats.f.sf(f, k, dof))
+
+
+def recommend(a: Candidate, b: Candidate) -> str:
+    """The session that would tell two confounded explanations apart."""
+    kinds = {a.kind, b.kind}
+    names = {c.kind: c for c in (a, b)}
+    if kinds == {"channel", "time"}:
+        ch = names["channel"].channel
+        return (
+            f"record a session in which {ch} does not follow time since power-on: soak the sensor "
+            f"before powering it on, then step {ch} up and down in random order"
+        )
+    if kinds == {"channel"}:
+        return f"record a session in which {a.channel} and {b.channel} are varied independently"
+    if "direction" in kinds:
+        return "record a session that approaches each rate from above and below, in random order"
+    return "record a longer session with several power cycles, so warm-up and drift separate"
+
+
+@dataclass
+class LoopResult:
+    """What the loop found, for the coefficient set, the report and the plots."""
+
+    fit: Fit
+    structure: Structure
+    blocks: Blocks
+    base_fit: Fit
+    effects: list[dict[str, Any]]
+    confounded: list[dict[str, Any]]
+    rounds: list[list[dict[str, Any]]]
+    rms_before: float
+    rms_after: float
+    errors_before: np.ndarray
+    errors_after: np.ndarray
+    capacity_changes: list[str]
+
+
+def _capacity_options(s: Structure) -> list[ModelSpec]:
+    out = [replace(s.spec, n_segments=s.spec.n_segments + 1)]
+    if s.spec.order < 4:
+        out.append(replace(s.spec, order=s.spec.order + 1))
+    return out
+
+
+def _reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
+    """Once an effect is in, choose the base size again: the effect may have hidden what it needs."""
+    fit = fit_structure(scorer.blocks, s, duration_s)
+    effect = predict(fit, scorer.blocks, s.scale) - fit.poly.evaluate(scorer.blocks.points.dv)[0]
+    p = scorer.blocks.points
+    corrected = FitPoints(p.rate - effect, p.dv, p.weight, p.dv_sem)
+    try:
+        spec, _ = select_model(corrected, s.spec)
+    except CanicalError:
+        return s
+    resized = _with_spec(scorer.blocks, s, spec, duration_s)
+    if resized is None or scorer.score(resized)[0] >= scorer.score(s)[0]:
+        return s
+    return resized
+
+
+def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float) -> Structure | None:
+    """Re-choose segment points for a new base size, on blocks corrected by the current terms."""
+    fit = fit_structure(blocks, s, duration_s)
+    effect = predict(fit, blocks, s.scale) - fit.poly.evaluate(blocks.points.dv)[0]
+    p = blocks.points
+    corrected = FitPoints(p.rate - effect, p.dv, p.weight, p.dv_sem)
+    try:
+        fitted, _ = fit_model(corrected, spec)
+    except (CanicalError, np.linalg.LinAlgError):  # a size the data cannot support: no candidate
+        return None
+    if fitted.spec.n_segments != spec.n_segments:
+        return None
+    return replace(s, spec=spec, knots=fitted.model.knots)
+
+
+def run_loop(
+    blocks: Blocks,
+    spec: ModelSpec,
+    knots: np.ndarray,
+    scale: float,
+    span: tuple[float, float],
+    duration_s: float,
+    *,
+    prefer: tuple[str, ...] = (),
+    progress=lambda _msg: None,
+) -> LoopResult:
+    """Grow the model until no candidate explanation passes; see the module docstring."""
+    folds = plateau_folds(blocks)
+    scorer = Scorer(blocks, folds, duration_s)
+    s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
+    pool = build_candidates(blocks, duration_s)
+    n_candidates = len(pool) + 2
+    alpha = ALPHA / max(n_candidates, 1)
+    min_gain = max(MIN_GAIN, 2.0 / np.sqrt(2.0 * scorer.n_plateaus))
+    base_score = scorer.score(s)
+    effects: list[dict[str, Any]] = []
+    confounded: list[dict[str, Any]] = []
+    rounds: list[list[dict[str, Any]]] = []
+    capacity_changes: list[str] = []
+    for _round in range(12):
+        current = scorer.score(s)
+        progress(f"round {len(rounds) + 1}: held-out rms {current[0]:.4f} deg/s, {len(pool)} candidates")
+        table: list[dict[str, Any]] = []
+        passing: list[tuple[float, str, Any]] = []
+        for cand in pool:
+            sc = scorer.score(replace(s, terms=s.terms + cand.terms))
+            f, p = f_test(current, sc, scorer.n_plateaus)
+            ok = sc[0] < current[0] * (1 - min_gain) and p < alpha
+            table.append({"candidate": cand.name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": ok})
+            if ok:
+                passing.append((sc[0], cand.name, cand))
+        for cap in _capacity_options(s):
+            bigger = _with_spec(blocks, s, cap, duration_s)
+            if bigger is None:
+                continue
+            sc = scorer.score(bigger)
+            f, p = f_test(current, sc, scorer.n_plateaus)
+            ok = sc[0] < current[0] * (1 - min_gain) and p < alpha
+            name = f"capacity:{cap.describe()}"
+            table.append({"candidate": name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": ok})
+            if ok:
+                passing.append((sc[0], name, bigger))
+        rounds.append(table)
+        if not passing:
+            break
+        passing.sort(key=lambda x: x[0])
+        _, best_name, best = passing[0]
+        if isinstance(best, Structure):
+            capacity_changes.append(best_name)
+            s = best
+            continue
+        effect_passing = [c for _, _, c in passing if isinstance(c, Candidate)]
+        twins, shadows = _confounded_with(scorer, s, best, effect_passing)
+        if twins:
+            chosen = next((c for c in (best, *twins) if c.name in prefer), None)
+            group = [best, *twins]
+            confounded.append(
+                {
+                    "candidates": [c.name for c in group],
+                    "weaker_alternatives": [c.name for c in shadows],
+                    "held_out_rms_dps": {
+                        c.name: scorer.score(replace(s, terms=s.terms + c.terms))[0] for c in group
+                    },
+                    "held_out_rms_before_dps": current[0],
+                    "resolved_by_user": chosen.name if chosen else None,
+                    "recommendation": recommend(best, twins[0]),
+                }
+            )
+            # Shadows explain a part of the same residual: accepting one later would be a guess too.
+            pool = [c for c in pool if c not in group and c not in shadows]
+            if chosen is None:
+                continue
+            best = chosen
+        pruned = _prune(scorer, s, best)
+        s_new = replace(s, terms=s.terms + pruned.terms)
+        after = scorer.score(s_new)
+        f, p = f_test(current, after, scorer.n_plateaus)
+        fit_now = fit_structure(blocks, s_new, duration_s)
+        effects.append(
+            {
+                "kind": best.kind,
+                "channel": best.channel,
+                "name": best.name,
+                "evidence": {
+                    "test": "leave-plateaus-out cross-validation and nested F-test",
+                    "held_out_gain": 1.0 - after[0] / current[0],
+                    "min_gain": min_gain,
+                    "f_statistic": f,
+                    "p_value": p,
+                    "alpha": alpha,
+                },
+                "terms": [t.to_dict() for t in fit_now.terms[len(s.terms) :]],
+                "rms_before_dps": current[0],
+                "rms_after_dps": after[0],
+            }
+        )
+        progress(f"accepted {best.name}: held-out rms {current[0]:.4f} -> {after[0]:.4f} deg/s")
+        s = _reselect_size(scorer, s_new, duration_s)
+        pool = [c for c in pool if c is not best]
+    s = _prune_all(scorer, s)
+    final_fit = fit_structure(blocks, s, duration_s)
+    # Effect terms in the report carry the final joint coefficients of the terms that stayed.
+    final_terms = {(t.kind, t.channel, t.feature, t.form): t for t in final_fit.terms}
+    for eff in effects:
+        keys = [(t["kind"], t["channel"], t["feature"], t["form"]) for t in eff["terms"]]
+        eff["terms"] = [final_terms[k].to_dict() for k in keys if k in final_terms]
+    effects = [e for e in effects if e["terms"]]
+    base_s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
+    return LoopResult(
+        fit=final_fit,
+        structure=s,
+        blocks=blocks,
+        base_fit=fit_structure(blocks, base_s, duration_s),
+        effects=effects,
+        confounded=confounded,
+        rounds=rounds,
+        rms_before=base_score[0],
+        rms_after=scorer.score(s)[0],
+        errors_before=held_out_errors(blocks, base_s, folds, duration_s),
+        errors_after=held_out_errors(blocks, s, folds, duration_s),
+        capacity_changes=capacity_changes,
+    )
+
+
+def _confounded_with(
+    scorer: Scorer, s: Structure, best: Candidate, passing: list[Candidate]
+) -> tuple[list[Candidate], list[Candidate]]:
+    """Passing candidates that explain the residual ``best`` explains: (twins, shadows).
+
+    A candidate that adds nothing once ``best`` is in explains (part of) the same
+    residual. It is a *twin* when ``best`` adds nothing beyond it either — the
+    data cannot tell them apart — and a *shadow* when ``best`` explains more.
+    """
+    with_best = scorer.score(replace(s, terms=s.terms + best.terms))[0]
+    twins, shadows = [], []
+    for other in passing:
+        if other is best:
+            continue
+        alone = scorer.score(replace(s, terms=s.terms + other.terms))[0]
+        both = scorer.score(replace(s, terms=s.terms + best.terms + other.terms))[0]
+        if both > with_best * (1 - CONFOUND_GAIN):
+            (twins if both > alone * (1 - CONFOUND_GAIN) else shadows).append(other)
+    return twins, shadows
+
+
+def _prune_all(scorer: Scorer, s: Structure) -> Structure:
+    """With the final base size, drop any accepted column that no longer earns its keep."""
+    terms = s.terms
+    while len(terms) > 1:
+        full = scorer.score(replace(s, terms=terms))[0]
+        trials = [
+            (scorer.score(replace(s, terms=terms[:i] + terms[i + 1 :]))[0], i) for i in range(len(terms))
+        ]
+        best_rms, i = min(trials)
+        if best_rms > full * (1 + PRUNE_TOLERANCE):
+            break
+        terms = terms[:i] + terms[i + 1 :]
+    return replace(s, terms=terms)
+
+
+def _prune(scorer: Scorer, s: Structure, cand: Candidate) -> Candidate:
+    """Drop the candidate's columns one at a time while held-out error does not suffer."""
+    terms = cand.terms
+    changed = True
+    while changed and len(terms) > 1:
+        changed = False
+        full = scorer.score(replace(s, terms=s.terms + terms))[0]
+        trials = []
+        for i in range(len(terms)):
+            fewer = terms[:i] + terms[i + 1 :]
+            trials.append((scorer.score(replace(s, terms=s.terms + fewer))[0], fewer))
+        best_rms, fewer = min(trials, key=lambda x: x[0])
+        if best_rms <= full * (1 + PRUNE_TOLERANCE):
+            terms = fewer
+            changed = True
+    return cand.with_terms(terms)

@@ -1,0 +1,97 @@
+"""Candidate explanations of a residual, built from the session itself.
+
+Every auxiliary column is a candidate by its name (its meaning is never
+assumed), and so are time since power-on (a warm-up 1 − exp(−t/τ) with τ
+estimated, and a linear drift) and the direction of approach (the raw signal's
+last significant change, up or down). Each candidate brings its terms in bias
+form (ω += c·x) and scale-factor form (ω += c·x·u); a channel also brings a
+quadratic bias. Columns that do not earn their keep are pruned after acceptance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from canical.blocks import Blocks
+from canical.terms import TIME_INPUT, Term
+
+TAU_GRID_POINTS = 24
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A named group of term templates (coefficients still to be fitted)."""
+
+    name: str
+    kind: str  # channel | time | direction
+    channel: str | None
+    terms: tuple[Term, ...]
+
+    def describe(self) -> str:
+        return self.name
+
+    def with_terms(self, terms: tuple[Term, ...]) -> Candidate:
+        return replace(self, terms=terms)
+
+
+def feature(term: Term, blocks: Blocks) -> np.ndarray:
+    """The term's feature x at each block (block means of the run-time inputs)."""
+    if term.kind == "direction":
+        return blocks.direction
+    if term.kind == "time":
+        t = blocks.time_s
+        return 1.0 - np.exp(-t / term.tau_s) if term.feature == "warmup" else t
+    x = blocks.aux[term.channel] - term.reference
+    return x * x if term.feature == "square" else x
+
+
+def column(term: Term, blocks: Blocks, scale: float) -> np.ndarray:
+    x = feature(term, blocks)
+    return x * (blocks.points.dv / scale) if term.form == "scale" else x
+
+
+def columns(terms: tuple[Term, ...], blocks: Blocks, scale: float) -> np.ndarray:
+    if not terms:
+        return np.zeros((len(blocks), 0))
+    return np.column_stack([column(t, blocks, scale) for t in terms])
+
+
+def _pair(kind: str, feature_name: str, **kw) -> tuple[Term, ...]:
+    return tuple(Term(kind=kind, feature=feature_name, form=form, coefficient=0.0, **kw)
+                 for form in ("bias", "scale"))
+
+
+def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidate]:
+    """All candidates this session can support (a channel that never varies cannot explain anything)."""
+    out: list[Candidate] = []
+    for name, values in sorted(blocks.aux.items()):
+        if np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))):
+            continue
+        ref = float(np.mean(values))
+        terms = (*_pair("channel", "offset", channel=name, reference=ref),
+                 Term(kind="channel", feature="square", form="bias", coefficient=0.0, channel=name,
+                      reference=ref))
+        out.append(Candidate(f"channel:{name}", "channel", name, terms))
+    if np.ptp(blocks.time_s) > 0:
+        tau = float(session_duration_s) / 3.0
+        out.append(Candidate("time:warm-up", "time", None, _pair("time", "warmup", tau_s=tau)))
+        out.append(Candidate("time:linear-drift", "time", None, _pair("time", "linear")))
+    if np.ptp(blocks.direction) > 0:
+        out.append(Candidate("direction", "direction", None,
+                             _pair("direction", "sign", threshold_raw=blocks.direction_threshold_raw)))
+    return out
+
+
+def tau_grid(session_duration_s: float) -> np.ndarray:
+    """Warm-up time constants worth trying: from seconds to beyond the session's length."""
+    return np.geomspace(5.0, max(10.0, 3.0 * session_duration_s), TAU_GRID_POINTS)
+
+
+def with_tau(terms: tuple[Term, ...], tau: float) -> tuple[Term, ...]:
+    return tuple(replace(t, tau_s=tau) if t.feature == "warmup" else t for t in terms)
+
+
+def uses_time(terms: tuple[Term, ...]) -> bool:
+    return any(t.input_name == TIME_INPUT for t in terms)

@@ -1,0 +1,83 @@
+"""Auxiliary channels for simulated sessions: temperatures, supply voltage, distractors.
+
+Each factory returns ``f(time_s, rate_dps, rng) -> values``, the form
+:func:`canical.sim.sessions.sweep_session` records as an auxiliary column.
+Measurement noise is added, as a real channel has it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def temperature_ramp(start_c: float = 20.0, stop_c: float = 50.0, noise_c: float = 0.05):
+    """A temperature rising steadily over the session (a chamber ramp, or self-heating)."""
+
+    def f(t, w, rng):
+        frac = (t - t[0]) / max(t[-1] - t[0], 1e-9)
+        return start_c + (stop_c - start_c) * frac + noise_c * rng.standard_normal(t.size)
+
+    return f
+
+
+def temperature_warmup(start_c: float = 22.0, rise_c: float = 15.0, tau_s: float = 300.0,
+                       noise_c: float = 0.05):
+    """Self-heating after power-on: it follows the same law as a warm-up drift (confounded)."""
+
+    def f(t, w, rng):
+        return start_c + rise_c * (1 - np.exp(-t / tau_s)) + noise_c * rng.standard_normal(t.size)
+
+    return f
+
+
+def temperature_steps(levels_c=(-10.0, 5.0, 20.0, 35.0, 50.0), period_s: float = 60.0,
+                      noise_c: float = 0.05, seed: int = 0, time_constant_s: float = 5.0):
+    """Chamber plateaus at several temperatures in random order, with a thermal lag."""
+
+    def f(t, w, rng):
+        order = np.random.default_rng(seed).permutation(np.repeat(levels_c, 1 + int(t[-1] / period_s)))
+        target = order[(t // period_s).astype(int) % order.size]
+        alpha = 1 - np.exp(-np.median(np.diff(t)) / time_constant_s)
+        out = np.empty_like(target)
+        acc = target[0]
+        for i, x in enumerate(target):
+            acc += alpha * (x - acc)
+            out[i] = acc
+        return out + noise_c * rng.standard_normal(t.size)
+
+    return f
+
+
+def supply_steps(levels_v=(4.6, 5.0, 5.4), period_s: float = 45.0, noise_v: float = 0.005, seed: int = 1):
+    """A supply voltage switched between levels in random order (a bench supply sweep)."""
+
+    def f(t, w, rng):
+        order = np.random.default_rng(seed).permutation(np.repeat(levels_v, 1 + int(t[-1] / period_s)))
+        return order[(t // period_s).astype(int) % order.size] + noise_v * rng.standard_normal(t.size)
+
+    return f
+
+
+def supply_constant(level_v: float = 5.0, noise_v: float = 0.005):
+    def f(t, w, rng):
+        return level_v + noise_v * rng.standard_normal(t.size)
+
+    return f
+
+
+def white_noise(mean: float = 0.0, sigma: float = 1.0):
+    """A channel carrying only noise (a distractor)."""
+
+    def f(t, w, rng):
+        return mean + sigma * rng.standard_normal(t.size)
+
+    return f
+
+
+def random_walk(step: float = 0.05, mean: float = 0.0):
+    """A slowly wandering channel unrelated to the sensor (a distractor that can fool a naive test)."""
+
+    def f(t, w, rng):
+        return mean + np.cumsum(step * rng.standard_normal(t.size))
+
+    return f
