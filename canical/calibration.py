@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from canical.blocks import BLOCK_S, make_blocks
+from canical.closed_loop import LoopResult, run_loop
 from canical.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
 from canical.cross_validation import cross_validate, prediction_errors
 from canical.errors import CanicalError
@@ -43,6 +45,9 @@ class CalibrateOptions:
     rate_tol: float = 0.05
     min_duration_s: float = 1.0
     settle_s: float = 0.5
+    extend: bool = True  # run the closed loop (segmented-inverse only)
+    prefer: tuple[str, ...] = ()  # candidate names to pick when confounded
+    direction_threshold_dps: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -192,6 +197,49 @@ class CalibrationResult:
     coefficients: CoefficientSet
     report: dict[str, Any]
     base: BaseFit
+    loop: LoopResult | None = None
+
+
+def extend_model(
+    session: Session, base: BaseFit, options: CalibrateOptions, progress: ProgressFn = _quiet
+) -> LoopResult:
+    """Run the closed loop on the base fit: blocks, candidates, acceptance, joint refit."""
+    model = base.fitted.model
+    slope = abs(float(np.polyfit(base.points.rate, base.points.dv, 1)[0]))
+    keep = ~saturated(session.raw, base.plateaus)
+    blocks = make_blocks(
+        session,
+        base.plateaus,
+        base.v0,
+        keep=keep,
+        direction_threshold_raw=options.direction_threshold_dps * slope,
+    )
+    duration = float(session.time_s[-1] - session.time_s[0])
+    return run_loop(
+        blocks,
+        base.fitted.spec,
+        model.knots,
+        model.scale,
+        model.span,
+        duration,
+        prefer=options.prefer,
+        progress=progress,
+    )
+
+
+def loop_report(loop: LoopResult) -> dict[str, Any]:
+    """Report fields of the closed loop: before/after on held-out plateaus, effects, confounded."""
+    return {
+        "held_out_rms_before_dps": loop.rms_before,
+        "held_out_rms_after_dps": loop.rms_after,
+        "held_out_max_before_dps": float(np.max(np.abs(loop.errors_before))),
+        "held_out_max_after_dps": float(np.max(np.abs(loop.errors_after))),
+        "method": "leave-plateaus-out cross-validation on blocks of "
+        f"{BLOCK_S:g} s, {len(loop.blocks)} blocks",
+        "final_spec": loop.structure.spec.describe(),
+        "capacity_changes": loop.capacity_changes,
+        "rounds": loop.rounds,
+    }
 
 
 def calibrate(
@@ -203,10 +251,32 @@ def calibrate(
     raw_units: str = "counts",
     progress: ProgressFn = _quiet,
 ) -> CalibrationResult:
-    """Fit the chosen model to a session and package the coefficient set with its report."""
+    """Fit the chosen model to a session (closing the loop unless told not to) and package the set."""
     base = fit_base(session, options, progress)
     progress("cross-validating the chosen model")
     report = base_report(session, base)
+    model = model_dict(base.fitted, base.v0)
+    terms: tuple[dict[str, Any], ...] = ()
+    loop = None
+    if options.extend and options.model == "segmented-inverse":
+        progress("closing the loop: searching the residual for undeclared effects")
+        loop = extend_model(session, base, options, progress)
+        spec = loop.structure.spec
+        points_dps = [
+            float(np.interp(k, base.points.by_rate().dv, base.points.by_rate().rate))
+            for k in loop.fit.poly.knots
+        ]
+        model = piecewise_model_dict(
+            spec.kind, loop.fit.poly, base.v0, smoothness=spec.smoothness, segment_points_dps=points_dps
+        )
+        terms = tuple(t.to_dict() for t in loop.fit.terms)
+        report["effects"] = loop.effects
+        report["confounded"] = loop.confounded
+        report["closed_loop"] = loop_report(loop)
+    elif options.extend:
+        report["closed_loop"] = {
+            "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
+        }
     fit_stats = {
         "samples_used": report["samples"]["used"],
         "plateaus": report["plateaus"],
@@ -215,13 +285,17 @@ def calibrate(
         "held_out_rms_dps": report["held_out"]["rms_dps"],
         "held_out_max_dps": report["held_out"]["max_dps"],
     }
+    if loop is not None:
+        fit_stats["extended_held_out_rms_dps"] = loop.rms_after
+        fit_stats["effects"] = [e["name"] for e in loop.effects]
     cset = CoefficientSet(
         sensor_id=sensor_id,
         axis=axis,
         v0=base.v0,
-        model=model_dict(base.fitted, base.v0),
+        model=model,
+        terms=terms,
         fit=fit_stats,
         created=dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         raw_units=raw_units,
     )
-    return CalibrationResult(cset, report, base)
+    return CalibrationResult(cset, report, base, loop)

@@ -267,7 +267,9 @@ def run_loop(
             sc = scorer.score(replace(s, terms=s.terms + cand.terms))
             f, p = f_test(current, sc, scorer.n_plateaus)
             ok = sc[0] < current[0] * (1 - min_gain) and p < alpha
-            table.append({"candidate": cand.name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": ok})
+            table.append(
+                {"candidate": cand.name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": bool(ok)}
+            )
             if ok:
                 passing.append((sc[0], cand.name, cand))
         for cap in _capacity_options(s):
@@ -278,7 +280,7 @@ def run_loop(
             f, p = f_test(current, sc, scorer.n_plateaus)
             ok = sc[0] < current[0] * (1 - min_gain) and p < alpha
             name = f"capacity:{cap.describe()}"
-            table.append({"candidate": name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": ok})
+            table.append({"candidate": name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": bool(ok)})
             if ok:
                 passing.append((sc[0], name, bigger))
         rounds.append(table)

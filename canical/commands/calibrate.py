@@ -10,9 +10,13 @@ from pathlib import Path
 from canical import coefficient_file
 from canical.atomic_file import write_text_atomic
 from canical.calibration import CalibrateOptions, calibrate
+from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
 from canical.progress import Progress
+from canical.report_markdown import render
+from canical.report_plots import write_plots
+from canical.session_canlog import default_inputs, is_canlog, read_canlog
 from canical.session_csv import read_session
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
@@ -41,7 +45,10 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
 
 def register(sub) -> None:
     p = sub.add_parser("calibrate", help="fit a turntable session and write a coefficient set")
-    p.add_argument("session", help="session CSV (time_s, ref_dps, raw, auxiliary columns)")
+    p.add_argument(
+        "session",
+        help="session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log (.log, .asc, .blf)",
+    )
     p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
     p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
     p.add_argument(
@@ -74,16 +81,23 @@ def register(sub) -> None:
         help="fit the chosen model alone, without searching for undeclared effects",
     )
     p.add_argument("--report", help="JSON report to write")
+    p.add_argument("--report-dir", help="folder for the full report: report.json, report.md and PNG plots")
+    p.add_argument("--prefer", action="append", default=[], metavar="CANDIDATE",
+                   help="when candidates are confounded, add this one (e.g. channel:temp_c, time:warm-up)")
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
     add_session_arguments(p)
+    add_canlog_arguments(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
-    session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column)
+    if is_canlog(args.session):
+        session = read_canlog_session(args, progress)
+    else:
+        session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column)
     sensor = args.sensor or session.sensor_id
     if args.sensor and session.sensor_id and args.sensor != session.sensor_id:
         raise CanicalError(f"--sensor {args.sensor} but {args.session} was recorded from {session.sensor_id}")
@@ -99,6 +113,8 @@ def run(args: argparse.Namespace) -> int:
         order=args.order,
         smoothness=JOINS[args.joins],
         breakpoints_dps=args.breakpoints,
+        extend=not args.no_extend,
+        prefer=tuple(args.prefer),
     )
     result = calibrate(
         session,
@@ -108,11 +124,50 @@ def run(args: argparse.Namespace) -> int:
         progress=progress.step,
     )
     report = {"session": str(args.session), "coefficients": str(args.output), **result.report}
+    # Render everything first, so a failure cannot leave some outputs written and others not.
+    report_text = json.dumps(report, indent=2) + "\n"
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
-        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
+        write_text_atomic(args.report, report_text)
+    if args.report_dir:
+        write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
     return 0
+
+
+def write_report_dir(directory: Path, report: dict, loop) -> None:
+    """report.json, report.md and the plots, side by side."""
+    directory.mkdir(parents=True, exist_ok=True)
+    plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
+    write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
+    write_text_atomic(directory / "report.md", render(report, plots))
+
+
+def read_canlog_session(args: argparse.Namespace, progress: Progress):
+    """A turntable session recorded from the bus: raw frames of one axis, the table's rate held."""
+    source = canlog_source(args, args.session)
+    inputs = source.inputs if (source.inputs or source.from_config) else default_inputs(source.dbc)
+    axis = args.axis
+    if axis is None:  # the table says which axis it turns; a first pass finds out
+        first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs={}, ref=None,
+                            raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"))
+        axis = first.table_axis or "z"
+    log = read_canlog(
+        args.session,
+        dbc=source.dbc,
+        axis=axis,
+        inputs=inputs,
+        raw_message=source.raw_message,
+        raw_signal=source.raw_signals.get(axis),
+        sensor=args.sensor or source.sensor,
+    )
+    if log.table_axis and log.table_axis != axis:
+        print(f"calibrate: warning: the table reports turning axis {log.table_axis}, calibrating {axis}",
+              file=sys.stderr)
+    channels = ", ".join(log.session.aux) or "none"
+    progress.step(f"{len(log.session)} {source.raw_message} frames of axis {axis} from {log.frames} "
+                  f"frames ({log.skipped} before the reference, {log.dropped} dropped); channels: {channels}")
+    return log.session
 
 
 def summary(report: dict) -> str:
@@ -129,6 +184,16 @@ def summary(report: dict) -> str:
         lines.append(f"segments   at {pts} deg/s")
     tr, ho = report["training"], report["held_out"]
     lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s")
-    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s")
+    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s (plateau means)")
+    loop = report.get("closed_loop")
+    if loop and "skipped" not in loop:
+        found = ", ".join(e["name"] for e in report["effects"]) or "none"
+        lines.append(f"effects    {found}")
+        for c in report.get("confounded", []):
+            lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
+        lines.append(f"loop       held-out rms {loop['held_out_rms_before_dps']:.4f} -> "
+                     f"{loop['held_out_rms_after_dps']:.4f} deg/s (2 s blocks, before -> after)")
+        lines.append(f"final      {loop['final_spec']} + {sum(len(e['terms']) for e in report['effects'])} "
+                     "effect terms")
     lines.append(f"wrote      {Path(report['coefficients'])}")
     return "\n".join(lines)
