@@ -1,5 +1,5 @@
 """One module per ``canical`` command; each exposes ``register(subparsers)``."""
 
-from canical.commands import apply, calibrate, demo
+from canical.commands import apply, calibrate, demo, emulate, pull, push
 
-COMMANDS = (calibrate, apply, demo)
+COMMANDS = (calibrate, apply, demo, emulate, push, pull)

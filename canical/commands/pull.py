@@ -1,0 +1,51 @@
+"""``canical pull``: upload the coefficient sets an IMU runs, verified, as YAML files.
+
+Each active bank is accepted only if its bytes match its CRC32, that CRC is the
+device's "Active set id" for the axis, and every field validates. One axis
+writes ``-o`` as given; several write one file per axis, ``{axis}`` in the name
+replaced (or ``-x``/``-y``/``-z`` added before the suffix).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from canical import coefficient_file
+from canical.can_network import bus_options, network_on
+from canical.coefficient_file import set_crc
+from canical.commands.push import add_node_arguments
+from canical.errors import CanicalError
+from canical.imu_dictionary import AXES
+from canical.sdo_download import ImuClient, pull_sets
+
+
+def register(sub) -> None:
+    p = sub.add_parser("pull", help="upload the IMU's active coefficient sets (verified) to YAML")
+    add_node_arguments(p)
+    p.add_argument("-o", "--output", required=True, help="YAML to write ({axis} for one file per axis)")
+    p.add_argument("--axis", choices=AXES, action="append", help="only this axis (repeatable) [all active]")
+    p.set_defaults(run=run)
+
+
+def output_paths(template: str, axes: list[str]) -> dict[str, Path]:
+    if "{axis}" in template:
+        return {a: Path(template.replace("{axis}", a)) for a in axes}
+    if len(axes) == 1:
+        return {axes[0]: Path(template)}
+    path = Path(template)
+    return {a: path.with_name(f"{path.stem}-{a}{path.suffix}") for a in axes}
+
+
+def run(args: argparse.Namespace) -> int:
+    axes = tuple(args.axis) if args.axis else AXES
+    with network_on(args.interface, args.channel, **bus_options(args)) as network:
+        client = ImuClient(network, args.node, args.timeout)
+        sets = pull_sets(client, axes)
+    if not sets:
+        raise CanicalError(f"node 0x{args.node:02x}: no active coefficient set for axis {', '.join(axes)}")
+    paths = output_paths(args.output, sorted(sets))
+    for axis, cset in sorted(sets.items()):
+        coefficient_file.save(paths[axis], cset)
+        print(f"pull: axis {axis} set 0x{set_crc(cset):08x} (sensor {cset.sensor_id}) -> {paths[axis]}")
+    return 0

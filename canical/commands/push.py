@@ -1,0 +1,65 @@
+"""``canical push``: download coefficient sets to an IMU over CANopen SDO and activate them.
+
+Each set goes to its axis's inactive bank, is read back and compared, then all
+are activated with one write and stored (0x1010). ``--dry-run`` prints what
+would be written and writes nothing. See :mod:`canical.sdo_download`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from canical import coefficient_file
+from canical.can_network import add_bus_arguments, bus_options, network_on
+from canical.errors import CanicalError
+from canical.sdo_download import DEFAULT_TIMEOUT_S, ImuClient, PushPlan, push_sets
+
+
+def add_node_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--node", type=lambda s: int(s, 0), required=True, help="IMU's CANopen node id")
+    add_bus_arguments(parser)
+    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
+                        help=f"seconds to wait for each SDO answer [{DEFAULT_TIMEOUT_S:g}]")
+
+
+def register(sub) -> None:
+    p = sub.add_parser("push", help="download coefficient sets to the IMU (CANopen SDO) and activate them")
+    p.add_argument("coefficients", nargs="+", help="coefficient set YAML, one per axis")
+    add_node_arguments(p)
+    p.add_argument("--dry-run", action="store_true", help="show what would be written, write nothing")
+    p.set_defaults(run=run)
+
+
+def load_sets(paths: list[str]) -> dict[str, tuple[str, coefficient_file.CoefficientSet]]:
+    """Sets by axis; two files for one axis, or sets of different sensors, are refused."""
+    sets: dict[str, tuple[str, coefficient_file.CoefficientSet]] = {}
+    for path in paths:
+        cset = coefficient_file.load(path)
+        if cset.axis in sets:
+            raise CanicalError(f"{path} and {sets[cset.axis][0]} are both for axis {cset.axis}")
+        sensors = {c.sensor_id for _, c in sets.values()}
+        if sensors and cset.sensor_id not in sensors:
+            raise CanicalError(f"{path} is for sensor {cset.sensor_id}, the others for {sensors.pop()}")
+        sets[cset.axis] = (path, cset)
+    return sets
+
+
+def run(args: argparse.Namespace) -> int:
+    sets = load_sets(args.coefficients)
+    with network_on(args.interface, args.channel, **bus_options(args)) as network:
+        client = ImuClient(network, args.node, args.timeout)
+        result = push_sets(client, sets, dry_run=args.dry_run)
+    if isinstance(result, PushPlan):
+        where = f"node 0x{args.node:02x} serial {result.serial} on {args.interface} {args.channel}"
+        print(f"push (dry run): {where}")
+        print("\n".join(result.describe()))
+        print("push (dry run): nothing written")
+        return 0
+    print(f"push: node 0x{args.node:02x} serial {result.plan.serial} on {args.interface} {args.channel}")
+    print("\n".join(result.plan.describe()))
+    t = result.timings_s
+    print(f"  downloaded {result.bytes_written} bytes in {t.get('download', 0):.2f} s, read back and "
+          f"compared in {t.get('verify', 0):.2f} s, activated in {t.get('activate', 0):.3f} s, "
+          f"stored in {t.get('store', 0):.3f} s")
+    print(f"push: device runs {result.status.describe()}")
+    return 0

@@ -1,0 +1,118 @@
+"""A three-axis IMU on a rate table, sample by sample: what the emulated device transmits.
+
+The table turns about one axis (plateaus with ramps, a constant rate, or still);
+each axis has its own simulated gyro (:class:`canical.sim.gyro.GyroModel`, with
+whatever effects it is given), fed the table rate on the table's axis and zero
+on the others. The environment the effects see, and that the device reports,
+is a die temperature warming up after power-on (``temp_c``) and a supply
+voltage (``supply_v``). Samples come in blocks, one pass of the table
+programme each, times continuing from block to block; a step programme ends at
+0 deg/s so consecutive passes join without a jump.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from canical.imu_dictionary import AXES
+from canical.sim.gyro import GyroModel
+from canical.sim.rate_table import constant_profile, step_profile
+from canical.sim.sessions import paper_rates
+
+TABLE_KINDS = ("steps", "constant", "still")
+
+
+def default_gyros() -> dict[str, GyroModel]:
+    """Three different parts, as a real IMU's axes are."""
+    return {
+        "x": GyroModel(sensitivity=395.0, bias_counts=-85.0, asymmetry=0.025, cubic=-0.03),
+        "y": GyroModel(sensitivity=405.0, bias_counts=120.0, asymmetry=0.035, quadratic=0.01),
+        "z": GyroModel(),
+    }
+
+
+@dataclass(frozen=True)
+class TableMotion:
+    """The rate table's programme."""
+
+    kind: str = "steps"
+    axis: str = "z"
+    rates_dps: tuple[float, ...] = tuple(float(r) for r in paper_rates())
+    dwell_s: float = 3.0
+    accel_dps2: float = 100.0
+    rate_dps: float = 0.0  # for kind "constant"
+    block_s: float = 10.0  # block length of "constant" and "still"
+
+
+@dataclass(frozen=True)
+class StreamConfig:
+    """Everything that shapes the stream; the same config and seed give the same samples."""
+
+    sample_rate_hz: float = 100.0
+    table: TableMotion = field(default_factory=TableMotion)
+    gyros: dict[str, GyroModel] = field(default_factory=default_gyros)
+    temp_start_c: float = 24.0
+    temp_rise_c: float = 12.0
+    temp_tau_s: float = 90.0
+    temp_noise_c: float = 0.03
+    supply_v: float = 5.0
+    supply_noise_v: float = 0.003
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class Block:
+    """Consecutive samples of all three axes."""
+
+    time_s: np.ndarray
+    table_rate_dps: np.ndarray
+    settled: np.ndarray
+    raw: dict[str, np.ndarray]
+    temp_c: np.ndarray
+    supply_v: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.time_s.shape[0])
+
+
+def table_pass(table: TableMotion, fs_hz: float, t0_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Times, table rate and settled flag of one pass of the programme."""
+    if table.kind == "steps":
+        rates = np.concatenate([np.asarray(table.rates_dps, dtype=float), [0.0]])
+        t, w = step_profile(rates, dwell_s=table.dwell_s, fs_hz=fs_hz, accel_dps2=table.accel_dps2, t0_s=t0_s)
+    else:
+        n = max(1, round(table.block_s * fs_hz))
+        rate = table.rate_dps if table.kind == "constant" else 0.0
+        t, w = constant_profile(rate, n, fs_hz=fs_hz, t0_s=t0_s)
+    settled = np.ones(w.shape, dtype=bool)
+    settled[1:] = w[1:] == w[:-1]
+    if len(w) > 1:
+        settled[0] = w[0] == w[1]
+    return t, w, settled
+
+
+def imu_blocks(config: StreamConfig) -> Iterator[Block]:
+    """Blocks of samples, forever (the table programme repeats)."""
+    if config.table.kind not in TABLE_KINDS:
+        raise ValueError(f"table kind {config.table.kind!r} (known: {', '.join(TABLE_KINDS)})")
+    fs = config.sample_rate_hz
+    rng = np.random.default_rng(config.seed)
+    t0 = 0.0
+    while True:
+        t, w, settled = table_pass(config.table, fs, t0)
+        temp = (
+            config.temp_start_c
+            + config.temp_rise_c * (1.0 - np.exp(-t / config.temp_tau_s))
+            + config.temp_noise_c * rng.standard_normal(t.size)
+        )
+        supply = config.supply_v + config.supply_noise_v * rng.standard_normal(t.size)
+        aux = {"temp_c": temp, "supply_v": supply}
+        raw = {}
+        for axis in AXES:
+            rate = w if axis == config.table.axis else np.zeros_like(w)
+            raw[axis] = config.gyros[axis].output(t, rate, aux=aux, rng=rng, fs_hz=fs)
+        yield Block(t, w, settled, raw, temp, supply)
+        t0 = float(t[-1]) + 1.0 / fs
