@@ -14,9 +14,11 @@ import numpy as np
 
 from canical import coefficient_file
 from canical.atomic_file import atomic_writer
+from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.corrector import Corrector
 from canical.errors import CanicalError
 from canical.progress import Progress
+from canical.session_canlog import TIME_INPUT, is_canlog, read_canlog
 from canical.session_csv import read_table
 
 CHUNK_ROWS = 100_000
@@ -25,16 +27,19 @@ CHUNK_ROWS = 100_000
 def register(sub) -> None:
     p = sub.add_parser("apply", help="correct raw samples in a CSV with a coefficient set")
     p.add_argument("coefficients", help="coefficient set YAML")
-    p.add_argument("input", help="CSV with a raw column")
+    p.add_argument("input", help="CSV with a raw column, or a CAN log (.log, .asc, .blf) with --dbc/--config")
     p.add_argument("-o", "--output", required=True, help="CSV to write (input + rate_dps, out_of_span)")
     p.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
     p.add_argument("--sensor", help="sensor id of the input (default: its '# sensor:' line)")
+    add_canlog_arguments(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
+    if is_canlog(args.input):
+        return run_canlog(args, corrector)
     needed = [args.raw_column, *corrector.required_inputs]
     table = read_table(args.input, columns=needed)
     sensor = args.sensor or table.meta.get("sensor")
@@ -71,3 +76,58 @@ def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray) -> None:
                 buf.write(f"{line},{r:.6f},{int(o)}\n")
             out.write(buf.getvalue())
             progress.update(stop)
+
+
+def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
+    """A CAN log, read as the daemon reads the bus: one row per raw frame of the set's axis.
+
+    Writes time_s, raw, the inputs the set needs, rate_dps and out_of_span.
+    """
+    cset = corrector.cset
+    source = canlog_source(args, args.input)
+    sensor = args.sensor or source.sensor
+    if sensor and sensor != cset.sensor_id:
+        raise CanicalError(
+            f"{args.coefficients} is for sensor {cset.sensor_id}, {args.input} is from {sensor}"
+        )
+    needed = [n for n in corrector.required_inputs if n != TIME_INPUT or n in source.inputs]
+    unmapped = [n for n in needed if n not in source.inputs]
+    if unmapped:
+        raise CanicalError(
+            f"the coefficient set needs input(s) {', '.join(unmapped)}: map them with "
+            "--input NAME=MESSAGE.Signal or --config"
+        )
+    log = read_canlog(
+        args.input,
+        dbc=source.dbc,
+        axis=cset.axis,
+        inputs={n: source.inputs[n] for n in needed},
+        ref=None,
+        raw_message=source.raw_message,
+        raw_signal=source.raw_signals.get(cset.axis),
+        sensor=sensor,
+    )
+    session = log.session
+    inputs = {n: session.aux[n] for n in session.aux}
+    if TIME_INPUT in corrector.required_inputs:
+        inputs[TIME_INPUT] = session.time_s
+    rate, oos = corrector.correct(session.raw, inputs)
+    names = ["time_s", "raw", *session.aux, "rate_dps", "out_of_span"]
+    with atomic_writer(args.output) as out:
+        for key, value in session.meta.items():
+            out.write(f"# {key}: {value}\n")
+        out.write(",".join(names) + "\n")
+        buf = io.StringIO()
+        cols = [session.time_s, session.raw, *session.aux.values()]
+        fmt = ["%.6f", "%.9g"] + ["%.9g"] * len(session.aux)
+        table = np.column_stack([*cols, rate, oos.astype(float)])
+        np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d"])
+        out.write(buf.getvalue())
+    n_out = int(np.count_nonzero(oos))
+    note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
+    skipped = f"; {log.skipped} frames before the inputs' first values left out" if log.skipped else ""
+    print(
+        f"apply: {len(session)} {source.raw_message} frames (axis {cset.axis}) corrected with set "
+        f"0x{corrector.set_id:08x}{note}{skipped} -> {args.output}"
+    )
+    return 0

@@ -1,0 +1,56 @@
+"""Options shared by commands that read CAN logs: which DBC, and where each channel comes from.
+
+``--config`` takes all of it from a daemon configuration, so that a log is read with exactly
+the mapping the daemon uses on the vehicle; ``--dbc`` and ``--input NAME=MESSAGE.Signal``
+give it by hand (and override the configuration's).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+from pathlib import Path
+
+from canical.daemon_config import load_config
+from canical.errors import CanicalError
+from canical.session_canlog import DEFAULT_RAW_MESSAGE, parse_signal_map
+
+
+@dataclass(frozen=True)
+class CanlogSource:
+    dbc: Path
+    inputs: dict[str, str]  # channel name -> MESSAGE.Signal
+    raw_message: str
+    raw_signals: dict[str, str]  # axis -> raw signal
+    sensor: str | None
+    from_config: bool
+
+
+def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
+    group = parser.add_argument_group("CAN logs (.log, .asc, .blf)")
+    group.add_argument("--dbc", help="DBC that describes the log's frames")
+    group.add_argument("--config", help="daemon configuration: its DBC, frames and input mapping")
+    group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",
+                       help="a channel from a signal, held at its latest value (repeatable)")
+
+
+def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
+    """Resolve the options; a log without a DBC is one actionable error line."""
+    inputs: dict[str, str] = {}
+    raw_message = DEFAULT_RAW_MESSAGE
+    raw_signals: dict[str, str] = {}
+    sensor = None
+    dbc = None
+    if args.config:
+        config = load_config(args.config)
+        dbc = config.dbc_path
+        inputs = {name: f"{s.message}.{s.signal}" for name, s in config.inputs.items()}
+        raw_message = config.raw_message
+        raw_signals = {a.axis: a.raw_signal for a in config.axes}
+        sensor = config.sensor
+    if args.dbc:
+        dbc = Path(args.dbc)
+    if dbc is None:
+        raise CanicalError(f"{log_file}: reading a CAN log needs --dbc or --config")
+    inputs.update(parse_signal_map(args.inputs))
+    return CanlogSource(dbc, inputs, raw_message, raw_signals, sensor, bool(args.config))

@@ -1,0 +1,61 @@
+"""``canical serve``: run the real-time correction daemon on one CAN interface.
+
+The configuration is checked completely before anything opens (a bad one is refused with one
+line naming the key, exit status 2). ``--check`` also loads every coefficient set and stops
+there, so an operator or an ``ExecStartPre=`` can vet a change before it reaches the vehicle.
+Logs go to stdout, one line each, without timestamps when journald records them anyway.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+
+from canical import active_sets
+from canical.daemon import Daemon
+from canical.daemon_config import load_config
+
+
+def register(sub) -> None:
+    p = sub.add_parser("serve", help="correct raw gyro frames on a CAN bus in real time (daemon)")
+    p.add_argument("--config", required=True, help="daemon configuration YAML")
+    p.add_argument("--channel", help="CAN interface, overriding bus.channel (e.g. the unit's %%i)")
+    p.add_argument("--check", action="store_true",
+                   help="check the configuration and load every coefficient set, then exit")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.set_defaults(run=run)
+
+
+def setup_logging(verbose: bool) -> None:
+    """One line per record on stdout; journald adds its own timestamps and priority."""
+    fmt = "%(levelname)s %(message)s" if os.environ.get("JOURNAL_STREAM") else (
+        "%(asctime)s %(levelname)s %(message)s")
+    handler = logging.StreamHandler(sys.stdout)
+    handler.setFormatter(logging.Formatter(fmt))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(logging.DEBUG if verbose else logging.INFO)
+    if not verbose:
+        logging.getLogger("can").setLevel(logging.WARNING)
+
+
+def run(args: argparse.Namespace) -> int:
+    config = load_config(args.config, channel=args.channel)
+    if args.check:
+        for axis in config.axes:
+            if axis.coefficients is None:
+                print(f"axis {axis.axis}: no coefficients configured (sent uncalibrated)")
+                continue
+            corrector = active_sets.load_axis(config, axis.axis, axis.coefficients)
+            print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}")
+        print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
+        return 0
+    setup_logging(args.verbose)
+    daemon = Daemon(config)
+    daemon.install_signal_handlers()
+    try:
+        return daemon.run()
+    finally:
+        daemon.notifier.close()
