@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 from canical.blocks import Blocks
 from canical.effect_candidates import Candidate, build_candidates, columns, tau_grid, with_tau
@@ -81,10 +81,26 @@ def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
     """Joint least squares of base model and terms; a warm-up's τ by grid search on these blocks."""
     terms = s.terms
     if any(t.feature == "warmup" for t in terms):
-        best = min(tau_grid(duration_s), key=lambda tau: _solve(blocks, s, with_tau(terms, tau))[2])
-        terms = with_tau(terms, float(best))
+        terms = with_tau(terms, _best_tau(blocks, s, duration_s))
     poly, coef, _ = _solve(blocks, s, terms)
     return Fit(poly, tuple(replace(t, coefficient=float(c)) for t, c in zip(terms, coef, strict=True)))
+
+
+def _best_tau(blocks: Blocks, s: Structure, duration_s: float) -> float:
+    """τ of the warm-up terms: the best of a log grid, refined between its neighbours.
+
+    A τ off by a grid step leaves an exponential-shaped residual that a drift
+    term would then "explain"; refining removes that false second effect.
+    """
+    grid = tau_grid(duration_s)
+
+    def rss(log_tau: float) -> float:
+        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau))))[2]
+
+    i = int(np.argmin([rss(np.log(t)) for t in grid]))
+    lo, hi = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, grid.size - 1)])
+    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+    return float(np.exp(res.x))
 
 
 def predict(fit: Fit, blocks: Blocks, scale: float) -> np.ndarray:

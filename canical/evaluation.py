@@ -88,3 +88,56 @@ def validation_record(model, v0: float, record: Session, window: int = 100) -> V
     rate, _ = model.evaluate(smoothed - v0)
     true = float(np.median(record.ref_dps))
     return ValidationResult(true, float(np.mean(rate) - true), float(np.std(rate)))
+
+
+@dataclass(frozen=True)
+class EffectScore:
+    """How the closed loop did on one scenario, all errors on held-out plateaus (deg/s rms)."""
+
+    scenario: str
+    found: tuple[str, ...]
+    confounded: tuple[tuple[str, ...], ...]
+    rms_before: float
+    rms_after: float
+    rms_oracle: float
+    correct: bool
+
+
+def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScore:
+    """Calibrate a scenario's session with the loop and compare with a model told the effect."""
+    from canical.calibration import calibrate
+    from canical.closed_loop import Scorer, Structure, _reselect_size, plateau_folds
+
+    session = scenario.session(seed, dwell_s)
+    result = calibrate(session, CalibrateOptions(), sensor_id="SIM", axis="z")
+    loop = result.loop
+    found = tuple(e["name"] for e in loop.effects)
+    groups = tuple(tuple(c["candidates"]) for c in loop.confounded)
+    duration = float(session.time_s[-1] - session.time_s[0])
+    scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
+    model = result.base.fitted.model
+    told = _oracle_terms(scenario, loop.blocks)
+    # Told the effect, with the base size the loop ended with, or one chosen again for it.
+    same_size = Structure(loop.structure.spec, loop.structure.knots, model.scale, model.span, told)
+    resized = _reselect_size(scorer, Structure(result.base.fitted.spec, model.knots, model.scale,
+                                               model.span, told), duration)
+    rms_oracle = min(scorer.score(same_size)[0], scorer.score(resized)[0])
+    in_groups = {name for g in groups for name in g}
+    correct = (set(found) == set(scenario.expect)
+               and set(scenario.confounded) <= in_groups
+               and (bool(groups) == bool(scenario.confounded)))
+    return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct)
+
+
+def _oracle_terms(scenario, blocks):
+    """The scenario's true term forms, with references the run time would use."""
+    from dataclasses import replace
+
+    terms = []
+    for t in scenario.oracle_terms:
+        if t.kind == "channel":
+            t = replace(t, reference=float(np.mean(blocks.aux[t.channel])))
+        if t.kind == "direction":
+            t = replace(t, threshold_raw=blocks.direction_threshold_raw)
+        terms.append(t)
+    return tuple(terms)

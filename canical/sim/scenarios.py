@@ -1,0 +1,111 @@
+"""Sessions with undeclared effects, and what a model that knew the effect would use.
+
+Each scenario names the effects the simulated sensor has, the auxiliary
+channels recorded (distractors included), the order of table rates, and the
+answer the closed loop should reach: the candidate(s) to attribute, nothing, or
+a confounded pair. ``oracle_terms`` are the term forms of the true effect, for
+measuring how close the loop comes to a model that was told.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from canical.session import Session
+from canical.sim import effects as fx
+from canical.sim import environment as env
+from canical.sim.gyro import Effect, GyroModel
+from canical.sim.sessions import paper_rates, sweep_session
+from canical.terms import Term
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    effects: tuple[Effect, ...]
+    aux: dict[str, Callable] = field(default_factory=dict)
+    profile: str = "shuffled"  # shuffled | up-down | ascending
+    expect: tuple[str, ...] = ()  # candidate names the loop must attribute
+    confounded: tuple[str, ...] = ()  # candidate names it must report as confounded
+    oracle_terms: tuple[Term, ...] = ()
+
+    def rates(self, seed: int) -> np.ndarray:
+        base = paper_rates()
+        if self.profile == "shuffled":
+            return np.random.default_rng(seed).permutation(np.repeat(base, 2))
+        if self.profile == "up-down":
+            return np.concatenate([base, base[::-1], base, base[::-1]])
+        return np.concatenate([base, base])
+
+    def session(self, seed: int = 0, dwell_s: float = 10.0) -> Session:
+        return sweep_session(GyroModel(effects=self.effects), self.rates(seed), dwell_s=dwell_s,
+                             seed=seed, aux=self.aux)
+
+
+def _t(kind: str, feature: str, form: str, **kw) -> Term:
+    return Term(kind=kind, feature=feature, form=form, coefficient=0.0, **kw)
+
+
+DISTRACTORS = {"noise_ch": env.white_noise(3.0, 1.0), "wander": env.random_walk(0.02)}
+TEMP_STEPS = {"temp_c": env.temperature_steps(), **DISTRACTORS}
+SUPPLY_STEPS = {"supply_v": env.supply_steps(), "temp_c": env.temperature_steps((24.0, 25.0, 26.0)),
+                **DISTRACTORS}
+T_BIAS = _t("channel", "offset", "bias", channel="temp_c", reference=25.0)
+T_SCALE = _t("channel", "offset", "scale", channel="temp_c", reference=25.0)
+T_SQUARE = _t("channel", "square", "bias", channel="temp_c", reference=25.0)
+V_BIAS = _t("channel", "offset", "bias", channel="supply_v", reference=5.0)
+V_SCALE = _t("channel", "offset", "scale", channel="supply_v", reference=5.0)
+WARM = _t("time", "warmup", "bias", tau_s=200.0)
+WARM_SCALE = _t("time", "warmup", "scale", tau_s=200.0)
+DIR = _t("direction", "sign", "bias", threshold_raw=400.0)
+
+SCENARIOS: tuple[Scenario, ...] = (
+    Scenario("temperature bias 0.01 dps/C, chamber steps",
+             (fx.TemperatureEffect(bias_dps_per_c=0.01),), TEMP_STEPS,
+             expect=("channel:temp_c",), oracle_terms=(T_BIAS,)),
+    Scenario("temperature bias 0.003 dps/C (small), chamber steps",
+             (fx.TemperatureEffect(bias_dps_per_c=0.003),), TEMP_STEPS,
+             expect=("channel:temp_c",), oracle_terms=(T_BIAS,)),
+    Scenario("temperature bias + scale 200 ppm/C, chamber steps",
+             (fx.TemperatureEffect(bias_dps_per_c=0.01, scale_per_c=2e-4),), TEMP_STEPS,
+             expect=("channel:temp_c",), oracle_terms=(T_BIAS, T_SCALE)),
+    Scenario("temperature quadratic bias, chamber steps",
+             (fx.TemperatureEffect(bias_dps_per_c=0.004, bias_dps_per_c2=3e-4),), TEMP_STEPS,
+             expect=("channel:temp_c",), oracle_terms=(T_BIAS, T_SQUARE)),
+    Scenario("warm-up 0.3 dps, tau 200 s",
+             (fx.WarmupEffect(0.3, 200.0),), DISTRACTORS,
+             expect=("time:warm-up",), oracle_terms=(WARM,)),
+    Scenario("warm-up 0.08 dps, tau 200 s (small)",
+             (fx.WarmupEffect(0.08, 200.0),), DISTRACTORS,
+             expect=("time:warm-up",), oracle_terms=(WARM,)),
+    Scenario("warm-up bias + scale",
+             (fx.WarmupEffect(0.2, 200.0, scale_amplitude=0.004),), DISTRACTORS,
+             expect=("time:warm-up",), oracle_terms=(WARM, WARM_SCALE)),
+    Scenario("supply 0.2 dps/V, supply steps",
+             (fx.SupplyEffect(bias_dps_per_v=0.2),), SUPPLY_STEPS,
+             expect=("channel:supply_v",), oracle_terms=(V_BIAS,)),
+    Scenario("supply bias + scale 0.5 %/V, supply steps",
+             (fx.SupplyEffect(bias_dps_per_v=0.1, scale_per_v=0.005),), SUPPLY_STEPS,
+             expect=("channel:supply_v",), oracle_terms=(V_BIAS, V_SCALE)),
+    Scenario("direction offset 0.05 dps, up-down sweeps",
+             (fx.DirectionEffect(0.05),), DISTRACTORS, profile="up-down",
+             expect=("direction",), oracle_terms=(DIR,)),
+    Scenario("direction offset 0.02 dps, shuffled rates",
+             (fx.DirectionEffect(0.02),), DISTRACTORS,
+             expect=("direction",), oracle_terms=(DIR,)),
+    Scenario("temperature steps + direction",
+             (fx.TemperatureEffect(bias_dps_per_c=0.01), fx.DirectionEffect(0.04)), TEMP_STEPS,
+             expect=("channel:temp_c", "direction"), oracle_terms=(T_BIAS, DIR)),
+    Scenario("clean, shuffled rates, distractors", (), {**TEMP_STEPS}),
+    Scenario("clean, up-down sweeps, distractors", (), DISTRACTORS, profile="up-down"),
+    Scenario("clean, ascending sweeps", (), {"noise_ch": env.white_noise()}, profile="ascending"),
+    Scenario("self-heating temperature = warm-up law (confounded)",
+             (fx.TemperatureEffect(bias_dps_per_c=0.02),), {"temp_c": env.temperature_warmup()},
+             confounded=("channel:temp_c", "time:warm-up"), oracle_terms=(T_BIAS,)),
+    Scenario("monotonic temperature ramp (confounded with drift)",
+             (fx.TemperatureEffect(bias_dps_per_c=0.01),), {"temp_c": env.temperature_ramp()},
+             confounded=("channel:temp_c",), oracle_terms=(T_BIAS,)),
+)
