@@ -39,6 +39,8 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
         lines += [
             "## Closed loop: effects the model lacked",
             "",
+            f"Final model: {loop['final_spec']}, plus the effect terms below.",
+            "",
             f"Held-out error ({loop['method']}):",
             "",
             "| | rms (deg/s) | max (deg/s) |",
