@@ -17,9 +17,10 @@ import numpy as np
 from canical.fit_points import FitPoints
 from canical.plateaus import Plateaus
 from canical.session import Session
-from canical.terms import direction_state
+from canical.terms import direction_state, slope_state
 
 BLOCK_S = 2.0
+SLOPE_TAU_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -32,14 +33,20 @@ class Blocks:
     aux: dict[str, np.ndarray]
     direction: np.ndarray  # mean run-time direction state in the block
     direction_threshold_raw: float
+    slope: np.ndarray  # mean run-time rate of change of raw (raw units/s) in the block
 
     def __len__(self) -> int:
         return len(self.points)
 
     def take(self, index: np.ndarray) -> Blocks:
         return Blocks(
-            self.points.take(index), self.plateau[index], self.time_s[index],
-            {k: v[index] for k, v in self.aux.items()}, self.direction[index], self.direction_threshold_raw,
+            self.points.take(index),
+            self.plateau[index],
+            self.time_s[index],
+            {k: v[index] for k, v in self.aux.items()},
+            self.direction[index],
+            self.direction_threshold_raw,
+            self.slope[index],
         )
 
 
@@ -88,4 +95,5 @@ def make_blocks(
         aux={name: means(values) for name, values in session.aux.items()},
         direction=means(direction),
         direction_threshold_raw=direction_threshold_raw,
+        slope=means(slope_state(raw, session.time_s, SLOPE_TAU_S)),
     )

@@ -12,6 +12,7 @@ does on a new Corrector, so the two agree sample for sample.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -19,7 +20,14 @@ import numpy as np
 from canical.coefficient_file import set_crc
 from canical.coefficients import CoefficientSet
 from canical.errors import CanicalError
-from canical.terms import DirectionTracker, Term, feature_values, term_from_dict
+from canical.terms import (
+    TIME_INPUT,
+    DirectionTracker,
+    SlopeTracker,
+    Term,
+    feature_values,
+    term_from_dict,
+)
 
 
 class Corrector:
@@ -34,15 +42,11 @@ class Corrector:
         self.term_scale = float(getattr(self.model, "scale", 1.0))
         names = [t.input_name for t in self.terms if t.input_name]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
-        self._trackers = [
-            DirectionTracker(t.threshold_raw or 1.0) if t.kind == "direction" else None for t in self.terms
-        ]
+        self.reset()
 
     def reset(self) -> None:
-        """Forget the direction state (a new stream of samples begins)."""
-        self._trackers = [
-            DirectionTracker(t.threshold_raw or 1.0) if t.kind == "direction" else None for t in self.terms
-        ]
+        """Forget the direction and slope state (a new stream of samples begins)."""
+        self._trackers = [_tracker(t) for t in self.terms]
 
     def correct(
         self, raw: np.ndarray, inputs: Mapping[str, np.ndarray] | None = None
@@ -68,8 +72,10 @@ class Corrector:
         dv = raw - self.v0
         rate, oos = self.model.evaluate_one(dv)
         for term, tracker in zip(self.terms, self._trackers, strict=True):
-            if tracker is not None:
+            if isinstance(tracker, DirectionTracker):
                 x = tracker.update(raw)
+            elif tracker is not None:
+                x = tracker.update(raw, float(inputs[TIME_INPUT]))  # type: ignore[index]
             else:
                 value = float(inputs[term.input_name])  # type: ignore[index]
                 if term.kind == "channel":
@@ -77,10 +83,18 @@ class Corrector:
                     if term.feature == "square":
                         x = x * x
                 elif term.feature == "warmup":
-                    x = 1.0 - np.exp(-value / term.tau_s)  # type: ignore[operator]
+                    x = 1.0 - math.exp(-value / term.tau_s)  # type: ignore[operator]
                 else:
                     x = value
             if term.form == "scale":
                 x = x * dv / self.term_scale
             rate += term.coefficient * x
         return rate, oos
+
+
+def _tracker(term: Term) -> DirectionTracker | SlopeTracker | None:
+    if term.feature == "sign":
+        return DirectionTracker(term.threshold_raw or 1.0)
+    if term.feature == "slope":
+        return SlopeTracker(term.tau_s or 1.0)
+    return None

@@ -3,7 +3,7 @@
 Every auxiliary column is a candidate by its name (its meaning is never
 assumed), and so are time since power-on (a warm-up 1 − exp(−t/τ) with τ
 estimated, and a linear drift) and the direction of approach (the raw signal's
-last significant change, up or down). Each candidate brings its terms in bias
+last significant change, up or down) and its rate of change. Each candidate brings its terms in bias
 form (ω += c·x) and scale-factor form (ω += c·x·u); a channel also brings a
 quadratic bias. Columns that do not earn their keep are pruned after acceptance.
 """
@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from canical.blocks import Blocks
+from canical.blocks import SLOPE_TAU_S, Blocks
 from canical.terms import TIME_INPUT, Term
 
 TAU_GRID_POINTS = 24
@@ -38,8 +38,10 @@ class Candidate:
 
 def feature(term: Term, blocks: Blocks) -> np.ndarray:
     """The term's feature x at each block (block means of the run-time inputs)."""
-    if term.kind == "direction":
+    if term.feature == "sign":
         return blocks.direction
+    if term.feature == "slope":
+        return blocks.slope
     if term.kind == "time":
         t = blocks.time_s
         return 1.0 - np.exp(-t / term.tau_s) if term.feature == "warmup" else t
@@ -59,8 +61,9 @@ def columns(terms: tuple[Term, ...], blocks: Blocks, scale: float) -> np.ndarray
 
 
 def _pair(kind: str, feature_name: str, **kw) -> tuple[Term, ...]:
-    return tuple(Term(kind=kind, feature=feature_name, form=form, coefficient=0.0, **kw)
-                 for form in ("bias", "scale"))
+    return tuple(
+        Term(kind=kind, feature=feature_name, form=form, coefficient=0.0, **kw) for form in ("bias", "scale")
+    )
 
 
 def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidate]:
@@ -70,17 +73,30 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
         if np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))):
             continue
         ref = float(np.mean(values))
-        terms = (*_pair("channel", "offset", channel=name, reference=ref),
-                 Term(kind="channel", feature="square", form="bias", coefficient=0.0, channel=name,
-                      reference=ref))
+        terms = (
+            *_pair("channel", "offset", channel=name, reference=ref),
+            Term(kind="channel", feature="square", form="bias", coefficient=0.0, channel=name, reference=ref),
+        )
         out.append(Candidate(f"channel:{name}", "channel", name, terms))
     if np.ptp(blocks.time_s) > 0:
         tau = float(session_duration_s) / 3.0
         out.append(Candidate("time:warm-up", "time", None, _pair("time", "warmup", tau_s=tau)))
         out.append(Candidate("time:linear-drift", "time", None, _pair("time", "linear")))
     if np.ptp(blocks.direction) > 0:
-        out.append(Candidate("direction", "direction", None,
-                             _pair("direction", "sign", threshold_raw=blocks.direction_threshold_raw)))
+        out.append(
+            Candidate(
+                "direction",
+                "direction",
+                None,
+                _pair("direction", "sign", threshold_raw=blocks.direction_threshold_raw),
+            )
+        )
+    # On settled plateaus the rate of change is near zero; it is a candidate all the same,
+    # so that a sensor still moving in its plateaus would show it.
+    if np.ptp(blocks.slope) > 0:
+        out.append(
+            Candidate("rate-of-change", "direction", None, _pair("direction", "slope", tau_s=SLOPE_TAU_S))
+        )
     return out
 
 

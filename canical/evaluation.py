@@ -137,7 +137,7 @@ def _oracle_terms(scenario, blocks):
     for t in scenario.oracle_terms:
         if t.kind == "channel":
             t = replace(t, reference=float(np.mean(blocks.aux[t.channel])))
-        if t.kind == "direction":
+        if t.feature == "sign":
             t = replace(t, threshold_raw=blocks.direction_threshold_raw)
         terms.append(t)
     return tuple(terms)

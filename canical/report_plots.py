@@ -40,6 +40,8 @@ def variable_of(name: str, blocks: Blocks) -> tuple[np.ndarray, str]:
         return blocks.aux[ch], ch
     if name.startswith("time"):
         return blocks.time_s, "time since power-on (s)"
+    if name == "rate-of-change":
+        return blocks.slope, "rate of change of raw (counts/s)"
     return blocks.direction, "direction state (−1 falling, +1 rising)"
 
 

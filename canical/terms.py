@@ -8,9 +8,11 @@ u = ΔV/scale, i.e. a relative gain error proportional to x). Features:
   ``offset`` x = v − ref, ``square`` x = (v − ref)²;
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
-* ``direction`` — the direction of the last significant change of the raw output
-  (x = +1 after a rise, −1 after a fall, 0 before either), a hysteresis tracker
-  with a threshold in raw units. It has state, so samples must come in time order.
+* ``direction`` — how the rate got where it is. ``sign``: the direction of the last
+  significant change of the raw output (x = +1 after a rise, −1 after a fall, 0
+  before either), a hysteresis tracker with a threshold in raw units. ``slope``:
+  the rate of change of the raw output (raw units per second, smoothed with time
+  constant τ; input ``time_s``). Both have state, so samples must come in time order.
 
 Terms are plain dicts in the coefficient file (see :data:`TERM_FIELDS`); this
 module validates them and evaluates them, vectorised or one sample at a time.
@@ -26,7 +28,7 @@ from typing import Any
 import numpy as np
 
 TIME_INPUT = "time_s"
-FEATURES = {"channel": ("offset", "square"), "time": ("warmup", "linear"), "direction": ("sign",)}
+FEATURES = {"channel": ("offset", "square"), "time": ("warmup", "linear"), "direction": ("sign", "slope")}
 FORMS = ("bias", "scale")
 TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw")
 
@@ -49,7 +51,7 @@ class Term:
         """The run-time input this term reads (None: derived from raw alone)."""
         if self.kind == "channel":
             return self.channel
-        if self.kind == "time":
+        if self.kind == "time" or self.feature == "slope":
             return TIME_INPUT
         return None
 
@@ -93,8 +95,8 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     channel = d.get("channel")
     if kind == "channel" and (not isinstance(channel, str) or not channel):
         raise ValueError(f"{where}: channel must name an input")
-    tau = number("tau_s", required=feature == "warmup", positive=True)
-    threshold = number("threshold_raw", required=kind == "direction", positive=True)
+    tau = number("tau_s", required=feature in ("warmup", "slope"), positive=True)
+    threshold = number("threshold_raw", required=feature == "sign", positive=True)
     return Term(
         kind=kind,
         feature=feature,
@@ -109,8 +111,10 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
 
 def feature_values(term: Term, inputs: Mapping[str, np.ndarray], raw: np.ndarray) -> np.ndarray:
     """The term's feature x for a block of samples in time order (fresh direction state)."""
-    if term.kind == "direction":
+    if term.feature == "sign":
         return direction_state(raw, term.threshold_raw or 1.0)
+    if term.feature == "slope":
+        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0)
     values = np.asarray(inputs[term.input_name], dtype=float)
     if term.kind == "channel":
         x = values - term.reference
@@ -152,3 +156,29 @@ class DirectionTracker:
             self.state = -1.0
             self.low = value
         return self.state
+
+
+def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """Smoothed d(raw)/dt per sample, as :class:`SlopeTracker` computes it one sample at a time."""
+    tracker = SlopeTracker(tau_s)
+    return np.array([tracker.update(r, t) for r, t in zip(raw.tolist(), time_s.tolist(), strict=True)])
+
+
+class SlopeTracker:
+    """Rate of change of the raw output, first-order smoothed with time constant ``tau_s``."""
+
+    __slots__ = ("last_raw", "last_t", "tau", "value")
+
+    def __init__(self, tau_s: float) -> None:
+        self.tau = float(tau_s)
+        self.value = 0.0
+        self.last_raw: float | None = None
+        self.last_t = 0.0
+
+    def update(self, raw: float, t: float) -> float:
+        if self.last_raw is not None and t > self.last_t:
+            dt = t - self.last_t
+            alpha = 1.0 - math.exp(-dt / self.tau)
+            self.value += alpha * ((raw - self.last_raw) / dt - self.value)
+        self.last_raw, self.last_t = raw, t
+        return self.value
