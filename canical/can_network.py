@@ -37,6 +37,23 @@ def network_on(interface: str, channel: str, **options: Any) -> Iterator[canopen
         network.disconnect()
 
 
+def sdo_client_filters(node_id: int) -> list[dict[str, Any]]:
+    """Receive filters for an SDO client of one node: only its responses (0x580 + node id).
+
+    On SocketCAN the kernel drops the rest, so a tool on a busy bus (or in a slow VM) does
+    not spend its time decoding raw frames it never looks at.
+    """
+    return [{"can_id": 0x580 + node_id, "can_mask": 0x7FF, "extended": False}]
+
+
+def sdo_server_filters(node_id: int) -> list[dict[str, Any]]:
+    """Receive filters for a device: its SDO requests (0x600 + node id) and NMT commands (0x000)."""
+    return [
+        {"can_id": 0x600 + node_id, "can_mask": 0x7FF, "extended": False},
+        {"can_id": 0x000, "can_mask": 0x7FF, "extended": False},
+    ]
+
+
 def add_bus_arguments(parser: Any, *, channel_required: bool = True) -> None:
     """``--channel``, ``--interface`` and ``--bitrate``, the same for every bus command."""
     parser.add_argument("--channel", required=channel_required, help="CAN channel (vcan0, can0...)")

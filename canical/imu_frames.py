@@ -49,8 +49,9 @@ def load_database(path: str | os.PathLike[str] | None = None) -> Database:
 
 
 def set_tag(active_ids: dict[str, int]) -> int:
-    """Low 4 bits of the CRC32 over the three active set ids (x, y, z, little-endian; 0 = none)."""
-    blob = b"".join(int(active_ids.get(a, 0)).to_bytes(4, "little") for a in AXES)
+    """Low 4 bits of the combined set id, as the daemon computes it (:func:`canical.active_sets.build`):
+    CRC32 over the three set ids, x, y, z, each big-endian UNSIGNED32 (0 = none)."""
+    blob = b"".join(int(active_ids.get(a, 0)).to_bytes(4, "big") for a in AXES)
     return zlib.crc32(blob) & 0xF
 
 

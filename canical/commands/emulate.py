@@ -15,7 +15,7 @@ import signal
 import sys
 from pathlib import Path
 
-from canical.can_network import add_bus_arguments, bus_options, open_network
+from canical.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
 from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
@@ -95,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
         correction=args.correct,
     )
     config.state_path.parent.mkdir(parents=True, exist_ok=True)
-    network = open_network(args.interface, args.channel, **bus_options(args))
+    network = open_network(args.interface, args.channel, can_filters=sdo_server_filters(args.node),
+                           **bus_options(args))
     try:
         device = EmulatedImu(config, network)
         for sig in (signal.SIGTERM, signal.SIGINT):

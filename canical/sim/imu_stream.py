@@ -12,7 +12,7 @@ programme each, times continuing from block to block; a step programme ends at
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -58,6 +58,8 @@ class StreamConfig:
     temp_rise_c: float = 12.0
     temp_tau_s: float = 90.0
     temp_noise_c: float = 0.03
+    #: Instead of the warm-up: ``f(time_s, rate_dps, rng) -> temp_c`` (see :mod:`canical.sim.environment`).
+    temperature: Callable[[np.ndarray, np.ndarray, np.random.Generator], np.ndarray] | None = None
     supply_v: float = 5.0
     supply_noise_v: float = 0.003
     seed: int = 0
@@ -103,11 +105,14 @@ def imu_blocks(config: StreamConfig) -> Iterator[Block]:
     t0 = 0.0
     while True:
         t, w, settled = table_pass(config.table, fs, t0)
-        temp = (
-            config.temp_start_c
-            + config.temp_rise_c * (1.0 - np.exp(-t / config.temp_tau_s))
-            + config.temp_noise_c * rng.standard_normal(t.size)
-        )
+        if config.temperature is not None:
+            temp = np.asarray(config.temperature(t, w, rng), dtype=float)
+        else:
+            temp = (
+                config.temp_start_c
+                + config.temp_rise_c * (1.0 - np.exp(-t / config.temp_tau_s))
+                + config.temp_noise_c * rng.standard_normal(t.size)
+            )
         supply = config.supply_v + config.supply_noise_v * rng.standard_normal(t.size)
         aux = {"temp_c": temp, "supply_v": supply}
         raw = {}

@@ -1,0 +1,247 @@
+"""The bus half of ``canical demo``: an emulated IMU, a session recorded from it, a download, live correction.
+
+One function runs the whole loop the product exists for, on a CAN bus: python-can's
+in-process ``virtual`` bus by default (no kernel support needed), or a real
+interface such as vcan0 with the device emulated in this process or running on
+its own (``canical emulate``):
+
+1. the IMU streams raw frames while a simulated rate table steps through its
+   programme (TABLE_REF on the bus), and it has an effect nobody declared: its
+   bias drifts with die temperature;
+2. one pass of the programme is recorded from the bus (the sensor id read from
+   the device over SDO) and calibrated; the closed loop finds the undeclared effect;
+3. the set is pushed to the device (inactive bank, read back, one-write activation,
+   store) and the device corrects its own frames with it (IMU_RATE);
+4. frames recorded after the push are corrected again offline by ``canical apply``,
+   and the two are compared sample by sample.
+
+It returns the figures (download time, time from push to corrected frames with the
+new set, agreement with apply) for tests and benchmarks.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from canical import coefficient_file
+from canical.atomic_file import write_text_atomic
+from canical.bus_recording import Recording, open_recorder_bus, record
+from canical.calibration import CalibrateOptions, calibrate
+from canical.can_network import open_network, sdo_client_filters, sdo_server_filters
+from canical.coefficient_file import set_crc
+from canical.emulated_imu import EmulatedImu, EmulatorConfig
+from canical.errors import CanicalError
+from canical.imu_dictionary import AXES, sensor_id_for_serial
+from canical.imu_frames import ImuFrames, set_tag
+from canical.sdo_download import ImuClient, PushResult, push_sets
+from canical.session_csv import format_session, read_table
+
+TEMP_BIAS_DPS_PER_C = 0.03  # the undeclared effect of the demo's IMU
+NOMINAL_COUNTS_PER_DPS = 400.0  # the datasheet's scale factor, for "before"
+
+
+@dataclass(frozen=True)
+class BusDemoOptions:
+    interface: str = "virtual"
+    channel: str = "canical-demo"
+    node_id: int = 0x10
+    serial: int = 4711
+    axis: str = "z"
+    sample_rate_hz: float = 100.0
+    speed: float = 5.0
+    table_rates: tuple[float, ...] = tuple(np.arange(-60.0, 60.1, 3.0).tolist())
+    dwell_s: float = 2.0
+    field_samples: int = 1500
+    emulate: bool = True  # False: a device is already running (``canical emulate``)
+    timeout_s: float = 1.0
+
+
+@dataclass
+class BusDemoResult:
+    session_csv: Path
+    coefficients: Path
+    set_id: int
+    effects: list[str]
+    held_out_rms_before_dps: float | None
+    held_out_rms_after_dps: float | None
+    push: PushResult
+    push_to_correction_s: float
+    field_samples: int
+    live_rms_error_dps: float
+    max_device_vs_apply_dps: float
+    figures: dict[str, float] = field(default_factory=dict)
+
+
+def _emulator(options: BusDemoOptions, state: Path):
+    from canical.sim.effects import TemperatureEffect
+    from canical.sim.environment import temperature_steps
+    from canical.sim.imu_stream import StreamConfig, TableMotion, default_gyros
+
+    effect = TemperatureEffect(channel="temp_c", reference_c=25.0, bias_dps_per_c=TEMP_BIAS_DPS_PER_C)
+    gyros = {a: g.__class__(**{**g.__dict__, "effects": (effect,)}) for a, g in default_gyros().items()}
+    # The table sits in a thermal chamber stepping through temperatures in random order, so
+    # temperature does not follow time since power-on and its effect can be told from a drift.
+    chamber = temperature_steps(levels_c=(5.0, 20.0, 35.0, 50.0), period_s=12.0, time_constant_s=2.0)
+    stream = StreamConfig(
+        temperature=chamber,
+        sample_rate_hz=options.sample_rate_hz,
+        table=TableMotion(kind="steps", axis=options.axis, rates_dps=options.table_rates,
+                          dwell_s=options.dwell_s),
+        gyros=gyros,
+    )
+    filters = sdo_server_filters(options.node_id)
+    network = open_network(options.interface, options.channel, can_filters=filters)
+    config = EmulatorConfig(node_id=options.node_id, serial=options.serial, state_path=state, stream=stream,
+                            speed=options.speed, correction=True)
+    return network, EmulatedImu(config, network)
+
+
+def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
+                 say: Callable[[str], None] = print) -> BusDemoResult:
+    """Run the loop; files go to ``out_dir``. See the module doc."""
+    o = options or BusDemoOptions()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = ImuFrames(o.node_id)
+    device_net = device = thread = None
+    if o.emulate:
+        state = out / "imu-state.json"
+        state.unlink(missing_ok=True)  # a factory-fresh device every demo
+        device_net, device = _emulator(o, state)
+        thread = threading.Thread(target=device.run, name="emulated-imu", daemon=True)
+    bus = open_recorder_bus(o.interface, o.channel, frames)
+    tool_net = open_network(o.interface, o.channel, can_filters=sdo_client_filters(o.node_id))
+    try:
+        if device is not None and thread is not None:
+            device.boot_up()
+            thread.start()
+        client = ImuClient(tool_net, o.node_id, o.timeout_s)
+        serial = client.serial()
+        sensor = sensor_id_for_serial(serial)
+        where = f"{o.interface} {o.channel}"
+        say(f"IMU node 0x{o.node_id:02x} on {where}: serial {serial} (sensor id {sensor}), "
+            f"streaming raw frames at {o.sample_rate_hz:g} samples/s (x{o.speed:g} time)")
+
+        # 1-2. Record one pass of the table programme, calibrate it.
+        n_pass = _pass_samples(o)
+        say(f"recording a turntable session from the bus: {len(o.table_rates)} plateaus, "
+            f"{o.table_rates[0]:g}..{o.table_rates[-1]:g} deg/s, about {n_pass} samples")
+        rec = record(bus, frames, samples=n_pass + 50)
+        session = rec.session(o.axis, sensor)
+        session_csv = out / "bus-session.csv"
+        write_text_atomic(session_csv, format_session(session))
+        say(f"  {len(session)} samples of axis {o.axis} ({rec.frames} frames) -> {session_csv}")
+        result = calibrate(session, CalibrateOptions(), sensor_id=sensor, axis=o.axis)
+        coeffs = out / f"imu-{o.axis}.yaml"
+        coefficient_file.save(coeffs, result.coefficients)
+        loop = result.report.get("closed_loop", {})
+        effects = [e.get("name", str(e)) for e in result.report.get("effects", [])]
+        before, after = loop.get("held_out_rms_before_dps"), loop.get("held_out_rms_after_dps")
+        found = ", ".join(effects) or "none"
+        say(f"calibrated: {result.report['spec']}; undeclared effect(s) found: {found}")
+        if before is not None and after is not None:
+            say(f"  held-out error without / with the effect terms: rms {before:.4f} / {after:.4f} deg/s")
+        set_id = set_crc(result.coefficients)
+        say(f"  set 0x{set_id:08x} -> {coeffs}")
+
+        # 3. Push while the device keeps streaming, and time until it corrects with the new set.
+        new_tag = set_tag({a: (set_id if a == o.axis else 0) for a in AXES})
+        t_push = time.monotonic()
+        pushed = push_sets(client, {o.axis: (str(coeffs), result.coefficients)})
+        assert isinstance(pushed, PushResult)
+        say(f"pushed over SDO in {pushed.timings_s['total']:.3f} s "
+            f"({pushed.bytes_written} bytes downloaded in {pushed.timings_s['download']:.3f} s); "
+            f"device runs {pushed.status.describe()}")
+        live = record(bus, frames, until=lambda r: _tagged(r, new_tag) >= o.field_samples)
+        first = _first_tagged(live, new_tag)
+        latency = float(live.array("received_s")[first] - t_push)
+        say(f"first frame corrected on the device with the new set {latency:.3f} s after the push began")
+
+        # 4. The device's corrected rates against `canical apply` on the same frames.
+        keep = np.arange(len(live)) >= first
+        keep &= live.array("device_tag") == new_tag
+        field_csv = out / "bus-field.csv"
+        field_session = _field_session(live, keep, o.axis, sensor)
+        write_text_atomic(field_csv, format_session(field_session))
+        applied = out / "bus-field-applied.csv"
+        from canical.cli import main as cli_main
+
+        if cli_main(["apply", str(coeffs), str(field_csv), "-o", str(applied)]) != 0:
+            raise CanicalError("canical apply failed on the recorded field data")
+        apply_rate = read_table(applied, columns=["rate_dps"]).columns["rate_dps"]
+        device_rate = live.array(f"device_rate_{o.axis}")[keep]
+        diff = float(np.max(np.abs(apply_rate - device_rate)))
+        ref = live.array("ref_dps")[keep]
+        settled = live.array("settled")[keep] == 1
+        nominal = (field_session.raw - result.coefficients.v0) / NOMINAL_COUNTS_PER_DPS
+        before = _plateau_rms(nominal, ref, settled)
+        live_rms = _plateau_rms(device_rate, ref, settled)
+        say(f"live: {int(keep.sum())} frames corrected on the device; error of plateau means against the "
+            f"table: rms {before:.3f} deg/s with the datasheet's linear scale "
+            f"({NOMINAL_COUNTS_PER_DPS:g} counts per deg/s), {live_rms:.4f} deg/s corrected")
+        say(f"  device output vs canical apply on the same frames: largest difference {diff:.4f} deg/s "
+            f"(frame resolution 0.01)")
+        return BusDemoResult(session_csv, coeffs, set_id, effects, before, after, pushed, latency,
+                             int(keep.sum()), live_rms, diff)
+    finally:
+        if device is not None:
+            device.stop_event.set()
+        if thread is not None and thread.is_alive():
+            thread.join(5)
+        tool_net.disconnect()
+        bus.shutdown()
+        if device_net is not None:
+            device_net.disconnect()
+
+
+def _pass_samples(o: BusDemoOptions) -> int:
+    from canical.sim.imu_stream import TableMotion, table_pass
+
+    t, _, _ = table_pass(TableMotion(kind="steps", rates_dps=o.table_rates, dwell_s=o.dwell_s),
+                         o.sample_rate_hz, 0.0)
+    return len(t)
+
+
+def _tagged(rec: Recording, tag: int) -> int:
+    tags = rec.columns["device_tag"]
+    return sum(1 for t in tags[-5000:] if t == tag)
+
+
+def _first_tagged(rec: Recording, tag: int) -> int:
+    hits = np.flatnonzero(rec.array("device_tag") == tag)
+    if not hits.size:
+        raise CanicalError("the device never corrected with the new set")
+    return int(hits[0])
+
+
+def _field_session(rec: Recording, keep: np.ndarray, axis: str, sensor: str):
+    from canical.session import Session
+
+    return Session(
+        time_s=rec.array("time_s")[keep],
+        raw=rec.array(f"raw_{axis}")[keep],
+        ref_dps=rec.array("ref_dps")[keep],
+        aux={"temp_c": rec.array("temp_c")[keep], "supply_v": rec.array("supply_v")[keep]},
+        meta={"sensor": sensor, "axis": axis},
+    )
+
+
+def _plateau_rms(rate: np.ndarray, ref: np.ndarray, settled: np.ndarray) -> float:
+    """Rms over table plateaus of (mean rate − table rate): the calibration error, noise averaged out."""
+    errors = []
+    start = None
+    for i in range(len(ref) + 1):
+        inside = i < len(ref) and settled[i] and (start is None or ref[i] == ref[start])
+        if inside and start is None:
+            start = i
+        elif not inside and start is not None:
+            if i - start >= 10:
+                errors.append(float(np.mean(rate[start:i]) - ref[start]))
+            start = i if i < len(ref) and settled[i] else None
+    return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
