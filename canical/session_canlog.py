@@ -60,20 +60,21 @@ def parse_signal_map(items: list[str] | None) -> dict[str, str]:
 def default_inputs(
     dbc_path: str | os.PathLike[str], raw_message: str = DEFAULT_RAW_MESSAGE
 ) -> dict[str, str]:
-    """Auxiliary channels when none are named: every signal with a unit sent by the raw frame's node.
+    """Auxiliary channels when none are named: the environment the raw frame's node reports.
 
-    Named by signal (``Temperature``, ``SupplyVoltage``...); the gyro axes (the raw frame's
-    signals in the raw signals' unit) and unitless counters and flags are not channels.
+    Every signal with a unit from that node, named by signal (``Temperature``,
+    ``SupplyVoltage``...), except what is not environment: gyro outputs (raw counts, rates
+    in deg/s), time (seconds: ``time_s`` is mapped explicitly) and unitless counters and flags.
     """
     db = load_dbc(dbc_path)
     raw = _message(db, raw_message, dbc_path)
-    raw_units = {s.unit for s in raw.signals if s.name.startswith("GyroRaw")}
+    not_environment = {s.unit for s in raw.signals if s.name.startswith("GyroRaw")} | {"deg/s", "s"}
     out: dict[str, str] = {}
     for msg in db.messages:
         if msg.senders != raw.senders or msg.is_multiplexed():
             continue
         for sig in msg.signals:
-            if sig.unit and not (msg is raw and sig.unit in raw_units) and sig.unit != "s":
+            if sig.unit and sig.unit not in not_environment:
                 out[sig.name] = f"{msg.name}.{sig.name}"
     return out
 

@@ -90,7 +90,7 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         raise CanicalError(
             f"{args.coefficients} is for sensor {cset.sensor_id}, {args.input} is from {sensor}"
         )
-    needed = [n for n in corrector.required_inputs if n != TIME_INPUT or n in source.inputs]
+    needed = list(corrector.required_inputs)  # time_s too: log time is not time since power-on
     unmapped = [n for n in needed if n not in source.inputs]
     if unmapped:
         raise CanicalError(
