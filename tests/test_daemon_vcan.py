@@ -192,7 +192,7 @@ def test_hot_reload_while_streaming(vcan_channel: str, tmp_path: Path, db) -> No
     switches = [i for i in range(1, len(tags)) if tags[i] != tags[i - 1]]
     assert len(switches) == 2, switches
     a, b = switches
-    assert 0 < a <= 800 + 50 and 800 <= b <= 1600 + 50  # the reloads happened near where asked
+    assert 0 < a <= 800 + 50 and 1600 <= b <= 1600 + 200  # the reloads happened near where asked
     mixed = {"z": gens[1]["z"], "x": gens[2]["x"], "y": gens[2]["y"]}
     for start, stop, paths in ((0, a, gens[0]), (a, b, gens[1]), (b, len(got), mixed)):
         exp = expected_rates(signals[start:stop], paths)
@@ -291,5 +291,5 @@ def test_interface_down_and_up_survived(vcan_channel: str, tmp_path: Path, db) -
         rec.close()
     assert alive and code == 0, daemon.log()
     assert len(out) == 400, daemon.log()
-    assert st[(2, 0)]["BusRestarts"] >= 1
+    assert st[(2, 0)]["BusRestarts"] >= 1, (st, daemon.log())
     assert "reopened" in daemon.log()
