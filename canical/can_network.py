@@ -8,12 +8,23 @@ Every bus-facing command (emulate, push, pull, the demo) opens its bus here, so
 from __future__ import annotations
 
 import contextlib
+import logging
 from collections.abc import Iterator
 from typing import Any
 
 import canopen
 
 from canical.errors import CanicalError
+
+
+def quiet_canopen_logging() -> None:
+    """Keep canopen's own log lines (per-transfer warnings) off a command's stderr.
+
+    A command reports a failed transfer itself, as one line; canopen's warning about the
+    same abort would otherwise reach stderr through logging's last-resort handler.
+    """
+    logging.getLogger("canopen").addHandler(logging.NullHandler())
+    logging.getLogger("can").addHandler(logging.NullHandler())
 
 
 def open_network(interface: str, channel: str, **options: Any) -> canopen.Network:

@@ -126,11 +126,12 @@ class ImuClient:
         return self.read_uint(self.objects.serial, "reading the serial number (0x1018 sub 4)")
 
     def limits(self) -> DeviceLimits:
+        serial = self.serial()
         ranges = {}
         for axis, key in self.objects.rated_range.items():
             raw = self.upload(key, f"reading the rated range of axis {axis}")
             ranges[axis] = struct.unpack("<f", raw[:4])[0]
-        return DeviceLimits(self.serial(), ranges)
+        return DeviceLimits(serial, ranges)
 
     def active(self) -> dict[str, str | None]:
         value = self.read_uint(self.objects.active_banks, "reading the active banks")

@@ -12,7 +12,7 @@ import argparse
 from pathlib import Path
 
 from canical import coefficient_file
-from canical.can_network import bus_options, network_on, sdo_client_filters
+from canical.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
 from canical.coefficient_file import set_crc
 from canical.commands.push import add_node_arguments
 from canical.errors import CanicalError
@@ -39,6 +39,7 @@ def output_paths(template: str, axes: list[str]) -> dict[str, Path]:
 
 def run(args: argparse.Namespace) -> int:
     axes = tuple(args.axis) if args.axis else AXES
+    quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:
         client = ImuClient(network, args.node, args.timeout)

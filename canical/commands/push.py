@@ -10,7 +10,13 @@ from __future__ import annotations
 import argparse
 
 from canical import coefficient_file
-from canical.can_network import add_bus_arguments, bus_options, network_on, sdo_client_filters
+from canical.can_network import (
+    add_bus_arguments,
+    bus_options,
+    network_on,
+    quiet_canopen_logging,
+    sdo_client_filters,
+)
 from canical.errors import CanicalError
 from canical.sdo_download import DEFAULT_TIMEOUT_S, ImuClient, PushPlan, push_sets
 
@@ -46,6 +52,7 @@ def load_sets(paths: list[str]) -> dict[str, tuple[str, coefficient_file.Coeffic
 
 def run(args: argparse.Namespace) -> int:
     sets = load_sets(args.coefficients)
+    quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:
         client = ImuClient(network, args.node, args.timeout)
