@@ -22,12 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from canical import coefficient_file
+from canical.coefficients import CoefficientSet
 from canical.corrector import Corrector
 from canical.daemon_config import DaemonConfig
 from canical.errors import CanicalError
 
 SOURCE_NONE = 0
 SOURCE_FILE = 1
+SOURCE_DEVICE = 2  # read from the IMU over CANopen SDO (config ``device``)
 
 FileStamp = tuple[int, int, int] | None
 
@@ -87,7 +89,11 @@ def build(axes: tuple[AxisSet, ...]) -> ActiveSets:
 
 def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:
     """Load and fully validate the set for ``axis``; any defect is one CanicalError line."""
-    cset = coefficient_file.load(path)
+    return check_set(config, axis, coefficient_file.load(path), path)
+
+
+def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path | str) -> Corrector:
+    """Validate a loaded set for ``axis`` (from a file or the device) and build its corrector."""
     if cset.axis != axis:
         raise CanicalError(f"{path}: set is for axis {cset.axis}, configured for axis {axis}")
     if config.sensor is not None and cset.sensor_id != config.sensor:
@@ -116,7 +122,61 @@ def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:
 def initial(config: DaemonConfig) -> tuple[ActiveSets, list[str]]:
     """The sets at start; problems are returned as messages (the axis starts uncalibrated)."""
     empty = tuple(AxisSet(a.axis, a.raw_signal, path=a.coefficients) for a in config.axes)
+    if config.device is not None:
+        return from_device(config, build(empty))
     return reload(config, build(empty), force=True)
+
+
+def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, list[str]]:
+    """The IMU's own active sets (config ``device``), each validated like a file; files for the rest.
+
+    The sensor carries its calibration: an axis the device has a valid set for uses it
+    (``source`` 2); an axis it has none for, or every axis when the device does not answer,
+    falls back to the configured file. The file's stamp is recorded, so only a later change
+    of the file (an operator's act) replaces a set read from the device; SIGHUP reads the
+    device again. A set whose id is already running keeps its corrector (and its state).
+    """
+    from canical.can_network import open_network, sdo_client_filters
+    from canical.sdo_download import pull_active_sets
+
+    device = config.device
+    assert device is not None
+    where = f"device node 0x{device.node:02x}"
+    pulled: dict[str, CoefficientSet] = {}
+    messages: list[str] = []
+    try:
+        network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
+                               **config.bus_options)
+        try:
+            pulled = pull_active_sets(network, device.node, tuple(a.axis for a in current.axes),
+                                      device.timeout_s)
+        finally:
+            network.disconnect()
+    except CanicalError as exc:
+        messages.append(f"{where}: {exc}; using the coefficient files")
+    files, file_messages = reload(config, current, force=True)
+    axes = list(files.axes)
+    for i, ax in enumerate(axes):
+        cset = pulled.get(ax.axis)
+        if cset is None:
+            messages += [m for m in file_messages if m.startswith(f"axis {ax.axis}:")]
+            continue
+        try:
+            corrector = check_set(config, ax.axis, cset, where)
+        except CanicalError as exc:
+            messages.append(f"axis {ax.axis}: {exc}; using the coefficient file")
+            messages += [m for m in file_messages if m.startswith(f"axis {ax.axis}:")]
+            continue
+        old = current.axes[i]
+        if old.corrector is not None and old.set_id == corrector.set_id:
+            axes[i] = replace(old, source=SOURCE_DEVICE, stamp=file_stamp(ax.path))
+            continue
+        was = f"0x{old.set_id:08x}" if old.corrector else "none"
+        messages.append(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {where} replaces {was}")
+        axes[i] = replace(ax, corrector=corrector, set_id=corrector.set_id, source=SOURCE_DEVICE,
+                          reloads=old.reloads + (1 if old.corrector is not None else 0),
+                          stamp=file_stamp(ax.path))
+    return build(tuple(axes)), messages
 
 
 def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:

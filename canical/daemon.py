@@ -353,7 +353,10 @@ class Daemon:
             self._next_watchdog = now + interval
 
     def _reload(self, *, force: bool, why: str) -> None:
-        new, messages = active_sets.reload(self.config, self.sets, force=force)
+        if force and self.config.device is not None:  # SIGHUP: read the IMU's sets again (SDO)
+            new, messages = active_sets.from_device(self.config, self.sets)
+        else:
+            new, messages = active_sets.reload(self.config, self.sets, force=force)
         for message in messages:
             (log.warning if "keeping" in message else log.info)("%s (%s)", message, why)
         if new is not self.sets:

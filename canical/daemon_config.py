@@ -27,7 +27,7 @@ RATE_SIGNALS = {"rate": "Rate", "out_of_span": "OutOfSpan", "uncalibrated": "Unc
 FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
-_TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s",
+_TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
              "watch_period_s"}
 
 
@@ -49,6 +49,14 @@ class AxisConfig:
 
 
 @dataclass(frozen=True)
+class DeviceSource:
+    """The IMU as a CANopen node: at start (and on SIGHUP) its active sets are used, files as fallback."""
+
+    node: int
+    timeout_s: float = 1.0
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     path: Path
     interface: str
@@ -64,6 +72,7 @@ class DaemonConfig:
     inputs: dict[str, InputSource] = field(default_factory=dict)
     status_period_s: float = 1.0
     watch_period_s: float = 1.0
+    device: DeviceSource | None = None
 
     @property
     def coefficient_paths(self) -> dict[str, Path]:
@@ -200,6 +209,17 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         max_age = _positive(spec.get("max_age_s", 1.0), f"{key}.max_age_s", fail)
         inputs[str(name)] = InputSource(str(name), msg_name, sig_name, max_age)
 
+    device = None
+    device_in = content.get("device")
+    if device_in is not None:
+        if not isinstance(device_in, dict):
+            raise fail("device", "must be a mapping {node: CANopen node id, timeout_s: seconds}")
+        _no_unknown(device_in, {"node", "timeout_s"}, "device.", fail)
+        node = device_in.get("node")
+        if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
+            raise fail("device.node", f"must be a CANopen node id 1..127, got {node!r}")
+        device = DeviceSource(node, _positive(device_in.get("timeout_s", 1.0), "device.timeout_s", fail))
+
     return DaemonConfig(
         path=cfg_path,
         interface=interface,
@@ -215,6 +235,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         inputs=inputs,
         status_period_s=_positive(content.get("status_period_s", 1.0), "status_period_s", fail),
         watch_period_s=_positive(content.get("watch_period_s", 1.0), "watch_period_s", fail),
+        device=device,
     )
 
 

@@ -75,7 +75,6 @@ class ImuClient:
 
     def close(self) -> None:
         """Stop listening for this node's SDO responses."""
-        self.network.unsubscribe(self.node.sdo.tx_cobid)
         del self.network[self.node_id]
 
     # ---------------------------------------------------------------------------------------

@@ -41,13 +41,13 @@ TIMEOUT = "1.0"
 class Device:
     """An emulated IMU process; ``start`` again after ``kill`` is a power cycle."""
 
-    def __init__(self, channel: str, state: Path, *extra: str) -> None:
-        self.channel, self.state, self.extra = channel, state, extra
+    def __init__(self, channel: str, state: Path, *extra: str, node: int = NODE) -> None:
+        self.channel, self.state, self.extra, self.node = channel, state, extra, node
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> Device:
         cmd = [sys.executable, "-m", "canical", "emulate", "--interface", "socketcan", "--channel",
-               self.channel, "--node", hex(NODE), "--serial", str(SERIAL), "--state", str(self.state),
+               self.channel, "--node", hex(self.node), "--serial", str(SERIAL), "--state", str(self.state),
                *self.extra]
         self.log = self.state.with_suffix(".log")
         with self.log.open("a") as err:
@@ -88,9 +88,9 @@ def device(channel: str, tmp_path: Path, *extra: str, name: str = "imu.json") ->
 
 
 @contextlib.contextmanager
-def client(channel: str, timeout: float = 1.0) -> Iterator[ImuClient]:
-    with network_on("socketcan", channel, can_filters=sdo_client_filters(NODE)) as network:
-        yield ImuClient(network, NODE, timeout)
+def client(channel: str, timeout: float = 1.0, node: int = NODE) -> Iterator[ImuClient]:
+    with network_on("socketcan", channel, can_filters=sdo_client_filters(node)) as network:
+        yield ImuClient(network, node, timeout)
 
 
 def canical(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
@@ -348,3 +348,49 @@ def test_whole_loop_on_vcan_device_corrects_like_apply(vcan_channel: str, tmp_pa
     assert result.max_device_vs_apply_dps <= 0.0051
     assert result.field_samples >= 200
     assert result.push.status.active_ids["z"] == result.set_id
+
+
+@pytest.mark.vcan
+def test_daemon_takes_its_sets_from_the_device_and_falls_back_to_files(vcan_channel: str,
+                                                                        tmp_path: Path) -> None:
+    """config ``device``: the daemon's start (and SIGHUP) reads the IMU's active sets over SDO;
+    an axis the device cannot give, or a silent device, falls back to the configured file."""
+    from canical import active_sets
+    from canical.daemon_config import load_config
+
+    try:
+        from daemon_fixtures import write_config
+    except ImportError:  # pragma: no cover
+        from tests.daemon_fixtures import write_config  # type: ignore[no-redef]
+
+    files = tmp_path / "etc"
+    files.mkdir()
+    for axis, cset in imu_sets(1).items():
+        coefficient_file.save(files / f"imu-{axis}.yaml", cset)
+    config = load_config(write_config(files, vcan_channel, sensor=str(SERIAL),
+                                      device={"node": 0x10, "timeout_s": 0.5}))
+    node10 = Device(vcan_channel, tmp_path / "imu.json", "--rate", "0", node=0x10)  # as the DBC has it
+    try:
+        node10.start()
+        with client(vcan_channel, node=0x10) as c:
+            push_sets(c, {"x": ("x", imu_set("x", 0)), "z": ("z", imu_set("z", 0))})
+        sets, messages = active_sets.initial(config)
+        assert [(a.axis, a.source, a.set_id) for a in sets.axes] == [
+            ("x", active_sets.SOURCE_DEVICE, ids(0)["x"]),
+            ("y", active_sets.SOURCE_FILE, ids(1)["y"]),  # the device has no set for y
+            ("z", active_sets.SOURCE_DEVICE, ids(0)["z"]),
+        ]
+        with client(vcan_channel, node=0x10) as c:
+            push_sets(c, {"z": ("z", imu_set("z", 2))})
+        after_hup, messages = active_sets.from_device(config, sets)  # what SIGHUP does
+        assert after_hup.axes[2].set_id == ids(2)["z"]
+        assert after_hup.axes[0].corrector is sets.axes[0].corrector  # unchanged: kept, with its state
+        assert any("from device node 0x10 replaces" in m for m in messages)
+        node10.stop()
+        silent, messages = active_sets.initial(config)
+        assert [(a.source, a.set_id) for a in silent.axes] == [
+            (active_sets.SOURCE_FILE, ids(1)[a]) for a in AXES]
+        assert any("device node 0x10" in m and "no answer" in m and "using the coefficient files" in m
+                   for m in messages)
+    finally:
+        node10.stop()

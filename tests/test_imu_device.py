@@ -337,3 +337,20 @@ def test_random_operations_never_leave_an_invalid_set_active(tmp_path_factory, o
             if bank is not None:
                 check = store.check(axis, bank)
                 assert check.status == STATUS_VALID and check.cset is not None and check.cset.axis == axis
+
+
+def test_daemon_config_device_key_is_checked(tmp_path: Path) -> None:
+    from canical.daemon_config import load_config
+
+    try:
+        from daemon_fixtures import write_config
+    except ImportError:  # pragma: no cover
+        from tests.daemon_fixtures import write_config  # type: ignore[no-redef]
+
+    config = load_config(write_config(tmp_path, "vcan0", device={"node": 0x10}))
+    assert config.device is not None and (config.device.node, config.device.timeout_s) == (0x10, 1.0)
+    assert load_config(write_config(tmp_path, "vcan0")).device is None
+    with pytest.raises(CanicalError, match=r"device\.node: must be a CANopen node id 1\.\.127, got 200"):
+        load_config(write_config(tmp_path, "vcan0", device={"node": 200}))
+    with pytest.raises(CanicalError, match=r"device\.bank: unknown key"):
+        load_config(write_config(tmp_path, "vcan0", device={"node": 1, "bank": "A"}))
