@@ -54,7 +54,7 @@ class BusDemoOptions:
     serial: int = 4711
     axis: str = "z"
     sample_rate_hz: float = 100.0
-    speed: float = 5.0
+    speed: float = 8.0
     table_rates: tuple[float, ...] = tuple(np.arange(-60.0, 60.1, 3.0).tolist())
     dwell_s: float = 2.0
     field_samples: int = 1500
@@ -76,6 +76,17 @@ class BusDemoResult:
     live_rms_error_dps: float
     max_device_vs_apply_dps: float
     figures: dict[str, float] = field(default_factory=dict)
+
+
+def default_bus() -> tuple[str, str]:
+    """vcan0 when this machine has it, else python-can's in-process virtual bus."""
+    import can
+
+    try:
+        can.Bus(interface="socketcan", channel="vcan0").shutdown()
+    except Exception:  # no SocketCAN, no vcan0: python-can raises several types
+        return "virtual", "canical-demo"
+    return "socketcan", "vcan0"
 
 
 def _emulator(options: BusDemoOptions, state: Path):

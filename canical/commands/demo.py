@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 
 from canical import coefficient_file
@@ -31,6 +32,8 @@ def register(sub) -> None:
     p = sub.add_parser("demo", help="simulate, calibrate and compare the models, no hardware needed")
     p.add_argument("--out", default="canical-demo", help="folder for the files it writes [canical-demo]")
     p.add_argument("--seed", type=int, default=0, help="simulation seed [0]")
+    p.add_argument("--no-bus", action="store_true",
+                   help="skip the CAN part (emulated IMU, recording, download, live correction)")
     p.set_defaults(run=run)
 
 
@@ -71,6 +74,15 @@ def run(args: argparse.Namespace) -> int:
     write_text_atomic(out / "report.json", json.dumps(result.report, indent=2) + "\n")
     print(f"\nwrote {out / 'coefficients.yaml'} and {out / 'report.json'}")
     closed_loop_demo(out, args.seed)
+
+    # --- The IMU on a CAN bus (canical/demo_bus.py): emulated device, session recorded from the
+    # bus, calibration, download over CANopen SDO, live on-device correction checked against apply.
+    if not args.no_bus:
+        from canical.demo_bus import BusDemoOptions, default_bus, run_bus_demo
+
+        interface, channel = default_bus()
+        print(f"\n--- the IMU on a CAN bus ({interface} {channel}) ---")
+        run_bus_demo(out / "bus", replace(BusDemoOptions(), interface=interface, channel=channel))
     return 0
 
 
