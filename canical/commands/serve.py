@@ -39,6 +39,7 @@ def setup_logging(verbose: bool) -> None:
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
     if not verbose:
         logging.getLogger("can").setLevel(logging.WARNING)
+        logging.getLogger("canopen").setLevel(logging.WARNING)  # SDO chatter when reading the device
 
 
 def run(args: argparse.Namespace) -> int:
