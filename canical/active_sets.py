@@ -80,6 +80,11 @@ def file_stamp(path: Path | None) -> FileStamp:
     return (st.st_mtime_ns, st.st_size, st.st_ino)
 
 
+def files_changed(current: ActiveSets) -> bool:
+    """Whether any set file differs from when it was last looked at (a few ``stat`` calls)."""
+    return any(ax.path is not None and file_stamp(ax.path) != ax.stamp for ax in current.axes)
+
+
 def build(axes: tuple[AxisSet, ...]) -> ActiveSets:
     """Combine per-axis sets into the value the loop reads."""
     combined = zlib.crc32(struct.pack(">" + "I" * len(axes), *(a.set_id for a in axes))) & 0xFFFFFFFF

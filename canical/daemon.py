@@ -10,9 +10,9 @@ One thread does everything, in this order, so nothing needs a lock:
 * between frames, at deadlines: watchdog ping, status frames and systemd STATUS, file checks
   and SIGHUP reloads. Signal handlers only set flags; the loop acts on them.
 
-A reload builds and validates a complete new :class:`~canical.active_sets.ActiveSets` and then
-assigns it in one statement, between two frames: no frame ever sees two sets. Frames arriving
-during the (milliseconds) reload wait in the socket's receive buffer; none is lost.
+A reload builds and validates a complete new :class:`~canical.active_sets.ActiveSets` on a
+worker thread (so frames keep flowing meanwhile) and the loop then assigns it in one
+statement, between two frames: no frame ever sees two sets.
 
 The interface going away (down, bus-off, unplugged) shows up as an error from ``recv`` or
 ``send``: the daemon closes the bus and reopens it until that works again, pinging the
@@ -26,6 +26,7 @@ import errno
 import logging
 import math
 import signal
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -45,6 +46,7 @@ AXIS_CODES = {"x": 0, "y": 1, "z": 2}
 #: errno values that mean "not a problem of this frame": the transmit queue is full.
 TX_FULL = {errno.ENOBUFS, errno.EAGAIN}
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
+RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
 BURST, BURST_SPAN_S = 32, 0.02  # frames handled between two reads of the clock, at most
 REOPEN_BACKOFF_S = (0.05, 0.1, 0.2, 0.5, 1.0)
 
@@ -110,6 +112,9 @@ class Daemon:
         self._tx_counter = 0
         self._running = True
         self._reload_requested = False
+        self._reload_worker: threading.Thread | None = None
+        self._reload_done: tuple[ActiveSets, ActiveSets, list[str], str] | None = None
+        self._reload_again: tuple[bool, str] | None = None
         self._next_periodic = 0.0
         self._next_status = 0.0
         self._next_watch = 0.0
@@ -330,11 +335,13 @@ class Daemon:
 
     def _periodic(self) -> None:
         now = time.monotonic()
+        self._finish_reload()
         if self._reload_requested:
             self._reload_requested = False
-            self._reload(force=True, why="SIGHUP")
+            self._start_reload(force=True, why="SIGHUP")
         if now >= self._next_watch:
-            self._reload(force=False, why="file changed")
+            if active_sets.files_changed(self.sets):
+                self._start_reload(force=False, why="file changed")
             self._next_watch = now + self.config.watch_period_s
         if now >= self._next_status:
             self._send_status()
@@ -344,6 +351,8 @@ class Daemon:
         deadlines = [self._next_status, self._next_watch]
         if self.notifier.watchdog_s is not None:
             deadlines.append(self._next_watchdog)
+        if self._reload_worker is not None:
+            deadlines.append(now + RELOAD_POLL_S)
         self._next_periodic = min(deadlines) if self._running else 0.0
 
     def _ping_watchdog(self, now: float) -> None:
@@ -352,14 +361,57 @@ class Daemon:
             self.notifier.watchdog()
             self._next_watchdog = now + interval
 
-    def _reload(self, *, force: bool, why: str) -> None:
+    def _load(self, base: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:
+        """New sets from ``base``: pure building and validation, never touching ``self.sets``."""
         if force and self.config.device is not None:  # SIGHUP: read the IMU's sets again (SDO)
-            new, messages = active_sets.from_device(self.config, self.sets)
-        else:
-            new, messages = active_sets.reload(self.config, self.sets, force=force)
+            return active_sets.from_device(self.config, base)
+        return active_sets.reload(self.config, base, force=force)
+
+    def _reload(self, *, force: bool, why: str) -> None:
+        """Reload in the calling thread (while no frames flow: at start, with the bus down)."""
+        base = self.sets
+        new, messages = self._load(base, force=force)
+        self._adopt(base, new, messages, why)
+
+    def _start_reload(self, *, force: bool, why: str) -> None:
+        """Build new sets on a worker thread while frames keep flowing; the loop adopts them.
+
+        Loading, validating (and reading the device over SDO) takes milliseconds to a second:
+        done here in the loop, frames would pile up in the socket's buffer or be lost.
+        """
+        if self._reload_worker is not None:  # one at a time; run once more after it
+            pending = self._reload_again
+            self._reload_again = (force or bool(pending and pending[0]), why)
+            return
+        base = self.sets
+
+        def work() -> None:
+            try:
+                new, messages = self._load(base, force=force)
+            except Exception as exc:  # a reload must never take the daemon down
+                new, messages = base, [f"reload failed ({exc}); keeping the sets in use"]
+            self._reload_done = (base, new, messages, why)
+
+        self._reload_worker = threading.Thread(target=work, name="canical-reload", daemon=True)
+        self._reload_worker.start()
+
+    def _finish_reload(self) -> None:
+        worker = self._reload_worker
+        if worker is None or worker.is_alive():
+            return
+        worker.join()
+        self._reload_worker = None
+        done, self._reload_done = self._reload_done, None
+        if done is not None:
+            self._adopt(*done)
+        again, self._reload_again = self._reload_again, None
+        if again is not None:
+            self._start_reload(force=again[0], why=again[1])
+
+    def _adopt(self, base: ActiveSets, new: ActiveSets, messages: list[str], why: str) -> None:
         for message in messages:
             (log.warning if "keeping" in message else log.info)("%s (%s)", message, why)
-        if new is not self.sets:
+        if new is not base and self.sets is base:
             self.sets = new  # the one assignment that switches every axis at once
             if self._state in (STATE_RUNNING, STATE_DEGRADED):
                 self._state = STATE_RUNNING if new.complete else STATE_DEGRADED
