@@ -195,3 +195,27 @@ def test_dispatch_counts_what_it_drops(setup) -> None:
 
 def test_example_config_is_the_one_tests_use() -> None:
     assert EXAMPLE_CONFIG.is_file() and "/etc/canical/" in EXAMPLE_CONFIG.read_text()
+
+
+def test_input_never_received_marks_only_the_axes_that_need_it(setup) -> None:
+    """Before the first IMU_AUX frame there is no time_s: axis x (warm-up term) goes out
+    uncalibrated and every frame is Stale; y and z, which need no such input, are corrected."""
+    _, _, path = setup
+    daemon = Daemon(load_config(path))
+    daemon.load_sets()
+    sent: list[can.Message] = []
+
+    class FakeBus:
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            sent.append(msg)
+
+    daemon.bus = FakeBus()  # type: ignore[assignment]
+    stream = imu_stream(20)
+    for fid, data in stream.frames:
+        if fid == 0x190:
+            daemon._dispatch(can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=1.0))
+    rate = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
+    values = [rate.decode(m.data) for m in sent]
+    assert len(values) == 20
+    assert all(v["UncalibratedX"] == 1 and v["RateX"] == 0 and v["Stale"] == 1 for v in values)
+    assert not any(v["UncalibratedY"] or v["UncalibratedZ"] for v in values)
