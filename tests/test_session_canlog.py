@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import can
@@ -128,3 +129,35 @@ def test_can_log_errors_are_one_line_and_write_nothing(turntable, tmp_path: Path
                     cwd=tmp_path)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert not (tmp_path / "s.yaml").exists()
+
+
+def test_record_writes_a_log_that_calibrate_reads(turntable, tmp_path: Path) -> None:
+    """canical record on a (virtual) bus keeps the IMU's and the table's frames, drops others,
+    and the log it writes reads back as the session that was sent."""
+    import threading
+
+    from canical.cli import main
+
+    session, paths, _, _ = turntable
+    sent = [m for m in can.LogReader(str(paths[".log"])) if len(m.data) == 8][:3000]
+    n_raw = sum(m.arbitration_id == 0x190 for m in sent)
+
+    def play() -> None:
+        with can.Bus(interface="virtual", channel="record-test") as bus:
+            time.sleep(0.5)
+            bus.send(can.Message(arbitration_id=0x555, data=b"noise", is_extended_id=False))
+            for m in sent:
+                bus.send(m)
+
+    player = threading.Thread(target=play)
+    player.start()
+    out = tmp_path / "rec.log"
+    code = main(["record", "-o", str(out), "--interface", "virtual", "--channel", "record-test",
+                 "--dbc", str(DBC), "--frames", str(n_raw), "--duration", "60"])
+    player.join()
+    assert code == 0
+    got = list(can.LogReader(str(out)))
+    assert [m.arbitration_id for m in got] == [m.arbitration_id for m in sent[: len(got)]]  # no 0x555
+    assert sum(m.arbitration_id == 0x190 for m in got) == n_raw
+    log = read_canlog(out, dbc=DBC, axis="z", inputs={})
+    np.testing.assert_array_equal(log.session.raw, session.raw[: len(log.session.raw)])

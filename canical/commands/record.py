@@ -1,0 +1,107 @@
+"""``canical record``: record a session from the bus into a CAN log that ``calibrate`` reads.
+
+A log of the frames themselves (not decoded samples) is the lossless record: it is read
+back with the DBC by the same rules as the daemon, and can be re-read with another mapping.
+Only the frames a session needs pass the kernel's receive filters: the IMU's (the raw frame
+and the frames carrying inputs) and the rate table's reference. The file appears, complete,
+when recording ends (after ``--duration``, ``--frames`` raw frames, or Ctrl-C).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import signal
+import tempfile
+import time
+from pathlib import Path
+
+import can
+
+from canical.daemon_config import load_config
+from canical.errors import CanicalError
+from canical.frame_codec import load_dbc
+from canical.session_canlog import CANLOG_SUFFIXES, DEFAULT_RAW_MESSAGE, DEFAULT_REF
+
+
+def register(sub) -> None:
+    p = sub.add_parser("record", help="record a calibration session from the bus into a CAN log")
+    p.add_argument("-o", "--output", required=True, help="CAN log to write (.log, .asc or .blf)")
+    p.add_argument("--config", help="daemon configuration: interface, channel, DBC and input frames")
+    p.add_argument("--interface", help="python-can interface (default: the configuration's)")
+    p.add_argument("--channel", help="CAN channel (default: the configuration's)")
+    p.add_argument("--dbc", help="DBC (default: the configuration's)")
+    p.add_argument("--duration", type=float, help="seconds to record")
+    p.add_argument("--frames", type=int, help="stop after this many raw frames")
+    p.set_defaults(run=run)
+
+
+def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
+    """Interface, channel, DBC and the names of the messages to record."""
+    interface, channel, dbc, names = args.interface, args.channel, args.dbc, [DEFAULT_RAW_MESSAGE]
+    if args.config:
+        config = load_config(args.config, channel=args.channel)
+        interface = interface or config.interface
+        channel = channel or config.channel
+        dbc = dbc or config.dbc_path
+        names = [config.raw_message, *(s.message for s in config.inputs.values())]
+    if not (interface and channel and dbc):
+        raise CanicalError("record needs --config, or --interface, --channel and --dbc")
+    db = load_dbc(dbc)
+    known = {m.name: m for m in db.messages}
+    raw = known.get(names[0])
+    if raw is None:
+        raise CanicalError(f"{dbc}: no message {names[0]}")
+    if not args.config:  # everything the IMU sends
+        names += [m.name for m in db.messages if m.senders == raw.senders]
+    ref_message = DEFAULT_REF.split(".")[0]
+    if ref_message in known:
+        names.append(ref_message)
+    return interface, channel, Path(dbc), list(dict.fromkeys(names))
+
+
+def run(args: argparse.Namespace) -> int:
+    out = Path(args.output)
+    if out.suffix.lower() not in CANLOG_SUFFIXES:
+        raise CanicalError(f"{out}: the log must end in {', '.join(CANLOG_SUFFIXES)}")
+    interface, channel, dbc, names = _frames(args)
+    db = load_dbc(dbc)
+    messages = [db.get_message_by_name(n) for n in names]
+    raw_id = messages[0].frame_id
+    filters = [{"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if m.is_extended_frame else 0x7FF,
+                "extended": m.is_extended_frame} for m in messages]
+    stop = False
+
+    def on_signal(*_: object) -> None:
+        nonlocal stop
+        stop = True
+
+    previous = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent or Path("."))
+    os.close(fd)
+    counts = {"raw": 0, "all": 0}
+    try:
+        with can.Bus(interface=interface, channel=channel, can_filters=filters) as bus, \
+                can.Logger(tmp) as logger:
+            print(f"record: {', '.join(names)} on {interface} {channel} -> {out} (Ctrl-C ends)", flush=True)
+            end = time.monotonic() + args.duration if args.duration else None
+            while not stop and (end is None or time.monotonic() < end):
+                if args.frames is not None and counts["raw"] >= args.frames:
+                    break
+                msg = bus.recv(0.2)
+                if msg is None or msg.is_error_frame:
+                    continue
+                logger.on_message_received(msg)
+                counts["all"] += 1
+                counts["raw"] += msg.arbitration_id == raw_id
+        os.replace(tmp, out)
+    except (OSError, can.CanError) as exc:
+        raise CanicalError(f"recording from {interface} {channel} failed: {exc}") from None
+    finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        signal.signal(signal.SIGINT, previous[0])
+        signal.signal(signal.SIGTERM, previous[1])
+    print(f"record: {counts['raw']} {names[0]} frames, {counts['all']} frames in all -> {out}")
+    return 0
