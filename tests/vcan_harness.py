@@ -71,7 +71,7 @@ CAN_MODULES: tuple[str, ...] = (
 )
 
 #: Default overall time limit for one guest run (boot + command), in seconds.
-DEFAULT_TIMEOUT = 600.0
+DEFAULT_TIMEOUT = 1800.0  # the whole vcan tier runs in one guest: ~8 min today, CI allows 90
 
 _ARPHRD_CAN = 280
 _IFF_UP = 0x1

@@ -19,7 +19,7 @@ tests run is decided once per session, and only if vcan tests are selected:
     code went untested), unless ``CANICAL_ALLOW_NO_VCAN=1``, which turns that into a skip.
 
 ``CANICAL_VCAN_MODE=native|uml`` forces a mode (e.g. to exercise the UML path on a machine
-that has vcan). ``CANICAL_UML_TIMEOUT`` bounds the guest run (seconds, default 600);
+that has vcan). ``CANICAL_UML_TIMEOUT`` bounds the guest run (seconds, default 1800);
 ``CANICAL_UML_KEEP=1`` keeps the guest's run dir even when everything passed.
 """
 
