@@ -260,23 +260,57 @@ def test_sdo_timeout_when_the_device_freezes(vcan_channel: str, tmp_path: Path) 
 
 @pytest.mark.vcan
 def test_two_pushes_at_once(vcan_channel: str, tmp_path: Path) -> None:
+    """A second tool meets the first one's download lock; racing tools never leave a mix.
+
+    Whether two processes started together really overlap depends on the machine
+    (in the test kernel one start-up takes longer than a whole push), so the lock
+    is first held deterministically, as another tool in mid-download holds it;
+    then two pushes race and either both finish one after the other or one is
+    refused, and the device runs one whole set.
+    """
     paths = [write_sets(tmp_path / f"s{f}", family=f) for f in (0, 1, 2)]
     with device(vcan_channel, tmp_path, "--rate", "50"):
         assert canical("push", *paths[0], *bus_args(vcan_channel)).returncode == 0
+        lock = imu_objects().download_lock
+        done = threading.Event()
+
+        def hold_lock() -> None:
+            # Another tool mid-download renews its lease (5 s) as it writes.
+            with client(vcan_channel) as c:
+                while not done.is_set():
+                    c.write_uint(lock, 0x5EC0_0001, 4, "holding the lock as another tool")
+                    done.wait(1.5)
+                c.write_uint(lock, 0, 4, "releasing the lock")
+
+        holder = threading.Thread(target=hold_lock)
+        holder.start()
+        try:
+            time.sleep(0.5)
+            held = canical("push", *paths[1], *bus_args(vcan_channel))
+        finally:
+            done.set()
+            holder.join(30)
+        with client(vcan_channel) as c:
+            assert c.status().active_ids == ids(0)  # the refused push changed nothing
+        assert held.returncode == 2, held.stderr
+        assert len(held.stderr.strip().splitlines()) == 1 and "Traceback" not in held.stderr, held.stderr
+
         procs = [subprocess.Popen([sys.executable, "-m", "canical", "push", *p, *bus_args(vcan_channel)],
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
                  for p in paths[1:]]
         results = [(p.wait(120), *p.communicate()) for p in procs]
         with client(vcan_channel) as c:
             running = c.status().active_ids
-    failed = [r for r in results if r[0] != 0]
-    assert failed, "two simultaneous pushes cannot both succeed"
-    for code, _out, err in failed:
-        assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    for code, _out, err in results:
+        assert code in (0, 2), err
+        if code:
+            assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
     assert running in (ids(0), ids(1), ids(2))  # a whole set, never a mix
-    for family, (code, _out, _err) in zip((1, 2), results, strict=True):
-        if code == 0:
-            assert running == ids(family)
+    winners = [family for family, (code, _o, _e) in zip((1, 2), results, strict=True) if code == 0]
+    if len(winners) == 1:
+        assert running == ids(winners[0])
+    elif winners:
+        assert running in (ids(1), ids(2))  # they ran one after the other
 
 
 @pytest.mark.vcan
