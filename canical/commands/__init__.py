@@ -1,5 +1,18 @@
-"""One module per ``canical`` command; each exposes ``register(subparsers)``."""
+"""One module per ``canical`` command; each exposes ``register(subparsers)``.
 
-from canical.commands import apply, calibrate, demo, emulate, pull, push, record, serve
+Only the command that runs is imported (see :mod:`canical.cli`): the others'
+dependencies (scipy, matplotlib, canopen) would make every start, and every
+``canical push`` on a slow vehicle computer, pay for all of them.
+"""
 
-COMMANDS = (calibrate, apply, demo, serve, record, emulate, push, pull)
+# name -> one-line help, in the order ``canical --help`` lists them
+COMMANDS = {
+    "calibrate": "fit a turntable session and write a coefficient set",
+    "apply": "correct raw samples in a CSV with a coefficient set",
+    "demo": "simulate, calibrate and compare the models, no hardware needed",
+    "record": "record a calibration session from the bus into a CAN log",
+    "serve": "correct raw gyro frames on a CAN bus in real time (daemon)",
+    "push": "download coefficient sets to the IMU (CANopen SDO) and activate them",
+    "pull": "upload the IMU's active coefficient sets (verified) to YAML",
+    "emulate": "run an emulated IMU node (CANopen) on a CAN interface",
+}

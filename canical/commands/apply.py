@@ -14,6 +14,7 @@ import numpy as np
 
 from canical import coefficient_file
 from canical.atomic_file import atomic_writer
+from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.corrector import Corrector
 from canical.errors import CanicalError
@@ -25,7 +26,7 @@ CHUNK_ROWS = 100_000
 
 
 def register(sub) -> None:
-    p = sub.add_parser("apply", help="correct raw samples in a CSV with a coefficient set")
+    p = sub.add_parser("apply", help=COMMANDS["apply"])
     p.add_argument("coefficients", help="coefficient set YAML")
     p.add_argument("input", help="CSV with a raw column, or a CAN log (.log, .asc, .blf) with --dbc/--config")
     p.add_argument("-o", "--output", required=True, help="CSV to write (input + rate_dps, out_of_span)")

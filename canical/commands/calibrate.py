@@ -10,6 +10,7 @@ from pathlib import Path
 from canical import coefficient_file
 from canical.atomic_file import write_text_atomic
 from canical.calibration import CalibrateOptions, calibrate
+from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
@@ -44,7 +45,7 @@ def add_session_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("calibrate", help="fit a turntable session and write a coefficient set")
+    p = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     p.add_argument(
         "session",
         help="session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log (.log, .asc, .blf)",

@@ -21,6 +21,7 @@ from pathlib import Path
 from canical import coefficient_file
 from canical.atomic_file import write_text_atomic
 from canical.calibration import CalibrateOptions, calibrate
+from canical.commands import COMMANDS
 from canical.commands.calibrate import write_report_dir
 from canical.evaluation import compare_models, validation_record
 from canical.session_csv import format_session
@@ -29,7 +30,7 @@ from canical.sim.sessions import between_rates_session, constant_session, paper_
 
 
 def register(sub) -> None:
-    p = sub.add_parser("demo", help="simulate, calibrate and compare the models, no hardware needed")
+    p = sub.add_parser("demo", help=COMMANDS["demo"])
     p.add_argument("--out", default="canical-demo", help="folder for the files it writes [canical-demo]")
     p.add_argument("--seed", type=int, default=0, help="simulation seed [0]")
     p.add_argument("--no-bus", action="store_true",

@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from canical.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
+from canical.commands import COMMANDS
 from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
@@ -34,7 +35,7 @@ def _rates(text: str) -> tuple[float, ...]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("emulate", help="run an emulated IMU node (CANopen) on a CAN interface")
+    p = sub.add_parser("emulate", help=COMMANDS["emulate"])
     add_bus_arguments(p)
     p.add_argument("--node", type=lambda s: int(s, 0), default=0x10, help="CANopen node id [0x10]")
     p.add_argument("--serial", type=int, default=4711, help="serial number (0x1018 sub 4) [4711]")

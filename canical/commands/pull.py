@@ -14,6 +14,7 @@ from pathlib import Path
 from canical import coefficient_file
 from canical.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
 from canical.coefficient_file import set_crc
+from canical.commands import COMMANDS
 from canical.commands.push import add_node_arguments
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
@@ -21,7 +22,7 @@ from canical.sdo_download import ImuClient, pull_sets
 
 
 def register(sub) -> None:
-    p = sub.add_parser("pull", help="upload the IMU's active coefficient sets (verified) to YAML")
+    p = sub.add_parser("pull", help=COMMANDS["pull"])
     add_node_arguments(p)
     p.add_argument("-o", "--output", required=True, help="YAML to write ({axis} for one file per axis)")
     p.add_argument("--axis", choices=AXES, action="append", help="only this axis (repeatable) [all active]")

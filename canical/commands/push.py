@@ -17,6 +17,7 @@ from canical.can_network import (
     quiet_canopen_logging,
     sdo_client_filters,
 )
+from canical.commands import COMMANDS
 from canical.errors import CanicalError
 from canical.sdo_download import DEFAULT_TIMEOUT_S, ImuClient, PushPlan, push_sets
 
@@ -29,7 +30,7 @@ def add_node_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("push", help="download coefficient sets to the IMU (CANopen SDO) and activate them")
+    p = sub.add_parser("push", help=COMMANDS["push"])
     p.add_argument("coefficients", nargs="+", help="coefficient set YAML, one per axis")
     add_node_arguments(p)
     p.add_argument("--dry-run", action="store_true", help="show what would be written, write nothing")

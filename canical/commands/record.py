@@ -19,6 +19,7 @@ from pathlib import Path
 
 import can
 
+from canical.commands import COMMANDS
 from canical.daemon_config import load_config
 from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
@@ -26,7 +27,7 @@ from canical.session_canlog import CANLOG_SUFFIXES, DEFAULT_RAW_MESSAGE, DEFAULT
 
 
 def register(sub) -> None:
-    p = sub.add_parser("record", help="record a calibration session from the bus into a CAN log")
+    p = sub.add_parser("record", help=COMMANDS["record"])
     p.add_argument("-o", "--output", required=True, help="CAN log to write (.log, .asc or .blf)")
     p.add_argument("--config", help="daemon configuration: interface, channel, DBC and input frames")
     p.add_argument("--interface", help="python-can interface (default: the configuration's)")

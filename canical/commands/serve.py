@@ -14,12 +14,13 @@ import os
 import sys
 
 from canical import active_sets
+from canical.commands import COMMANDS
 from canical.daemon import Daemon
 from canical.daemon_config import load_config
 
 
 def register(sub) -> None:
-    p = sub.add_parser("serve", help="correct raw gyro frames on a CAN bus in real time (daemon)")
+    p = sub.add_parser("serve", help=COMMANDS["serve"])
     p.add_argument("--config", required=True, help="daemon configuration YAML")
     p.add_argument("--channel", help="CAN interface, overriding bus.channel (e.g. the unit's %%i)")
     p.add_argument("--check", action="store_true",
