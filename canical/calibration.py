@@ -238,6 +238,15 @@ def loop_report(loop: LoopResult) -> dict[str, Any]:
         f"{BLOCK_S:g} s, {len(loop.blocks)} blocks",
         "final_spec": loop.structure.spec.describe(),
         "capacity_changes": loop.capacity_changes,
+        "untestable": [
+            {
+                "candidate": name,
+                "r2_with_table_rate": r2,
+                "why": "follows the table rate in this session; visit the rates in random order "
+                "or sweep up and down to test it",
+            }
+            for name, r2 in loop.untestable.items()
+        ],
         "rounds": loop.rounds,
     }
 

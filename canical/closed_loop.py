@@ -27,7 +27,14 @@ import numpy as np
 from scipy import optimize, stats
 
 from canical.blocks import Blocks
-from canical.effect_candidates import Candidate, build_candidates, columns, tau_grid, with_tau
+from canical.effect_candidates import (
+    Candidate,
+    build_candidates,
+    shift_columns,
+    tau_grid,
+    untestable,
+    with_tau,
+)
 from canical.errors import CanicalError
 from canical.fit_points import FitPoints
 from canical.model_fit import ModelSpec, fit_model
@@ -40,7 +47,6 @@ MIN_GAIN = 0.10
 ALPHA = 1e-3
 FOLDS = 5
 PRUNE_TOLERANCE = 0.02
-CONFOUND_GAIN = MIN_GAIN / 2
 
 
 @dataclass(frozen=True)
@@ -60,21 +66,45 @@ class Fit:
     terms: tuple[Term, ...]  # with fitted coefficients (and τ)
 
 
+GAUSS_NEWTON_STEPS = 4
+
+
 def _solve(blocks: Blocks, s: Structure, terms: tuple[Term, ...]) -> tuple[PiecewisePoly, np.ndarray, float]:
+    """Fit ω = f(ΔV − Σ c·column) jointly for the base model f and the coefficients c.
+
+    The model is nonlinear in c (the effect shifts ΔV inside f), so it is solved by
+    Gauss-Newton: at each step f is refitted on the shifted ΔV and c is corrected
+    through the local slope of f. Effects are small next to the full scale, so a
+    few steps converge.
+    """
     p = blocks.points
-    fit = fit_segmented_inverse(
-        p.dv,
-        p.rate,
-        p.weight,
-        s.knots,
-        s.spec.order,
-        scale=s.scale,
-        span=s.span,
-        smoothness=s.spec.smoothness,
-        extra=columns(terms, blocks, s.scale),
-    )
-    resid = p.rate - fit.poly.evaluate(p.dv)[0] - columns(terms, blocks, s.scale) @ fit.extra
-    return fit.poly, fit.extra, float(np.sum(p.weight * resid**2))
+    cols = shift_columns(terms, blocks)
+    coef = np.zeros(cols.shape[1])
+    slope = np.full(len(p), 1.0 / _mean_sensitivity(p))
+    for _ in range(GAUSS_NEWTON_STEPS if terms else 1):
+        dv = p.dv - cols @ coef
+        fit = fit_segmented_inverse(
+            dv,
+            p.rate,
+            p.weight,
+            s.knots,
+            s.spec.order,
+            scale=s.scale,
+            span=s.span,
+            smoothness=s.spec.smoothness,
+            extra=-cols * slope[:, None],
+        )
+        coef = coef + fit.extra
+        slope = fit.poly.slope(p.dv - cols @ coef)
+        if not terms or np.max(np.abs(fit.extra * np.max(np.abs(cols), axis=0))) < 1e-6 * s.scale:
+            break
+    resid = p.rate - fit.poly.evaluate(p.dv - cols @ coef)[0]
+    return fit.poly, coef, float(np.sum(p.weight * resid**2))
+
+
+def _mean_sensitivity(p: FitPoints) -> float:
+    """Counts per deg/s over the span: the first guess of the model's slope."""
+    return float(np.polyfit(p.rate, p.dv, 1)[0]) or 1.0
 
 
 def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
@@ -103,11 +133,18 @@ def _best_tau(blocks: Blocks, s: Structure, duration_s: float) -> float:
     return float(np.exp(res.x))
 
 
-def predict(fit: Fit, blocks: Blocks, scale: float) -> np.ndarray:
-    base = fit.poly.evaluate(blocks.points.dv)[0]
-    if not fit.terms:
-        return base
-    return base + columns(fit.terms, blocks, scale) @ np.array([t.coefficient for t in fit.terms])
+def predict(fit: Fit, blocks: Blocks) -> np.ndarray:
+    """ω at each block: the base model on ΔV corrected by the fit's effect terms."""
+    dv = blocks.points.dv
+    if fit.terms:
+        dv = dv - shift_columns(fit.terms, blocks) @ np.array([t.coefficient for t in fit.terms])
+    return fit.poly.evaluate(dv)[0]
+
+
+def effect_contribution(fit: Fit, blocks: Blocks, terms: tuple[Term, ...]) -> np.ndarray:
+    """How much ``terms`` (a subset of the fit's) change the predicted rate at each block."""
+    others = tuple(t for t in fit.terms if t not in terms)
+    return predict(fit, blocks) - predict(Fit(fit.poly, others), blocks)
 
 
 def plateau_folds(blocks: Blocks, k: int = FOLDS) -> list[np.ndarray]:
@@ -124,7 +161,7 @@ def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], durat
     errors = np.zeros(len(blocks))
     for held in folds:
         fit = fit_structure(blocks.take(~held), s, duration_s)
-        errors[held] = predict(fit, blocks.take(held), s.scale) - blocks.points.rate[held]
+        errors[held] = predict(fit, blocks.take(held)) - blocks.points.rate[held]
     return errors
 
 
@@ -147,7 +184,7 @@ class Scorer:
         if key not in self.cache:
             err = held_out_errors(self.blocks, s, self.folds, self.duration_s)
             fit = fit_structure(self.blocks, s, self.duration_s)
-            resid = self.blocks.points.rate - predict(fit, self.blocks, s.scale)
+            resid = self.blocks.points.rate - predict(fit, self.blocks)
             n_par = (len(s.knots) + 1) * (s.spec.order + 1) + len(s.terms)
             self.cache[key] = (rms(err), plateau_rss(self.blocks, resid), n_par)
         return self.cache[key]
@@ -210,6 +247,7 @@ class LoopResult:
     errors_before: np.ndarray
     errors_after: np.ndarray
     capacity_changes: list[str]
+    untestable: dict[str, float] = field(default_factory=dict)
 
 
 def _capacity_options(s: Structure) -> list[ModelSpec]:
@@ -219,12 +257,18 @@ def _capacity_options(s: Structure) -> list[ModelSpec]:
     return out
 
 
+def corrected_points(blocks: Blocks, fit: Fit) -> FitPoints:
+    """The blocks with the fit's effects taken out of ΔV: what the base model alone should fit."""
+    p = blocks.points
+    if not fit.terms:
+        return p
+    shift = shift_columns(fit.terms, blocks) @ np.array([t.coefficient for t in fit.terms])
+    return FitPoints(p.rate, p.dv - shift, p.weight, p.dv_sem)
+
+
 def _reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
     """Once an effect is in, choose the base size again: the effect may have hidden what it needs."""
-    fit = fit_structure(scorer.blocks, s, duration_s)
-    effect = predict(fit, scorer.blocks, s.scale) - fit.poly.evaluate(scorer.blocks.points.dv)[0]
-    p = scorer.blocks.points
-    corrected = FitPoints(p.rate - effect, p.dv, p.weight, p.dv_sem)
+    corrected = corrected_points(scorer.blocks, fit_structure(scorer.blocks, s, duration_s))
     try:
         spec, _ = select_model(corrected, s.spec)
     except CanicalError:
@@ -237,10 +281,7 @@ def _reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure
 
 def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float) -> Structure | None:
     """Re-choose segment points for a new base size, on blocks corrected by the current terms."""
-    fit = fit_structure(blocks, s, duration_s)
-    effect = predict(fit, blocks, s.scale) - fit.poly.evaluate(blocks.points.dv)[0]
-    p = blocks.points
-    corrected = FitPoints(p.rate - effect, p.dv, p.weight, p.dv_sem)
+    corrected = corrected_points(blocks, fit_structure(blocks, s, duration_s))
     try:
         fitted, _ = fit_model(corrected, spec)
     except (CanicalError, np.linalg.LinAlgError):  # a size the data cannot support: no candidate
@@ -266,6 +307,10 @@ def run_loop(
     scorer = Scorer(blocks, folds, duration_s)
     s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
     pool = build_candidates(blocks, duration_s)
+    tied = untestable(pool, blocks)
+    if tied:
+        progress(f"not testable here (follow the table rate): {', '.join(tied)}")
+    pool = [c for c in pool if c.name not in tied]
     n_candidates = len(pool) + 2
     alpha = ALPHA / max(n_candidates, 1)
     min_gain = max(MIN_GAIN, 2.0 / np.sqrt(2.0 * scorer.n_plateaus))
@@ -308,8 +353,9 @@ def run_loop(
             capacity_changes.append(best_name)
             s = best
             continue
-        effect_passing = [c for _, _, c in passing if isinstance(c, Candidate)]
-        twins, shadows = _confounded_with(scorer, s, best, effect_passing)
+        # Every candidate, not only those that passed at the current base size: with its
+        # own best base size a candidate may turn out to explain the same residual.
+        best, twins, shadows = _confounded_with(scorer, s, best, pool, min_gain)
         if twins:
             chosen = next((c for c in (best, *twins) if c.name in prefer), None)
             group = [best, *twins]
@@ -378,28 +424,42 @@ def run_loop(
         errors_before=held_out_errors(blocks, base_s, folds, duration_s),
         errors_after=held_out_errors(blocks, s, folds, duration_s),
         capacity_changes=capacity_changes,
+        untestable=tied,
     )
 
 
 def _confounded_with(
-    scorer: Scorer, s: Structure, best: Candidate, passing: list[Candidate]
-) -> tuple[list[Candidate], list[Candidate]]:
-    """Passing candidates that explain the residual ``best`` explains: (twins, shadows).
+    scorer: Scorer, s: Structure, best: Candidate, pool: list[Candidate], min_gain: float
+) -> tuple[Candidate, list[Candidate], list[Candidate]]:
+    """The best explanation and the candidates that explain the same residual: (best, twins, shadows).
 
-    A candidate that adds nothing once ``best`` is in explains (part of) the same
-    residual. It is a *twin* when ``best`` adds nothing beyond it either — the
-    data cannot tell them apart — and a *shadow* when ``best`` explains more.
+    Each explanation is scored with the base size it deserves (an under-sized base
+    leaves misfit that would blur the comparison), and the best is chosen again on
+    that footing. Another candidate explains the same residual when adding it on
+    top of the best gains less than ``min_gain``. It is a *twin* when, on its own,
+    it is as good as the best within ``min_gain`` and the best adds no such gain on
+    top of it either — the data cannot tell them apart — and a *shadow* otherwise.
     """
-    with_best = scorer.score(replace(s, terms=s.terms + best.terms))[0]
+
+    def grown_rms(terms: tuple[Term, ...]) -> float:
+        grown = _reselect_size(scorer, replace(s, terms=s.terms + terms), scorer.duration_s)
+        return scorer.score(grown)[0]
+
+    r_now = scorer.score(s)[0]
+    alone = {c.name: grown_rms(c.terms) for c in pool}
+    useful = [c for c in pool if alone[c.name] < r_now * (1 - min_gain)] or [best]
+    best = min(useful, key=lambda c: alone.get(c.name, r_now))
+    r_best = alone.get(best.name, r_now)
     twins, shadows = [], []
-    for other in passing:
+    for other in useful:
         if other is best:
             continue
-        alone = scorer.score(replace(s, terms=s.terms + other.terms))[0]
-        both = scorer.score(replace(s, terms=s.terms + best.terms + other.terms))[0]
-        if both > with_best * (1 - CONFOUND_GAIN):
-            (twins if both > alone * (1 - CONFOUND_GAIN) else shadows).append(other)
-    return twins, shadows
+        r_other = alone[other.name]
+        r_both = grown_rms(best.terms + other.terms)
+        if r_both >= r_best * (1 - min_gain):
+            twin = r_other <= r_best * (1 + min_gain) and r_both >= r_other * (1 - min_gain)
+            (twins if twin else shadows).append(other)
+    return best, twins, shadows
 
 
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:

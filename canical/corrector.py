@@ -4,10 +4,11 @@ Built once from a validated set (everything that can be computed at load is
 computed here), then called per block of samples (``correct``) or per frame
 (``correct_one``). It never sees a reference rate: in the field there is none.
 
-Effect terms add to the model's rate (see :mod:`canical.terms`). A direction
-term has state, so one Corrector serves one stream of samples in time order;
-``correct`` on a block starts from a fresh state, exactly as ``correct_one``
-does on a new Corrector, so the two agree sample for sample.
+Effect terms correct the raw output before the rate model (see
+:mod:`canical.terms`). A direction or slope term has state, so one Corrector
+serves one stream of samples in time order; ``correct`` on a block starts from
+a fresh state, exactly as ``correct_one`` does on a new Corrector, so the two
+agree sample for sample.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from canical.terms import (
     SlopeTracker,
     Term,
     feature_values,
+    raw_shift,
     term_from_dict,
 )
 
@@ -39,7 +41,6 @@ class Corrector:
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
         self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
-        self.term_scale = float(getattr(self.model, "scale", 1.0))
         names = [t.input_name for t in self.terms if t.input_name]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
         self.reset()
@@ -58,19 +59,16 @@ class Corrector:
         if missing:
             raise CanicalError(f"the coefficient set needs input(s) {', '.join(missing)}")
         dv = raw - self.v0
-        rate, oos = self.model.evaluate(dv)
-        for term in self.terms:
-            x = feature_values(term, inputs, raw)
-            if term.form == "scale":
-                x = x * (dv / self.term_scale)
-            rate = rate + term.coefficient * x
-        return rate, oos
+        if self.terms:
+            features = np.column_stack([feature_values(t, inputs, raw) for t in self.terms])
+            dv = dv - raw_shift(self.terms, features, dv)
+        return self.model.evaluate(dv)
 
     def correct_one(self, raw: float, inputs: Mapping[str, float] | None = None) -> tuple[float, bool]:
         """Calibrated rate and out-of-span flag for the next sample of the stream."""
         raw = float(raw)
         dv = raw - self.v0
-        rate, oos = self.model.evaluate_one(dv)
+        shift = 0.0
         for term, tracker in zip(self.terms, self._trackers, strict=True):
             if isinstance(tracker, DirectionTracker):
                 x = tracker.update(raw)
@@ -86,10 +84,8 @@ class Corrector:
                     x = 1.0 - math.exp(-value / term.tau_s)  # type: ignore[operator]
                 else:
                     x = value
-            if term.form == "scale":
-                x = x * dv / self.term_scale
-            rate += term.coefficient * x
-        return rate, oos
+            shift += term.coefficient * (x * dv if term.form == "scale" else x)
+        return self.model.evaluate_one(dv - shift)
 
 
 def _tracker(term: Term) -> DirectionTracker | SlopeTracker | None:

@@ -4,7 +4,7 @@ Every auxiliary column is a candidate by its name (its meaning is never
 assumed), and so are time since power-on (a warm-up 1 − exp(−t/τ) with τ
 estimated, and a linear drift) and the direction of approach (the raw signal's
 last significant change, up or down) and its rate of change. Each candidate brings its terms in bias
-form (ω += c·x) and scale-factor form (ω += c·x·u); a channel also brings a
+form (ΔV gains c·x) and scale-factor form (ΔV gains c·x·ΔV); a channel also brings a
 quadratic bias. Columns that do not earn their keep are pruned after acceptance.
 """
 
@@ -49,21 +49,49 @@ def feature(term: Term, blocks: Blocks) -> np.ndarray:
     return x * x if term.feature == "square" else x
 
 
-def column(term: Term, blocks: Blocks, scale: float) -> np.ndarray:
-    x = feature(term, blocks)
-    return x * (blocks.points.dv / scale) if term.form == "scale" else x
-
-
-def columns(terms: tuple[Term, ...], blocks: Blocks, scale: float) -> np.ndarray:
+def shift_columns(terms: tuple[Term, ...], blocks: Blocks) -> np.ndarray:
+    """Per term, what one unit of its coefficient adds to ΔV at each block: x, or x·ΔV."""
     if not terms:
         return np.zeros((len(blocks), 0))
-    return np.column_stack([column(t, blocks, scale) for t in terms])
+    dv = blocks.points.dv
+    return np.column_stack([feature(t, blocks) * (dv if t.form == "scale" else 1.0) for t in terms])
 
 
 def _pair(kind: str, feature_name: str, **kw) -> tuple[Term, ...]:
     return tuple(
         Term(kind=kind, feature=feature_name, form=form, coefficient=0.0, **kw) for form in ("bias", "scale")
     )
+
+
+TIED_R2 = 0.98
+
+
+def tied_to_rate(x: np.ndarray, blocks: Blocks) -> float:
+    """R² of a feature explained by a cubic of the table rate.
+
+    When the session visits the rates in time order, time since power-on *is* the
+    table rate, and a time term would predict the reference instead of the
+    sensor's error: a leak that vanishes in the field. Such a candidate cannot be
+    tested on this session.
+    """
+    rate = blocks.points.rate
+    w = blocks.points.weight
+    design = np.vander(rate / max(np.max(np.abs(rate)), 1e-9), 4, increasing=True)
+    sw = np.sqrt(w)
+    coef, *_ = np.linalg.lstsq(design * sw[:, None], x * sw, rcond=None)
+    resid = x - design @ coef
+    total = np.sum(w * (x - np.average(x, weights=w)) ** 2)
+    return float(1.0 - np.sum(w * resid**2) / total) if total > 0 else 1.0
+
+
+def untestable(candidates: list[Candidate], blocks: Blocks) -> dict[str, float]:
+    """Candidates whose feature is a function of the table rate in this session, with that R²."""
+    out = {}
+    for cand in candidates:
+        r2 = tied_to_rate(feature(cand.terms[0], blocks), blocks)
+        if r2 >= TIED_R2:
+            out[cand.name] = r2
+    return out
 
 
 def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidate]:

@@ -68,6 +68,11 @@ class PiecewisePoly:
             out = out * u + k * c[..., k]
         return out / self.scale
 
+    def slope(self, dv: np.ndarray) -> np.ndarray:
+        """dω/dΔV at each ΔV (at the span edge beyond it, as the extrapolation uses)."""
+        inside = np.clip(np.asarray(dv, dtype=float), *self.span)
+        return self._slope(self.segment_of(inside), inside / self.scale)
+
     def evaluate(self, dv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ω for each ΔV, and a boolean mask of values outside the calibrated span."""
         dv = np.asarray(dv, dtype=float)

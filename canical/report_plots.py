@@ -21,8 +21,7 @@ import numpy as np
 
 from canical.atomic_file import write_bytes_atomic
 from canical.blocks import Blocks
-from canical.closed_loop import LoopResult, predict
-from canical.effect_candidates import columns
+from canical.closed_loop import LoopResult, effect_contribution, predict
 from canical.terms import term_from_dict
 
 
@@ -70,10 +69,9 @@ def residual_vs_rate(loop: LoopResult, path: Path) -> None:
 def effect_plot(loop: LoopResult, effect: dict, path: Path) -> None:
     """Partial residual: the final model's residual plus this effect's own contribution."""
     blocks = loop.blocks
-    scale = loop.structure.scale
-    resid = blocks.points.rate - predict(loop.fit, blocks, scale)
+    resid = blocks.points.rate - predict(loop.fit, blocks)
     terms = tuple(term_from_dict(t) for t in effect["terms"])
-    contribution = columns(terms, blocks, scale) @ np.array([t.coefficient for t in terms])
+    contribution = effect_contribution(loop.fit, blocks, terms)
     x, label = variable_of(effect["name"], blocks)
     # The correction subtracts the error, so the sensor's error is the negative contribution.
     fig, ax = plt.subplots(figsize=(8, 4.2))
@@ -82,7 +80,7 @@ def effect_plot(loop: LoopResult, effect: dict, path: Path) -> None:
     ax.set_xlabel(label)
     ax.set_ylabel("rate error (deg/s)")
     ax.set_title(
-        f"Effect {effect['name']}: held-out rms {effect['rms_before_dps']:.4f} -> "
+        f"Effect {effect['name']}: when added, held-out rms {effect['rms_before_dps']:.4f} -> "
         f"{effect['rms_after_dps']:.4f} deg/s"
     )
     ax.legend(loc="best", fontsize=8)

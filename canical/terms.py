@@ -1,8 +1,15 @@
 """Effect terms: what the closed loop adds to a rate model, evaluated at run time.
 
-A term turns something the vehicle can provide into a feature x, and adds it
-to the rate either as a bias (ω += c·x) or on the scale factor (ω += c·x·u,
-u = ΔV/scale, i.e. a relative gain error proportional to x). Features:
+Effects act on the sensor's output, so their correction is applied there, in
+raw units, before the rate model: for a term with feature x,
+
+* ``bias`` form:  ΔV' = ΔV − c·x        (c in raw units per unit of x),
+* ``scale`` form: ΔV' = ΔV − c·x·ΔV     (c: relative gain error per unit of x),
+
+and then ω = f(ΔV'). Correcting in the rate domain instead would be wrong by
+the slope variation of f (a few per cent for a nonlinear sensor) times the
+effect. The coefficient is the sensor's own error, so a positive temperature
+coefficient means the output rises with temperature. Features:
 
 * ``channel`` — an auxiliary signal by name, minus its reference value:
   ``offset`` x = v − ref, ``square`` x = (v − ref)²;
@@ -15,7 +22,8 @@ u = ΔV/scale, i.e. a relative gain error proportional to x). Features:
   constant τ; input ``time_s``). Both have state, so samples must come in time order.
 
 Terms are plain dicts in the coefficient file (see :data:`TERM_FIELDS`); this
-module validates them and evaluates them, vectorised or one sample at a time.
+module validates them and evaluates their features, vectorised or one sample at
+a time.
 """
 
 from __future__ import annotations
@@ -182,3 +190,15 @@ class SlopeTracker:
             self.value += alpha * ((raw - self.last_raw) / dt - self.value)
         self.last_raw, self.last_t = raw, t
         return self.value
+
+
+def raw_shift(terms: tuple[Term, ...], features: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """Σ c·x (bias) + Σ c·x·ΔV (scale): what the effects add to ΔV, for a block of samples.
+
+    ``features`` holds one column per term (the feature x of each sample).
+    """
+    shift = np.zeros_like(dv, dtype=float)
+    for j, term in enumerate(terms):
+        x = features[:, j]
+        shift = shift + term.coefficient * (x * dv if term.form == "scale" else x)
+    return shift

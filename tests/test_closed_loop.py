@@ -114,3 +114,14 @@ def test_no_extend_fits_the_model_alone(tmp_path):
     coeffs = tmp_path / "c.yaml"
     assert main(["calibrate", str(path), "-o", str(coeffs), "--no-extend"]) == 0
     assert coefficient_file.load(coeffs).terms == ()
+
+
+def test_time_candidates_tied_to_the_rate_order_are_reported_not_fitted():
+    """One ascending sweep: time since power-on *is* the table rate, so a time term would
+    predict the reference (a leak that vanishes in the field). It must not be accepted."""
+    gyro = GyroModel(effects=(fx.WarmupEffect(0.2, 200.0),))
+    session = sweep_session(gyro, paper_rates(), dwell_s=2.0, fs_hz=100.0, seed=2)
+    result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
+    names = {u["candidate"] for u in result.report["closed_loop"]["untestable"]}
+    assert {"time:warm-up", "time:linear-drift"} <= names
+    assert all(e["kind"] != "time" for e in result.report["effects"])
