@@ -177,6 +177,9 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         # 4. The device's corrected rates against `canical apply` on the same frames.
         keep = np.arange(len(live)) >= first
         keep &= live.array("device_tag") == new_tag
+        # A raw frame whose IMU_RATE was not matched (lost, or paired with another counter
+        # value) has no device rate: compare only frames that have both.
+        keep &= np.isfinite(live.array(f"device_rate_{o.axis}"))
         field_csv = out / "bus-field.csv"
         field_session = _field_session(live, keep, o.axis, sensor)
         write_text_atomic(field_csv, format_session(field_session))
