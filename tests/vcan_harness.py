@@ -572,6 +572,21 @@ def run_in_uml(command: Sequence[str], *, cwd: str | os.PathLike[str] | None = N
     )
 
 
+def run_script_on_vcan(timeout: float = 900.0) -> int | None:
+    """For a script that needs vcan: where the host has none, run this same command in a guest.
+
+    Returns the guest's exit status after relaying its output, or ``None`` when the
+    caller is already where vcan is (host vcan, or inside the guest) and should run.
+    """
+    if os.environ.get(ENV_IN_UML) == "1" or host_vcan_status().usable:
+        return None
+    result = run_in_uml([sys.executable, *sys.argv], timeout=timeout)
+    sys.stdout.write(result.stdout)
+    if not result.ok:
+        print(result.describe(), file=sys.stderr)
+    return result.returncode if result.returncode is not None else 125
+
+
 def _main(argv: Sequence[str]) -> int:
     """``python tests/vcan_harness.py CMD...``: run CMD in a guest, echo output, keep the run dir."""
     if not argv:

@@ -190,13 +190,9 @@ def main() -> int:
     parser.add_argument("--rates", default="250,1000,2000,3000,4000,6000",
                         help="paced rates to offer, frames/s")
     args = parser.parse_args()
-    inside = os.environ.get(vcan_harness.ENV_IN_UML) == "1"
-    if not inside and not vcan_harness.host_vcan_status().usable:
-        result = vcan_harness.run_in_uml([sys.executable, *sys.argv], timeout=900)
-        sys.stdout.write(result.stdout)
-        if not result.ok:
-            print(result.describe(), file=sys.stderr)
-        return result.returncode if result.returncode is not None else 125
+    status = vcan_harness.run_script_on_vcan()
+    if status is not None:
+        return status
     run(args)
     return 0
 
