@@ -94,7 +94,7 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
         raise CanicalError(f"only {n_rates} distinct plateau rates: at least 4 are needed to calibrate")
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
     spec, candidates = _choose_spec(points, options)
-    fitted, _ = fit_model(points, spec)
+    fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
     return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates)
 
@@ -148,7 +148,7 @@ def error_stats(errors: np.ndarray) -> dict[str, float]:
 def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
     """Report fields of the base fit: samples, model, segment points, errors, noise."""
     spec = base.fitted.spec
-    held = cross_validate(base.points, lambda p: fit_model(p, spec)[0].model)
+    held = cross_validate(base.points, lambda p: fit_model(p, spec).model)
     train = prediction_errors(base.fitted.model, base.points)
     slope = float(np.polyfit(base.points.rate, base.points.dv, 1)[0])
     per_sample_noise = float(np.median(base.points.dv_sem * np.sqrt(base.points.weight))) / abs(slope)

@@ -266,7 +266,7 @@ def corrected_points(blocks: Blocks, fit: Fit) -> FitPoints:
     return FitPoints(p.rate, p.dv - shift, p.weight, p.dv_sem)
 
 
-def _reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
+def reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
     """Once an effect is in, choose the base size again: the effect may have hidden what it needs."""
     corrected = corrected_points(scorer.blocks, fit_structure(scorer.blocks, s, duration_s))
     try:
@@ -283,7 +283,7 @@ def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float)
     """Re-choose segment points for a new base size, on blocks corrected by the current terms."""
     corrected = corrected_points(blocks, fit_structure(blocks, s, duration_s))
     try:
-        fitted, _ = fit_model(corrected, spec)
+        fitted = fit_model(corrected, spec)
     except (CanicalError, np.linalg.LinAlgError):  # a size the data cannot support: no candidate
         return None
     if fitted.spec.n_segments != spec.n_segments:
@@ -400,7 +400,7 @@ def run_loop(
             }
         )
         progress(f"accepted {best.name}: held-out rms {current[0]:.4f} -> {after[0]:.4f} deg/s")
-        s = _reselect_size(scorer, s_new, duration_s)
+        s = reselect_size(scorer, s_new, duration_s)
         pool = [c for c in pool if c is not best]
     s = _prune_all(scorer, s)
     final_fit = fit_structure(blocks, s, duration_s)
@@ -442,7 +442,7 @@ def _confounded_with(
     """
 
     def grown_rms(terms: tuple[Term, ...]) -> float:
-        grown = _reselect_size(scorer, replace(s, terms=s.terms + terms), scorer.duration_s)
+        grown = reselect_size(scorer, replace(s, terms=s.terms + terms), scorer.duration_s)
         return scorer.score(grown)[0]
 
     r_now = scorer.score(s)[0]

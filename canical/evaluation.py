@@ -106,7 +106,7 @@ class EffectScore:
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScore:
     """Calibrate a scenario's session with the loop and compare with a model told the effect."""
     from canical.calibration import calibrate
-    from canical.closed_loop import Scorer, Structure, _reselect_size, plateau_folds
+    from canical.closed_loop import Scorer, Structure, plateau_folds, reselect_size
 
     session = scenario.session(seed, dwell_s)
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM", axis="z")
@@ -119,13 +119,16 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScor
     told = _oracle_terms(scenario, loop.blocks)
     # Told the effect, with the base size the loop ended with, or one chosen again for it.
     same_size = Structure(loop.structure.spec, loop.structure.knots, model.scale, model.span, told)
-    resized = _reselect_size(scorer, Structure(result.base.fitted.spec, model.knots, model.scale,
-                                               model.span, told), duration)
+    resized = reselect_size(
+        scorer, Structure(result.base.fitted.spec, model.knots, model.scale, model.span, told), duration
+    )
     rms_oracle = min(scorer.score(same_size)[0], scorer.score(resized)[0])
     in_groups = {name for g in groups for name in g}
-    correct = (set(found) == set(scenario.expect)
-               and set(scenario.confounded) <= in_groups
-               and (bool(groups) == bool(scenario.confounded)))
+    correct = (
+        set(found) == set(scenario.expect)
+        and set(scenario.confounded) <= in_groups
+        and (bool(groups) == bool(scenario.confounded))
+    )
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct)
 
 

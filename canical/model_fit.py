@@ -63,14 +63,8 @@ def dv_span(points: FitPoints) -> tuple[float, float]:
     )
 
 
-def fit_model(
-    points: FitPoints, spec: ModelSpec, *, extra: np.ndarray | None = None
-) -> tuple[FittedModel, np.ndarray]:
-    """Fit ``spec``; returns the model and the coefficients of the ``extra`` columns.
-
-    Extra columns (effect terms) are supported by the segmented-inverse model only,
-    since it is linear in its coefficients.
-    """
+def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
+    """Fit ``spec`` to the points (segment points chosen on the way, for the segmented-inverse model)."""
     if len(points) < 2:
         raise CanicalError("fewer than 2 plateaus: nothing to calibrate")
     span = dv_span(points)
@@ -83,12 +77,12 @@ def fit_model(
         margin_lo = (model.span[0] - span[0]) / slope
         margin_hi = (span[1] - model.span[1]) / slope
         model = replace(model, rate_span=(lo - max(margin_lo, 0.0), hi + max(margin_hi, 0.0)))
-        return FittedModel(model, spec), np.zeros(0)
+        return FittedModel(model, spec)
     if spec.kind == "segmented-linear":
         model = fit_segmented_linear(
             points.dv, points.rate, points.weight, spec.breakpoints_dps, scale=scale, span=span
         )
-        return FittedModel(model, spec), np.zeros(0)
+        return FittedModel(model, spec)
     if spec.kind != "segmented-inverse":
         raise CanicalError(f"unknown model kind {spec.kind!r}")
     n_rates = np.unique(points.by_rate().rate).size
@@ -107,7 +101,6 @@ def fit_model(
             scale=scale,
             span=span,
             smoothness=spec.smoothness,
-            extra=extra,
         )
 
     merged = points.by_rate()
@@ -121,4 +114,4 @@ def fit_model(
     )
     fit = fit_with(knots)
     actual = replace(spec, n_segments=len(knots) + 1)
-    return FittedModel(fit.poly, actual, extrema), fit.extra
+    return FittedModel(fit.poly, actual, extrema)

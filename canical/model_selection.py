@@ -51,8 +51,8 @@ def data_monotone(points: FitPoints) -> bool:
 def evaluate_candidate(points: FitPoints, spec: ModelSpec) -> Candidate | None:
     """Cross-validate one size; ``None`` when the data cannot support it."""
     try:
-        held = cross_validate(points, lambda p: fit_model(p, spec)[0].model)
-        full = fit_model(points, spec)[0]
+        held = cross_validate(points, lambda p: fit_model(p, spec).model)
+        full = fit_model(points, spec)
     except (CanicalError, np.linalg.LinAlgError):
         return None
     if full.spec.n_segments != spec.n_segments:
