@@ -354,3 +354,24 @@ def test_daemon_config_device_key_is_checked(tmp_path: Path) -> None:
         load_config(write_config(tmp_path, "vcan0", device={"node": 200}))
     with pytest.raises(CanicalError, match=r"device\.bank: unknown key"):
         load_config(write_config(tmp_path, "vcan0", device={"node": 1, "bank": "A"}))
+
+
+def test_emulator_switches_on_each_undeclared_effect():
+    """`canical emulate` options give the simulated IMU the effects the calibrator must find."""
+    import argparse
+
+    from canical.commands import emulate
+    from canical.sim import effects as fx
+
+    parser = argparse.ArgumentParser()
+    emulate.register(parser.add_subparsers())
+    args = parser.parse_args(["emulate", "--channel", "x", "--temp-bias", "0.01", "--temp-scale", "2e-4",
+                              "--warmup", "0.3", "--warmup-tau", "120", "--supply-bias", "0.2",
+                              "--direction-offset", "0.05"])
+    kinds = {type(e): e for e in emulate.undeclared_effects(args)}
+    assert set(kinds) == {fx.TemperatureEffect, fx.WarmupEffect, fx.SupplyEffect, fx.DirectionEffect}
+    assert kinds[fx.TemperatureEffect].scale_per_c == 2e-4 and kinds[fx.WarmupEffect].tau_s == 120
+    config = emulate.stream_config(args)
+    assert all(len(g.effects) == 4 for g in config.gyros.values())
+    none = parser.parse_args(["emulate", "--channel", "x"])
+    assert emulate.undeclared_effects(none) == ()

@@ -54,10 +54,36 @@ def register(sub) -> None:
     p.add_argument("--no-table-ref", action="store_true", help="do not send TABLE_REF (not on a table)")
     p.add_argument("--temp-bias", type=float, default=0.0,
                    help="undeclared effect: bias in deg/s per degC of die temperature above 25 [0]")
+    p.add_argument("--temp-scale", type=float, default=0.0,
+                   help="undeclared effect: scale-factor error per degC above 25, e.g. 2e-4 [0]")
+    p.add_argument("--warmup", type=float, default=0.0, metavar="DPS",
+                   help="undeclared effect: bias decaying after power-on, deg/s at t=0 [0]")
+    p.add_argument("--warmup-tau", type=float, default=200.0, help="its time constant, s [200]")
+    p.add_argument("--supply-bias", type=float, default=0.0,
+                   help="undeclared effect: bias in deg/s per volt of supply above 5 V [0]")
+    p.add_argument("--direction-offset", type=float, default=0.0,
+                   help="undeclared effect: offset in deg/s, sign following the last rate change [0]")
     p.add_argument("--correct", action="store_true", help="on-device correction on from the start")
     p.add_argument("--duration", type=float, help="stop after this many seconds")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(run=run)
+
+
+def undeclared_effects(args: argparse.Namespace) -> tuple:
+    """The effects the options switch on, which the calibrator is not told about."""
+    from canical.sim import effects as fx
+
+    out = []
+    if args.temp_bias or args.temp_scale:
+        out.append(fx.TemperatureEffect(channel="temp_c", reference_c=25.0,
+                                        bias_dps_per_c=args.temp_bias, scale_per_c=args.temp_scale))
+    if args.warmup:
+        out.append(fx.WarmupEffect(amplitude_dps=args.warmup, tau_s=args.warmup_tau))
+    if args.supply_bias:
+        out.append(fx.SupplyEffect(channel="supply_v", reference_v=5.0, bias_dps_per_v=args.supply_bias))
+    if args.direction_offset:
+        out.append(fx.DirectionEffect(offset_dps=args.direction_offset))
+    return tuple(out)
 
 
 def stream_config(args: argparse.Namespace):
@@ -67,13 +93,11 @@ def stream_config(args: argparse.Namespace):
     from canical.sim.imu_stream import StreamConfig, TableMotion, default_gyros
 
     gyros = default_gyros()
-    if args.temp_bias:
+    effects = undeclared_effects(args)
+    if effects:
         from dataclasses import replace
 
-        from canical.sim.effects import TemperatureEffect
-
-        effect = TemperatureEffect(channel="temp_c", reference_c=25.0, bias_dps_per_c=args.temp_bias)
-        gyros = {a: replace(g, effects=(*g.effects, effect)) for a, g in gyros.items()}
+        gyros = {a: replace(g, effects=(*g.effects, *effects)) for a, g in gyros.items()}
     table = TableMotion(kind=args.table, axis=args.table_axis, rates_dps=args.table_rates,
                         dwell_s=args.dwell, rate_dps=args.table_rate)
     return StreamConfig(sample_rate_hz=args.rate, table=table, gyros=gyros, seed=args.seed)
