@@ -8,11 +8,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from canical.calibration import CalibrateOptions, fit_base
+from canical.calibration import CalibrateOptions, calibrate, fit_base
+from canical.closed_loop import Scorer, Structure, plateau_folds, reselect_size
 from canical.cross_validation import prediction_errors
 from canical.fit_points import FitPoints, fit_points
 from canical.plateaus import detect_plateaus
@@ -105,9 +106,6 @@ class EffectScore:
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScore:
     """Calibrate a scenario's session with the loop and compare with a model told the effect."""
-    from canical.calibration import calibrate
-    from canical.closed_loop import Scorer, Structure, plateau_folds, reselect_size
-
     session = scenario.session(seed, dwell_s)
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM", axis="z")
     loop = result.loop
@@ -134,8 +132,6 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScor
 
 def _oracle_terms(scenario, blocks):
     """The scenario's true term forms, with references the run time would use."""
-    from dataclasses import replace
-
     terms = []
     for t in scenario.oracle_terms:
         if t.kind == "channel":
