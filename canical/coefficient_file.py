@@ -23,6 +23,7 @@ from canical.coefficients import PIECEWISE_KINDS, SCHEMA_VERSION, CoefficientSet
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
 from canical.terms import term_from_dict
+from canical.yaml_text import parse_yaml
 
 
 def canonical_bytes(content: dict[str, Any]) -> bytes:
@@ -68,13 +69,7 @@ def load(path: str | os.PathLike[str]) -> CoefficientSet:
 
 def loads(text: str, source: str = "<coefficients>") -> CoefficientSet:
     """Parse and fully validate a set; any defect raises one :class:`CanicalError` line."""
-    try:
-        content = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise CanicalError(f"{source}: not valid YAML{where}") from None
-    return from_content(content, source)
+    return from_content(parse_yaml(text, source), source)
 
 
 def from_content(content: Any, source: str) -> CoefficientSet:

@@ -16,10 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
+from canical.yaml_text import parse_yaml
 
 AXES = ("x", "y", "z")
 #: Signals of the corrected frame, by role; per-axis names end in the axis letter (RateX...).
@@ -88,13 +87,7 @@ def load_config(path: str | os.PathLike[str], *, channel: str | None = None) -> 
         raise CanicalError(f"{cfg_path}: configuration file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CanicalError(f"{cfg_path}: cannot read configuration ({exc})") from None
-    try:
-        content = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise CanicalError(f"{cfg_path}: not valid YAML{where}") from None
-    return parse_config(content, cfg_path, channel=channel)
+    return parse_config(parse_yaml(text, str(cfg_path)), cfg_path, channel=channel)
 
 
 def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) -> DaemonConfig:
