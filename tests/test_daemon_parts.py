@@ -158,10 +158,8 @@ def test_notifier_speaks_to_abstract_and_path_sockets(tmp_path: Path) -> None:
     assert Notifier({"WATCHDOG_USEC": "1000", "WATCHDOG_PID": "1"}).watchdog_s is None  # for another pid
 
 
-def test_dispatch_counts_what_it_drops(setup) -> None:
-    """In-process (no kernel filter, as with interfaces that filter in software): every kind of
-    frame that is not a good raw or input frame is counted and produces nothing."""
-    _, _, path = setup
+def daemon_on_fake_bus(path) -> tuple[Daemon, list[can.Message]]:
+    """A daemon with its sets loaded whose bus only collects what it sends."""
     daemon = Daemon(load_config(path))
     daemon.load_sets()
     sent: list[can.Message] = []
@@ -171,6 +169,14 @@ def test_dispatch_counts_what_it_drops(setup) -> None:
             sent.append(msg)
 
     daemon.bus = FakeBus()  # type: ignore[assignment]
+    return daemon, sent
+
+
+def test_dispatch_counts_what_it_drops(setup) -> None:
+    """In-process (no kernel filter, as with interfaces that filter in software): every kind of
+    frame that is not a good raw or input frame is counted and produces nothing."""
+    _, _, path = setup
+    daemon, sent = daemon_on_fake_bus(path)
     stream = imu_stream(30)
     for fid, data in stream.frames:
         daemon._dispatch(can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=1.0))
@@ -201,15 +207,7 @@ def test_input_never_received_marks_only_the_axes_that_need_it(setup) -> None:
     """Before the first IMU_AUX frame there is no time_s: axis x (warm-up term) goes out
     uncalibrated and every frame is Stale; y and z, which need no such input, are corrected."""
     _, _, path = setup
-    daemon = Daemon(load_config(path))
-    daemon.load_sets()
-    sent: list[can.Message] = []
-
-    class FakeBus:
-        def send(self, msg: can.Message, timeout: float | None = None) -> None:
-            sent.append(msg)
-
-    daemon.bus = FakeBus()  # type: ignore[assignment]
+    daemon, sent = daemon_on_fake_bus(path)
     stream = imu_stream(20)
     for fid, data in stream.frames:
         if fid == 0x190:

@@ -204,12 +204,8 @@ def test_the_device_refuses_bad_banks_with_abort_codes(vcan_channel: str, tmp_pa
 
 @pytest.mark.vcan
 def test_device_vanishing_mid_download_one_line_and_previous_set(vcan_channel: str, tmp_path: Path) -> None:
-    old, new = write_sets(tmp_path / "old"), write_sets(tmp_path / "new", family=1)
     with device(vcan_channel, tmp_path, "--rate", "50") as dev:
-        assert canical("push", *old, *bus_args(vcan_channel)).returncode == 0
-        proc = subprocess.Popen([sys.executable, "-m", "canical", "push", *new, *bus_args(vcan_channel)],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        _wait_for_download(vcan_channel)
+        proc = _second_push_mid_download(vcan_channel, tmp_path)
         dev.kill()
         out, err = proc.communicate(timeout=60)
         assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, out, err),
@@ -217,6 +213,16 @@ def test_device_vanishing_mid_download_one_line_and_previous_set(vcan_channel: s
         dev.start()
         with client(vcan_channel) as c:
             assert c.status().active_ids == ids(0)
+
+
+def _second_push_mid_download(channel: str, tmp_path: Path) -> subprocess.Popen[str]:
+    """Push family 0, then start pushing family 1 and return once it is mid-bank."""
+    old, new = write_sets(tmp_path / "old"), write_sets(tmp_path / "new", family=1)
+    assert canical("push", *old, *bus_args(channel)).returncode == 0
+    proc = subprocess.Popen([sys.executable, "-m", "canical", "push", *new, *bus_args(channel)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for_download(channel)
+    return proc
 
 
 def _wait_for_download(channel: str, timeout: float = 30.0) -> None:
@@ -238,12 +244,8 @@ def _wait_for_download(channel: str, timeout: float = 30.0) -> None:
 
 @pytest.mark.vcan
 def test_sdo_timeout_when_the_device_freezes(vcan_channel: str, tmp_path: Path) -> None:
-    old, new = write_sets(tmp_path / "old"), write_sets(tmp_path / "new", family=1)
     with device(vcan_channel, tmp_path, "--rate", "50") as dev:
-        assert canical("push", *old, *bus_args(vcan_channel)).returncode == 0
-        proc = subprocess.Popen([sys.executable, "-m", "canical", "push", *new, *bus_args(vcan_channel)],
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        _wait_for_download(vcan_channel)
+        proc = _second_push_mid_download(vcan_channel, tmp_path)
         assert dev.proc is not None
         dev.proc.send_signal(signal.SIGSTOP)
         try:
@@ -255,7 +257,7 @@ def test_sdo_timeout_when_the_device_freezes(vcan_channel: str, tmp_path: Path) 
         with client(vcan_channel) as c:
             assert c.status().active_ids == ids(0)
         time.sleep(5.5)  # the dead tool's lock lease runs out; then a push goes through
-        assert canical("push", *new, *bus_args(vcan_channel)).returncode == 0
+        assert canical("push", *proc.args[4:]).returncode == 0  # the interrupted push, again
 
 
 @pytest.mark.vcan
