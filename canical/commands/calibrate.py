@@ -17,7 +17,7 @@ from canical.models import MODEL_KINDS
 from canical.progress import Progress
 from canical.report_markdown import render
 from canical.report_plots import write_plots
-from canical.session_canlog import default_inputs, is_canlog, read_canlog
+from canical.session_canlog import CANLOG_FORMATS, default_inputs, is_canlog, read_canlog
 from canical.session_csv import read_session
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
@@ -48,7 +48,7 @@ def register(sub) -> None:
     p = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     p.add_argument(
         "session",
-        help="session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log (.log, .asc, .blf)",
+        help=f"session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log ({CANLOG_FORMATS})",
     )
     p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
     p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
