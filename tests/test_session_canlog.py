@@ -222,3 +222,14 @@ def test_record_refuses_formats_it_cannot_write_safely(tmp_path: Path, capsys) -
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and message in err[0], err
         assert not out.exists()
+
+
+def test_asammdf_is_imported_only_when_an_mf4_is_named() -> None:
+    """python-can imports asammdf (seconds: pandas, sympy) at ``import can``; canical's commands
+    skip it unless an argument is an MDF4 file, so the daemon and push start fast with canical[mf4]."""
+    probe = ("import sys; from canical.cli import skip_mdf4_import; skip_mdf4_import(sys.argv[1:]); "
+             "import can; print(sys.modules.get('asammdf') is not None)")
+    for arg, loaded in (("drive.log", "False"), ("drive.MF4", "True"), ("drive.mf4.gz", "True")):
+        proc = subprocess.run([sys.executable, "-c", probe, "calibrate", arg], capture_output=True, text=True,
+                              timeout=120, check=True)
+        assert proc.stdout.strip() == loaded, (arg, proc.stdout, proc.stderr)
