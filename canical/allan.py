@@ -22,8 +22,9 @@ BI read-out, is reported beside the fitted one.
 Confidence follows IEEE Std 952 annex C: σ(τ) from K independent (non-overlapping) clusters
 has a relative error of 1/√(2(K−1)). A term's interval is ±2 of that error at the most
 precise τ where it dominates, divided by its share of the variance there. Over many seeds of
-synthetic noise (tests/test_allan.py) such intervals hold the true value 80–90% of the time:
-the estimates at neighbouring τ are correlated, so no finer confidence is claimed.
+synthetic noise (tests/benchmarks/bench_allan.py) such intervals hold the true value in 80–95%
+of seeds, ARW beside a flicker floor in half: the estimates at neighbouring τ are correlated
+and the terms share the curve, so no finer confidence is claimed.
 """
 
 from __future__ import annotations
