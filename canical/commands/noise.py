@@ -1,10 +1,6 @@
 """``canical noise``: Allan deviation of a static record and the IEEE 952 terms read from it.
 
-A static record is the sensor at rest, as long as possible (rate random walk shows only past
-the crossover, often beyond ten minutes). The rate comes from a column in deg/s (``rate_dps``,
-as ``canical apply`` writes it, or ``--column``) or from the raw counts through a coefficient
-set (``--coefficients``); a CAN log needs the set (its axis and model) and ``--dbc``/``--config``.
-numpy, scipy and allantools are imported in ``run`` so that ``--help`` stays fast.
+numpy, scipy, matplotlib and allantools are imported in ``run``, so ``--help`` stays fast.
 """
 
 from __future__ import annotations
@@ -17,10 +13,19 @@ from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 
 RATE_COLUMN = "rate_dps"
+DESCRIPTION = (
+    "Angle random walk (deg/sqrt(h)), bias instability (deg/h) and rate random walk (deg/h/sqrt(h)) "
+    "of a static record, with their intervals, from its Allan deviation (IEEE Std 952); a term the "
+    "record is too short to show is reported as not resolved. Record the sensor at rest, as long as "
+    "possible: rate random walk shows only past the crossover, often beyond ten minutes. The rate comes "
+    "from a column in deg/s (rate_dps, as 'canical apply' writes it, or --column) or from the raw "
+    "counts through a coefficient set (--coefficients); a CAN log needs the set (its axis and model) "
+    "and --dbc or --config."
+)
 
 
 def register(sub) -> None:
-    p = sub.add_parser("noise", help=COMMANDS["noise"], description=__doc__.split("\n\n")[1])
+    p = sub.add_parser("noise", help=COMMANDS["noise"], description=DESCRIPTION)
     p.add_argument("record", help="static record: CSV with time_s and a rate or raw column, or a CAN log")
     p.add_argument("--column", help=f"rate column in deg/s [{RATE_COLUMN}]")
     p.add_argument("--coefficients", help="coefficient set: convert the raw column (or the log's raw frames)")
