@@ -86,12 +86,6 @@ class NoiseTerm:
             "note": self.note,
         }
 
-    def describe(self) -> str:
-        if self.resolved:
-            return (f"{self.value:.4g} {self.unit} [{self.low:.3g}, {self.high:.3g}] "
-                    f"(at tau {self.tau_s:.3g} s, {self.clusters} clusters)")
-        return f"not resolved: {self.note}; at most {self.value:.3g} {self.unit}"
-
 
 def allan_deviation(
     records: Sequence[np.ndarray], sample_rate_hz: float, *, points_per_decade: int = POINTS_PER_DECADE
