@@ -25,10 +25,11 @@ from canical.model_fit import FittedModel, ModelSpec, fit_model
 from canical.model_selection import select_model
 from canical.models.forward_poly import ForwardPoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
+from canical.noise_records import noise_analysis, sample_interval, zero_rate_records
 from canical.plateaus import Plateaus, detect_plateaus, saturated
 from canical.segment_points import rate_noise
 from canical.session import Session
-from canical.zero_bias import zero_bias
+from canical.zero_bias import ZERO_RATE_TOL_DPS, zero_bias
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
 
@@ -192,6 +193,23 @@ def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
     return report
 
 
+def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
+    """Allan analysis of the zero-rate plateaus, as rate through the fitted model.
+
+    Only the plateaus' used samples count (no ramp, no settling); each plateau is its own
+    record, so the longest τ is a third of the longest zero-rate plateau and terms that
+    need longer (rate random walk, usually) are reported as not resolved.
+    """
+    zero = np.flatnonzero(np.abs(base.plateaus.rate_dps) <= ZERO_RATE_TOL_DPS)
+    start, stop = base.plateaus.start[zero], base.plateaus.stop[zero]
+    rate = np.zeros(len(session))
+    for a, b in zip(start, stop, strict=True):
+        rate[a:b] = base.fitted.model.evaluate(session.raw[a:b] - base.v0)[0]
+    dt = sample_interval(session.time_s)
+    records = zero_rate_records(session.time_s, rate, start, stop, dt)
+    return noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
+
+
 @dataclass(frozen=True)
 class CalibrationResult:
     coefficients: CoefficientSet
@@ -264,6 +282,8 @@ def calibrate(
     base = fit_base(session, options, progress)
     progress("cross-validating the chosen model")
     report = base_report(session, base)
+    progress("Allan deviation of the zero-rate plateaus")
+    report["allan"] = zero_rate_noise(session, base)
     model = model_dict(base.fitted, base.v0)
     terms: tuple[dict[str, Any], ...] = ()
     loop = None

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from canical.noise_records import describe
+
 
 def render(report: dict[str, Any], plots: list[str]) -> str:
     s = report["samples"]
@@ -80,6 +82,13 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
             lines += [f"Base model grown: {', '.join(loop['capacity_changes'])}.", ""]
     elif loop:
         lines += [f"Closed loop skipped: {loop['skipped']}.", ""]
+    allan = report.get("allan")
+    if allan:
+        lines += ["## Noise: Allan deviation of the zero-rate plateaus", ""]
+        lines += [f"- {line}" for line in describe(allan)]
+        lines += ["", "Terms the τ range cannot show are not resolved; the bound is what the data allows. "
+                  "Rate random walk needs records much longer than a turntable's plateaus: "
+                  "use `canical noise` on a static record of an hour or more.", ""]
     if plots:
         lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     return "\n".join(lines)

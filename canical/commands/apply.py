@@ -19,7 +19,7 @@ from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.corrector import Corrector
 from canical.errors import CanicalError
 from canical.progress import Progress
-from canical.session_canlog import TIME_INPUT, is_canlog, read_canlog
+from canical.session_canlog import CANLOG_FORMATS, TIME_INPUT, is_canlog, read_canlog
 from canical.session_csv import read_table
 
 CHUNK_ROWS = 100_000
@@ -28,7 +28,8 @@ CHUNK_ROWS = 100_000
 def register(sub) -> None:
     p = sub.add_parser("apply", help=COMMANDS["apply"])
     p.add_argument("coefficients", help="coefficient set YAML")
-    p.add_argument("input", help="CSV with a raw column, or a CAN log (.log, .asc, .blf) with --dbc/--config")
+    p.add_argument("input",
+                   help=f"CSV with a raw column, or a CAN log ({CANLOG_FORMATS}) with --dbc/--config")
     p.add_argument("-o", "--output", required=True, help="CSV to write (input + rate_dps, out_of_span)")
     p.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
     p.add_argument("--sensor", help="sensor id of the input (default: its '# sensor:' line)")

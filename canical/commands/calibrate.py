@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from canical import coefficient_file
+from canical.allan_plot import write_allan_plot
 from canical.atomic_file import write_text_atomic
 from canical.calibration import CalibrateOptions, calibrate
 from canical.commands import COMMANDS
@@ -17,7 +18,7 @@ from canical.models import MODEL_KINDS
 from canical.progress import Progress
 from canical.report_markdown import render
 from canical.report_plots import write_plots
-from canical.session_canlog import default_inputs, is_canlog, read_canlog
+from canical.session_canlog import CANLOG_FORMATS, default_inputs, is_canlog, read_canlog
 from canical.session_csv import read_session
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
@@ -48,7 +49,7 @@ def register(sub) -> None:
     p = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     p.add_argument(
         "session",
-        help="session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log (.log, .asc, .blf)",
+        help=f"session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log ({CANLOG_FORMATS})",
     )
     p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
     p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
@@ -140,6 +141,9 @@ def write_report_dir(directory: Path, report: dict, loop) -> None:
     """report.json, report.md and the plots, side by side."""
     directory.mkdir(parents=True, exist_ok=True)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
+    if "curve" in report.get("allan", {}):
+        plots.append(write_allan_plot(report["allan"], directory / "allan.png",
+                                      "Allan deviation, zero-rate plateaus").name)
     write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
     write_text_atomic(directory / "report.md", render(report, plots))
 
@@ -196,5 +200,12 @@ def summary(report: dict) -> str:
                      f"{loop['held_out_rms_after_dps']:.4f} deg/s (2 s blocks, before -> after)")
         lines.append(f"final      {loop['final_spec']} + {sum(len(e['terms']) for e in report['effects'])} "
                      "effect terms")
+    allan = report.get("allan", {})
+    if "terms" in allan:
+        lo, hi = allan["tau_range_s"]
+        terms = "; ".join(
+            f"{t['name']} {t['value']:.3g} {t['unit']}" if t["resolved"] else f"{t['name']} not resolved"
+            for t in allan["terms"].values())
+        lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
     lines.append(f"wrote      {Path(report['coefficients'])}")
     return "\n".join(lines)

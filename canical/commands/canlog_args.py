@@ -13,7 +13,7 @@ from pathlib import Path
 
 from canical.daemon_config import load_config
 from canical.errors import CanicalError
-from canical.session_canlog import DEFAULT_RAW_MESSAGE, parse_signal_map
+from canical.session_canlog import CANLOG_FORMATS, DEFAULT_RAW_MESSAGE, parse_signal_map
 
 
 @dataclass(frozen=True)
@@ -27,7 +27,7 @@ class CanlogSource:
 
 
 def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("CAN logs (.log, .asc, .blf)")
+    group = parser.add_argument_group(f"CAN logs ({CANLOG_FORMATS})")
     group.add_argument("--dbc", help="DBC that describes the log's frames")
     group.add_argument("--config", help="daemon configuration: its DBC, frames and input mapping")
     group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",

@@ -1,5 +1,7 @@
 """``canical record``: record a session from the bus into a CAN log that ``calibrate`` reads.
 
+python-can's ``Logger`` writes the format the output's suffix names (candump ``.log``, ``.asc``,
+``.blf``, ``.trc``, ``.csv``, ``.db``, ``.mf4``, each also ``.gz``): every one reads back.
 A log of the frames themselves (not decoded samples) is the lossless record: it is read
 back with the DBC by the same rules as the daemon, and can be re-read with another mapping.
 Only the frames a session needs pass the kernel's receive filters: the IMU's (the raw frame
@@ -23,12 +25,21 @@ from canical.commands import COMMANDS
 from canical.daemon_config import load_config
 from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
-from canical.session_canlog import CANLOG_SUFFIXES, DEFAULT_RAW_MESSAGE, DEFAULT_REF
+from canical.session_canlog import (
+    CANLOG_FORMATS,
+    CANLOG_SUFFIXES,
+    DEFAULT_RAW_MESSAGE,
+    DEFAULT_REF,
+    log_format,
+    log_suffix,
+    require_log_support,
+)
 
 
 def register(sub) -> None:
     p = sub.add_parser("record", help=COMMANDS["record"])
-    p.add_argument("-o", "--output", required=True, help="CAN log to write (.log, .asc or .blf)")
+    p.add_argument("-o", "--output", required=True,
+                   help=f"CAN log to write, in the format its suffix names ({CANLOG_FORMATS})")
     p.add_argument("--config", help="daemon configuration: interface, channel, DBC and input frames")
     p.add_argument("--interface", help="python-can interface (default: the configuration's)")
     p.add_argument("--channel", help="CAN channel (default: the configuration's)")
@@ -64,8 +75,12 @@ def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
 
 def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
-    if out.suffix.lower() not in CANLOG_SUFFIXES:
-        raise CanicalError(f"{out}: the log must end in {', '.join(CANLOG_SUFFIXES)}")
+    if log_format(out) not in CANLOG_SUFFIXES:
+        raise CanicalError(f"{out}: the log must end in one of {CANLOG_FORMATS}")
+    if log_format(out) == ".db":
+        raise CanicalError(f"{out}: record does not write .db: python-can's SQLite writer can lose the "
+                           "frames still queued when recording stops; record .log, .blf or .mf4")
+    require_log_support(out)
     interface, channel, dbc, names = _frames(args)
     db = load_dbc(dbc)
     messages = [db.get_message_by_name(n) for n in names]
@@ -79,7 +94,9 @@ def run(args: argparse.Namespace) -> int:
         stop = True
 
     previous = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent or Path("."))
+    # python-can picks the writer from the suffix and wants exactly two on a .gz: no dots before them
+    prefix = "." + out.name.replace(".", "_") + "-"
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=log_suffix(out), dir=out.parent or Path("."))
     os.close(fd)
     counts = {"raw": 0, "all": 0}
     try:
