@@ -21,6 +21,10 @@ new set, agreement with apply) for tests and benchmarks.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -30,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from canical import coefficient_file
-from canical.atomic_file import write_text_atomic
+from canical.atomic_file import make_dirs, write_text_atomic
 from canical.bus_recording import Recording, open_recorder_bus, record
 from canical.calibration import CalibrateOptions, calibrate
 from canical.can_network import open_network, sdo_client_filters, sdo_server_filters
@@ -118,13 +122,13 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
     """Run the loop; files go to ``out_dir``. See the module doc."""
     o = options or BusDemoOptions()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
+    # The device's flash and the files `canical apply` reads back are scratch, not results.
+    scratch = Path(tempfile.mkdtemp(prefix="canical-demo-bus-"))
     frames = ImuFrames(o.node_id)
     device_net = device = thread = None
     if o.emulate:
-        state = out / "imu-state.json"
-        state.unlink(missing_ok=True)  # a factory-fresh device every demo
-        device_net, device = _emulator(o, state)
+        device_net, device = _emulator(o, scratch / "imu-state.json")  # a factory-fresh device
         thread = threading.Thread(target=device.run, name="emulated-imu", daemon=True)
     bus = open_recorder_bus(o.interface, o.channel, frames)
     tool_net = open_network(o.interface, o.channel, can_filters=sdo_client_filters(o.node_id))
@@ -180,14 +184,10 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         # A raw frame whose IMU_RATE was not matched (lost, or paired with another counter
         # value) has no device rate: compare only frames that have both.
         keep &= np.isfinite(live.array(f"device_rate_{o.axis}"))
-        field_csv = out / "bus-field.csv"
         field_session = _field_session(live, keep, o.axis, sensor)
-        write_text_atomic(field_csv, format_session(field_session))
-        applied = out / "bus-field-applied.csv"
-        from canical.cli import main as cli_main
-
-        if cli_main(["apply", str(coeffs), str(field_csv), "-o", str(applied)]) != 0:
-            raise CanicalError("canical apply failed on the recorded field data")
+        applied = _apply_in(scratch, result.coefficients, format_session(field_session), out, say)
+        write_text_atomic(out / "bus-field.csv", format_session(field_session))
+        write_text_atomic(out / "bus-field-applied.csv", applied.read_text())
         apply_rate = read_table(applied, columns=["rate_dps"]).columns["rate_dps"]
         device_rate = live.array(f"device_rate_{o.axis}")[keep]
         diff = float(np.max(np.abs(apply_rate - device_rate)))
@@ -212,6 +212,26 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         bus.shutdown()
         if device_net is not None:
             device_net.disconnect()
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _apply_in(scratch: Path, cset, field_csv: str, out: Path, say: Callable[[str], None]) -> Path:
+    """``canical apply`` itself, run on the field frames in ``scratch``; returns the file it wrote.
+
+    Its line is shown with the name the result gets in ``out``.
+    """
+    from canical.cli import main as cli_main
+
+    coeffs, data, applied = scratch / "set.yaml", scratch / "field.csv", scratch / "applied.csv"
+    coeffs.write_text(coefficient_file.dumps(cset))
+    data.write_text(field_csv)
+    said = io.StringIO()
+    with contextlib.redirect_stdout(said):
+        status = cli_main(["apply", str(coeffs), str(data), "-o", str(applied)])
+    if status != 0:
+        raise CanicalError("canical apply failed on the recorded field data")
+    say(said.getvalue().strip().replace(str(applied), str(out / "bus-field-applied.csv")))
+    return applied
 
 
 def _pass_samples(o: BusDemoOptions) -> int:

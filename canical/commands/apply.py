@@ -18,6 +18,7 @@ from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.corrector import Corrector
 from canical.errors import CanicalError
+from canical.output_plan import output_plan
 from canical.progress import Progress
 from canical.session_canlog import TIME_INPUT, is_canlog, read_canlog
 from canical.session_csv import read_table
@@ -37,6 +38,11 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(args.output):
+        return apply_set(args)
+
+
+def apply_set(args: argparse.Namespace) -> int:
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
     if is_canlog(args.input):

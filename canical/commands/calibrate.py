@@ -8,12 +8,13 @@ import sys
 from pathlib import Path
 
 from canical import coefficient_file
-from canical.atomic_file import write_text_atomic
+from canical.atomic_file import make_dirs, write_text_atomic
 from canical.calibration import CalibrateOptions, calibrate
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments, canlog_source
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
+from canical.output_plan import output_plan
 from canical.progress import Progress
 from canical.report_markdown import render
 from canical.report_plots import write_plots
@@ -93,6 +94,11 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(args.output, args.report, dirs=[args.report_dir]):
+        return calibrate_session(args)
+
+
+def calibrate_session(args: argparse.Namespace) -> int:
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
     if is_canlog(args.session):
@@ -125,11 +131,9 @@ def run(args: argparse.Namespace) -> int:
         progress=progress.step,
     )
     report = {"session": str(args.session), "coefficients": str(args.output), **result.report}
-    # Render everything first, so a failure cannot leave some outputs written and others not.
-    report_text = json.dumps(report, indent=2) + "\n"
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
-        write_text_atomic(args.report, report_text)
+        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
@@ -138,7 +142,7 @@ def run(args: argparse.Namespace) -> int:
 
 def write_report_dir(directory: Path, report: dict, loop) -> None:
     """report.json, report.md and the plots, side by side."""
-    directory.mkdir(parents=True, exist_ok=True)
+    make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
     write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
     write_text_atomic(directory / "report.md", render(report, plots))

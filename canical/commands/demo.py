@@ -19,11 +19,12 @@ from dataclasses import replace
 from pathlib import Path
 
 from canical import coefficient_file
-from canical.atomic_file import write_text_atomic
+from canical.atomic_file import make_dirs, write_text_atomic
 from canical.calibration import CalibrateOptions, calibrate
 from canical.commands import COMMANDS
 from canical.commands.calibrate import write_report_dir
 from canical.evaluation import compare_models, validation_record
+from canical.output_plan import output_plan
 from canical.session_csv import format_session
 from canical.sim.scenarios import SCENARIOS
 from canical.sim.sessions import between_rates_session, constant_session, paper_session
@@ -39,8 +40,14 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(dirs=[args.out]):
+        return demo(args)
+
+
+def demo(args: argparse.Namespace) -> int:
+    """All parts; the files appear in ``--out`` together when the demo has succeeded."""
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     train = paper_session(seed=args.seed)
     test = between_rates_session(seed=args.seed + 1)
     write_text_atomic(out / "session.csv", format_session(train))

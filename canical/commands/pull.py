@@ -18,6 +18,7 @@ from canical.commands import COMMANDS
 from canical.commands.push import add_node_arguments
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
+from canical.output_plan import output_plan
 from canical.sdo_download import ImuClient, pull_sets
 
 
@@ -40,6 +41,11 @@ def output_paths(template: str, axes: list[str]) -> dict[str, Path]:
 
 def run(args: argparse.Namespace) -> int:
     axes = tuple(args.axis) if args.axis else AXES
+    with output_plan(*output_paths(args.output, list(axes)).values()):
+        return pull(args, axes)
+
+
+def pull(args: argparse.Namespace, axes: tuple[str, ...]) -> int:
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:

@@ -10,10 +10,8 @@ when recording ends (after ``--duration``, ``--frames`` raw frames, or Ctrl-C).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
+import errno
 import signal
-import tempfile
 import time
 from pathlib import Path
 
@@ -23,6 +21,7 @@ from canical.commands import COMMANDS
 from canical.daemon_config import load_config
 from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
+from canical.output_plan import cannot_write, output_plan
 from canical.session_canlog import CANLOG_SUFFIXES, DEFAULT_RAW_MESSAGE, DEFAULT_REF
 
 
@@ -72,6 +71,15 @@ def run(args: argparse.Namespace) -> int:
     raw_id = messages[0].frame_id
     filters = [{"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if m.is_extended_frame else 0x7FF,
                 "extended": m.is_extended_frame} for m in messages]
+    with output_plan(out) as plan:
+        recorded = _record(plan.temp_path(out), args, interface, channel, filters, names, raw_id)
+    print(f"record: {recorded['raw']} {names[0]} frames, {recorded['all']} frames in all -> {out}")
+    return 0
+
+
+def _record(tmp: Path, args: argparse.Namespace, interface: str, channel: str, filters: list,
+            names: list[str], raw_id: int) -> dict[str, int]:
+    """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts."""
     stop = False
 
     def on_signal(*_: object) -> None:
@@ -79,13 +87,12 @@ def run(args: argparse.Namespace) -> int:
         stop = True
 
     previous = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent or Path("."))
-    os.close(fd)
     counts = {"raw": 0, "all": 0}
     try:
         with can.Bus(interface=interface, channel=channel, can_filters=filters) as bus, \
-                can.Logger(tmp) as logger:
-            print(f"record: {', '.join(names)} on {interface} {channel} -> {out} (Ctrl-C ends)", flush=True)
+                can.Logger(str(tmp)) as logger:
+            print(f"record: {', '.join(names)} on {interface} {channel} -> {args.output} (Ctrl-C ends)",
+                  flush=True)
             end = time.monotonic() + args.duration if args.duration else None
             while not stop and (end is None or time.monotonic() < end):
                 if args.frames is not None and counts["raw"] >= args.frames:
@@ -96,13 +103,13 @@ def run(args: argparse.Namespace) -> int:
                 logger.on_message_received(msg)
                 counts["all"] += 1
                 counts["raw"] += msg.arbitration_id == raw_id
-        os.replace(tmp, out)
-    except (OSError, can.CanError) as exc:
+    except OSError as exc:
+        if exc.filename is not None or exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+            raise cannot_write(args.output, exc.strerror or str(exc)) from None
+        raise CanicalError(f"recording from {interface} {channel} failed: {exc}") from None
+    except can.CanError as exc:
         raise CanicalError(f"recording from {interface} {channel} failed: {exc}") from None
     finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
         signal.signal(signal.SIGINT, previous[0])
         signal.signal(signal.SIGTERM, previous[1])
-    print(f"record: {counts['raw']} {names[0]} frames, {counts['all']} frames in all -> {out}")
-    return 0
+    return counts
