@@ -7,19 +7,15 @@ import json
 import sys
 from pathlib import Path
 
-from canical import coefficient_file
-from canical.atomic_file import make_dirs, write_text_atomic
-from canical.calibration import CalibrateOptions, calibrate
 from canical.commands import COMMANDS
-from canical.commands.canlog_args import add_canlog_arguments, canlog_source
+from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
 from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.report_markdown import render
-from canical.report_plots import write_plots
-from canical.session_canlog import default_inputs, is_canlog, read_canlog
-from canical.session_csv import read_session
+
+# The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
+# used, so that `--help` and argument errors answer at once.
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
 
@@ -99,6 +95,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def calibrate_session(args: argparse.Namespace) -> int:
+    from canical import coefficient_file
+    from canical.atomic_file import write_text_atomic
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.session_canlog import is_canlog
+    from canical.session_csv import read_session
+
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
     if is_canlog(args.session):
@@ -142,6 +144,10 @@ def calibrate_session(args: argparse.Namespace) -> int:
 
 def write_report_dir(directory: Path, report: dict, loop) -> None:
     """report.json, report.md and the plots, side by side."""
+    from canical.atomic_file import make_dirs, write_text_atomic
+    from canical.report_markdown import render
+    from canical.report_plots import write_plots
+
     make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
     write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
@@ -150,6 +156,9 @@ def write_report_dir(directory: Path, report: dict, loop) -> None:
 
 def read_canlog_session(args: argparse.Namespace, progress: Progress):
     """A turntable session recorded from the bus: raw frames of one axis, the table's rate held."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.session_canlog import default_inputs, read_canlog
+
     source = canlog_source(args, args.session)
     inputs = source.inputs if (source.inputs or source.from_config) else default_inputs(source.dbc)
     axis = args.axis

@@ -18,16 +18,12 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from canical import coefficient_file
 from canical.atomic_file import make_dirs, write_text_atomic
-from canical.calibration import CalibrateOptions, calibrate
 from canical.commands import COMMANDS
-from canical.commands.calibrate import write_report_dir
-from canical.evaluation import compare_models, validation_record
 from canical.output_plan import output_plan
-from canical.session_csv import format_session
-from canical.sim.scenarios import SCENARIOS
-from canical.sim.sessions import between_rates_session, constant_session, paper_session
+
+# The simulator and the fitting modules (numpy, scipy, matplotlib) are imported where they are
+# used, so that `--help` and argument errors answer at once.
 
 
 def register(sub) -> None:
@@ -46,6 +42,12 @@ def run(args: argparse.Namespace) -> int:
 
 def demo(args: argparse.Namespace) -> int:
     """All parts; the files appear in ``--out`` together when the demo has succeeded."""
+    from canical import coefficient_file
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.evaluation import compare_models, validation_record
+    from canical.session_csv import format_session
+    from canical.sim.sessions import between_rates_session, constant_session, paper_session
+
     out = Path(args.out)
     make_dirs(out)
     train = paper_session(seed=args.seed)
@@ -96,6 +98,12 @@ def demo(args: argparse.Namespace) -> int:
 
 def closed_loop_demo(out: Path, seed: int) -> Path:
     """Part 2: an undeclared effect, found and corrected; returns the coefficient file written."""
+    from canical import coefficient_file
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.commands.calibrate import write_report_dir
+    from canical.session_csv import format_session
+    from canical.sim.scenarios import SCENARIOS
+
     scenario = next(s for s in SCENARIOS if s.name.startswith("temperature bias + scale"))
     session = scenario.session(seed)
     path = out / "session_with_effect.csv"

@@ -11,15 +11,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from canical import coefficient_file
 from canical.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
-from canical.coefficient_file import set_crc
 from canical.commands import COMMANDS
 from canical.commands.push import add_node_arguments
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
 from canical.output_plan import output_plan
-from canical.sdo_download import ImuClient, pull_sets
 
 
 def register(sub) -> None:
@@ -46,6 +43,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def pull(args: argparse.Namespace, axes: tuple[str, ...]) -> int:
+    from canical import coefficient_file
+    from canical.coefficient_file import set_crc
+    from canical.sdo_download import ImuClient, pull_sets
+
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:

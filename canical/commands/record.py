@@ -15,14 +15,11 @@ import signal
 import time
 from pathlib import Path
 
-import can
-
 from canical.commands import COMMANDS
-from canical.daemon_config import load_config
 from canical.errors import CanicalError
-from canical.frame_codec import load_dbc
 from canical.output_plan import cannot_write, output_plan
-from canical.session_canlog import CANLOG_SUFFIXES, DEFAULT_RAW_MESSAGE, DEFAULT_REF
+
+# python-can and cantools are imported where used, so that `--help` answers at once.
 
 
 def register(sub) -> None:
@@ -39,6 +36,10 @@ def register(sub) -> None:
 
 def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
     """Interface, channel, DBC and the names of the messages to record."""
+    from canical.daemon_config import load_config
+    from canical.frame_codec import load_dbc
+    from canical.session_canlog import DEFAULT_RAW_MESSAGE, DEFAULT_REF
+
     interface, channel, dbc, names = args.interface, args.channel, args.dbc, [DEFAULT_RAW_MESSAGE]
     if args.config:
         config = load_config(args.config, channel=args.channel)
@@ -62,6 +63,9 @@ def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.frame_codec import load_dbc
+    from canical.session_canlog import CANLOG_SUFFIXES
+
     out = Path(args.output)
     if out.suffix.lower() not in CANLOG_SUFFIXES:
         raise CanicalError(f"{out}: the log must end in {', '.join(CANLOG_SUFFIXES)}")
@@ -80,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
 def _record(tmp: Path, args: argparse.Namespace, interface: str, channel: str, filters: list,
             names: list[str], raw_id: int) -> dict[str, int]:
     """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts."""
+    import can
+
     stop = False
 
     def on_signal(*_: object) -> None:
