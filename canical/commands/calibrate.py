@@ -13,6 +13,7 @@ from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
 from canical.output_plan import output_plan
 from canical.progress import Progress
+from canical.report_markdown import written_model
 
 # The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
 # used, so that `--help` and argument errors answer at once.
@@ -188,7 +189,7 @@ def summary(report: dict) -> str:
     """A few lines a calibration engineer reads first."""
     s = report["samples"]
     lines = [
-        f"model      {report['spec']}",
+        f"rate model {report['spec']} (size chosen on held-out plateau means)",
         f"samples    {s['used']} of {s['total']} used "
         f"({s['transition']} at changing rate, {s['settling']} settling), {report['plateaus']} plateaus",
         f"V0         {report['v0']:.3f}",
@@ -197,17 +198,18 @@ def summary(report: dict) -> str:
         pts = ", ".join(f"{p['rate_dps']:g}" for p in report["segment_points"])
         lines.append(f"segments   at {pts} deg/s")
     tr, ho = report["training"], report["held_out"]
-    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s")
-    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s (plateau means)")
+    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s (plateau means)")
+    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s "
+                 "(plateau means, whole table rates left out)")
     loop = report.get("closed_loop")
     if loop and "skipped" not in loop:
         found = ", ".join(e["name"] for e in report["effects"]) or "none"
         lines.append(f"effects    {found}")
         for c in report.get("confounded", []):
             lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
-        lines.append(f"loop       held-out rms {loop['held_out_rms_before_dps']:.4f} -> "
-                     f"{loop['held_out_rms_after_dps']:.4f} deg/s (2 s blocks, before -> after)")
-        lines.append(f"final      {loop['final_spec']} + {sum(len(e['terms']) for e in report['effects'])} "
-                     "effect terms")
-    lines.append(f"wrote      {Path(report['coefficients'])}")
+        lines.append("loop       held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
+        for step in loop.get("steps", []):
+            terms = f", {step['terms']} effect terms" if step["terms"] else ""
+            lines.append(f"           {step['held_out_rms_dps']:.4f}  {step['step']} ({step['spec']}{terms})")
+    lines.append(f"wrote      {Path(report['coefficients'])}: {written_model(report)}")
     return "\n".join(lines)
