@@ -204,3 +204,18 @@ def test_all_or_nothing(tmp_path, names, bad, fail_after):
         assert all((root / n).read_text() == n for n in names)
         return
     assert files_under(root) == before
+
+
+def test_apply_on_a_full_tmpfs_leaves_nothing(coeffs, session_csv, tiny_disk, capsys):
+    assert main(["apply", str(coeffs), str(session_csv), "-o", str(tiny_disk / "out.csv")]) == 2
+    err = capsys.readouterr().err
+    assert err == f"canical apply: error: cannot write {tiny_disk / 'out.csv'}: No space left on device\n"
+    assert files_under(tiny_disk) == []
+
+
+def test_demo_on_a_full_tmpfs_leaves_nothing(tiny_disk, capsys):
+    assert main(["demo", "--out", str(tiny_disk / "demo"), "--no-bus"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"canical demo: error: cannot write {tiny_disk / 'demo'}/"), err
+    assert err.endswith(": No space left on device\n") and err.count("\n") == 1, err
+    assert files_under(tiny_disk) == []

@@ -38,7 +38,9 @@ def output_paths(template: str, axes: list[str]) -> dict[str, Path]:
 
 def run(args: argparse.Namespace) -> int:
     axes = tuple(args.axis) if args.axis else AXES
-    with output_plan(*output_paths(args.output, list(axes)).values()):
+    # Every name the files may get: one per axis, or the name as given when one axis has a set.
+    names = {*output_paths(args.output, list(axes)).values(), *output_paths(args.output, [axes[0]]).values()}
+    with output_plan(*sorted(names)):
         return pull(args, axes)
 
 
