@@ -13,9 +13,9 @@ ancestor) and accepts a new file (a temporary is created and removed, which catc
 read-only and permission problems), and the target is not a folder or a device. While the
 plan is open, every atomic write (:mod:`canical.atomic_file`) in this thread to a declared
 output goes to a temporary file beside its target instead (other files, such as scratch
-files the command reads back, are written at once); when the block ends cleanly they are all renamed
-into place (missing folders made first), and when it raises, every temporary is removed and
-nothing is written. Any ``OSError`` on the way (a full disk) becomes one
+files the command reads back, are written at once); when the block ends cleanly they are
+all renamed into place (missing folders made first), and when it raises, every temporary is
+removed and nothing is written. Any ``OSError`` on the way (a full disk) becomes one
 :class:`~canical.errors.CanicalError` line ``cannot write PATH: REASON``.
 """
 
