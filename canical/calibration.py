@@ -266,6 +266,7 @@ def loop_report(loop: LoopResult) -> dict[str, Any]:
             for name, r2 in loop.untestable.items()
         ],
         "rounds": loop.rounds,
+        "steps": loop.steps,
     }
 
 
@@ -306,6 +307,11 @@ def calibrate(
         report["closed_loop"] = {
             "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
         }
+    # What the coefficient file holds: the loop's final model, or the rate model alone.
+    report["written"] = {
+        "spec": loop.structure.spec.describe() if loop is not None else report["spec"],
+        "effect_terms": len(terms),
+    }
     fit_stats = {
         "samples_used": report["samples"]["used"],
         "plateaus": report["plateaus"],

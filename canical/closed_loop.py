@@ -248,6 +248,14 @@ class LoopResult:
     errors_after: np.ndarray
     capacity_changes: list[str]
     untestable: dict[str, float] = field(default_factory=dict)
+    # Each change to the model in order, with the held-out error after it (same scheme throughout),
+    # so a report can be read from the rate model alone down to the set that was written.
+    steps: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _step(scorer: Scorer, s: Structure, what: str) -> dict[str, Any]:
+    rms_dps, _, _ = scorer.score(s)
+    return {"step": what, "spec": s.spec.describe(), "terms": len(s.terms), "held_out_rms_dps": rms_dps}
 
 
 def _capacity_options(s: Structure) -> list[ModelSpec]:
@@ -319,6 +327,7 @@ def run_loop(
     confounded: list[dict[str, Any]] = []
     rounds: list[list[dict[str, Any]]] = []
     capacity_changes: list[str] = []
+    steps = [_step(scorer, s, "rate model alone")]
     for _round in range(12):
         current = scorer.score(s)
         progress(f"round {len(rounds) + 1}: held-out rms {current[0]:.4f} deg/s, {len(pool)} candidates")
@@ -352,6 +361,7 @@ def run_loop(
         if isinstance(best, Structure):
             capacity_changes.append(best_name)
             s = best
+            steps.append(_step(scorer, s, f"base model grown to {s.spec.describe()}"))
             continue
         # Every candidate, not only those that passed at the current base size: with its
         # own best base size a candidate may turn out to explain the same residual.
@@ -400,9 +410,15 @@ def run_loop(
             }
         )
         progress(f"accepted {best.name}: held-out rms {current[0]:.4f} -> {after[0]:.4f} deg/s")
+        steps.append(_step(scorer, s_new, f"added {best.name}"))
         s = reselect_size(scorer, s_new, duration_s)
+        if s is not s_new:
+            steps.append(_step(scorer, s, "base size chosen again with the effect in"))
         pool = [c for c in pool if c is not best]
-    s = _prune_all(scorer, s)
+    pruned_all = _prune_all(scorer, s)
+    if len(pruned_all.terms) != len(s.terms):
+        steps.append(_step(scorer, pruned_all, "terms that no longer pay removed"))
+    s = pruned_all
     final_fit = fit_structure(blocks, s, duration_s)
     # Effect terms in the report carry the final joint coefficients of the terms that stayed.
     final_terms = {(t.kind, t.channel, t.feature, t.form): t for t in final_fit.terms}
@@ -425,6 +441,7 @@ def run_loop(
         errors_after=held_out_errors(blocks, s, folds, duration_s),
         capacity_changes=capacity_changes,
         untestable=tied,
+        steps=steps,
     )
 
 

@@ -14,10 +14,13 @@ import numpy as np
 
 from canical.calibration import CalibrateOptions, calibrate, fit_base
 from canical.closed_loop import Scorer, Structure, plateau_folds, reselect_size
+from canical.coefficients import CoefficientSet
+from canical.corrector import Corrector
 from canical.cross_validation import prediction_errors
 from canical.fit_points import FitPoints, fit_points
-from canical.plateaus import detect_plateaus
+from canical.plateaus import detect_plateaus, plateau_means
 from canical.session import Session
+from canical.terms import TIME_INPUT
 
 # The models the paper discusses, and ours: (label, options).
 PAPER_MODELS: tuple[tuple[str, CalibrateOptions], ...] = (
@@ -68,6 +71,20 @@ def compare_models(train: Session, test: Session, models=PAPER_MODELS) -> list[M
             )
         )
     return scores
+
+
+def held_out_set_errors(cset: CoefficientSet, session: Session) -> np.ndarray:
+    """A written coefficient set judged as :func:`compare_models` judges a model: on plateau means.
+
+    Raw values, time and auxiliary channels are averaged per plateau and corrected as samples, so
+    a set without effect terms scores exactly what its model scored in the comparison.
+    """
+    plateaus = detect_plateaus(session.time_s, session.ref_dps)
+    raw = plateau_means(session.raw, plateaus)
+    inputs = {name: plateau_means(values, plateaus) for name, values in session.aux.items()}
+    inputs[TIME_INPUT] = plateau_means(session.time_s, plateaus)
+    rate, _ = Corrector(cset).correct(raw, inputs)
+    return rate - plateaus.rate_dps
 
 
 def sliding_mean(values: np.ndarray, window: int) -> np.ndarray:

@@ -1,4 +1,10 @@
-"""The calibration report as Markdown: what a calibration engineer reads first."""
+"""The calibration report as Markdown: what a calibration engineer reads first.
+
+Read from top to bottom: the set that was written, the rate model alone, then each step of the
+closed loop down to the written set again. Every held-out figure names its validation scheme
+(whole table rates left out, on plateau means; or plateaus left out, on 2 s blocks), because
+the two give different numbers for the same model.
+"""
 
 from __future__ import annotations
 
@@ -7,23 +13,35 @@ from typing import Any
 from canical.noise_records import describe
 
 
+def written_model(report: dict[str, Any]) -> str:
+    """The model in the coefficient file: the loop's final one, with its effect terms."""
+    written = report.get("written", {"spec": report["spec"], "effect_terms": 0})
+    n = written["effect_terms"]
+    names = ", ".join(e["name"] for e in report.get("effects", []))
+    return written["spec"] + (f" + {n} effect term{'s' * (n != 1)} ({names})" if n else "")
+
+
 def render(report: dict[str, Any], plots: list[str]) -> str:
     s = report["samples"]
     lines = [
         "# canical calibration report",
         "",
         f"- session: `{report.get('session', '')}`",
-        f"- model: {report['spec']}",
+        f"- coefficient set: `{report.get('coefficients', '')}`: {written_model(report)}",
         f"- samples used: {s['used']} of {s['total']} ({s['transition']} at a changing rate, "
         f"{s['settling']} settling); {report['plateaus']} plateaus at {report['rates']} rates",
         f"- zero bias V0: {report['v0']:.3f}",
         "",
-        "## Rate model (held-out table rates)",
+        "## Rate model alone",
+        "",
+        f"{report['spec']}, the size chosen by held-out error on plateau means.",
         "",
         "| | rms (deg/s) | max (deg/s) |",
         "|---|---|---|",
-        f"| training | {report['training']['rms_dps']:.4f} | {report['training']['max_dps']:.4f} |",
-        f"| held-out | {report['held_out']['rms_dps']:.4f} | {report['held_out']['max_dps']:.4f} |",
+        f"| training, plateau means | {report['training']['rms_dps']:.4f} | "
+        f"{report['training']['max_dps']:.4f} |",
+        f"| held-out, plateau means (whole table rates left out) | {report['held_out']['rms_dps']:.4f} | "
+        f"{report['held_out']['max_dps']:.4f} |",
         "",
     ]
     if report.get("segment_points"):
@@ -36,33 +54,34 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
         lines.append("")
     loop = report.get("closed_loop")
     if loop and "skipped" not in loop:
-        before = f"{loop['held_out_rms_before_dps']:.4f} | {loop['held_out_max_before_dps']:.4f}"
-        after = f"{loop['held_out_rms_after_dps']:.4f} | {loop['held_out_max_after_dps']:.4f}"
         lines += [
             "## Closed loop: effects the model lacked",
             "",
-            f"Final model: {loop['final_spec']}, plus the effect terms below.",
+            f"Every figure here is held-out error of {loop['method']}: another scheme than the plateau "
+            "means above, so the rate model alone has a figure of its own in it. Each row is one "
+            "change to the model, in the order the loop made it.",
             "",
-            f"Held-out error ({loop['method']}):",
-            "",
-            "| | rms (deg/s) | max (deg/s) |",
-            "|---|---|---|",
-            f"| rate model only | {before} |",
-            f"| with effects | {after} |",
+            "| step | model | effect terms | held-out rms (deg/s), 2 s blocks |",
+            "|---|---|---|---|",
+        ]
+        for step in loop.get("steps", []):
+            lines.append(f"| {step['step']} | {step['spec']} | {step['terms']} | "
+                         f"{step['held_out_rms_dps']:.4f} |")
+        n_terms = report.get("written", {}).get("effect_terms", 0)
+        lines += [
+            f"| **written set** | {loop['final_spec']} | {n_terms} | "
+            f"**{loop['held_out_rms_after_dps']:.4f}** (max {loop['held_out_max_after_dps']:.4f}) |",
             "",
         ]
         if report["effects"]:
             lines += [
-                "| effect | held-out rms before | after | gain | p-value | terms |",
-                "|---|---|---|---|---|---|",
+                "| effect | held-out gain when added | p-value | terms (final coefficients) |",
+                "|---|---|---|---|",
             ]
             for e in report["effects"]:
                 terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e["terms"])
                 ev = e["evidence"]
-                lines.append(
-                    f"| {e['name']} | {e['rms_before_dps']:.4f} | {e['rms_after_dps']:.4f} | "
-                    f"{ev['held_out_gain']:.0%} | {ev['p_value']:.1e} | {terms} |"
-                )
+                lines.append(f"| {e['name']} | {ev['held_out_gain']:.0%} | {ev['p_value']:.1e} | {terms} |")
         else:
             lines.append("No effect found: the residual is explained by the rate model and noise.")
         lines.append("")

@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canical.atomic_file import write_bytes_atomic
+from canical.atomic_file import make_dirs, write_bytes_atomic
 from canical.blocks import Blocks
 from canical.closed_loop import LoopResult, effect_contribution, predict
 from canical.terms import term_from_dict
@@ -104,7 +104,7 @@ def confounded_plot(loop: LoopResult, group: dict, path: Path) -> None:
 
 def write_plots(loop: LoopResult, directory: Path) -> list[Path]:
     """All plots of a loop result into ``directory``; returns the paths written."""
-    directory.mkdir(parents=True, exist_ok=True)
+    make_dirs(directory)
     written = [directory / "residual_vs_rate.png"]
     residual_vs_rate(loop, written[0])
     for i, effect in enumerate(loop.effects, 1):

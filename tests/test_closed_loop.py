@@ -95,7 +95,7 @@ def test_cli_loop_report_dir_and_apply(tmp_path, capsys):
     assert "report.md" in names and "residual_vs_rate.png" in names
     assert any(n.startswith("effect_1_channel_temp_c") for n in names)
     md = (rep / "report.md").read_text()
-    assert "with effects" in md and "channel:temp_c" in md
+    assert "**written set**" in md and "channel:temp_c" in md
     assert main(["apply", str(coeffs), str(path), "-o", str(tmp_path / "o.csv")]) == 0
     # Without the temperature column the set cannot be applied: one line, status 2.
     lines = path.read_text().splitlines()

@@ -378,6 +378,7 @@ def test_whole_loop_on_vcan_device_corrects_like_apply(vcan_channel: str, tmp_pa
     rates = "-60:60:10"
     options = BusDemoOptions(interface="socketcan", channel=vcan_channel, node_id=NODE, serial=SERIAL,
                              sample_rate_hz=40.0, speed=2.0, dwell_s=2.0, field_samples=200, emulate=False,
+                             field_pass=None,
                              table_rates=tuple(float(r) for r in range(-60, 61, 10)))
     with device(vcan_channel, tmp_path, "--rate", "40", "--speed", "2", f"--table-rates={rates}",
                 "--dwell", "2", "--correct"):

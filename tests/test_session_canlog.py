@@ -13,9 +13,10 @@ import pytest
 from daemon_fixtures import DBC, write_config, write_sets
 
 from canical import coefficient_file
+from canical.canlog_format import is_canlog
 from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
-from canical.session_canlog import default_inputs, is_canlog, read_canlog
+from canical.session_canlog import default_inputs, read_canlog
 from canical.session_csv import format_session, read_table
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, sweep_session

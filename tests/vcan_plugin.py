@@ -25,6 +25,7 @@ that has vcan). ``CANICAL_UML_TIMEOUT`` bounds the guest run (seconds, default 1
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -203,6 +204,8 @@ class VcanState:
         report_path = run_dir / "reports.jsonl"
         env = dict(os.environ, **{ENV_REPORT: str(report_path)})
         timeout = float(os.environ.get(ENV_TIMEOUT, harness.DEFAULT_TIMEOUT))
+        announce(self.config, f"vcan: booting a User-mode Linux guest for {len(self.nodeids)} vcan test(s); "
+                 f"they run in it (several minutes, bound {timeout:.0f} s) and report here when it is done")
         try:
             self.result = harness.run_in_uml(self.guest_command(run_dir),
                                              cwd=self.config.rootpath, env=env,
@@ -241,6 +244,17 @@ class VcanState:
         if not keep:
             shutil.rmtree(self.result.run_dir, ignore_errors=True)
         return keep
+
+
+def announce(config: pytest.Config, line: str) -> None:
+    """One line on the terminal now, past output capture: a silent guest run looks like a hang."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    capture = config.pluginmanager.get_plugin("capturemanager")
+    if reporter is None:
+        return
+    with capture.global_and_fixture_disabled() if capture is not None else contextlib.nullcontext():
+        reporter.ensure_newline()
+        reporter.write_line(line)
 
 
 class GuestProxyItem(pytest.Item):

@@ -9,18 +9,19 @@ from __future__ import annotations
 
 import argparse
 import io
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from canical import coefficient_file
-from canical.atomic_file import atomic_writer
+from canical.canlog_format import CANLOG_FORMATS
 from canical.commands import COMMANDS
-from canical.commands.canlog_args import add_canlog_arguments, canlog_source
-from canical.corrector import Corrector
+from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
+from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.session_canlog import CANLOG_FORMATS, TIME_INPUT, is_canlog, read_canlog
-from canical.session_csv import read_table
+
+if TYPE_CHECKING:  # the rest is imported where used: `--help` needs none of it
+    import numpy as np
+
+    from canical.corrector import Corrector
 
 CHUNK_ROWS = 100_000
 
@@ -38,6 +39,18 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(args.output):
+        return apply_set(args)
+
+
+def apply_set(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from canical import coefficient_file
+    from canical.canlog_format import is_canlog
+    from canical.corrector import Corrector
+    from canical.session_csv import read_table
+
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
     if is_canlog(args.input):
@@ -66,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
 
 def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray) -> None:
     """Echo the input rows with the new columns, atomically, in chunks with progress."""
+    from canical.atomic_file import atomic_writer
+
     progress = Progress("apply", len(table.rows))
     with atomic_writer(path) as out:
         for line in table.preamble:
@@ -85,6 +100,12 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
 
     Writes time_s, raw, the inputs the set needs, rate_dps and out_of_span.
     """
+    import numpy as np
+
+    from canical.atomic_file import atomic_writer
+    from canical.commands.canlog_args import canlog_source
+    from canical.session_canlog import TIME_INPUT, read_canlog
+
     cset = corrector.cset
     source = canlog_source(args, args.input)
     sensor = args.sensor or source.sensor

@@ -7,19 +7,17 @@ import json
 import sys
 from pathlib import Path
 
-from canical import coefficient_file
-from canical.allan_plot import write_allan_plot
-from canical.atomic_file import write_text_atomic
-from canical.calibration import CalibrateOptions, calibrate
+from canical.canlog_format import CANLOG_FORMATS
 from canical.commands import COMMANDS
-from canical.commands.canlog_args import add_canlog_arguments, canlog_source
+from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
+from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.report_markdown import render
-from canical.report_plots import write_plots
-from canical.session_canlog import CANLOG_FORMATS, default_inputs, is_canlog, read_canlog
-from canical.session_csv import read_session
+from canical.report_markdown import written_model
+
+# The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
+# used, so that `--help` and argument errors answer at once.
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
 
@@ -94,6 +92,17 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(args.output, args.report, dirs=[args.report_dir]):
+        return calibrate_session(args)
+
+
+def calibrate_session(args: argparse.Namespace) -> int:
+    from canical import coefficient_file
+    from canical.atomic_file import write_text_atomic
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.canlog_format import is_canlog
+    from canical.session_csv import read_session
+
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
     if is_canlog(args.session):
@@ -126,11 +135,9 @@ def run(args: argparse.Namespace) -> int:
         progress=progress.step,
     )
     report = {"session": str(args.session), "coefficients": str(args.output), **result.report}
-    # Render everything first, so a failure cannot leave some outputs written and others not.
-    report_text = json.dumps(report, indent=2) + "\n"
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
-        write_text_atomic(args.report, report_text)
+        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
@@ -139,7 +146,12 @@ def run(args: argparse.Namespace) -> int:
 
 def write_report_dir(directory: Path, report: dict, loop) -> None:
     """report.json, report.md and the plots, side by side."""
-    directory.mkdir(parents=True, exist_ok=True)
+    from canical.allan_plot import write_allan_plot
+    from canical.atomic_file import make_dirs, write_text_atomic
+    from canical.report_markdown import render
+    from canical.report_plots import write_plots
+
+    make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
     if "curve" in report.get("allan", {}):
         plots.append(write_allan_plot(report["allan"], directory / "allan.png",
@@ -150,6 +162,9 @@ def write_report_dir(directory: Path, report: dict, loop) -> None:
 
 def read_canlog_session(args: argparse.Namespace, progress: Progress):
     """A turntable session recorded from the bus: raw frames of one axis, the table's rate held."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.session_canlog import default_inputs, read_canlog
+
     source = canlog_source(args, args.session)
     inputs = source.inputs if (source.inputs or source.from_config) else default_inputs(source.dbc)
     axis = args.axis
@@ -179,7 +194,7 @@ def summary(report: dict) -> str:
     """A few lines a calibration engineer reads first."""
     s = report["samples"]
     lines = [
-        f"model      {report['spec']}",
+        f"rate model {report['spec']} (size chosen on held-out plateau means)",
         f"samples    {s['used']} of {s['total']} used "
         f"({s['transition']} at changing rate, {s['settling']} settling), {report['plateaus']} plateaus",
         f"V0         {report['v0']:.3f}",
@@ -188,18 +203,19 @@ def summary(report: dict) -> str:
         pts = ", ".join(f"{p['rate_dps']:g}" for p in report["segment_points"])
         lines.append(f"segments   at {pts} deg/s")
     tr, ho = report["training"], report["held_out"]
-    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s")
-    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s (plateau means)")
+    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s (plateau means)")
+    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s "
+                 "(plateau means, whole table rates left out)")
     loop = report.get("closed_loop")
     if loop and "skipped" not in loop:
         found = ", ".join(e["name"] for e in report["effects"]) or "none"
         lines.append(f"effects    {found}")
         for c in report.get("confounded", []):
             lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
-        lines.append(f"loop       held-out rms {loop['held_out_rms_before_dps']:.4f} -> "
-                     f"{loop['held_out_rms_after_dps']:.4f} deg/s (2 s blocks, before -> after)")
-        lines.append(f"final      {loop['final_spec']} + {sum(len(e['terms']) for e in report['effects'])} "
-                     "effect terms")
+        lines.append("loop       held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
+        for step in loop.get("steps", []):
+            terms = f", {step['terms']} effect terms" if step["terms"] else ""
+            lines.append(f"           {step['held_out_rms_dps']:.4f}  {step['step']} ({step['spec']}{terms})")
     allan = report.get("allan", {})
     if "terms" in allan:
         lo, hi = allan["tau_range_s"]
@@ -207,5 +223,5 @@ def summary(report: dict) -> str:
             f"{t['name']} {t['value']:.3g} {t['unit']}" if t["resolved"] else f"{t['name']} not resolved"
             for t in allan["terms"].values())
         lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
-    lines.append(f"wrote      {Path(report['coefficients'])}")
+    lines.append(f"wrote      {Path(report['coefficients'])}: {written_model(report)}")
     return "\n".join(lines)

@@ -17,9 +17,9 @@ from pathlib import Path
 
 from canical.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
 from canical.commands import COMMANDS
-from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
+from canical.output_plan import check_dir, check_file
 
 
 def _rates(text: str) -> tuple[float, ...]:
@@ -104,6 +104,8 @@ def stream_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
+
     if args.speed <= 0:
         raise CanicalError("--speed must be positive")
     logging.basicConfig(level=logging.INFO, format="emulate: %(message)s", stream=sys.stderr)
@@ -119,7 +121,9 @@ def run(args: argparse.Namespace) -> int:
         table_ref=not args.no_table_ref,
         correction=args.correct,
     )
+    check_dir(config.state_path.parent)  # the device's flash: refused now, not at its first store
     config.state_path.parent.mkdir(parents=True, exist_ok=True)
+    check_file(config.state_path)
     network = open_network(args.interface, args.channel, can_filters=sdo_server_filters(args.node),
                            **bus_options(args))
     try:

@@ -37,6 +37,7 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.canlog_format import is_canlog
     from canical.noise_records import (
         describe,
         first_backwards,
@@ -44,7 +45,6 @@ def run(args: argparse.Namespace) -> int:
         sample_interval,
         uniform_records,
     )
-    from canical.session_canlog import is_canlog
 
     time_s, rate, where = _read_canlog(args) if is_canlog(args.record) else _read_csv(args)
     bad = first_backwards(time_s)
