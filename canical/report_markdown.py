@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from typing import Any
 
-from canical.noise_records import describe
-
 
 def written_model(report: dict[str, Any]) -> str:
     """The model in the coefficient file: the loop's final one, with its effect terms."""
@@ -103,6 +101,8 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
         lines += [f"Closed loop skipped: {loop['skipped']}.", ""]
     allan = report.get("allan")
     if allan:
+        from canical.noise_records import describe  # numpy: calibrate's --help imports this module
+
         lines += ["## Noise: Allan deviation of the zero-rate plateaus", ""]
         lines += [f"- {line}" for line in describe(allan)]
         lines += ["", "Terms the τ range cannot show are not resolved; the bound is what the data allows. "
