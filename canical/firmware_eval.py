@@ -39,10 +39,20 @@ log = logging.getLogger("canical.firmware")
 SOURCES = ("canical_eval.c", "canical_eval.h")
 CFLAGS = ("-std=c99", "-Wall", "-Wextra", "-Werror", "-O2", "-fPIC", "-shared")
 ERROR_NAMES = {
-    -1: "CE_ERR_ARG", -2: "CE_ERR_CRC", -3: "CE_ERR_SYNTAX", -4: "CE_ERR_NOT_CANONICAL",
-    -5: "CE_ERR_SCHEMA", -6: "CE_ERR_FIELD", -7: "CE_ERR_MODEL_KIND", -8: "CE_ERR_TERM_KIND",
-    -9: "CE_ERR_LIMIT", -10: "CE_ERR_SENSOR", -11: "CE_ERR_AXIS", -12: "CE_ERR_SPAN", -13: "CE_ERR_INPUT",
-}  # fmt: skip
+    -1: "CE_ERR_ARG",
+    -2: "CE_ERR_CRC",
+    -3: "CE_ERR_SYNTAX",
+    -4: "CE_ERR_NOT_CANONICAL",
+    -5: "CE_ERR_SCHEMA",
+    -6: "CE_ERR_FIELD",
+    -7: "CE_ERR_MODEL_KIND",
+    -8: "CE_ERR_TERM_KIND",
+    -9: "CE_ERR_LIMIT",
+    -10: "CE_ERR_SENSOR",
+    -11: "CE_ERR_AXIS",
+    -12: "CE_ERR_SPAN",
+    -13: "CE_ERR_INPUT",
+}
 
 
 class Device(ctypes.Structure):
@@ -130,15 +140,28 @@ class Library:
         f32p = ctypes.POINTER(ctypes.c_float)
         lib.ce_crc32.argtypes = [ctypes.c_char_p, ctypes.c_uint32]
         lib.ce_crc32.restype = ctypes.c_uint32
-        lib.ce_load.argtypes = [ctypes.c_void_p, ctypes.c_char_p, ctypes.c_uint32, ctypes.c_uint32,
-                                ctypes.POINTER(Device)]  # fmt: skip
+        lib.ce_load.argtypes = [
+            ctypes.c_void_p,
+            ctypes.c_char_p,
+            ctypes.c_uint32,
+            ctypes.c_uint32,
+            ctypes.POINTER(Device),
+        ]
         lib.ce_load.restype = ctypes.c_int
         lib.ce_reset.argtypes = [ctypes.c_void_p]
         lib.ce_reset.restype = None
         lib.ce_eval.argtypes = [ctypes.c_void_p, ctypes.POINTER(Sample), f32p]
         lib.ce_eval.restype = ctypes.c_int
-        lib.ce_eval_block.argtypes = [ctypes.c_void_p, ctypes.c_uint32, f32p, ctypes.POINTER(ctypes.c_uint32),
-                                      f32p, ctypes.c_uint8, f32p, u8p]  # fmt: skip
+        lib.ce_eval_block.argtypes = [
+            ctypes.c_void_p,
+            ctypes.c_uint32,
+            f32p,
+            ctypes.POINTER(ctypes.c_uint32),
+            f32p,
+            ctypes.c_uint8,
+            f32p,
+            u8p,
+        ]
         lib.ce_eval_block.restype = ctypes.c_int
         lib.ce_strerror.argtypes = [ctypes.c_int]
         lib.ce_strerror.restype = ctypes.c_char_p
@@ -240,18 +263,24 @@ class FirmwareCorrector:
             t = np.ascontiguousarray(np.rint(np.asarray(inputs[TIME_INPUT], dtype=float) * 1000.0), np.uint32)
         chan = np.ascontiguousarray(
             np.column_stack([np.asarray(inputs[c], dtype=float) for c in self.channels])
-            if self.channels else np.zeros((n, 0)),
+            if self.channels
+            else np.zeros((n, 0)),
             dtype=np.float32,
-        )  # fmt: skip
+        )
         rate = np.empty(n, dtype=np.float32)
         oos = np.empty(n, dtype=np.uint8)
         f32p = ctypes.POINTER(ctypes.c_float)
         self.reset()
         code = self.lib.lib.ce_eval_block(
-            self._set, n, raw32.ctypes.data_as(f32p), t.ctypes.data_as(ctypes.POINTER(ctypes.c_uint32)),
-            chan.ctypes.data_as(f32p) if self.channels else None, len(self.channels),
-            rate.ctypes.data_as(f32p), oos.ctypes.data_as(ctypes.POINTER(ctypes.c_uint8)),
-        )  # fmt: skip
+            self._set,
+            n,
+            raw32.ctypes.data_as(f32p),
+            t.ctypes.data_as(ctypes.POINTER(ctypes.c_uint32)),
+            chan.ctypes.data_as(f32p) if self.channels else None,
+            len(self.channels),
+            rate.ctypes.data_as(f32p),
+            oos.ctypes.data_as(ctypes.POINTER(ctypes.c_uint8)),
+        )
         self.reset()
         if code < 0:
             raise CanicalError(f"firmware evaluator: {self.lib.strerror(code)}")
@@ -260,7 +289,7 @@ class FirmwareCorrector:
 
 def time_ms(time_s: float) -> int:
     """A time in seconds as the device's millisecond counter (UNSIGNED32, wrapping)."""
-    return int(round(time_s * 1000.0)) & 0xFFFFFFFF
+    return round(time_s * 1000.0) & 0xFFFFFFFF
 
 
 def corrector_for(
