@@ -542,3 +542,41 @@ def test_property_structured_malformed_refused_by_both(lib_for_hypothesis, seed,
     assert load_code(lib_for_hypothesis, content, crc) < 0, kind
     if kind != "huge-segments":
         assert python_verdict(content, crc) is not None, kind
+
+
+# ----------------------------------------------------------------------------------------------
+# The emulated IMU runs the firmware
+# ----------------------------------------------------------------------------------------------
+
+
+def test_emulated_imu_corrects_its_frames_with_the_firmware(caplog):
+    """After an activation the device builds its correctors in C; its IMU_RATE frames carry the
+    rates of canical's evaluator (to the frame's 0.01 deg/s) on the inputs its own frames carry."""
+    import canopen
+
+    from canical.emulated_imu import EmulatedImu, EmulatorConfig
+    from canical.imu_dictionary import pack_active
+
+    cset = term_set(tuple(TERMS))
+    imu = EmulatedImu(EmulatorConfig(serial=SERIAL), canopen.Network())
+    content, crc = encode_set(cset)
+    imu.store.write_content(AXIS, "B", content)
+    imu.store.write_crc(AXIS, "B", crc)
+    imu.store.activate(pack_active({AXIS: "B"}))
+    with caplog.at_level(logging.INFO, logger="canical.imu"):
+        correctors = imu.device_correctors()
+    assert isinstance(correctors[AXIS], FirmwareCorrector) and set(correctors) == {AXIS}
+    assert "corrected on the device with the firmware evaluator (C)" in caplog.text
+    reference = Corrector(cset)
+    raw, inputs = stream(cset, 400, seed=11)
+    for k, counts in enumerate(raw.astype(int), start=1):
+        aux = imu.frames.aux(inputs["supply_v"][k - 1], inputs["time_s"][k - 1], k)
+        frame = imu.frames.raw((0, 0, int(counts)), inputs["temp_c"][k - 1], k)
+        rate_id, rate_data = imu._corrected(correctors, 0, *frame, *aux, k)
+        sent = imu.frames.decode(rate_id, rate_data).values
+        decoded_in = {"temp_c": imu.frames.decode(*frame).values["Temperature"],
+                      "supply_v": imu.frames.decode(*aux).values["SupplyVoltage"],
+                      "time_s": imu.frames.decode(*aux).values["Uptime"]}  # fmt: skip
+        expected, oos = reference.correct_one(float(counts), decoded_in)
+        assert abs(sent["RateZ"] - max(-327.68, min(327.67, expected))) <= 0.0051
+        assert sent["OutOfSpanZ"] == int(oos) and sent["UncalibratedX"] == 1
