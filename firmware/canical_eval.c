@@ -16,7 +16,36 @@
 
 #include <float.h>
 #include <stddef.h>
-#include <string.h>
+
+/* No <string.h>: the library builds freestanding (-ffreestanding, no C library at all). */
+static size_t text_length(const char *s)
+{
+    size_t n = 0;
+    while (s[n] != '\0') {
+        n++;
+    }
+    return n;
+}
+
+static int same_bytes(const uint8_t *a, const char *b, size_t n)
+{
+    size_t i;
+    for (i = 0; i < n; i++) {
+        if (a[i] != (uint8_t)b[i]) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static void zero(void *p, size_t n)
+{
+    volatile uint8_t *b = (volatile uint8_t *)p;
+    size_t i;
+    for (i = 0; i < n; i++) {
+        b[i] = 0u;
+    }
+}
 
 /* ------------------------------------------------------------------------------------------
  * CRC32 (zlib), four bits at a time: a 64-byte table instead of 1 KB.
@@ -399,8 +428,8 @@ static int parse_number(cur *c, double *out)
 
 static int match_literal(cur *c, const char *lit)
 {
-    size_t n = strlen(lit);
-    if ((size_t)(c->end - c->p) < n || memcmp(c->p, lit, n) != 0) {
+    size_t n = text_length(lit);
+    if ((size_t)(c->end - c->p) < n || !same_bytes(c->p, lit, n)) {
         return fail(c, CE_ERR_SYNTAX);
     }
     c->p += n;
@@ -567,8 +596,8 @@ static int next_member(cur *c, members *it)
 
 static int key_is(const members *it, const char *name)
 {
-    size_t n = strlen(name);
-    return it->n == n && memcmp(it->key, name, n) == 0;
+    size_t n = text_length(name);
+    return it->n == n && same_bytes(it->key, name, n);
 }
 
 /* Elements of an array: 1 when one follows, 0 at the end. */
@@ -658,8 +687,8 @@ static int string_value(cur *c, const uint8_t **s, uint32_t *n)
 
 static int bytes_are(const uint8_t *s, uint32_t n, const char *text)
 {
-    size_t len = strlen(text);
-    return s != NULL && n == len && memcmp(s, text, len) == 0;
+    size_t len = text_length(text);
+    return s != NULL && n == len && same_bytes(s, text, len);
 }
 
 /* ------------------------------------------------------------------------------------------
@@ -1395,14 +1424,14 @@ int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t decla
     if (set == NULL) {
         return CE_ERR_ARG;
     }
-    memset(set, 0, sizeof *set);
+    zero(set, sizeof *set);
     if (content == NULL || device == NULL || device->n_inputs > CE_MAX_INPUTS) {
         return CE_ERR_ARG;
     }
     if (ce_crc32(content, length) != declared_crc) {
         return CE_ERR_CRC;
     }
-    memset(&r, 0, sizeof r);
+    zero(&r, sizeof r);
     r.kind = KIND_NONE;
     c.base = c.p = content;
     c.end = content + length;
@@ -1425,7 +1454,7 @@ int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t decla
     }
     if (code != CE_OK) {
         uint32_t at = c.err ? c.err_at : length;
-        memset(set, 0, sizeof *set);
+        zero(set, sizeof *set);
         set->error_at = at;
         return code;
     }
