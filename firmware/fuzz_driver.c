@@ -8,7 +8,9 @@
  *   fuzz_driver mutate FILE N SEED SERIAL AXIS RANGE INPUTS...
  *       N random mutations of the records in FILE (byte flips, insertions, deletions,
  *       truncations, digit and bracket swaps; CRC recomputed for 7 in 8 so the parser is
- *       reached). Writes each accepted payload as a hex line, then "cases N accepted A".
+ *       reached). Writes "code crc hex" for each accepted payload and, with environment
+ *       CE_SAMPLE_EVERY=k, for every k-th refused one past the CRC check; then
+ *       "cases N accepted A".
  *
  * Exit status 0 unless an argument or file is bad; a sanitizer report aborts the process.
  */
@@ -188,6 +190,7 @@ int main(int argc, char **argv)
         }
     } else {
         uint32_t n = (uint32_t)strtoul(argv[3], NULL, 10), accepted = 0, j, cap = 32768;
+        uint32_t sample_every = getenv("CE_SAMPLE_EVERY") ? (uint32_t)strtoul(getenv("CE_SAMPLE_EVERY"), NULL, 10) : 0u;
         uint8_t *buf = malloc(cap);
         rng_state ^= strtoull(argv[4], NULL, 10) * 0x9E3779B97F4A7C15ull;
         if (buf == NULL) {
@@ -200,10 +203,12 @@ int main(int argc, char **argv)
             for (j = 0; j < rounds; j++) {
                 mutate(buf, &len, cap);
             }
+            int code;
             crc = next_u32() % 8u ? ce_crc32(buf, len) : next_u32();
-            if (try_load(buf, len, crc, &device) == CE_OK) {
-                accepted++;
-                printf("%08x ", crc);
+            code = try_load(buf, len, crc, &device);
+            if (code == CE_OK || (sample_every != 0u && i % sample_every == 0u && code != CE_ERR_CRC)) {
+                accepted += code == CE_OK;
+                printf("%d %08x ", code, crc);
                 for (j = 0; j < len; j++) {
                     printf("%02x", buf[j]);
                 }

@@ -291,7 +291,9 @@ def _records(cases: list[tuple[bytes, int]]) -> bytes:
     return b"".join(struct.pack("<II", len(c), crc) + c for c, crc in cases)
 
 
-def run_driver(exe: Path, args: list[str], tmp_path: Path, cases: list[tuple[bytes, int]]) -> str:
+def run_driver(
+    exe: Path, args: list[str], tmp_path: Path, cases: list[tuple[bytes, int]], sample_every: int = 0
+) -> str:
     path = tmp_path / "records.bin"
     path.write_bytes(_records(cases))
     mode, *rest = args
@@ -302,7 +304,11 @@ def run_driver(exe: Path, args: list[str], tmp_path: Path, cases: list[tuple[byt
         text=True,
         check=False,
         timeout=600,
-        env={"ASAN_OPTIONS": "abort_on_error=0:exitcode=99", "UBSAN_OPTIONS": "exitcode=99"},
+        env={
+            "ASAN_OPTIONS": "abort_on_error=0:exitcode=99",
+            "UBSAN_OPTIONS": "exitcode=99",
+            "CE_SAMPLE_EVERY": str(sample_every),
+        },
     )
     assert done.returncode == 0 and "runtime error" not in done.stderr and "Sanitizer" not in done.stderr, (
         done.stderr[-3000:]
@@ -514,25 +520,41 @@ def test_fuzz_100k_structured_malformed_banks_all_refused(sanitized_driver, tmp_
             assert python_verdict(content, crc) is not None, kind
 
 
+def _escaped_key(value) -> bool:
+    """Whether any object key needs a JSON escape (the C library reads plain keys only)."""
+    if isinstance(value, dict):
+        return any(not k.isascii() or not k.isprintable() or '"' in k or "\\" in k or _escaped_key(v)
+                   for k, v in value.items())  # fmt: skip
+    return isinstance(value, list) and any(_escaped_key(v) for v in value)
+
+
 def test_fuzz_random_mutations_under_sanitizers(sanitized_driver, tmp_path):
-    """150,000 random byte-level mutations (CRC recomputed for most): no sanitizer report, and
-    whatever the C library accepts canical accepts too, up to shortest float spelling (checked on
-    a sample of 3,000: Python's check is the slow part)."""
+    """150,000 random byte-level mutations (CRC recomputed for most): no sanitizer report, and the
+    C library's verdict is canical's own (checked on samples: Python's check is the slow part):
+    what it accepts canical accepts, up to non-shortest float spellings; what it refuses canical
+    refuses, except for the device's own rules (limits, channels it has) and escaped keys."""
     n = 150_000
-    out = run_driver(sanitized_driver, ["mutate", str(n), "1313"], tmp_path, seeds())
-    *accepted, summary = out.splitlines()
+    out = run_driver(sanitized_driver, ["mutate", str(n), "1313"], tmp_path, seeds(), sample_every=30)
+    *lines, summary = out.splitlines()
     assert summary.startswith(f"cases {n} accepted ")
+    fields = ([*ln.split(" "), ""][:3] for ln in lines)
+    rows = [(int(code), int(crc, 16), bytes.fromhex(hexed)) for code, crc, hexed in fields]
+    accepted = [r for r in rows if r[0] == 0]
+    refused = [r for r in rows if r[0] != 0]
+    assert accepted and len(refused) >= 3000, (len(accepted), len(refused))
     spelling_only = 0
-    accepted = random.Random(5).sample(accepted, min(3000, len(accepted)))
-    for line in accepted:
-        crc_hex, payload = line.split()
-        content = bytes.fromhex(payload)
-        verdict = python_verdict(content, int(crc_hex, 16))
+    rng = random.Random(5)
+    for _, crc, content in rng.sample(accepted, min(3000, len(accepted))):
+        verdict = python_verdict(content, crc)
         if verdict is not None:
             assert "canonical form" in verdict, verdict  # a digit changed to a non-shortest spelling
             spelling_only += 1
-    assert len(accepted) > 0  # mutations that keep a set valid exist; they must be real sets
     assert spelling_only <= len(accepted) // 2
+    device_rules = {CODES["CE_ERR_LIMIT"], CODES["CE_ERR_INPUT"]}
+    for code, crc, content in rng.sample(refused, 3000):
+        if python_verdict(content, crc) is None:
+            escaped = code == CODES["CE_ERR_FIELD"] and _escaped_key(json.loads(content))
+            assert code in device_rules or escaped, (code, content)
 
 
 @settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
