@@ -114,12 +114,18 @@ def library_path() -> Path:
     for name in SOURCES:
         digest.update((source_dir() / name).read_bytes())
     digest.update(" ".join(CFLAGS).encode())
-    target = _cache_dir() / f"libcanical_eval-{digest.hexdigest()[:16]}.so"
-    if target.is_file():
-        return target
+    name = f"libcanical_eval-{digest.hexdigest()[:16]}.so"
+    for folder in (_cache_dir(), Path(tempfile.gettempdir()) / f"canical-{os.getuid()}"):
+        if (folder / name).is_file():
+            return folder / name
     if shutil.which(os.environ.get("CC", "cc")) is None:
         raise CanicalError("no C compiler (cc) on this machine")
-    target.parent.mkdir(parents=True, exist_ok=True)
+    target = _cache_dir() / name
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+    except OSError:  # no writable home (a service user): a private folder under /tmp
+        target = Path(tempfile.gettempdir()) / f"canical-{os.getuid()}" / name
+        target.parent.mkdir(mode=0o700, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".build-", suffix=".so", dir=target.parent)
     os.close(fd)
     try:
