@@ -25,6 +25,7 @@ from canical.corrector import Corrector
 from canical.errors import CanicalError
 from canical.firmware_eval import CFLAGS, FirmwareCorrector, FirmwareRefusal, Library, compile_library
 from canical.set_admission import DeviceLimits, admission_problem
+from canical.terms import term_from_dict
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 SANITIZE = (
@@ -602,3 +603,53 @@ def test_emulated_imu_corrects_its_frames_with_the_firmware(caplog):
         expected, oos = reference.correct_one(float(counts), decoded_in)
         assert abs(sent["RateZ"] - max(-327.68, min(327.67, expected))) <= 0.0051
         assert sent["OutOfSpanZ"] == int(oos) and sent["UncalibratedX"] == 1
+
+
+@st.composite
+def random_sets(draw):
+    """Valid sets far from any fit: random segment points, orders, coefficients, zero bias, terms."""
+    from dataclasses import replace
+
+    base = term_set(())
+    v0 = draw(st.floats(-800.0, 800.0))
+    lo, hi = draw(st.floats(-32000.0, -4000.0)), draw(st.floats(4000.0, 32000.0))
+    if draw(st.booleans()):
+        order = draw(st.integers(1, 9))
+        cuts = draw(st.lists(st.floats(0.02, 0.98), max_size=CE_MAX_SEGMENTS - 1, unique=True))
+        knots = sorted({lo + f * (hi - lo) for f in cuts})
+        scale = max(-lo, hi)
+        rows = [[draw(st.floats(-5, 5)), draw(st.floats(20, 80)), *draw(st.lists(st.floats(-5, 5),
+                 min_size=order - 1, max_size=order - 1))] for _ in range(len(knots) + 1)]  # fmt: skip
+        model = {"kind": "segmented-inverse", "knots_raw": [k + v0 for k in knots], "segment_points_dps": [],
+                 "scale": scale, "coefficients": rows, "smoothness": None, "span_raw": [lo + v0, hi + v0],
+                 "out_of_span": "linear-extrapolation"}  # fmt: skip
+        names = draw(st.lists(st.sampled_from(sorted(TERMS)), unique=True, max_size=4))
+        terms = tuple(
+            dict(TERMS[n], coefficient=TERMS[n]["coefficient"] * draw(st.floats(-2, 2))) for n in names
+        )
+    else:
+        a1 = draw(st.floats(5000, 30000))
+        coeffs = [
+            draw(st.floats(-100, 100)),
+            a1,
+            *(draw(st.floats(-0.1, 0.1)) * a1 for _ in range(draw(st.integers(0, 3)))),
+        ]
+        rate_scale = draw(st.floats(50, 300))
+        model = {"kind": "forward-poly", "coefficients": coeffs, "rate_scale": rate_scale,
+                 "rate_span_dps": [-rate_scale, rate_scale * draw(st.floats(0.5, 1.0))],
+                 "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"}  # fmt: skip
+        terms = ()
+    cset = replace(base, v0=v0, model=model, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    return coefficient_file.loads(coefficient_file.dumps(cset))
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(cset=random_sets(), seed=st.integers(0, 1000))
+def test_property_any_valid_set_evaluates_like_canical(lib_for_hypothesis, cset, seed):
+    """Not only fitted sets: any valid set within the limits gives canical's rates (to float32
+    rounding: 2e-6 of the rate's size) and the same out-of-span flags."""
+    raw, inputs = stream(cset, 3000, seed=seed)
+    expected, expected_oos = Corrector(cset).correct(raw, inputs)
+    rate, oos = FirmwareCorrector(cset, lib=lib_for_hypothesis).correct(raw, inputs)
+    np.testing.assert_array_equal(oos, expected_oos)
+    np.testing.assert_allclose(rate, expected, rtol=2e-6, atol=1e-5)
