@@ -417,8 +417,8 @@ static int parse_number(cur *c, double *out)
         return 0;
     }
     *out = scale10((double)m, e10);
-    if (*out == 0.0) {
-        return fail(c, CE_ERR_NOT_CANONICAL); /* underflows: Python would write 0.0 */
+    if (*out == 0.0 || !(*out - *out == 0.0)) {
+        return fail(c, CE_ERR_NOT_CANONICAL); /* 0.0 or beyond float range: never written so */
     }
     if (neg) {
         *out = -*out;
@@ -767,6 +767,16 @@ static int parse_coefficients(cur *c, reading *r)
     return more;
 }
 
+/* A field only the other model kind has ("kind" sorts before all of them): canical does not
+ * read it, so neither does the device. */
+static int other_kinds_field(const members *it, int kind)
+{
+    int piecewise_only = key_is(it, "knots_raw") || key_is(it, "scale") || key_is(it, "smoothness");
+    int forward_only = key_is(it, "rate_scale") || key_is(it, "rate_span_dps");
+    return (kind == KIND_FORWARD && piecewise_only) ||
+           ((kind == KIND_SEG_INVERSE || kind == KIND_SEG_LINEAR) && forward_only);
+}
+
 static int parse_model(cur *c, reading *r)
 {
     members it = {NULL, 0, 0};
@@ -790,6 +800,10 @@ static int parse_model(cur *c, reading *r)
                                                               : KIND_NONE;
             if (r->kind == KIND_NONE) {
                 return fail(c, CE_ERR_MODEL_KIND);
+            }
+        } else if (other_kinds_field(&it, r->kind)) {
+            if (skip_value(c)) {
+                return c->err;
             }
         } else if (key_is(&it, "knots_raw")) {
             r->have_knots = 1;

@@ -653,3 +653,22 @@ def test_property_any_valid_set_evaluates_like_canical(lib_for_hypothesis, cset,
     rate, oos = FirmwareCorrector(cset, lib=lib_for_hypothesis).correct(raw, inputs)
     np.testing.assert_array_equal(oos, expected_oos)
     np.testing.assert_allclose(rate, expected, rtol=2e-6, atol=1e-5)
+
+
+def test_agrees_with_canical_on_fields_it_does_not_read(lib):
+    """Fields canical ignores (the other model kind's, statistics) are skipped alike, and numbers
+    canical could never have written are refused even where nothing reads them."""
+    forward, _ = encode_set(model_set("forward-poly"))
+    segmented, _ = encode_set(model_set("segmented-inverse"))
+    same = [
+        _edit(forward, lambda d: d["model"].update(smoothness=5, knots_raw="none", scale=None)),
+        _edit(segmented, lambda d: d["model"].update(rate_scale="none", rate_span_dps=[3.0])),
+        _edit(segmented, lambda d: d["fit"].update(deep=[[[{"a": [1, 2.5, None, True, "x"]}]]])),
+    ]
+    for content in same:
+        assert python_verdict(content, zlib.crc32(content)) is None
+        assert load_code(lib, content, zlib.crc32(content), inputs=()) == 0
+    for number in (b"1e999", b"-1e999", b"1e-999"):
+        content = segmented.replace(b'"fit":{', b'"fit":{"a":' + number + b",", 1)
+        assert python_verdict(content, zlib.crc32(content)) is not None
+        assert load_code(lib, content, zlib.crc32(content)) == CODES["CE_ERR_NOT_CANONICAL"]
