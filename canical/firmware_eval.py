@@ -175,8 +175,15 @@ class Library:
         lib.ce_sizeof_set.restype = ctypes.c_uint32
         lib.ce_error_offset.argtypes = [ctypes.c_void_p]
         lib.ce_error_offset.restype = ctypes.c_uint32
+        lib.ce_sizeof_fixed.argtypes = []
+        lib.ce_sizeof_fixed.restype = ctypes.c_uint32
+        lib.ce_fixed_from.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+        lib.ce_fixed_from.restype = ctypes.c_int
+        lib.ce_fixed_eval.argtypes = [ctypes.c_void_p, ctypes.c_int32, ctypes.POINTER(ctypes.c_int32)]
+        lib.ce_fixed_eval.restype = ctypes.c_int
         self.lib = lib
         self.set_size = int(lib.ce_sizeof_set())
+        self.fixed_size = int(lib.ce_sizeof_fixed())
 
     def strerror(self, code: int) -> str:
         return self.lib.ce_strerror(code).decode()

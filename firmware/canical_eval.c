@@ -1478,7 +1478,143 @@ int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t decla
     return CE_OK;
 }
 
+/* ------------------------------------------------------------------------------------------
+ * Fixed point: integer decisions (raw counts are integers) and Q16/Q30 Horner in int64.
+ * ---------------------------------------------------------------------------------------- */
+
+static int64_t round_to_int(double d) { return (int64_t)(d < 0.0 ? d - 0.5 : d + 0.5); }
+
+/* Smallest integer >= d (|d| < 2^31). */
+static int32_t ceil_int(double d)
+{
+    int32_t i = (int32_t)d; /* toward zero */
+    return (double)i < d ? i + 1 : i;
+}
+
+int ce_fixed_from(ce_fixed *f, const ce_set *s)
+{
+    int i, j;
+    double scale, v0, lo, hi, mult, limit = 16384.0; /* |coefficient| < 2^14 deg/s keeps Q16 in int32 */
+    if (f == NULL || s == NULL || !s->loaded) {
+        return CE_ERR_ARG;
+    }
+    zero(f, sizeof *f);
+    if (s->model != 0) {
+        return CE_ERR_MODEL_KIND;
+    }
+    if (s->n_terms != 0) {
+        return CE_ERR_TERM_KIND;
+    }
+    v0 = (double)s->v0_hi + (double)s->v0_lo;
+    lo = (double)s->lo_hi + (double)s->lo_lo;
+    hi = (double)s->hi_hi + (double)s->hi_lo;
+    scale = 1.0 / (double)s->inv_scale;
+    if (!(lo > -2147483000.0 && hi < 2147483000.0)) {
+        return CE_ERR_LIMIT;
+    }
+    f->lo = ceil_int(lo);
+    f->hi = ceil_int(hi) - ((double)ceil_int(hi) > hi ? 1 : 0); /* largest integer <= hi */
+    for (i = 0; i + 1 < s->n_segments; i++) {
+        f->knot[i] = ceil_int((double)s->knot_hi[i] + (double)s->knot_lo[i]);
+    }
+    f->v0_q16 = round_to_int(v0 * 65536.0);
+    /* u_q30 = dv_q16 * 2^14 / scale = (dv_q16 * mult) >> shift, mult < 2^31 */
+    f->u_shift = 0;
+    mult = 16384.0 / scale;
+    while (mult < 536870912.0 && f->u_shift < 60) {
+        mult *= 2.0;
+        f->u_shift++;
+    }
+    if (!(mult < 1073741824.0) || f->u_shift < 1) {
+        return CE_ERR_LIMIT; /* scale below 2^-15 counts */
+    }
+    f->u_mult = round_to_int(mult);
+    f->edge_lo_q30 = round_to_int((double)s->dv_lo / scale * 1073741824.0);
+    f->edge_hi_q30 = round_to_int((double)s->dv_hi / scale * 1073741824.0);
+    if (f->edge_lo_q30 < -2 * 1073741824LL || f->edge_hi_q30 > 2 * 1073741824LL) {
+        return CE_ERR_LIMIT; /* |u| < 2 inside the span: powers of u stay in range */
+    }
+    for (i = 0; i < s->n_segments; i++) {
+        double bound = 0.0, power = 1.0; /* |polynomial| for |u| <= 2: Horner stays below 2^30 */
+        for (j = 0; j < s->n_coeffs; j++) {
+            bound += (s->coeffs[i][j] < 0.0f ? -(double)s->coeffs[i][j] : (double)s->coeffs[i][j]) * power;
+            power *= 2.0;
+        }
+        if (!(bound < limit)) {
+            return CE_ERR_LIMIT;
+        }
+        for (j = 0; j < s->n_coeffs; j++) {
+            f->coeffs[i][j] = (int32_t)round_to_int((double)s->coeffs[i][j] * 65536.0);
+        }
+    }
+    f->n_segments = s->n_segments;
+    f->n_coeffs = s->n_coeffs;
+    f->loaded = 1;
+    return CE_OK;
+}
+
+/* v / 2^bits rounded, for |v| < 2^61, with an unsigned shift (a signed one is
+ * implementation-defined in C99) and no 64-bit division (a library call on a Cortex-M). */
+static int64_t shift_round(int64_t v, int bits)
+{
+    uint64_t t = (uint64_t)(v + ((int64_t)1 << (bits - 1))) + ((uint64_t)1 << 62);
+    return (int64_t)(t >> bits) - ((int64_t)1 << (62 - bits));
+}
+
+int ce_fixed_eval(const ce_fixed *f, int32_t raw, int32_t *rate_q16)
+{
+    const int32_t *c;
+    int64_t dv_q16, u, u_full, acc, slope, du;
+    int seg = 0, k, oos = 0;
+    if (f == NULL || rate_q16 == NULL || !f->loaded) {
+        return CE_ERR_ARG;
+    }
+    dv_q16 = (int64_t)raw * 65536 - f->v0_q16;
+    if (dv_q16 > ((int64_t)1 << 32) - 1) {
+        dv_q16 = ((int64_t)1 << 32) - 1; /* |dV| < 65536 counts: a 16-bit sensor's whole range */
+    } else if (dv_q16 < -(((int64_t)1 << 32) - 1)) {
+        dv_q16 = -(((int64_t)1 << 32) - 1);
+    }
+    u_full = shift_round(dv_q16 * f->u_mult, f->u_shift);
+    if (raw < f->lo) {
+        oos = 1;
+        u = f->edge_lo_q30;
+    } else if (raw > f->hi) {
+        oos = 1;
+        u = f->edge_hi_q30;
+        seg = f->n_segments - 1;
+    } else {
+        u = u_full;
+        while (seg + 1 < f->n_segments && raw >= f->knot[seg]) {
+            seg++;
+        }
+    }
+    c = f->coeffs[seg];
+    acc = c[f->n_coeffs - 1];
+    for (k = f->n_coeffs - 2; k >= 0; k--) {
+        acc = shift_round(acc * u, 30) + c[k];
+    }
+    if (oos && f->n_coeffs > 1) {
+        slope = (int64_t)(f->n_coeffs - 1) * c[f->n_coeffs - 1];
+        for (k = f->n_coeffs - 2; k >= 1; k--) {
+            slope = shift_round(slope * u, 30) + (int64_t)k * c[k];
+        }
+        du = shift_round(u_full - u, 10); /* beyond the span, in 2^-20 of u */
+        du = du > ((int64_t)1 << 26) ? (int64_t)1 << 26 : du < -((int64_t)1 << 26) ? -((int64_t)1 << 26) : du;
+        acc += shift_round(slope * du, 20);
+    }
+    if (acc > INT32_MAX) {
+        acc = INT32_MAX;
+    } else if (acc < INT32_MIN) {
+        acc = INT32_MIN;
+    }
+    *rate_q16 = (int32_t)acc;
+    return oos;
+}
+
 uint32_t ce_sizeof_set(void) { return (uint32_t)sizeof(ce_set); }
+
+uint32_t ce_sizeof_fixed(void) { return (uint32_t)sizeof(ce_fixed); }
 
 uint32_t ce_error_offset(const ce_set *set) { return set != NULL ? set->error_at : 0u; }
 

@@ -135,8 +135,31 @@ int ce_eval(ce_set *set, const ce_sample *sample, float *rate_dps);
 int ce_eval_block(ce_set *set, uint32_t n, const float *raw, const uint32_t *time_ms,
                   const float *inputs, uint8_t n_inputs, float *rate_dps, uint8_t *out_of_span);
 
+/* Fixed-point form of a loaded piecewise set without effect terms, for an MCU without an FPU:
+ * integer raw counts in (|raw - v0| < 65536: a 16-bit sensor), rate in 1/65536 deg/s out,
+ * int32/int64 add, multiply and shift only (within 1e-3 deg/s of the float form on canical's
+ * tests, a tenth of the corrected frame's 0.01 deg/s LSB). */
+typedef struct {
+    uint8_t loaded, n_segments, n_coeffs;
+    int32_t lo, hi;                     /* raw inside the span: lo <= raw <= hi */
+    int32_t knot[CE_MAX_SEGMENTS];      /* segment s + 1 starts at raw >= knot[s] */
+    int64_t v0_q16;                     /* zero bias, counts * 2^16 */
+    int64_t edge_lo_q30, edge_hi_q30;   /* u at the span edges, 2^30 */
+    int64_t u_mult;                     /* u_q30 = (dv_q16 * u_mult) >> u_shift */
+    int32_t u_shift;
+    int32_t coeffs[CE_MAX_SEGMENTS][CE_MAX_COEFFS]; /* deg/s * 2^16 */
+} ce_fixed;
+
+/* CE_OK, or CE_ERR_MODEL_KIND (forward polynomial), CE_ERR_TERM_KIND (effect terms),
+ * CE_ERR_LIMIT (coefficients or u beyond the fixed-point ranges). */
+int ce_fixed_from(ce_fixed *fixed, const ce_set *set);
+
+/* Rate of one integer sample in 1/65536 deg/s; returns 1 out of span, 0 inside, CE_ERR_ARG. */
+int ce_fixed_eval(const ce_fixed *fixed, int32_t raw, int32_t *rate_q16);
+
 /* For bindings that treat ce_set as opaque bytes (canical's ctypes wrapper). */
 uint32_t ce_sizeof_set(void);
+uint32_t ce_sizeof_fixed(void);
 uint32_t ce_error_offset(const ce_set *set); /* byte where the last ce_load refused */
 
 /* A short English name of a result code. */

@@ -4,7 +4,7 @@
  *   fuzz_driver cases FILE SERIAL AXIS RANGE INPUTS...
  *       FILE holds records (u32 little-endian length, u32 declared CRC, bytes); each is loaded
  *       from a heap block of exactly its length (so a read past the end is an ASan report)
- *       and, when accepted, evaluated on a few samples. Writes one line per record: the code.
+ *       and, when accepted, evaluated on a few samples (float, and fixed point where it applies). Writes one line per record: the code.
  *   fuzz_driver mutate FILE N SEED SERIAL AXIS RANGE INPUTS...
  *       N random mutations of the records in FILE (byte flips, insertions, deletions,
  *       truncations, digit and bracket swaps; CRC recomputed for 7 in 8 so the parser is
@@ -82,6 +82,15 @@ static int try_load(const uint8_t *data, uint32_t len, uint32_t crc, const ce_de
     code = ce_load(&set, copy, len, crc, device);
     free(copy);
     if (code == CE_OK) {
+        static ce_fixed fixed;
+        if (ce_fixed_from(&fixed, &set) == CE_OK) {
+            for (i = 0; i < 64; i++) {
+                int32_t q;
+                if (ce_fixed_eval(&fixed, (int32_t)(next_u32() % 65536u) - 32768, &q) < 0) {
+                    exit(4);
+                }
+            }
+        }
         for (i = 0; i < 64; i++) {
             ce_sample s;
             float rate;

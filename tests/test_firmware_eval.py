@@ -650,9 +650,21 @@ def test_property_any_valid_set_evaluates_like_canical(lib_for_hypothesis, cset,
     rounding: 2e-6 of the rate's size) and the same out-of-span flags."""
     raw, inputs = stream(cset, 3000, seed=seed)
     expected, expected_oos = Corrector(cset).correct(raw, inputs)
-    rate, oos = FirmwareCorrector(cset, lib=lib_for_hypothesis).correct(raw, inputs)
+    fw = FirmwareCorrector(cset, lib=lib_for_hypothesis)
+    rate, oos = fw.correct(raw, inputs)
     np.testing.assert_array_equal(oos, expected_oos)
     np.testing.assert_allclose(rate, expected, rtol=2e-6, atol=1e-5)
+    import ctypes
+
+    lib = lib_for_hypothesis.lib
+    fixed = ctypes.create_string_buffer(lib_for_hypothesis.fixed_size)
+    if lib.ce_fixed_from(fixed, fw._set) != 0:
+        assert cset.terms or cset.kind == "forward-poly"  # the fixed form's scope
+        return
+    out = ctypes.c_int32()
+    for r, e, o in zip(raw.astype(np.int32).tolist(), expected.tolist(), expected_oos.tolist(), strict=True):
+        assert lib.ce_fixed_eval(fixed, r, ctypes.byref(out)) == o
+        assert abs(out.value / 65536.0 - e) < 1e-3
 
 
 def test_agrees_with_canical_on_fields_it_does_not_read(lib):
@@ -672,3 +684,40 @@ def test_agrees_with_canical_on_fields_it_does_not_read(lib):
         content = segmented.replace(b'"fit":{', b'"fit":{"a":' + number + b",", 1)
         assert python_verdict(content, zlib.crc32(content)) is not None
         assert load_code(lib, content, zlib.crc32(content)) == CODES["CE_ERR_NOT_CANONICAL"]
+
+
+PIECEWISE = [m for m in MODELS if m != "forward-poly"]
+
+
+@pytest.mark.parametrize("model", PIECEWISE)
+def test_fixed_point_form_within_a_tenth_of_the_frame_lsb(lib, model):
+    """The integer-only form (ce_fixed_*) of a piecewise set on 1,000,000 integer samples: within
+    0.001 deg/s of canical's rates (the corrected frame's LSB is 0.01) and the same flags."""
+    import ctypes
+
+    cset = model_set(model)
+    fixed = ctypes.create_string_buffer(lib.fixed_size)
+    assert lib.lib.ce_fixed_from(fixed, FirmwareCorrector(cset, lib=lib)._set) == 0
+    raw, inputs = stream(cset, N_SAMPLES, seed=21)
+    expected, expected_oos = Corrector(cset).correct(raw, inputs)
+    out = ctypes.c_int32()
+    evaluate, ref = lib.lib.ce_fixed_eval, ctypes.byref(out)
+    rate = np.empty(N_SAMPLES)
+    oos = np.empty(N_SAMPLES, dtype=bool)
+    for i, r in enumerate(raw.astype(np.int32).tolist()):
+        oos[i] = evaluate(fixed, r, ref)
+        rate[i] = out.value
+    np.testing.assert_array_equal(oos, expected_oos)
+    assert float(np.max(np.abs(rate / 65536.0 - expected))) < 1e-3
+
+
+def test_fixed_point_form_refuses_what_it_cannot_run(lib):
+    import ctypes
+
+    fixed = ctypes.create_string_buffer(lib.fixed_size)
+    forward = FirmwareCorrector(model_set("forward-poly"), lib=lib)
+    with_terms = FirmwareCorrector(term_set(("direction-sign",)), lib=lib)
+    assert lib.lib.ce_fixed_from(fixed, forward._set) == CODES["CE_ERR_MODEL_KIND"]
+    assert lib.lib.ce_fixed_from(fixed, with_terms._set) == CODES["CE_ERR_TERM_KIND"]
+    out = ctypes.c_int32()
+    assert lib.lib.ce_fixed_eval(fixed, 0, ctypes.byref(out)) == CODES["CE_ERR_ARG"]  # nothing loaded
