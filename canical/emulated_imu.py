@@ -8,7 +8,11 @@ coefficient banks by the rules of :mod:`canical.coefficient_banks` in a state
 file so a restart (a power cycle) keeps what was stored, and on request
 (object "Correction mode" = 1) corrects its own raw samples with its active
 sets and transmits them as IMU_RATE (TPDO3): on-device correction, to check
-the daemon and the device against each other.
+the daemon and the device against each other. It corrects with the firmware's own
+C evaluator (``firmware/canical_eval.c`` through :mod:`canical.firmware_eval`), so
+the bus tests run the code a sensor would; where that library cannot be built, or
+does not evaluate a set (a term kind newer than it), the Python evaluator takes
+over with a log line.
 
 Correction inputs are taken from the device's own frames as a receiver decodes
 them (temperature in 0.1 degC, supply in mV, uptime in ms), so the device, the
@@ -23,6 +27,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -40,6 +45,9 @@ from canical.imu_dictionary import (
 )
 from canical.imu_frames import CHANNELS, ImuFrames, set_tag
 from canical.set_admission import DeviceLimits
+
+if TYPE_CHECKING:
+    from canical.firmware_eval import FirmwareCorrector
 
 log = logging.getLogger("canical.imu")
 
@@ -204,9 +212,23 @@ class EmulatedImu:
                     continue
                 if self.store.generation != generation:
                     generation = self.store.generation
-                    correctors = {a: Corrector(c) for a, c in self.store.active_sets().items()}
+                    correctors = self.device_correctors()
                     tag = set_tag({a: self.store.active_id(a) for a in AXES})
                 send(*self._corrected(correctors, tag, raw_id, raw_data, aux_id, aux_data, k))
+
+    def device_correctors(self) -> dict[str, FirmwareCorrector | Corrector]:
+        """The active sets as the device runs them: in the firmware's C evaluator
+        (:mod:`canical.firmware_eval`), or in Python where it cannot (logged there)."""
+        from canical.firmware_eval import FirmwareCorrector, corrector_for  # ctypes only when correcting
+
+        out: dict[str, FirmwareCorrector | Corrector] = {}
+        for axis, cset in self.store.active_sets().items():
+            c = corrector_for(cset, serial=self.config.serial, axis=axis,
+                              rated_range_dps=float(self.config.rated_range_dps.get(axis, 0.0)))  # fmt: skip
+            engine = "the firmware evaluator (C)" if isinstance(c, FirmwareCorrector) else "Python"
+            log.info("axis %s: set 0x%08x corrected on the device with %s", axis, c.set_id, engine)
+            out[axis] = c
+        return out
 
     def _corrected(self, correctors, tag, raw_id, raw_data, aux_id, aux_data, k):
         """IMU_RATE for one sample, from the frames exactly as a receiver decodes them."""

@@ -16,4 +16,5 @@ COMMANDS = {
     "pull": "upload the IMU's active coefficient sets (verified) to YAML",
     "emulate": "run an emulated IMU node (CANopen) on a CAN interface",
     "noise": "Allan deviation of a static record: angle/rate random walk, bias instability",
+    "export": "write coefficient sets as a DCF any CANopen tool can download to the IMU",
 }
