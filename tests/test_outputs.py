@@ -11,6 +11,7 @@ import sys
 import uuid
 from pathlib import Path
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -219,3 +220,31 @@ def test_demo_on_a_full_tmpfs_leaves_nothing(tiny_disk, capsys):
     assert err.startswith(f"canical demo: error: cannot write {tiny_disk / 'demo'}/"), err
     assert err.endswith(": No space left on device\n") and err.count("\n") == 1, err
     assert files_under(tiny_disk) == []
+
+
+def test_noise_leaves_no_plot_when_its_json_cannot_be_written(tmp_path, capsys):
+    rng = np.random.default_rng(3)
+    t = np.arange(20_000) / 100.0
+    record = tmp_path / "static.csv"
+    record.write_text("time_s,rate_dps\n" + "".join(f"{a:.3f},{b:.6f}\n" for a, b in
+                                                     zip(t, 0.05 * rng.standard_normal(t.size), strict=True)))
+    plot = tmp_path / "adev.png"
+    assert main(["noise", str(record), "--plot", str(plot), "--json", "/proc/noise.json"]) == 2
+    one_line_error(capsys, "noise", "/proc/noise.json")
+    assert files_under(tmp_path) == ["static.csv"]
+
+
+@pytest.mark.parametrize("target", ["/proc/imu.dcf", "/nonexistent-dir/imu.dcf", "DIR"])
+def test_export_unwritable_output(target, tmp_path, capsys):
+    from imu_fixtures import imu_sets
+
+    from canical import coefficient_file
+
+    paths = []
+    for axis, cset in imu_sets().items():
+        paths.append(str(tmp_path / f"imu-{axis}.yaml"))
+        coefficient_file.save(paths[-1], cset)
+    target = str(tmp_path) if target == "DIR" else target
+    assert main(["export", "dcf", *paths, "-o", target]) == 2
+    one_line_error(capsys, "export", target)
+    assert not any(p.endswith(".dcf") for p in files_under(tmp_path))

@@ -32,6 +32,13 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.output_plan import output_plan
+
+    with output_plan(args.output):
+        return export_dcf(args)
+
+
+def export_dcf(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from canical.atomic_file import write_text_atomic

@@ -37,6 +37,13 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.output_plan import output_plan
+
+    with output_plan(args.plot, args.json):
+        return characterise(args)
+
+
+def characterise(args: argparse.Namespace) -> int:
     from canical.canlog_format import is_canlog
     from canical.noise_records import (
         describe,
@@ -56,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
     analysis = noise_analysis(records, dt, str(args.record))
     if "skipped" in analysis:
         raise CanicalError(f"{args.record}: {analysis['skipped']}")
-    text = json.dumps(analysis, indent=2) + "\n"  # rendered before anything is written
+    text = json.dumps(analysis, indent=2) + "\n"
     if args.plot:
         from canical.allan_plot import write_allan_plot
 
