@@ -7,6 +7,7 @@ in a few seconds; the same under systemd on a real vcan is in test_systemd_guest
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -101,7 +102,7 @@ def test_outage_keeps_watchdog_backs_off_and_logs_three_lines(running, caplog) -
     assert daemon.outage is None, "the daemon never noticed the bus was back"
     back = time.monotonic() - t_up
     pings = [t for t in listener.arrivals("WATCHDOG") if t_down - 0.5 <= t <= t_up + back]
-    gaps = [b - a for a, b in zip(pings, pings[1:], strict=False)]
+    gaps = [b - a for a, b in itertools.pairwise(pings)]
     assert max(gaps) < WATCHDOG_USEC / 1e6, f"watchdog silent for {max(gaps):.2f} s during the outage"
     attempts = link.opens - opens_before
     assert 3 <= attempts <= 12, f"{attempts} reopen attempts in a 3 s outage"
