@@ -15,4 +15,5 @@ COMMANDS = {
     "push": "download coefficient sets to the IMU (CANopen SDO) and activate them",
     "pull": "upload the IMU's active coefficient sets (verified) to YAML",
     "emulate": "run an emulated IMU node (CANopen) on a CAN interface",
+    "install-service": "install the daemon as a systemd service (/opt/canical, /etc/canical, units)",
 }
