@@ -97,19 +97,9 @@ def wait_until(what: str, predicate: Callable[[], object], timeout: float, step:
         time.sleep(step)
 
 
-def journal(unit: str, *, since_cursor: str | None = None) -> list[str]:
+def journal(unit: str) -> list[str]:
     """The unit's journal lines (systemd's about it and its own output), message text only."""
-    args = ["journalctl", "--no-pager", "-o", "cat", "-u", unit]
-    if since_cursor:
-        args += ["--after-cursor", since_cursor]
-    return run(*args).stdout.splitlines()
-
-
-def journal_cursor() -> str:
-    """A cursor for 'everything after now'."""
-    out = run("journalctl", "--no-pager", "-n", "1", "--show-cursor", "-q").stdout
-    lines = [line for line in out.splitlines() if line.startswith("-- cursor: ")]
-    return lines[-1].removeprefix("-- cursor: ") if lines else ""
+    return run("journalctl", "--no-pager", "-o", "cat", "-u", unit).stdout.splitlines()
 
 
 def drop_in(unit: str, name: str, text: str) -> Path:

@@ -562,8 +562,11 @@ def render_init_script(uml: UmlInstallation, run_dir: Path, command: Sequence[st
         f'cp "$RUN/{GUEST_UNIT}" "{unit_dir}/{GUEST_UNIT}" || fail "install {GUEST_UNIT}"',
         f'ln -sf ../{GUEST_UNIT} "{unit_dir}/multi-user.target.wants/{GUEST_UNIT}"',
         ': > "$NEW$RUN/ready"',
-        'exec chroot "$NEW" /lib/systemd/systemd --system --unit=multi-user.target'
-        " || fail 'exec systemd'",
+        # pivot_root, not a bare chroot: in a chroot the kernel refuses new user namespaces
+        # (PrivateUsers= would fail with EPERM) and systemd would see itself in a container.
+        'cd "$NEW" && mkdir -p run/oldroot && pivot_root . run/oldroot || fail "pivot_root"',
+        "exec chroot . /bin/sh -c 'umount -l /run/oldroot; rmdir /run/oldroot;"
+        " exec /lib/systemd/systemd --system --unit=multi-user.target'",
         "",
     ]
     command_script = [
