@@ -51,10 +51,11 @@ def prepare_packages(run_dir: Path) -> dict[str, str]:
                              capture_output=True, text=True, check=False).stdout.strip() or "3"
     fetch = [*pip, "download", "--only-binary=:all:", "--python-version", version,
              "--find-links", str(house), "-d", str(house), str(wheel)]
-    proc = subprocess.run(fetch, capture_output=True, text=True, timeout=900, check=False)
-    if proc.returncode != 0:  # offline: the cache may already hold everything
-        proc = subprocess.run([*fetch[:4], "--no-index", *fetch[4:]], capture_output=True,
-                              text=True, timeout=300, check=False)
+    # The cache first (no network, seconds); the package index only for what it lacks.
+    proc = subprocess.run([*fetch[:4], "--no-index", *fetch[4:]], capture_output=True, text=True,
+                          timeout=300, check=False)
+    if proc.returncode != 0:
+        proc = subprocess.run(fetch, capture_output=True, text=True, timeout=900, check=False)
         if proc.returncode != 0:
             raise RuntimeError(f"pip download of canical's dependencies failed:\n{proc.stderr}")
     for stale in house.glob("canical-*.whl"):  # the wheel under test comes from wheel_dir only
