@@ -199,6 +199,9 @@ def test_start_ready_status_and_frames_like_apply(installed, db, tmp_path: Path)
         seen = _start_watching_readiness(DAEMON)
         assert any(s[0] == "activating" and s[2] != "0" for s in seen), seen
         assert seen[-1][:2] == ("active", "running"), seen
+        # The interface unit it Wants= came up on a vcan (no bit timing, no device unit).
+        iface = show("canical-can@vcan0.service", "ActiveState", "SubState", "Result")
+        assert iface == {"ActiveState": "active", "SubState": "exited", "Result": "success"}, iface
         assert _status_text().startswith("running: 0 frames in"), _status_text()
 
         stream = imu_stream(600)
