@@ -558,6 +558,9 @@ def render_init_script(uml: UmlInstallation, run_dir: Path, command: Sequence[st
     lines += [
         # Services the host's admin enabled (databases, ...) are not the guest's business.
         f'rm -f "{unit_dir}"/multi-user.target.wants/*',
+        # systemd-tmpfiles empties /tmp at boot ("D /tmp"): in the overlay that would hide
+        # the host's /tmp from the guest (a checkout or cwd there), so keep /tmp as it is.
+        'mkdir -p "$NEW/etc/tmpfiles.d" && ln -sf /dev/null "$NEW/etc/tmpfiles.d/tmp.conf"',
         f'mkdir -p "{unit_dir}/multi-user.target.wants"',
         f'cp "$RUN/{GUEST_UNIT}" "{unit_dir}/{GUEST_UNIT}" || fail "install {GUEST_UNIT}"',
         f'ln -sf ../{GUEST_UNIT} "{unit_dir}/multi-user.target.wants/{GUEST_UNIT}"',
