@@ -509,7 +509,8 @@ class Daemon:
         now = time.monotonic()
         if self.outage is None:
             self.outage = Outage(now, why)
-            self.stats.bus_restarts += 1
+            if self._state != STATE_STARTING:  # at start the bus was never there to lose
+                self.stats.bus_restarts += 1
             log.warning("%s %s lost: %s; reopening with back-off up to %.0f s", self.config.interface,
                         self.config.channel, why, REOPEN_BACKOFF_S[-1])
             self.notifier.status(self.status_line())
