@@ -162,6 +162,7 @@ class NotifyListener:
         self.sock.bind(b"\0" + self.name[1:].encode())
         self.sock.settimeout(0.2)
         self.messages: list[dict[str, str]] = []
+        self.times: list[float] = []  # time.monotonic() of each message's arrival
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -175,7 +176,12 @@ class NotifyListener:
             except OSError:
                 return
             fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
+            self.times.append(time.monotonic())
             self.messages.append(fields)
+
+    def arrivals(self, key: str) -> list[float]:
+        """When each message carrying ``key`` arrived."""
+        return [t for t, m in zip(list(self.times), list(self.messages), strict=False) if key in m]
 
     def wait_for(self, key: str, timeout: float) -> dict[str, str]:
         end = time.monotonic() + timeout

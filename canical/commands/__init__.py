@@ -17,4 +17,5 @@ COMMANDS = {
     "emulate": "run an emulated IMU node (CANopen) on a CAN interface",
     "noise": "Allan deviation of a static record: angle/rate random walk, bias instability",
     "export": "write coefficient sets as a DCF any CANopen tool can download to the IMU",
+    "install-service": "install the daemon as a systemd service (/opt/canical, /etc/canical, units)",
 }
