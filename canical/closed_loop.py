@@ -30,8 +30,10 @@ from canical.blocks import Blocks
 from canical.effect_candidates import (
     Candidate,
     build_candidates,
+    lag_grid,
     shift_columns,
     tau_grid,
+    tau_groups,
     untestable,
     with_tau,
 )
@@ -69,7 +71,9 @@ class Fit:
 GAUSS_NEWTON_STEPS = 4
 
 
-def _solve(blocks: Blocks, s: Structure, terms: tuple[Term, ...]) -> tuple[PiecewisePoly, np.ndarray, float]:
+def _solve(
+    blocks: Blocks, s: Structure, terms: tuple[Term, ...], steps: int = GAUSS_NEWTON_STEPS
+) -> tuple[PiecewisePoly, np.ndarray, float]:
     """Fit ω = f(ΔV − Σ c·column) jointly for the base model f and the coefficients c.
 
     The model is nonlinear in c (the effect shifts ΔV inside f), so it is solved by
@@ -81,7 +85,7 @@ def _solve(blocks: Blocks, s: Structure, terms: tuple[Term, ...]) -> tuple[Piece
     cols = shift_columns(terms, blocks)
     coef = np.zeros(cols.shape[1])
     slope = np.full(len(p), 1.0 / _mean_sensitivity(p))
-    for _ in range(GAUSS_NEWTON_STEPS if terms else 1):
+    for _ in range(steps if terms else 1):
         dv = p.dv - cols @ coef
         fit = fit_segmented_inverse(
             dv,
@@ -108,28 +112,38 @@ def _mean_sensitivity(p: FitPoints) -> float:
 
 
 def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
-    """Joint least squares of base model and terms; a warm-up's τ by grid search on these blocks."""
+    """Joint least squares of base model and terms; each time constant (warm-up, channel lag)
+    by grid search on these blocks, one after the other."""
     terms = s.terms
-    if any(t.feature == "warmup" for t in terms):
-        terms = with_tau(terms, _best_tau(blocks, s, duration_s))
+    for group in tau_groups(terms):
+        terms = with_tau(terms, _best_tau(blocks, replace(s, terms=terms), duration_s, group), group)
     poly, coef, _ = _solve(blocks, s, terms)
     return Fit(poly, tuple(replace(t, coefficient=float(c)) for t, c in zip(terms, coef, strict=True)))
 
 
-def _best_tau(blocks: Blocks, s: Structure, duration_s: float) -> float:
-    """τ of the warm-up terms: the best of a log grid, refined between its neighbours.
+def _best_tau(
+    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None] = ("warmup", None)
+) -> float:
+    """τ of one group of terms (the warm-up, or one channel's lag): the best of a log grid,
+    refined between its neighbours.
 
     A τ off by a grid step leaves an exponential-shaped residual that a drift
-    term would then "explain"; refining removes that false second effect.
+    term would then "explain" (for a lag: a derivative term); refining removes
+    that false second effect.
     """
-    grid = tau_grid(duration_s)
+    warmup = group[0] == "warmup"
+    grid = tau_grid(duration_s) if warmup else lag_grid(duration_s)
+    # A lag's τ is searched on the linearised fit (one Gauss-Newton step): its terms
+    # are small next to full scale, and there may be one lag per channel to search.
+    steps = GAUSS_NEWTON_STEPS if warmup else 1
 
     def rss(log_tau: float) -> float:
-        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau))))[2]
+        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau)), group), steps)[2]
 
     i = int(np.argmin([rss(np.log(t)) for t in grid]))
     lo, hi = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, grid.size - 1)])
-    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+    xatol = 1e-3 if warmup else 1e-2
+    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
     return float(np.exp(res.x))
 
 
@@ -406,6 +420,10 @@ def run_loop(
     final_fit = fit_structure(blocks, s, duration_s)
     # Effect terms in the report carry the final joint coefficients of the terms that stayed.
     final_terms = {(t.kind, t.channel, t.feature, t.form): t for t in final_fit.terms}
+    for eff in effects:  # a readable name with the final time constant: lag(temp_c, τ=140 s)
+        lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "lag"]
+        is_lag = lagged and eff["name"].startswith("lag(")
+        eff["description"] = lagged[0].describe() if is_lag else eff["name"]
     for eff in effects:
         keys = [(t["kind"], t["channel"], t["feature"], t["form"]) for t in eff["terms"]]
         eff["terms"] = [final_terms[k].to_dict() for k in keys if k in final_terms]
@@ -446,8 +464,12 @@ def _confounded_with(
         return scorer.score(grown)[0]
 
     r_now = scorer.score(s)[0]
-    alone = {c.name: grown_rms(c.terms) for c in pool}
-    useful = [c for c in pool if alone[c.name] < r_now * (1 - min_gain)] or [best]
+    # A candidate that gains nothing at the current size is not re-scored with its own
+    # size (that costs a model selection each); one that gains a little might still tie.
+    hopeful = [c for c in pool if c is best
+               or scorer.score(replace(s, terms=s.terms + c.terms))[0] < r_now * (1 - min_gain / 2)]
+    alone = {c.name: grown_rms(c.terms) for c in hopeful}
+    useful = [c for c in hopeful if alone[c.name] < r_now * (1 - min_gain)] or [best]
     best = min(useful, key=lambda c: alone.get(c.name, r_now))
     r_best = alone.get(best.name, r_now)
     twins, shadows = [], []
