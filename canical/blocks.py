@@ -19,32 +19,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 from canical.fit_points import FitPoints
 from canical.plateaus import Plateaus
 from canical.session import Session
-from canical.terms import ChannelTracker, Term, direction_state, slope_state
+from canical.terms import Term, direction_state, lag_filter, slope_state
 
 BLOCK_S = 2.0
 SLOPE_TAU_S = 0.5
-
-
-def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """The first-order lag :class:`~canical.terms.ChannelTracker` computes, for a whole record.
-
-    Vectorised when the samples are evenly spaced (the usual case); sample by sample otherwise.
-    """
-    values = np.asarray(values, dtype=float)
-    if values.size < 2:
-        return values.copy()
-    dt = np.diff(time_s)
-    step = float(np.median(dt))
-    if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
-        a = 1.0 - np.exp(-step / tau_s)
-        return lfilter([a], [1.0, a - 1.0], values, zi=[(1.0 - a) * values[0]])[0]
-    tracker = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="_", tau_s=tau_s))
-    return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
 
 
 @dataclass(frozen=True)

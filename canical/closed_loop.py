@@ -232,12 +232,21 @@ def recommend(a: Candidate, b: Candidate) -> str:
     """The session that would tell two confounded explanations apart."""
     kinds = {a.kind, b.kind}
     names = {c.kind: c for c in (a, b)}
+    if kinds == {"channel", "time"} and names["channel"].name.startswith(("d/dt", "lag(", "sign")):
+        ch = names["channel"].channel
+        return (
+            f"record a session that cycles {ch} up and down after the sensor is warm (powered on long "
+            f"before the first plateau), so that changes of {ch} no longer follow time since power-on"
+        )
     if kinds == {"channel", "time"}:
         ch = names["channel"].channel
         return (
             f"record a session in which {ch} does not follow time since power-on: soak the sensor "
             f"before powering it on, then step {ch} up and down in random order"
         )
+    if kinds == {"channel"} and a.channel == b.channel:
+        return (f"record a session in which {a.channel} changes at several speeds and holds between "
+                "changes, so its level, its rate of change and its direction of change separate")
     if kinds == {"channel"}:
         return f"record a session in which {a.channel} and {b.channel} are varied independently"
     if "direction" in kinds:
@@ -481,7 +490,23 @@ def _confounded_with(
         if r_both >= r_best * (1 - min_gain):
             twin = r_other <= r_best * (1 + min_gain) and r_both >= r_other * (1 - min_gain)
             (twins if twin else shadows).append(other)
+    # A channel's level is its lag with τ → 0: when the two tie, the data do not need
+    # the lag's time constant, and the simpler one is the answer (not a confound).
+    level = next((c for c in twins if _nests(best, c)), None)
+    if level is not None:
+        twins.remove(level)
+        shadows.append(best)
+        best = level
+    for twin in [c for c in twins if _nests(c, best)]:
+        twins.remove(twin)
+        shadows.append(twin)
     return best, twins, shadows
+
+
+def _nests(general: Candidate, simple: Candidate) -> bool:
+    """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0)."""
+    return (general.kind == simple.kind == "channel" and general.channel == simple.channel
+            and general.name.startswith("lag(") and simple.name.startswith("channel:"))
 
 
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:
