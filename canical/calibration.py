@@ -28,6 +28,7 @@ from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
 from canical.plateaus import Plateaus, detect_plateaus, saturated
 from canical.segment_points import rate_noise
 from canical.session import Session
+from canical.unexplained import account
 from canical.zero_bias import zero_bias
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
@@ -282,6 +283,7 @@ def calibrate(
         report["effects"] = loop.effects
         report["confounded"] = loop.confounded
         report["closed_loop"] = loop_report(loop)
+        report["unexplained"] = account(loop.errors_after, loop.blocks, loop.candidates)
     elif options.extend:
         report["closed_loop"] = {
             "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
@@ -297,6 +299,7 @@ def calibrate(
     if loop is not None:
         fit_stats["extended_held_out_rms_dps"] = loop.rms_after
         fit_stats["effects"] = [e["name"] for e in loop.effects]
+        fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
     cset = CoefficientSet(
         sensor_id=sensor_id,
         axis=axis,

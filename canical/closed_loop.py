@@ -271,6 +271,7 @@ class LoopResult:
     errors_after: np.ndarray
     capacity_changes: list[str]
     untestable: dict[str, float] = field(default_factory=dict)
+    candidates: list[Candidate] = field(default_factory=list)  # every candidate built, for the residual
 
 
 def _capacity_options(s: Structure) -> list[ModelSpec]:
@@ -330,6 +331,7 @@ def run_loop(
     scorer = Scorer(blocks, folds, duration_s)
     s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
     pool = build_candidates(blocks, duration_s)
+    every_candidate = list(pool)
     tied = untestable(pool, blocks)
     if tied:
         progress(f"not testable here (follow the table rate): {', '.join(tied)}")
@@ -452,6 +454,7 @@ def run_loop(
         errors_after=held_out_errors(blocks, s, folds, duration_s),
         capacity_changes=capacity_changes,
         untestable=tied,
+        candidates=every_candidate,
     )
 
 

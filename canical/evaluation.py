@@ -102,6 +102,8 @@ class EffectScore:
     rms_after: float
     rms_oracle: float
     correct: bool
+    unexplained_ratio: float = 0.0  # held-out rms after the loop / the session's noise floor
+    unexplained: bool = False
 
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScore:
@@ -130,7 +132,9 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScor
         and set(scenario.confounded) <= in_groups
         and (bool(groups) == bool(scenario.confounded))
     )
-    return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct)
+    left = result.report["unexplained"]
+    return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
+                       left["ratio"], left["unexplained"])
 
 
 def _oracle_terms(scenario, blocks):

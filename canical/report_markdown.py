@@ -57,8 +57,9 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
             for e in report["effects"]:
                 terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e["terms"])
                 ev = e["evidence"]
+                name = e.get("description", e["name"])
                 lines.append(
-                    f"| {e['name']} | {e['rms_before_dps']:.4f} | {e['rms_after_dps']:.4f} | "
+                    f"| {name} | {e['rms_before_dps']:.4f} | {e['rms_after_dps']:.4f} | "
                     f"{ev['held_out_gain']:.0%} | {ev['p_value']:.1e} | {terms} |"
                 )
         else:
@@ -78,8 +79,31 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
             ]
         if loop["capacity_changes"]:
             lines += [f"Base model grown: {', '.join(loop['capacity_changes'])}.", ""]
+        lines += _unexplained(report.get("unexplained"))
     elif loop:
         lines += [f"Closed loop skipped: {loop['skipped']}.", ""]
     if plots:
         lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     return "\n".join(lines)
+
+
+def _unexplained(left: dict[str, Any] | None) -> list[str]:
+    """The section on what the loop could not explain, plainly."""
+    if not left:
+        return []
+    best = ", ".join(f"{c['variable']} (|r| {c['abs_r']:.2f})" for c in left["correlates"])
+    head = (
+        f"**Unexplained: {left['held_out_rms_dps']:.3g} deg/s rms, {left['ratio']:.0f}× the noise floor** "
+        f"({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}). A structured residual "
+        "remains that no candidate represents; do not take this calibration as complete. "
+        if left["unexplained"]
+        else f"Residual after the loop: {left['held_out_rms_dps']:.4f} deg/s rms, {left['ratio']:.1f}× the "
+        f"noise floor ({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}): explained. "
+    )
+    return [
+        "## What stays unexplained",
+        "",
+        head + f"It correlates best with {best} (plot `unexplained_residual.png`: the residual against "
+        "time and every candidate variable).",
+        "",
+    ]

@@ -19,8 +19,20 @@ from canical.report_markdown import render
 from canical.report_plots import write_plots
 from canical.session_canlog import default_inputs, is_canlog, read_canlog
 from canical.session_csv import read_session
+from canical.unexplained import STRICT_RATIO, one_line
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
+EXIT_UNEXPLAINED = 3  # --strict: the calibration leaves an unexplained residual (2 is bad input)
+
+
+def _positive_ratio(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("--strict takes a number (a multiple of the noise floor)") from None
+    if not value >= 1.0:
+        raise argparse.ArgumentTypeError("--strict must be at least 1 (a multiple of the noise floor)")
+    return value
 
 
 def _auto_or_int(name: str, low: int, high: int):
@@ -85,6 +97,10 @@ def register(sub) -> None:
     p.add_argument("--report-dir", help="folder for the full report: report.json, report.md and PNG plots")
     p.add_argument("--prefer", action="append", default=[], metavar="CANDIDATE",
                    help="when candidates are confounded, add this one (e.g. channel:temp_c, time:warm-up)")
+    p.add_argument("--strict", nargs="?", type=_positive_ratio, const=STRICT_RATIO, default=None,
+                   metavar="MULTIPLE",
+                   help="exit with status 3 when the residual after the closed loop stays above MULTIPLE "
+                   f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written")
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
     add_session_arguments(p)
@@ -133,6 +149,12 @@ def run(args: argparse.Namespace) -> int:
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
+    left = report.get("unexplained")
+    if args.strict is not None and (left is None or left["ratio"] > args.strict):
+        why = (f"{left['ratio']:.1f}× the noise floor, above --strict {args.strict:g}" if left
+               else "no closed loop ran, so the residual was not checked")
+        print(f"calibrate: strict: the residual stays unexplained ({why})", file=sys.stderr)
+        return EXIT_UNEXPLAINED
     return 0
 
 
@@ -188,7 +210,7 @@ def summary(report: dict) -> str:
     lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s (plateau means)")
     loop = report.get("closed_loop")
     if loop and "skipped" not in loop:
-        found = ", ".join(e["name"] for e in report["effects"]) or "none"
+        found = ", ".join(e.get("description", e["name"]) for e in report["effects"]) or "none"
         lines.append(f"effects    {found}")
         for c in report.get("confounded", []):
             lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
@@ -196,5 +218,7 @@ def summary(report: dict) -> str:
                      f"{loop['held_out_rms_after_dps']:.4f} deg/s (2 s blocks, before -> after)")
         lines.append(f"final      {loop['final_spec']} + {sum(len(e['terms']) for e in report['effects'])} "
                      "effect terms")
+    if "unexplained" in report:
+        lines.append(one_line(report["unexplained"]))
     lines.append(f"wrote      {Path(report['coefficients'])}")
     return "\n".join(lines)
