@@ -17,7 +17,8 @@ coefficient means the output rises with temperature. Features:
   first two): ``lag`` x = y − ref where y follows v through a first-order lag of
   time constant τ (the die is where the effect acts, the channel reads elsewhere),
   ``derivative`` x = (v − y)/τ, the rate of change of v smoothed with τ (a thermal
-  transient), ``direction`` x = ±1, the sign of the last change of v larger than
+  transient; for the first τ of a stream y is the mean of the samples so far),
+  ``direction`` x = ±1, the sign of the last change of v larger than
   ``threshold_raw`` in the channel's own units (hysteresis: heating vs cooling);
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
@@ -248,22 +249,29 @@ class ChannelTracker:
     """First-order lag y of a channel (time constant τ, exact for any sample spacing).
 
     Feature ``lag``: y − reference; feature ``derivative``: (v − y)/τ, which is dy/dt,
-    the channel's rate of change smoothed over τ. The state starts at the first
-    sample (no change seen yet), so block and per-sample paths start alike.
+    the channel's rate of change smoothed over τ. For the first τ of a stream, y is
+    the plain mean of the samples seen so far: starting from the first sample alone
+    would carry that one sample's noise for τ, an exponential decay that looks like a
+    warm-up. Block and per-sample paths start alike.
     """
 
-    __slots__ = ("derivative", "last_t", "reference", "tau", "y")
+    __slots__ = ("count", "derivative", "last_t", "reference", "start_t", "tau", "y")
 
     def __init__(self, term: Term) -> None:
         self.tau = float(term.tau_s or 1.0)
         self.reference = float(term.reference)
         self.derivative = term.feature == "derivative"
         self.y: float | None = None
+        self.start_t = 0.0
         self.last_t = 0.0
+        self.count = 0
 
     def update(self, value: float, t: float) -> float:
         if self.y is None:
-            self.y = value
+            self.y, self.start_t, self.count = value, t, 1
+        elif t - self.start_t < self.tau:
+            self.count += 1
+            self.y += (value - self.y) / self.count
         elif t > self.last_t:
             self.y += (1.0 - math.exp(-(t - self.last_t) / self.tau)) * (value - self.y)
         self.last_t = t
@@ -271,18 +279,27 @@ class ChannelTracker:
 
 
 def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """The first-order lag :class:`~canical.terms.ChannelTracker` computes, for a whole record.
+    """The lag y :class:`ChannelTracker` computes, for a whole record (a mean, then a lag).
 
-    Vectorised when the samples are evenly spaced (the usual case); sample by sample otherwise.
+    Vectorised when the samples after the first τ are evenly spaced (the usual
+    case); sample by sample otherwise.
     """
     values = np.asarray(values, dtype=float)
+    time_s = np.asarray(time_s, dtype=float)
     if values.size < 2:
         return values.copy()
-    dt = np.diff(time_s)
+    k = int(np.searchsorted(time_s - time_s[0], tau_s, side="left"))  # samples in the mean
+    k = max(k, 1)
+    out = np.empty_like(values)
+    out[:k] = np.cumsum(values[:k]) / np.arange(1, k + 1)
+    if k == values.size:
+        return out
+    dt = np.diff(time_s[k - 1 :])
     step = float(np.median(dt))
     if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
         a = 1.0 - np.exp(-step / tau_s)
-        return lfilter([a], [1.0, a - 1.0], values, zi=[(1.0 - a) * values[0]])[0]
+        out[k:] = lfilter([a], [1.0, a - 1.0], values[k:], zi=[(1.0 - a) * out[k - 1]])[0]
+        return out
     tracker = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="_", tau_s=tau_s))
     return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
 
