@@ -299,7 +299,8 @@ def calibrate(
     if loop is not None:
         fit_stats["extended_held_out_rms_dps"] = loop.rms_after
         fit_stats["effects"] = [e["name"] for e in loop.effects]
-        fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
+        if np.isfinite(report["unexplained"]["ratio"]):
+            fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
     cset = CoefficientSet(
         sensor_id=sensor_id,
         axis=axis,

@@ -77,9 +77,9 @@ def account(
     residual: np.ndarray, blocks: Blocks, candidates: list[Candidate], ratio_limit: float = UNEXPLAINED_RATIO
 ) -> dict[str, Any]:
     """The report's ``unexplained`` section: residual rms, floor, ratio, verdict, best correlates."""
-    floor = block_noise_floor(blocks)
+    floor = float(block_noise_floor(blocks))
     rms = float(np.sqrt(np.mean(residual**2)))
-    ratio = rms / floor if floor > 0 else float("inf")
+    ratio = float(rms / floor) if floor > 0 else float("inf")
     ranked = correlations(residual, candidate_variables(candidates, blocks))
     return {
         "held_out_rms_dps": rms,
@@ -88,7 +88,7 @@ def account(
         "limit_ratio": ratio_limit,
         "unexplained": bool(ratio > ratio_limit),
         "noise_floor_method": "scatter between successive 2 s blocks of one plateau (median-based)",
-        "correlates": [{"variable": n, "abs_r": r} for n, r in ranked[:TOP_CORRELATED]],
+        "correlates": [{"variable": n, "abs_r": float(r)} for n, r in ranked[:TOP_CORRELATED]],
     }
 
 
