@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from canical.blocks import BLOCK_S, make_blocks
-from canical.closed_loop import LoopResult, run_loop
+from canical.closed_loop import LoopResult, predict, run_loop
 from canical.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
 from canical.cross_validation import cross_validate, prediction_errors
 from canical.errors import CanicalError
@@ -228,6 +228,11 @@ def extend_model(
     )
 
 
+def fitted_residual(loop: LoopResult) -> np.ndarray:
+    """The final model's residual at every block (deg/s), with the effects it found."""
+    return loop.blocks.points.rate - predict(loop.fit, loop.blocks)
+
+
 def loop_report(loop: LoopResult) -> dict[str, Any]:
     """Report fields of the closed loop: before/after on held-out plateaus, effects, confounded."""
     return {
@@ -283,7 +288,9 @@ def calibrate(
         report["effects"] = loop.effects
         report["confounded"] = loop.confounded
         report["closed_loop"] = loop_report(loop)
-        report["unexplained"] = account(loop.errors_after, loop.blocks, loop.candidates)
+        report["unexplained"] = account(
+            loop.errors_after, fitted_residual(loop), loop.blocks, loop.candidates
+        )
     elif options.extend:
         report["closed_loop"] = {
             "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"

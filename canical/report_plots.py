@@ -128,7 +128,7 @@ def unexplained_plot(loop: LoopResult, path: Path) -> None:
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(order):]:
         ax.axis("off")
-    left = account(resid, blocks, loop.candidates)
+    left = account(resid, blocks.points.rate - predict(loop.fit, blocks), blocks, loop.candidates)
     verdict = "UNEXPLAINED" if left["unexplained"] else "explained"
     fig.suptitle(
         f"Held-out residual after the loop: {left['held_out_rms_dps']:.4f} deg/s rms, "

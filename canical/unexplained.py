@@ -6,9 +6,11 @@ residual stays well above what noise alone leaves, and a calibration shipped
 as if it were explained would surprise the field. So, after the loop:
 
 * the **noise floor** is measured from the session itself: the scatter between
-  successive blocks of the same plateau (same rate, a few seconds apart), which
-  holds the sensor's noise at the block length and nothing the model lacks that
-  changes slowly; robust (median-based), so a few transients do not raise it;
+  successive blocks of the same plateau (same rate, a few seconds apart) of the
+  final model's residual, which holds the sensor's noise at the block length and
+  neither what the model explains (an effect that changes within a plateau) nor
+  what it lacks that changes slowly; robust (median-based), so a few transients
+  do not raise it;
 * the held-out residual (rms) is compared with it; above ``UNEXPLAINED_RATIO``
   times the floor the residual is called *unexplained*;
 * the residual is correlated with every candidate variable (each channel's
@@ -35,19 +37,18 @@ STRICT_RATIO = 3.0
 TOP_CORRELATED = 3
 
 
-def block_noise_floor(blocks: Blocks) -> float:
+def block_noise_floor(blocks: Blocks, fitted_residual: np.ndarray) -> float:
     """Rms noise of one block mean in deg/s, from successive blocks of the same plateau.
 
-    For two successive blocks the difference of their ΔV holds twice the block
-    noise; 1.4826·MAD/√2 estimates its standard deviation robustly.
+    ``fitted_residual`` is the final model's residual at every block (deg/s). For
+    two successive blocks of one plateau its difference holds twice the block
+    noise; 1.4826·MAD/√2 estimates that standard deviation robustly.
     """
-    p = blocks.points
     same = blocks.plateau[1:] == blocks.plateau[:-1]
-    if not np.any(same):
-        return float(np.median(p.dv_sem)) / _sensitivity(blocks)
-    d = np.diff(p.dv)[same]
-    sigma = 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
-    return sigma / _sensitivity(blocks)
+    if not np.any(same):  # one block per plateau: the blocks' own standard errors
+        return float(np.median(blocks.points.dv_sem)) / _sensitivity(blocks)
+    d = np.diff(fitted_residual)[same]
+    return 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
 
 
 def _sensitivity(blocks: Blocks) -> float:
@@ -74,10 +75,18 @@ def correlations(residual: np.ndarray, variables: dict[str, np.ndarray]) -> list
 
 
 def account(
-    residual: np.ndarray, blocks: Blocks, candidates: list[Candidate], ratio_limit: float = UNEXPLAINED_RATIO
+    residual: np.ndarray,
+    fitted_residual: np.ndarray,
+    blocks: Blocks,
+    candidates: list[Candidate],
+    ratio_limit: float = UNEXPLAINED_RATIO,
 ) -> dict[str, Any]:
-    """The report's ``unexplained`` section: residual rms, floor, ratio, verdict, best correlates."""
-    floor = float(block_noise_floor(blocks))
+    """The report's ``unexplained`` section: residual rms, floor, ratio, verdict, best correlates.
+
+    ``residual``: held-out errors after the loop; ``fitted_residual``: the final
+    model's in-sample residual (for the floor), both deg/s at every block.
+    """
+    floor = float(block_noise_floor(blocks, fitted_residual))
     rms = float(np.sqrt(np.mean(residual**2)))
     ratio = float(rms / floor) if floor > 0 else float("inf")
     ranked = correlations(residual, candidate_variables(candidates, blocks))
