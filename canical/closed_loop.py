@@ -1,9 +1,11 @@
 """Close the loop: find what the rate model lacks, add it, and prove it on held-out data.
 
 Starting from the fitted base model, each round scores every candidate
-explanation (auxiliary channels, warm-up, drift, direction of approach — and, as
-the competing explanation, more capacity in the base model) by the rms error on
-plateaus left out of the fit. A candidate is accepted only when
+explanation (auxiliary channels and their transforms — level, derivative, lag,
+direction of change —, warm-up, drift, direction of approach; and, as the
+competing explanation, more capacity in the base model) by the rms error on
+plateaus left out of the fit. The F-test's Bonferroni divisor counts every
+candidate, so more transforms make each one harder to accept. A candidate is accepted only when
 
 * it lowers the held-out rms by at least ``MIN_GAIN`` (relative), and by two
   standard errors of the rms estimate itself (about 1/sqrt(2·plateaus)), and
@@ -16,6 +18,8 @@ nothing passes. When another candidate explains the same residual — it passes
 alone, yet neither adds anything once the other is in — the two are reported as
 *confounded*, with the session that would separate them, and neither is added
 unless the user names one with ``prefer``: a guess would be wrong in the field.
+A channel's lag that ties with its level is the level (τ → 0), not a confound.
+What the loop leaves unexplained is judged afterwards (:mod:`canical.unexplained`).
 """
 
 from __future__ import annotations
