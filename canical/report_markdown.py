@@ -92,16 +92,20 @@ def _unexplained(left: dict[str, Any] | None) -> list[str]:
     if not left:
         return []
     best = ", ".join(f"{c['variable']} (|r| {c['abs_r']:.2f})" for c in left["correlates"])
+    rms = left["held_out_robust_rms_dps"]
     head = (
-        f"**Unexplained: {left['held_out_rms_dps']:.3g} deg/s rms, {left['ratio']:.0f}× the noise floor** "
+        f"**Unexplained: {rms:.3g} deg/s rms, {left['ratio']:.0f}× the noise floor** "
         f"({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}). A structured residual "
         "remains that no candidate represents; do not take this calibration as complete. "
         if left["unexplained"]
-        else f"Residual after the loop: {left['held_out_rms_dps']:.4f} deg/s rms, {left['ratio']:.1f}× the "
+        else f"Residual after the loop: {rms:.4f} deg/s rms, {left['ratio']:.1f}× the "
         f"noise floor ({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}): explained. "
     )
     return [
         "## What stays unexplained",
+        "",
+        "(Held-out residual as a robust rms, from the median squared error; plain rms "
+        f"{left['held_out_rms_dps']:.4f} deg/s.)",
         "",
         head + f"It correlates best with {best} (plot `unexplained_residual.png`: the residual against "
         "time and every candidate variable).",

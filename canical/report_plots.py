@@ -131,7 +131,7 @@ def unexplained_plot(loop: LoopResult, path: Path) -> None:
     left = account(resid, blocks.points.rate - predict(loop.fit, blocks), blocks, loop.candidates)
     verdict = "UNEXPLAINED" if left["unexplained"] else "explained"
     fig.suptitle(
-        f"Held-out residual after the loop: {left['held_out_rms_dps']:.4f} deg/s rms, "
+        f"Held-out residual after the loop: {left['held_out_robust_rms_dps']:.4f} deg/s rms (robust), "
         f"{left['ratio']:.1f}x the noise floor {left['noise_floor_dps']:.4f} ({verdict})",
         fontsize=10,
     )

@@ -25,12 +25,16 @@ def test_scenario_attribution_and_error(scenario):
         assert r.confounded, "confounded candidates must be reported"
         assert set(scenario.confounded) <= {n for g in r.confounded for n in g}
         assert r.rms_after == pytest.approx(r.rms_before)  # neither added: a guess is not a fix
-    else:
+    elif scenario.gyro is None:
         assert not r.confounded
+    else:  # coloured noise: a rate random walk *is* a drift; it may be found, a channel never
+        assert all(name.startswith("time:") for name in r.found)
+    if scenario.confounded and "temp_c" in scenario.aux:  # the recorded channel is named in it
+        assert any("temp_c" in n for g in r.confounded for n in g)
     if scenario.expect and not scenario.leaves_residual:
         assert r.rms_after < r.rms_before / 3
         assert r.rms_after <= 1.5 * r.rms_oracle  # within a small factor of a model told the effect
-    if not scenario.effects:
+    if not scenario.effects and scenario.gyro is None:
         assert r.rms_after == pytest.approx(r.rms_before)
     # What the loop could not represent (or left out as confounded) is reported as unexplained.
     assert r.unexplained == (scenario.leaves_residual or bool(scenario.confounded))
@@ -152,7 +156,7 @@ def test_clean_sensors_get_nothing_blamed_on_a_channel(noise, seed):
 
 def test_allan_terms_switch_on_and_off():
     """Each noise term of the simulator is switchable, and each shows where an Allan plot puts it."""
-    t = np.arange(200_000) / 200.0
+    t = np.arange(1_000_000) / 200.0
     quiet = GyroModel(noise_dps=0.0, lsb=0.0)
     flat = quiet.output(t, np.zeros_like(t))
     assert np.ptp(flat) == 0.0  # all off: a constant output
@@ -163,11 +167,11 @@ def test_allan_terms_switch_on_and_off():
 
     rrw = GyroModel(noise_dps=0.0, lsb=0.0, rate_random_walk_dps_rt_s=1e-3).output(t, np.zeros_like(t))
     # Rate random walk: σ(τ) = K·√(τ/3) (within sampling scatter at τ = 50 s).
-    assert allan(rrw, 10_000) == pytest.approx(1e-3 * np.sqrt(50 / 3), rel=0.35)
+    assert allan(rrw, 10_000) == pytest.approx(1e-3 * np.sqrt(50 / 3), rel=0.3)
     bi = GyroModel(noise_dps=0.0, lsb=0.0, bias_instability_dps=0.01).output(t, np.zeros_like(t))
     # Bias instability: a flat floor ≈ 0.664·B over decades of τ.
-    floor = [allan(bi, m) for m in (200, 2_000, 20_000)]
-    assert all(0.4 * 0.00664 < f < 1.8 * 0.00664 for f in floor), floor
+    floor = [allan(bi, m) for m in (200, 2_000, 20_000)]  # τ = 1, 10, 100 s
+    assert all(0.5 * 0.00664 < f < 1.5 * 0.00664 for f in floor), floor
     white = GyroModel(lsb=0.0).output(t, np.zeros_like(t))
     assert allan(white, 200) == pytest.approx(0.08 / np.sqrt(200), rel=0.1)  # N/√τ
 
@@ -199,7 +203,9 @@ def test_unexplained_residual_is_reported_plotted_and_strict_fails(tmp_path, cap
     capsys.readouterr()
     assert main(["calibrate", str(clean), "-o", str(tmp_path / "c2.yaml"), "--strict"]) == 0
     assert "explained" in capsys.readouterr().out
-    assert main(["calibrate", str(clean), "-o", str(tmp_path / "c2.yaml"), "--strict", "0.5"]) == 2
+    with pytest.raises(SystemExit) as bad:  # a multiple below 1 is refused, as argparse does
+        main(["calibrate", str(clean), "-o", str(tmp_path / "c2.yaml"), "--strict", "0.5"])
+    assert bad.value.code == 2
 
 
 def test_thermal_transient_set_corrects_sample_by_sample():
