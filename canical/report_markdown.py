@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from canical.unexplained import where_to_look
+
 
 def render(report: dict[str, Any], plots: list[str]) -> str:
     s = report["samples"]
@@ -91,7 +93,6 @@ def _unexplained(left: dict[str, Any] | None) -> list[str]:
     """The section on what the loop could not explain, plainly."""
     if not left:
         return []
-    best = ", ".join(f"{c['variable']} (|r| {c['abs_r']:.2f})" for c in left["correlates"])
     rms = left["held_out_robust_rms_dps"]
     head = (
         f"**Unexplained: {rms:.3g} deg/s rms, {left['ratio']:.0f}× the noise floor** "
@@ -107,7 +108,7 @@ def _unexplained(left: dict[str, Any] | None) -> list[str]:
         "(Held-out residual as a robust rms, from the median squared error; plain rms "
         f"{left['held_out_rms_dps']:.4f} deg/s.)",
         "",
-        head + f"It correlates best with {best} (plot `unexplained_residual.png`: the residual against "
-        "time and every candidate variable).",
+        head + f"Where to look: {where_to_look(left)} (plot `unexplained_residual.png`: the residual "
+        "against time and every candidate variable).",
         "",
     ]

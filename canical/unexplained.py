@@ -38,6 +38,7 @@ from canical.effect_candidates import Candidate, feature
 UNEXPLAINED_RATIO = 2.0
 STRICT_RATIO = 3.0
 TOP_CORRELATED = 3
+WEAK_R = 0.3  # below this, no candidate variable follows the residual
 
 
 def block_noise_floor(blocks: Blocks, fitted_residual: np.ndarray) -> float:
@@ -116,6 +117,13 @@ def one_line(section: dict[str, Any]) -> str:
     rms, floor, ratio = section["held_out_robust_rms_dps"], section["noise_floor_dps"], section["ratio"]
     if not section["unexplained"]:
         return f"residual   {rms:.4f} deg/s rms, {ratio:.1f}× the noise floor {floor:.4f}: explained"
-    best = ", ".join(f"{c['variable']} (|r| {c['abs_r']:.2f})" for c in section["correlates"])
     return (f"unexplained: {rms:.3g} deg/s rms, {ratio:.0f}× the noise floor {floor:.4f} deg/s; "
-            f"correlates best with {best}")
+            + where_to_look(section))
+
+
+def where_to_look(section: dict[str, Any]) -> str:
+    """The best-correlated candidate variables, or that none follows the residual."""
+    best = ", ".join(f"{c['variable']} (|r| {c['abs_r']:.2f})" for c in section["correlates"])
+    if not section["correlates"] or section["correlates"][0]["abs_r"] < WEAK_R:
+        return f"no recorded variable follows it (best: {best}): look for one that was not recorded"
+    return f"correlates best with {best}"
