@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from canical.blocks import BLOCK_S, make_blocks
-from canical.closed_loop import LoopResult, run_loop
+from canical.closed_loop import LoopResult, predict, run_loop
 from canical.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
 from canical.cross_validation import cross_validate, prediction_errors
 from canical.errors import CanicalError
@@ -29,6 +29,7 @@ from canical.noise_records import noise_analysis, sample_interval, zero_rate_rec
 from canical.plateaus import Plateaus, detect_plateaus, saturated
 from canical.segment_points import rate_noise
 from canical.session import Session
+from canical.unexplained import account
 from canical.zero_bias import ZERO_RATE_TOL_DPS, zero_bias
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
@@ -245,6 +246,11 @@ def extend_model(
     )
 
 
+def fitted_residual(loop: LoopResult) -> np.ndarray:
+    """The final model's residual at every block (deg/s), with the effects it found."""
+    return loop.blocks.points.rate - predict(loop.fit, loop.blocks)
+
+
 def loop_report(loop: LoopResult) -> dict[str, Any]:
     """Report fields of the closed loop: before/after on held-out plateaus, effects, confounded."""
     return {
@@ -303,6 +309,9 @@ def calibrate(
         report["effects"] = loop.effects
         report["confounded"] = loop.confounded
         report["closed_loop"] = loop_report(loop)
+        report["unexplained"] = account(
+            loop.errors_after, fitted_residual(loop), loop.blocks, loop.candidates
+        )
     elif options.extend:
         report["closed_loop"] = {
             "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
@@ -323,6 +332,8 @@ def calibrate(
     if loop is not None:
         fit_stats["extended_held_out_rms_dps"] = loop.rms_after
         fit_stats["effects"] = [e["name"] for e in loop.effects]
+        if np.isfinite(report["unexplained"]["ratio"]):
+            fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
     cset = CoefficientSet(
         sensor_id=sensor_id,
         axis=axis,

@@ -119,6 +119,8 @@ class EffectScore:
     rms_after: float
     rms_oracle: float
     correct: bool
+    unexplained_ratio: float = 0.0  # held-out rms after the loop / the session's noise floor
+    unexplained: bool = False
 
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScore:
@@ -127,7 +129,10 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScor
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM", axis="z")
     loop = result.loop
     found = tuple(e["name"] for e in loop.effects)
-    groups = tuple(tuple(c["candidates"]) for c in loop.confounded)
+    # Weaker alternatives (explain part of the same residual) are listed after the twins, marked ~.
+    groups = tuple(
+        (*c["candidates"], *(f"~{w}" for w in c["weaker_alternatives"])) for c in loop.confounded
+    )
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
     model = result.base.fitted.model
@@ -138,13 +143,15 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScor
         scorer, Structure(result.base.fitted.spec, model.knots, model.scale, model.span, told), duration
     )
     rms_oracle = min(scorer.score(same_size)[0], scorer.score(resized)[0])
-    in_groups = {name for g in groups for name in g}
+    in_groups = {name.lstrip("~") for g in groups for name in g}
     correct = (
         set(found) == set(scenario.expect)
         and set(scenario.confounded) <= in_groups
         and (bool(groups) == bool(scenario.confounded))
     )
-    return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct)
+    left = result.report["unexplained"]
+    return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
+                       left["ratio"], left["unexplained"])
 
 
 def _oracle_terms(scenario, blocks):

@@ -79,7 +79,8 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
             for e in report["effects"]:
                 terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e["terms"])
                 ev = e["evidence"]
-                lines.append(f"| {e['name']} | {ev['held_out_gain']:.0%} | {ev['p_value']:.1e} | {terms} |")
+                name = e.get("description", e["name"])
+                lines.append(f"| {name} | {ev['held_out_gain']:.0%} | {ev['p_value']:.1e} | {terms} |")
         else:
             lines.append("No effect found: the residual is explained by the rate model and noise.")
         lines.append("")
@@ -97,6 +98,7 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
             ]
         if loop["capacity_changes"]:
             lines += [f"Base model grown: {', '.join(loop['capacity_changes'])}.", ""]
+        lines += _unexplained(report.get("unexplained"))
     elif loop:
         lines += [f"Closed loop skipped: {loop['skipped']}.", ""]
     allan = report.get("allan")
@@ -111,3 +113,30 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
     if plots:
         lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     return "\n".join(lines)
+
+
+def _unexplained(left: dict[str, Any] | None) -> list[str]:
+    """The section on what the loop could not explain, plainly."""
+    if not left:
+        return []
+    from canical.unexplained import where_to_look  # numpy: calibrate's --help imports this module
+
+    rms = left["held_out_robust_rms_dps"]
+    head = (
+        f"**Unexplained: {rms:.3g} deg/s rms, {left['ratio']:.0f}× the noise floor** "
+        f"({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}). A structured residual "
+        "remains that no candidate represents; do not take this calibration as complete. "
+        if left["unexplained"]
+        else f"Residual after the loop: {rms:.4f} deg/s rms, {left['ratio']:.1f}× the "
+        f"noise floor ({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}): explained. "
+    )
+    return [
+        "## What stays unexplained",
+        "",
+        "(Held-out residual as a robust rms, from the median squared error; plain rms "
+        f"{left['held_out_rms_dps']:.4f} deg/s.)",
+        "",
+        head + f"Where to look: {where_to_look(left)} (plot `unexplained_residual.png`: the residual "
+        "against time and every candidate variable).",
+        "",
+    ]

@@ -20,6 +20,18 @@ from canical.report_markdown import written_model
 # used, so that `--help` and argument errors answer at once.
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
+EXIT_UNEXPLAINED = 3  # --strict: the calibration leaves an unexplained residual (2 is bad input)
+STRICT_RATIO = 3.0  # --strict without a value: this many times the session's noise floor
+
+
+def _positive_ratio(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("--strict takes a number (a multiple of the noise floor)") from None
+    if not value >= 1.0:
+        raise argparse.ArgumentTypeError("--strict must be at least 1 (a multiple of the noise floor)")
+    return value
 
 
 def _auto_or_int(name: str, low: int, high: int):
@@ -84,6 +96,10 @@ def register(sub) -> None:
     p.add_argument("--report-dir", help="folder for the full report: report.json, report.md and PNG plots")
     p.add_argument("--prefer", action="append", default=[], metavar="CANDIDATE",
                    help="when candidates are confounded, add this one (e.g. channel:temp_c, time:warm-up)")
+    p.add_argument("--strict", nargs="?", type=_positive_ratio, const=STRICT_RATIO, default=None,
+                   metavar="MULTIPLE",
+                   help="exit with status 3 when the residual after the closed loop stays above MULTIPLE "
+                   f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written")
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
     add_session_arguments(p)
@@ -141,6 +157,12 @@ def calibrate_session(args: argparse.Namespace) -> int:
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
+    left = report.get("unexplained")
+    if args.strict is not None and (left is None or left["ratio"] > args.strict):
+        why = (f"{left['ratio']:.1f}× the noise floor, above --strict {args.strict:g}" if left
+               else "no closed loop ran, so the residual was not checked")
+        print(f"calibrate: strict: the residual stays unexplained ({why})", file=sys.stderr)
+        return EXIT_UNEXPLAINED
     return 0
 
 
@@ -208,7 +230,7 @@ def summary(report: dict) -> str:
                  "(plateau means, whole table rates left out)")
     loop = report.get("closed_loop")
     if loop and "skipped" not in loop:
-        found = ", ".join(e["name"] for e in report["effects"]) or "none"
+        found = ", ".join(e.get("description", e["name"]) for e in report["effects"]) or "none"
         lines.append(f"effects    {found}")
         for c in report.get("confounded", []):
             lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
@@ -223,5 +245,9 @@ def summary(report: dict) -> str:
             f"{t['name']} {t['value']:.3g} {t['unit']}" if t["resolved"] else f"{t['name']} not resolved"
             for t in allan["terms"].values())
         lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
+    if "unexplained" in report:
+        from canical.unexplained import one_line
+
+        lines.append(one_line(report["unexplained"]))
     lines.append(f"wrote      {Path(report['coefficients'])}: {written_model(report)}")
     return "\n".join(lines)
