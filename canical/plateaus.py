@@ -164,7 +164,8 @@ def detect_plateaus(
     # Noise of a window median: ~1.25 σ/√(independent updates in it), for each side; a window
     # thinned by lost rows is noisier, so its tolerance is wider.
     dt = np.diff(t)
-    per_update = float(np.median(dt[dt > 0])) / update if np.any(dt > 0) else 1.0
+    row_s = float(np.median(dt[dt > 0])) if np.any(dt > 0) else update
+    per_update = row_s / update
     full = max(1.0, window / update)
 
     def auto_tol(n_before, n_after):
@@ -186,6 +187,7 @@ def detect_plateaus(
         flagged = steady & ~np.asarray(settled, dtype=bool)
         steady = steady & ~flagged
     end_guard = update + max(latency_s, 0.0)
+    slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
     rates, starts, stops, sems = [], [], [], []
     longest = 0.0
     in_stretch = 0
@@ -196,8 +198,8 @@ def detect_plateaus(
         if duration < min_duration_s:
             continue
         settle = settle_s if settle_s is not None else max(DEFAULT_SETTLE_S, SETTLE_FRACTION * duration)
-        first = a + int(np.searchsorted(t[a:b], t[a] + settle, side="left"))
-        last = a + int(np.searchsorted(t[a:b], t[b - 1] - end_guard, side="right"))
+        first = a + int(np.searchsorted(t[a:b], t[a] + settle - slack, side="left"))
+        last = a + int(np.searchsorted(t[a:b], t[b - 1] - end_guard + slack, side="right"))
         if last - first < 2:
             continue
         label[first:last] = len(rates)
@@ -238,7 +240,10 @@ def window_medians(
     nearest ``min_rows`` on its side, so a rate change hidden in a gap still shows.
     """
     step = window / GRID_PER_WINDOW
-    grid_t = np.arange(t[0], t[-1] + step, step)
+    dt = np.diff(t)
+    # Half a row off the rows' own clock, so timestamps jittered by a logger fall on the same side.
+    offset = 0.5 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    grid_t = np.arange(t[0] + offset, t[-1] + step, step)
     lo = np.searchsorted(t, grid_t - window, side="left")
     mid = np.searchsorted(t, grid_t, side="left")
     hi = np.searchsorted(t, grid_t + window, side="left")
