@@ -256,7 +256,9 @@ def window_medians(
     before = np.where(np.isnan(before), after, before)
     after = np.where(np.isnan(after), before, after)
     n_before, n_after = mid - lo, hi - mid
-    return before, after, grid_t, np.where(n_before > 0, n_before, n_after), np.where(n_after > 0, n_after, n_before)
+    rows_before = np.where(n_before > 0, n_before, n_after)
+    rows_after = np.where(n_after > 0, n_after, n_before)
+    return before, after, grid_t, rows_before, rows_after
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

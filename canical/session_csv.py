@@ -133,7 +133,7 @@ def session_from_table(
     ``settled_column`` names the table's settled flag (nonzero: settled); it is kept apart
     from the auxiliary channels.
     """
-    needed = [raw_column] + ([ref_column] if ref_column else []) + ([settled_column] if settled_column else [])
+    needed = [c for c in (raw_column, ref_column, settled_column) if c]
     for column in needed:
         if column not in table.columns:
             have = ", ".join(table.header)

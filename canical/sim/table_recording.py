@@ -216,7 +216,7 @@ def lost_in_bursts(n: int, fs_hz: float, fraction: float, burst_s: float, rng: n
     if fraction <= 0 or n == 0:
         return kept
     mean_len = max(1.0, burst_s * fs_hz)
-    target = int(round(fraction * n))
+    target = round(fraction * n)
     while (~kept).sum() < target:
         length = int(max(1, rng.exponential(mean_len)))
         start = int(rng.integers(0, n))
