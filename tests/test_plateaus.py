@@ -64,7 +64,8 @@ RATES = np.array([0.0, 3.0, 6.0, -9.0, 20.0, 0.0, -3.0])
 
 
 def _record(behaviour: TableBehaviour, *, seed: int = 0, dwell_s: float = 4.0, fs_hz: float = 100.0):
-    rec = record_table(RATES, dwell_s=dwell_s, fs_hz=fs_hz, behaviour=behaviour, rng=np.random.default_rng(seed))
+    rec = record_table(RATES, dwell_s=dwell_s, fs_hz=fs_hz, behaviour=behaviour,
+                       rng=np.random.default_rng(seed))
     keep = rec.kept
     return rec, rec.time_s[keep], rec.ref_dps[keep], rec.settled[keep]
 
@@ -107,13 +108,13 @@ def test_measured_reference_noise_is_estimated_and_sets_the_tolerance(jitter):
 def test_held_and_late_reference_ends_guarded(asynchronous):
     """A 10 Hz reference shows the next ramp up to 0.1 s late (plus its latency): that much is cut."""
     b = TableBehaviour(accel_dps2=10.0, ref_rate_hz=10.0, asynchronous=asynchronous, ref_latency_s=0.05)
-    rec, p = _check_all_found(b, latency_s=0.05)
+    _, p = _check_all_found(b, latency_s=0.05)
     assert p.update_s == pytest.approx(0.1, rel=0.05)
     assert p.end_guard_s == pytest.approx(0.15, rel=0.05)
 
 
 def test_lost_bursts_duplicated_timestamps_and_uneven_sampling():
-    rec, t, ref, _ = _record(TableBehaviour(accel_dps2=10.0, loss_fraction=0.05, loss_burst_s=0.3))
+    _, t, ref, _ = _record(TableBehaviour(accel_dps2=10.0, loss_fraction=0.05, loss_burst_s=0.3))
     rng = np.random.default_rng(1)
     t = t + rng.uniform(-0.003, 0.003, t.size)  # uneven sampling
     t = np.sort(t)
