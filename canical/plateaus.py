@@ -64,6 +64,7 @@ class Plateaus:
     longest_steady_s: float = 0.0  # longest steady stretch, before guards
     n_not_settled: int = 0  # steady samples the table flagged as not settled
     rate_sem_dps: np.ndarray | None = None  # per plateau: standard error of its rate
+    n_short: int = 0  # steady stretches left out as shorter than the minimum
 
     def rate_uncertainty(self) -> np.ndarray:
         """Per plateau: the standard error of its reference rate (0 for a noiseless reference)."""
@@ -89,6 +90,7 @@ class Plateaus:
             "rate_changes": self.rate_changes,
             "longest_steady_s": self.longest_steady_s,
             "not_settled_samples": self.n_not_settled,
+            "short_stretches": self.n_short,
         }
 
 
@@ -182,6 +184,8 @@ def detect_plateaus(
     right = np.clip(np.searchsorted(grid_t, t, side="left"), 0, grid_t.size - 1)
     left = np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, grid_t.size - 1)
     steady = steady_grid[left] & steady_grid[right]
+    # What the reference itself shows, for the report and the errors (before the flag).
+    longest = max((float(t[b - 1] - t[a]) for a, b in _runs(steady)), default=0.0)
     flagged = np.zeros(n, dtype=bool)
     if settled is not None:
         flagged = steady & ~np.asarray(settled, dtype=bool)
@@ -189,13 +193,12 @@ def detect_plateaus(
     end_guard = update + max(latency_s, 0.0)
     slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
     rates, starts, stops, sems = [], [], [], []
-    longest = 0.0
-    in_stretch = 0
+    in_stretch = n_short = 0
     for a, b in _runs(steady):
         in_stretch += b - a
         duration = float(t[b - 1] - t[a])
-        longest = max(longest, duration)
         if duration < min_duration_s:
+            n_short += duration >= window / 2  # a stretch, not a flicker between two ramps
             continue
         settle = settle_s if settle_s is not None else max(DEFAULT_SETTLE_S, SETTLE_FRACTION * duration)
         first = a + int(np.searchsorted(t[a:b], t[a] + settle - slack, side="left"))
@@ -226,6 +229,7 @@ def detect_plateaus(
         longest_steady_s=longest,
         n_not_settled=int(flagged.sum()),
         rate_sem_dps=np.array(sems, dtype=float),
+        n_short=n_short,
     )
 
 
@@ -281,14 +285,16 @@ def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
         f"longest steady stretch {p.longest_steady_s:.3g} s, reference noise {p.ref_noise_dps:.3g} deg/s "
         f"(tolerance {p.rate_tol_dps:.3g} deg/s), {p.rate_changes} rate changes"
     )
-    if p.longest_steady_s < min_duration_s:
-        hint = f"--min-plateau below {min_duration_s:g} s would accept shorter stretches"
-        if p.rate_changes > max(10, 3 * max(p.count, 1)) or p.longest_steady_s < p.window_s:
-            hint = f"a larger --rate-tol than {p.rate_tol_dps:.3g} deg/s would accept a noisier reference"
-    elif p.count and p.n_not_settled:
-        hint = "the table's settled flag left out the rest; check it (or do not pass it)"
+    if p.n_not_settled:
+        seen += f", {p.n_not_settled} steady rows flagged not settled by the table"
+    if p.longest_steady_s < p.window_s:
+        hint = f"a larger --rate-tol than {p.rate_tol_dps:.3g} deg/s would accept a noisier reference"
+    elif p.n_short:
+        hint = f"--min-plateau below {min_duration_s:g} s would accept {p.n_short} shorter stretches"
+    elif p.n_not_settled:
+        hint = "the table's settled flag (--settled-column, TABLE_REF.TableSettled) left out the rest: check it"
     else:
-        hint = "a shorter --settle would keep more of each plateau"
+        hint = "a shorter --settle (or --min-plateau) would keep more, or the session needs more table rates"
     return f"{what}: {seen}; {hint}"
 
 
