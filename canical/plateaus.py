@@ -292,7 +292,8 @@ def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
     elif p.n_short:
         hint = f"--min-plateau below {min_duration_s:g} s would accept {p.n_short} shorter stretches"
     elif p.n_not_settled:
-        hint = "the table's settled flag (--settled-column, TABLE_REF.TableSettled) left out the rest: check it"
+        hint = ("the table's settled flag (--settled-column, TABLE_REF.TableSettled) left out the rest: "
+                "check it")
     else:
         hint = "a shorter --settle (or --min-plateau) would keep more, or the session needs more table rates"
     return f"{what}: {seen}; {hint}"

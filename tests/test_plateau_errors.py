@@ -78,8 +78,9 @@ def test_a_settled_flag_that_never_rises_is_named(tmp_path, capsys):
     assert "steady rows flagged not settled by the table" in err
     assert "settled flag (--settled-column, TABLE_REF.TableSettled)" in err
     # The honest flag is accepted, and a missing flag column is named.
-    assert main(["calibrate", str(write_session(tmp_path / "ok.csv", session)), "-o", str(tmp_path / "ok.yaml"),
-                 "--no-extend", "--settled-column", "settled"]) == 0
+    honest = write_session(tmp_path / "ok.csv", session)
+    assert main(["calibrate", str(honest), "-o", str(tmp_path / "ok.yaml"), "--no-extend",
+                 "--settled-column", "settled"]) == 0
     err = _calibrate_error(capsys, path, "--settled-column", "table_ok")
     assert "missing column 'table_ok'" in err
 
