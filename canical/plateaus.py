@@ -13,6 +13,8 @@ is noisy, a reference updated at 10 Hz is held between updates, and rows go miss
 * **The tolerance follows from the session**: the reference's own noise is estimated from
   its successive updates (median absolute deviation) and the tolerance is set to a multiple
   of the noise of a window median, never below a floor. Both are reported.
+* **A noiseless reference** (the commanded rate, exact on every plateau) shows the row where
+  each plateau begins and ends: the steady stretches are widened to those rows.
 * **Both ends of each plateau are guarded.** The start: the servo's overshoot and ringing
   and the sensor's filter settle over ``settle_s`` (auto: 0.5 s or a tenth of the steady
   stretch, whichever is longer). The end: a reference that is held between updates or late
@@ -184,17 +186,25 @@ def detect_plateaus(
     right = np.clip(np.searchsorted(grid_t, t, side="left"), 0, grid_t.size - 1)
     left = np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, grid_t.size - 1)
     steady = steady_grid[left] & steady_grid[right]
+    stretches = _runs(steady)
+    if noise == 0.0:
+        stretches = _exact_edges(ref, stretches)
     # What the reference itself shows, for the report and the errors (before the flag).
-    longest = max((float(t[b - 1] - t[a]) for a, b in _runs(steady)), default=0.0)
-    flagged = np.zeros(n, dtype=bool)
-    if settled is not None:
-        flagged = steady & ~np.asarray(settled, dtype=bool)
-        steady = steady & ~flagged
-    end_guard = update + max(latency_s, 0.0)
+    longest = max((float(t[b - 1] - t[a]) for a, b in stretches), default=0.0)
+    n_flagged = 0
+    if settled is not None:  # the flag narrows stretches, never joins or widens them
+        flag = np.asarray(settled, dtype=bool)
+        narrowed = []
+        for a, b in stretches:
+            n_flagged += int(np.count_nonzero(~flag[a:b]))
+            narrowed += [(a + c, a + d) for c, d in _runs(flag[a:b])]
+        stretches = narrowed
+    # A value held between updates may be up to one update old; one sent with every row is current.
+    end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
     slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
     rates, starts, stops, sems = [], [], [], []
     in_stretch = n_short = 0
-    for a, b in _runs(steady):
+    for a, b in stretches:
         in_stretch += b - a
         duration = float(t[b - 1] - t[a])
         if duration < min_duration_s:
@@ -227,7 +237,7 @@ def detect_plateaus(
         end_guard_s=float(end_guard),
         rate_changes=rate_changes,
         longest_steady_s=longest,
-        n_not_settled=int(flagged.sum()),
+        n_not_settled=n_flagged,
         rate_sem_dps=np.array(sems, dtype=float),
         n_short=n_short,
     )
@@ -263,6 +273,24 @@ def window_medians(
     rows_before = np.where(n_before > 0, n_before, n_after)
     rows_after = np.where(n_after > 0, n_after, n_before)
     return before, after, grid_t, rows_before, rows_after
+
+
+def _exact_edges(ref: np.ndarray, stretches: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """For a noiseless reference, widen each steady stretch to the rows of exactly its values.
+
+    Such a reference (the commanded rate) shows the row where each plateau begins and ends;
+    the window only finds them to within half a window. Stretches stay apart (an
+    instantaneous step leaves no row between two plateaus).
+    """
+    same = np.concatenate(([False], np.diff(ref) == 0))  # row equals the one before
+    out = []
+    for a, b in stretches:
+        while a > 0 and same[a]:
+            a -= 1
+        while b < ref.size and same[b]:
+            b += 1
+        out.append((a, b))
+    return out
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:

@@ -71,9 +71,14 @@ def _record(behaviour: TableBehaviour, *, seed: int = 0, dwell_s: float = 4.0, f
 
 
 def _on_ramp(rec, t_used: np.ndarray, label_used: np.ndarray) -> int:
-    """Used rows whose tick lies outside the scheduled plateau they were given (truth known)."""
+    """Used rows whose tick lies outside the scheduled plateau they were given (truth known).
+
+    A plateau spans [end of its rate change, start of the next] inclusive: at both instants
+    the table is at the plateau's rate.
+    """
     s = rec.schedule
-    return int(np.sum((t_used < s.end[label_used]) | (t_used >= s.stop[label_used])))
+    eps = 1e-9
+    return int(np.sum((t_used < s.end[label_used] - eps) | (t_used > s.stop[label_used] + eps)))
 
 
 def _check_all_found(behaviour: TableBehaviour, seed: int = 0, **kw):

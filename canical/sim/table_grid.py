@@ -109,12 +109,14 @@ def score_cell(name: str, behaviour: TableBehaviour, *, seed: int = 0, dwell_s: 
     # Truth per used row: its tick time must lie on the plateau it was given, past the rate change.
     ticks = rec.time_s[rec.kept]
     used = p.label >= 0
+    # A plateau spans [end of its rate change, start of the next], both instants at its rate.
+    eps = 1e-9
     if found_ok:
         j = p.label[used]
-        on_ramp = (ticks[used] < sched.end[j]) | (ticks[used] >= sched.stop[j])
+        on_ramp = (ticks[used] < sched.end[j] - eps) | (ticks[used] > sched.stop[j] + eps)
     else:  # match each used row to the plateau its tick lies on
-        k = np.searchsorted(sched.start, ticks[used], side="right") - 1
-        on_ramp = ticks[used] < sched.end[np.clip(k, 0, None)]
+        k = np.searchsorted(sched.start, ticks[used] - eps, side="right") - 1
+        on_ramp = ticks[used] < sched.end[np.clip(k, 0, None)] - eps
     return CellResult(
         name=name,
         scheduled=int(sched.rates.size),
