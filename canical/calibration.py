@@ -45,7 +45,7 @@ class CalibrateOptions:
     rate_tol: float | None = None  # None: from the reference's estimated noise
     min_duration_s: float = 1.0
     settle_s: float | None = None  # None: 0.5 s or a tenth of the steady stretch
-    latency_s: float = 0.0  # the reference's latency behind the sensor, when known
+    latency_s: float | None = None  # the reference's latency behind the sensor; None: estimated
     extend: bool = True  # run the closed loop (segmented-inverse only)
     prefer: tuple[str, ...] = ()  # candidate names to pick when confounded
     direction_threshold_dps: float = 1.0
@@ -111,6 +111,7 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
         settle_s=options.settle_s,
         settled=session.settled,
         latency_s=options.latency_s,
+        raw=session.raw,
     )
 
 

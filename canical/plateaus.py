@@ -19,7 +19,8 @@ is noisy, a reference updated at 10 Hz is held between updates, and rows go miss
   and the sensor's filter settle over ``settle_s`` (auto: 0.5 s or a tenth of the steady
   stretch, whichever is longer). The end: a reference that is held between updates or late
   shows the next ramp only after its update interval (estimated from the spacing of its
-  changes, i.e. how long values are held) plus its latency (if known); that much is cut.
+  changes, i.e. how long values are held) plus its latency (given, or estimated from when
+  the sensor and the reference each show the rate changing); that much is cut.
 * **A settled flag** recorded by the table narrows the plateaus further; it never makes a
   visibly moving reference steady.
 
@@ -32,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import correlate, correlation_lags
 
 from canical.errors import CanicalError
 
@@ -43,7 +45,8 @@ DEFAULT_SETTLE_S = 0.5
 SETTLE_FRACTION = 0.1
 MAX_UPDATE_S = 1.0
 GRID_PER_WINDOW = 10  # steadiness is judged every tenth of a window
-MIN_WINDOW_ROWS = 5  # change spacings longer than this are plateaus, not hold intervals
+MIN_WINDOW_ROWS = 5
+MAX_LATENCY_S = 1.0  # latencies looked for when estimating one  # change spacings longer than this are plateaus, not hold intervals
 
 
 @dataclass(frozen=True)
@@ -62,6 +65,7 @@ class Plateaus:
     window_s: float = 0.0
     settle_s: float = 0.0  # start guard (minimum; a tenth of long stretches when auto)
     end_guard_s: float = 0.0  # end guard: update interval plus latency
+    latency_s: float = 0.0  # the reference's latency behind the sensor (given or estimated)
     rate_changes: int = 0  # moving stretches seen
     longest_steady_s: float = 0.0  # longest steady stretch, before guards
     n_not_settled: int = 0  # steady samples the table flagged as not settled
@@ -89,6 +93,7 @@ class Plateaus:
             "window_s": self.window_s,
             "settle_s": self.settle_s,
             "end_guard_s": self.end_guard_s,
+            "reference_latency_s": self.latency_s,
             "rate_changes": self.rate_changes,
             "longest_steady_s": self.longest_steady_s,
             "not_settled_samples": self.n_not_settled,
@@ -141,6 +146,37 @@ def reference_noise(time_s: np.ndarray, ref_dps: np.ndarray, update_s: float) ->
     return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
 
 
+def reference_latency(time_s: np.ndarray, ref_dps: np.ndarray, raw: np.ndarray, update_s: float,
+                      max_lag_s: float = MAX_LATENCY_S) -> float:
+    """How late the reference is behind the sensor, s, from when each shows the rate changing.
+
+    Cross-correlates the reference's and the sensor's changes (each smoothed over one
+    reference update, so a held reference lines up with a smooth sensor) over lags up to
+    ``max_lag_s``. A held reference is late by half an update on average; that part is the
+    hold guard's, so it is taken off. Never negative: an early reference needs no end guard.
+    """
+    t = np.asarray(time_s, dtype=float)
+    dt = np.diff(t)
+    if t.size < 16 or not np.any(dt > 0):
+        return 0.0
+    step = float(np.median(dt[dt > 0]))
+    grid = np.arange(t[0], t[-1], step)
+    idx = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 1)
+    x = np.diff(np.asarray(ref_dps, dtype=float)[idx])
+    y = np.diff(np.asarray(raw, dtype=float)[idx])
+    k = max(1, round(update_s / step))
+    kernel = np.ones(k) / k
+    x, y = np.convolve(x, kernel, mode="same"), np.convolve(y, kernel, mode="same")
+    if not (np.any(x) and np.any(y)):
+        return 0.0
+    c = correlate(x, y, mode="full", method="fft")
+    lags = correlation_lags(x.size, y.size)
+    near = np.abs(lags) <= round(max_lag_s / step)
+    lag = float(lags[near][np.argmax(np.abs(c[near]))]) * step  # the sensor may count either way
+    held = update_s if update_s > 1.5 * step else 0.0
+    return max(0.0, lag - held / 2)
+
+
 def detect_plateaus(
     time_s: np.ndarray,
     ref_dps: np.ndarray,
@@ -149,10 +185,14 @@ def detect_plateaus(
     min_duration_s: float = 1.0,
     settle_s: float | None = None,
     settled: np.ndarray | None = None,
-    latency_s: float = 0.0,
+    latency_s: float | None = 0.0,
     window_s: float | None = None,
+    raw: np.ndarray | None = None,
 ) -> Plateaus:
-    """Label the settled constant-rate samples of a session (``None`` options: from the session)."""
+    """Label the settled constant-rate samples of a session (``None`` options: from the session).
+
+    ``latency_s=None`` estimates the reference's latency from the sensor's ``raw`` output.
+    """
     ref = np.asarray(ref_dps, dtype=float)
     t = np.asarray(time_s, dtype=float)
     n = ref.shape[0]
@@ -200,6 +240,8 @@ def detect_plateaus(
             narrowed += [(a + c, a + d) for c, d in _runs(flag[a:b])]
         stretches = narrowed
     # A value held between updates may be up to one update old; one sent with every row is current.
+    if latency_s is None:
+        latency_s = reference_latency(t, ref, raw, update) if raw is not None else 0.0
     end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
     slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
     rates, starts, stops, sems = [], [], [], []
@@ -235,6 +277,7 @@ def detect_plateaus(
         window_s=float(window),
         settle_s=float(settle_s if settle_s is not None else DEFAULT_SETTLE_S),
         end_guard_s=float(end_guard),
+        latency_s=float(latency_s),
         rate_changes=rate_changes,
         longest_steady_s=longest,
         n_not_settled=n_flagged,

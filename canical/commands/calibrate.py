@@ -63,9 +63,10 @@ def add_plateau_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-tol", type=_auto_or_seconds("--rate-tol", "deg/s"), default=None,
                         metavar="DPS", help="largest change of the reference's windowed median that is "
                         "still steady, deg/s, or 'auto': from the reference's estimated noise [auto]")
-    parser.add_argument("--ref-latency", type=_auto_or_seconds("--ref-latency", "seconds"), default=0.0,
-                        metavar="S", help="how late the reference is behind the sensor, when known; "
-                        "cut from the end of each plateau with the reference's hold interval [0]")
+    parser.add_argument("--ref-latency", type=_auto_or_seconds("--ref-latency", "seconds"), default=None,
+                        metavar="S", help="how late the reference is behind the sensor, s, cut from the "
+                        "end of each plateau with its hold interval; 'auto': estimated from when sensor "
+                        "and reference show each rate change [auto]")
     parser.add_argument("--settled-column", metavar="NAME",
                         help="CSV column with the table's settled flag (1 settled, 0 not); it narrows "
                         "plateaus, never widens them (CAN logs: TABLE_REF.TableSettled)")
@@ -154,7 +155,7 @@ def run(args: argparse.Namespace) -> int:
         rate_tol=args.rate_tol,
         min_duration_s=args.min_plateau if args.min_plateau is not None else 1.0,
         settle_s=args.settle,
-        latency_s=args.ref_latency or 0.0,
+        latency_s=args.ref_latency,
     )
     result = calibrate(
         session,
