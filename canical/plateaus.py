@@ -14,7 +14,7 @@ is noisy, a reference updated at 10 Hz is held between updates, and rows go miss
   its successive updates (median absolute deviation) and the tolerance is set to a multiple
   of the noise of a window median, never below a floor. Both are reported.
 * **A noiseless reference** (the commanded rate, exact on every plateau) shows the row where
-  each plateau begins and ends: the steady stretches are widened to those rows.
+  each plateau begins: the steady stretches start there.
 * **Both ends of each plateau are guarded.** The start: the servo's overshoot and ringing
   and the sensor's filter settle over ``settle_s`` (auto: 0.5 s or a tenth of the steady
   stretch, whichever is longer). The end: a reference that is held between updates or late
@@ -46,7 +46,7 @@ SETTLE_FRACTION = 0.1
 MAX_UPDATE_S = 1.0
 GRID_PER_WINDOW = 10  # steadiness is judged every tenth of a window
 MIN_WINDOW_ROWS = 5
-MAX_LATENCY_S = 1.0  # latencies looked for when estimating one  # change spacings longer than this are plateaus, not hold intervals
+MAX_LATENCY_S = 1.0  # latencies looked for when estimating one
 
 
 @dataclass(frozen=True)
@@ -319,19 +319,18 @@ def window_medians(
 
 
 def _exact_edges(ref: np.ndarray, stretches: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    """For a noiseless reference, widen each steady stretch to the rows of exactly its values.
+    """For a noiseless reference, start each steady stretch at the first row of exactly its value.
 
-    Such a reference (the commanded rate) shows the row where each plateau begins and ends;
-    the window only finds them to within half a window. Stretches stay apart (an
-    instantaneous step leaves no row between two plateaus).
+    Such a reference (the commanded rate) shows the row where each plateau begins; the window
+    only finds it to within half a window. The end is not widened: a held or late reference
+    shows the next change only after its hold and latency, which a noiseless reference with
+    instantaneous steps does not reveal; the half window kept there covers them.
     """
     same = np.concatenate(([False], np.diff(ref) == 0))  # row equals the one before
     out = []
     for a, b in stretches:
         while a > 0 and same[a]:
             a -= 1
-        while b < ref.size and same[b]:
-            b += 1
         out.append((a, b))
     return out
 
