@@ -175,7 +175,7 @@ behaviours = st.builds(
 )
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(behaviours, st.integers(0, 10_000))
 def test_every_plateau_found_and_no_ramp_row_used_on_any_table(behaviour, seed):
     _check_all_found(behaviour, seed=seed, latency_s=behaviour.ref_latency_s)
