@@ -91,10 +91,12 @@ def test_vcan_emulate_record_calibrate(cell, vcan_channel: str, tmp_path: Path):
     emulate = subprocess.Popen(
         [sys.executable, "-m", "canical", "emulate", "--interface", "socketcan", "--channel", vcan_channel,
          "--state", str(tmp_path / "state.json"), "--rate", "50", "--speed", str(speed),
-         "--table-rates", rates, "--dwell", str(DWELL_S), *options],
+         f"--table-rates={rates}", "--dwell", str(DWELL_S), *options],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        assert emulate.stdout is not None and emulate.stdout.readline().startswith("ready")
+        assert emulate.stdout is not None
+        ready = emulate.stdout.readline()
+        assert ready.startswith("ready"), (ready, emulate.poll() is not None and emulate.communicate())
         log = tmp_path / "table.log"
         rec = subprocess.run(
             [sys.executable, "-m", "canical", "record", "-o", str(log), "--interface", "socketcan",
