@@ -216,7 +216,7 @@ def _plateau_line(found: dict | None) -> str:
         return "plateaus   (not reported)"
     return (f"plateaus   reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
             f"{found['rate_tol_dps']:.3g} deg/s, held {found['reference_update_s']:.3g} s, "
-            f"{found['rate_changes']} rate changes")
+            f"late {found['reference_latency_s']:.3g} s, {found['rate_changes']} rate changes")
 
 
 def summary(report: dict) -> str:
