@@ -239,9 +239,9 @@ def detect_plateaus(
             n_flagged += int(np.count_nonzero(~flag[a:b]))
             narrowed += [(a + c, a + d) for c, d in _runs(flag[a:b])]
         stretches = narrowed
-    # A value held between updates may be up to one update old; one sent with every row is current.
     if latency_s is None:
         latency_s = reference_latency(t, ref, raw, update) if raw is not None else 0.0
+    # A value held between updates may be up to one update old; one sent with every row is current.
     end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
     slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
     rates, starts, stops, sems = [], [], [], []
