@@ -3,6 +3,8 @@
 Every message is one line on stderr, exit status 2, no traceback.
 """
 
+import json
+
 import can
 import numpy as np
 import pytest
@@ -133,3 +135,17 @@ def test_options_are_in_help(capsys):
     out = capsys.readouterr().out
     for option in ("--min-plateau S", "--settle S", "--rate-tol DPS", "--settled-column NAME", "[auto]"):
         assert option in out
+
+
+def test_the_report_says_what_plateau_finding_estimated(tmp_path, capsys):
+    table = TableBehaviour(accel_dps2=3.0, reference="measured", jitter_dps=0.03, ref_rate_hz=10.0,
+                           asynchronous=True)
+    path = _session(tmp_path, paper_rates(step=10.0), table=table)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "c.yaml"), "--no-extend",
+                 "--report-dir", str(tmp_path / "rep")]) == 0
+    assert "plateaus   reference noise 0.0" in capsys.readouterr().out
+    found = json.loads((tmp_path / "rep" / "report.json").read_text())["plateau_finding"]
+    assert found["reference_noise_dps"] == pytest.approx(0.03, rel=0.3)
+    assert found["reference_update_s"] == pytest.approx(0.1, rel=0.05)
+    assert found["end_guard_s"] >= 0.1
+    assert "- plateau finding: reference noise 0.0" in (tmp_path / "rep" / "report.md").read_text()
