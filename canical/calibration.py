@@ -26,11 +26,11 @@ from canical.model_selection import select_model
 from canical.models.forward_poly import ForwardPoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
 from canical.noise_records import noise_analysis, sample_interval, zero_rate_records
-from canical.plateaus import Plateaus, detect_plateaus, saturated
+from canical.plateaus import Plateaus, detect_plateaus, explain_too_few, saturated
 from canical.segment_points import rate_noise
 from canical.session import Session
 from canical.unexplained import account
-from canical.zero_bias import ZERO_RATE_TOL_DPS, zero_bias
+from canical.zero_bias import zero_bias, zero_rate
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
 
@@ -44,9 +44,10 @@ class CalibrateOptions:
     order: int | None = None
     smoothness: int | None = 0
     breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS
-    rate_tol: float = 0.05
+    rate_tol: float | None = None  # None: from the reference's estimated noise
     min_duration_s: float = 1.0
-    settle_s: float = 0.5
+    settle_s: float | None = None  # None: 0.5 s or a tenth of the steady stretch
+    latency_s: float | None = None  # the reference's latency behind the sensor; None: estimated
     extend: bool = True  # run the closed loop (segmented-inverse only)
     prefer: tuple[str, ...] = ()  # candidate names to pick when confounded
     direction_threshold_dps: float = 1.0
@@ -76,15 +77,14 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
     if session.ref_dps is None:
         raise CanicalError("the session has no reference rate column: cannot calibrate")
     progress("finding plateaus")
-    plateaus = detect_plateaus(
-        session.time_s,
-        session.ref_dps,
-        rate_tol=options.rate_tol,
-        min_duration_s=options.min_duration_s,
-        settle_s=options.settle_s,
-    )
+    plateaus = find_plateaus(session, options)
     if plateaus.count == 0:
-        raise CanicalError("no constant-rate plateau found (check the ref_dps column and --ref-column)")
+        raise CanicalError(explain_too_few(plateaus, min_duration_s=options.min_duration_s,
+                                           what="no constant-rate plateau found"))
+    if not np.any(np.abs(plateaus.rate_dps) <= np.maximum(1e-3, 4.0 * plateaus.rate_uncertainty())):
+        raise CanicalError(explain_too_few(
+            plateaus, min_duration_s=options.min_duration_s,
+            what=f"no zero-rate plateau among {plateaus.count} plateaus (V0 cannot be measured)"))
     v0 = zero_bias(session.raw, plateaus)
     clipped = saturated(session.raw, plateaus)
     points = fit_points(session.raw, v0, plateaus).take(~clipped)
@@ -93,12 +93,28 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
         progress(f"left out {int(clipped.sum())} plateaus where the sensor saturates ({rates} deg/s)")
     n_rates = int(points.rate_groups().max()) + 1
     if n_rates < 4:
-        raise CanicalError(f"only {n_rates} distinct plateau rates: at least 4 are needed to calibrate")
+        raise CanicalError(explain_too_few(
+            plateaus, min_duration_s=options.min_duration_s,
+            what=f"only {n_rates} distinct plateau rates (at least 4 are needed)"))
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
     spec, candidates = _choose_spec(points, options)
     fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
     return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates)
+
+
+def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
+    """The session's plateaus with the user's thresholds (auto where not given)."""
+    return detect_plateaus(
+        session.time_s,
+        session.ref_dps,
+        rate_tol=options.rate_tol,
+        min_duration_s=options.min_duration_s,
+        settle_s=options.settle_s,
+        settled=session.settled,
+        latency_s=options.latency_s,
+        raw=session.raw,
+    )
 
 
 def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, list[dict[str, Any]]]:
@@ -168,6 +184,7 @@ def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
             "settling": base.plateaus.n_settling,
         },
         "plateaus": base.plateaus.count,
+        "plateau_finding": base.plateaus.describe(),
         "saturated_rates_dps": list(base.saturated_rates),
         "rates": int(base.points.rate_groups().max()) + 1,
         "segment_points": [
@@ -201,7 +218,7 @@ def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
     record, so the longest τ is a third of the longest zero-rate plateau and terms that
     need longer (rate random walk, usually) are reported as not resolved.
     """
-    zero = np.flatnonzero(np.abs(base.plateaus.rate_dps) <= ZERO_RATE_TOL_DPS)
+    zero = np.flatnonzero(zero_rate(base.plateaus))
     start, stop = base.plateaus.start[zero], base.plateaus.stop[zero]
     rate = np.zeros(len(session))
     for a, b in zip(start, stop, strict=True):

@@ -184,10 +184,15 @@ class EmulatedImu:
         axis = stream.table.axis  # type: ignore[attr-defined]
         for block in imu_blocks(stream):  # type: ignore[arg-type]
             raw = {a: block.raw[a].tolist() for a in AXES}
+            ref = block.ref_dps if block.ref_dps is not None else block.table_rate_dps
             rows = zip(
-                block.time_s.tolist(), block.table_rate_dps.tolist(), block.settled.tolist(),
+                block.time_s.tolist(), ref.tolist(), block.settled.tolist(),
                 block.temp_c.tolist(), block.supply_v.tolist(), strict=True,
             )
+            kept = block.kept.tolist() if block.kept is not None else None
+            # The table's own frames, on its own clock, sent as their time comes.
+            table_frames = [f.tolist() for f in block.table_frames] if block.table_frames else None
+            j = 0
             for i, (t, w, settled, temp, supply) in enumerate(rows):
                 if self.stop_event.is_set():
                     return
@@ -200,12 +205,19 @@ class EmulatedImu:
                 elif now - target > MAX_LAG_S:
                     start = now - k * period  # fell far behind (slow host): carry on from here
                 k += 1
+                if table_frames is not None and self.config.table_ref:
+                    ft, fw, fs = table_frames
+                    while j < len(ft) and ft[j] <= t:
+                        send(*frames.table(fw[j], axis, fs[j], j))
+                        j += 1
+                if kept is not None and not kept[i]:
+                    continue  # the sample's frames are lost (a logger or bus overload drops a burst)
                 counts = (raw["x"][i], raw["y"][i], raw["z"][i])
                 aux_id, aux_data = frames.aux(supply, t, k)
                 raw_id, raw_data = frames.raw(counts, temp, k)
                 send(aux_id, aux_data)
                 send(raw_id, raw_data)
-                if self.config.table_ref:
+                if self.config.table_ref and table_frames is None:
                     send(*frames.table(w, axis, settled, k))
                 self.frames_sent += 1
                 if not self.correction:

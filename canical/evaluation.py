@@ -123,9 +123,13 @@ class EffectScore:
     unexplained: bool = False
 
 
-def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0) -> EffectScore:
-    """Calibrate a scenario's session with the loop and compare with a model told the effect."""
-    session = scenario.session(seed, dwell_s)
+def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -> EffectScore:
+    """Calibrate a scenario's session with the loop and compare with a model told the effect.
+
+    ``table`` (a :class:`canical.sim.table_recording.TableBehaviour`) records the session as a
+    real table would; by default the table ramps at 100 deg/s² with the commanded rate.
+    """
+    session = scenario.session(seed, dwell_s, table=table)
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM", axis="z")
     loop = result.loop
     found = tuple(e["name"] for e in loop.effects)

@@ -19,6 +19,19 @@ def written_model(report: dict[str, Any]) -> str:
     return written["spec"] + (f" + {n} effect term{'s' * (n != 1)} ({names})" if n else "")
 
 
+def _plateau_finding(found: dict[str, Any] | None) -> list[str]:
+    """What plateau finding estimated from the session (empty for an older report)."""
+    if not found:
+        return []
+    return [
+        f"- plateau finding: reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
+        f"{found['rate_tol_dps']:.3g} deg/s over {found['window_s']:.3g} s windows; reference held "
+        f"{found['reference_update_s']:.3g} s, late {found['reference_latency_s']:.3g} s; guards: "
+        f"settle {found['settle_s']:.3g} s, end {found['end_guard_s']:.3g} s; "
+        f"{found['rate_changes']} rate changes"
+    ]
+
+
 def render(report: dict[str, Any], plots: list[str]) -> str:
     s = report["samples"]
     lines = [
@@ -28,6 +41,7 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
         f"- coefficient set: `{report.get('coefficients', '')}`: {written_model(report)}",
         f"- samples used: {s['used']} of {s['total']} ({s['transition']} at a changing rate, "
         f"{s['settling']} settling); {report['plateaus']} plateaus at {report['rates']} rates",
+        *_plateau_finding(report.get("plateau_finding")),
         f"- zero bias V0: {report['v0']:.3f}",
         "",
         "## Rate model alone",

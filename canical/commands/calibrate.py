@@ -49,6 +49,40 @@ def _auto_or_int(name: str, low: int, high: int):
     return parse
 
 
+def _auto_or_seconds(name: str, unit: str):
+    def parse(text: str) -> float | None:
+        if text == "auto":
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be 'auto' or a number of {unit}") from None
+        if not value >= 0 or value == float("inf"):
+            raise argparse.ArgumentTypeError(f"{name} must be a finite number of {unit}, 0 or more")
+        return value
+
+    return parse
+
+
+def add_plateau_arguments(parser: argparse.ArgumentParser) -> None:
+    """Thresholds of plateau finding; 'auto' takes them from the session (see the report)."""
+    parser.add_argument("--min-plateau", type=_auto_or_seconds("--min-plateau", "seconds"), default=1.0,
+                        metavar="S", help="shortest steady stretch that counts as a plateau, s [1]")
+    parser.add_argument("--settle", type=_auto_or_seconds("--settle", "seconds"), default=None,
+                        metavar="S", help="left out at the start of each plateau (table ringing, sensor "
+                        "filter), s, or 'auto': 0.5 s or a tenth of the plateau [auto]")
+    parser.add_argument("--rate-tol", type=_auto_or_seconds("--rate-tol", "deg/s"), default=None,
+                        metavar="DPS", help="largest change of the reference's windowed median that is "
+                        "still steady, deg/s, or 'auto': from the reference's estimated noise [auto]")
+    parser.add_argument("--ref-latency", type=_auto_or_seconds("--ref-latency", "seconds"), default=None,
+                        metavar="S", help="how late the reference is behind the sensor, s, cut from the "
+                        "end of each plateau with its hold interval; 'auto': estimated from when sensor "
+                        "and reference show each rate change [auto]")
+    parser.add_argument("--settled-column", metavar="NAME",
+                        help="CSV column with the table's settled flag (1 settled, 0 not); it narrows "
+                        "plateaus, never widens them (CAN logs: TABLE_REF.TableSettled)")
+
+
 def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by commands that read a session."""
     parser.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
@@ -103,6 +137,7 @@ def register(sub) -> None:
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
     add_session_arguments(p)
+    add_plateau_arguments(p)
     add_canlog_arguments(p)
     p.set_defaults(run=run)
 
@@ -124,7 +159,8 @@ def calibrate_session(args: argparse.Namespace) -> int:
     if is_canlog(args.session):
         session = read_canlog_session(args, progress)
     else:
-        session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column)
+        session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column,
+                               settled_column=args.settled_column)
     sensor = args.sensor or session.sensor_id
     if args.sensor and session.sensor_id and args.sensor != session.sensor_id:
         raise CanicalError(f"--sensor {args.sensor} but {args.session} was recorded from {session.sensor_id}")
@@ -142,6 +178,10 @@ def calibrate_session(args: argparse.Namespace) -> int:
         breakpoints_dps=args.breakpoints,
         extend=not args.no_extend,
         prefer=tuple(args.prefer),
+        rate_tol=args.rate_tol,
+        min_duration_s=args.min_plateau if args.min_plateau is not None else 1.0,
+        settle_s=args.settle,
+        latency_s=args.ref_latency,
     )
     result = calibrate(
         session,
@@ -212,6 +252,14 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress):
     return log.session
 
 
+def _plateau_line(found: dict | None) -> str:
+    if not found:
+        return "plateaus   (not reported)"
+    return (f"plateaus   reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
+            f"{found['rate_tol_dps']:.3g} deg/s, held {found['reference_update_s']:.3g} s, "
+            f"late {found['reference_latency_s']:.3g} s, {found['rate_changes']} rate changes")
+
+
 def summary(report: dict) -> str:
     """A few lines a calibration engineer reads first."""
     s = report["samples"]
@@ -219,6 +267,7 @@ def summary(report: dict) -> str:
         f"rate model {report['spec']} (size chosen on held-out plateau means)",
         f"samples    {s['used']} of {s['total']} used "
         f"({s['transition']} at changing rate, {s['settling']} settling), {report['plateaus']} plateaus",
+        _plateau_line(report.get("plateau_finding")),
         f"V0         {report['v0']:.3f}",
     ]
     if report["segment_points"]:

@@ -19,6 +19,7 @@ from canical.sim import effects as fx
 from canical.sim import environment as env
 from canical.sim.gyro import Effect, GyroModel
 from canical.sim.sessions import paper_rates, sweep_session
+from canical.sim.table_recording import TableBehaviour
 from canical.terms import Term
 
 
@@ -44,9 +45,10 @@ class Scenario:
             return np.concatenate([base, base[::-1], base, base[::-1]])
         return np.concatenate([base, base])
 
-    def session(self, seed: int = 0, dwell_s: float = 10.0) -> Session:
+    def session(self, seed: int = 0, dwell_s: float = 10.0, table: TableBehaviour | None = None) -> Session:
+        """The scenario's session; ``table`` records it as a real table would (ramps, jitter...)."""
         gyro = replace(self.gyro or GyroModel(), effects=self.effects)
-        return sweep_session(gyro, self.rates(seed), dwell_s=dwell_s, seed=seed, aux=self.aux)
+        return sweep_session(gyro, self.rates(seed), dwell_s=dwell_s, seed=seed, aux=self.aux, table=table)
 
 
 def _t(kind: str, feature: str, form: str, **kw) -> Term:
