@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from canical import coefficient_file
 from canical.atomic_file import atomic_writer
 from canical.errors import CanicalError
 
@@ -134,6 +133,8 @@ def plan(layout: Layout, request: Request) -> list[Step]:
         raise CanicalError(f"--wheel {request.package}: file not found")
     sets = []
     for path in request.sets:
+        from canical import coefficient_file  # numpy, yaml: not for install-service --help
+
         cset = coefficient_file.load(path)  # refuses a broken set with one line
         sets.append((path, cset.axis))
     axes = [axis for _, axis in sets]
