@@ -78,6 +78,9 @@ uint32_t ce_crc32(const uint8_t *data, uint32_t length)
 enum {
     CE_TERM_CHANNEL_OFFSET = 1,
     CE_TERM_CHANNEL_SQUARE,
+    CE_TERM_CHANNEL_LAG,        /* stateful channel transforms (canical.terms.ChannelTracker) */
+    CE_TERM_CHANNEL_DERIVATIVE,
+    CE_TERM_CHANNEL_DIRECTION,
     CE_TERM_TIME_WARMUP,
     CE_TERM_TIME_LINEAR,
     CE_TERM_DIRECTION_SIGN,
@@ -98,6 +101,9 @@ typedef struct {
 static const term_spec TERM_SPECS[] = {
     {"channel", "offset", CE_TERM_CHANNEL_OFFSET, NEEDS_CHANNEL},
     {"channel", "square", CE_TERM_CHANNEL_SQUARE, NEEDS_CHANNEL},
+    {"channel", "lag", CE_TERM_CHANNEL_LAG, NEEDS_CHANNEL | NEEDS_TAU},
+    {"channel", "derivative", CE_TERM_CHANNEL_DERIVATIVE, NEEDS_CHANNEL | NEEDS_TAU},
+    {"channel", "direction", CE_TERM_CHANNEL_DIRECTION, NEEDS_CHANNEL | NEEDS_THRESHOLD},
     {"time", "warmup", CE_TERM_TIME_WARMUP, NEEDS_TAU},
     {"time", "linear", CE_TERM_TIME_LINEAR, 0u},
     {"direction", "sign", CE_TERM_DIRECTION_SIGN, NEEDS_THRESHOLD},
@@ -959,6 +965,11 @@ static int parse_term(cur *c, reading *r, ce_term *t)
     t->reference = (float)reference;
     t->inv_tau = have_tau ? (float)(1.0 / tau) : 0.0f;
     t->threshold = have_threshold ? (float)threshold : 1.0f;
+    if (have_tau) { /* the running mean lasts while elapsed ms < tau * 1000 (int32 ms) */
+        double ms = tau * 1000.0;
+        int32_t whole = ms < 2147483647.0 ? (int32_t)ms : INT32_MAX;
+        t->mean_ms = whole < INT32_MAX && (double)whole < ms ? whole + 1 : whole;
+    }
     return 0;
 }
 
@@ -1131,6 +1142,71 @@ static float forward_rate(const ce_set *s, float target, float dv)
     return w;
 }
 
+/* Hysteresis on v (canical.terms.DirectionTracker): +1/-1 after a move larger than the
+ * threshold from the last extreme, 0 before either. */
+static float hysteresis(ce_term *t, float v)
+{
+    if (!t->started) {
+        t->started = 1;
+        t->high = t->low = v;
+        t->state = 0.0f;
+    }
+    if (v > t->high) {
+        t->high = v;
+    }
+    if (v < t->low) {
+        t->low = v;
+    }
+    if (t->state <= 0.0f && v - t->low > t->threshold) {
+        t->state = 1.0f;
+        t->high = v;
+    } else if (t->state >= 0.0f && t->high - v > t->threshold) {
+        t->state = -1.0f;
+        t->low = v;
+    }
+    return t->state;
+}
+
+/* hi + lo += d, exactly to about 2^-48 of hi (TwoSum, then renormalise). */
+static void pair_add(float *hi, float *lo, float d)
+{
+    float s = *hi + d;
+    float bb = s - *hi;
+    float err = (*hi - (s - bb)) + (d - bb);
+    float l = *lo + err;
+    *hi = s + l;
+    *lo = l - (*hi - s);
+}
+
+/* v minus the first-order lag y of channel v (canical.terms.ChannelTracker): for the first tau
+ * of the stream y is the running mean of the samples, then y += (1 - exp(-dt/tau)) (v - y),
+ * exact for any spacing; a sample whose time does not advance leaves y alone. y is a float
+ * pair: with a long tau the steps are far below y's float32 resolution. */
+static float channel_lag_gap(ce_term *t, float v, uint32_t now_ms)
+{
+    if (!t->started) {
+        t->started = 1;
+        t->lagging = 0;
+        t->y = v;
+        t->y_err = 0.0f;
+        t->start_ms = now_ms;
+        t->count = 1u;
+    } else if (!t->lagging && (int32_t)(now_ms - t->start_ms) < t->mean_ms) {
+        if (t->count < 0xFFFFFFFFu) {
+            t->count++;
+        }
+        pair_add(&t->y, &t->y_err, ((v - t->y) - t->y_err) / (float)t->count);
+    } else {
+        t->lagging = 1; /* time runs forward: the mean never resumes (not even after the ms wrap) */
+        if ((int32_t)(now_ms - t->last_ms) > 0) {
+            float dt = (float)(now_ms - t->last_ms) * 0.001f;
+            pair_add(&t->y, &t->y_err, -expm1_f(-dt * t->inv_tau) * ((v - t->y) - t->y_err));
+        }
+    }
+    t->last_ms = now_ms;
+    return (v - t->y) - t->y_err;
+}
+
 static float term_feature(ce_term *t, const ce_sample *in, float t_s)
 {
     float x;
@@ -1140,30 +1216,19 @@ static float term_feature(ce_term *t, const ce_sample *in, float t_s)
     case CE_TERM_CHANNEL_SQUARE:
         x = in->inputs[t->input] - t->reference;
         return x * x;
+    case CE_TERM_CHANNEL_LAG: /* y - ref = v - ref - (v - y) */
+        x = in->inputs[t->input];
+        return (x - t->reference) - channel_lag_gap(t, x, in->time_ms);
+    case CE_TERM_CHANNEL_DERIVATIVE: /* dy/dt = (v - y) / tau */
+        return channel_lag_gap(t, in->inputs[t->input], in->time_ms) * t->inv_tau;
+    case CE_TERM_CHANNEL_DIRECTION:
+        return hysteresis(t, in->inputs[t->input]);
     case CE_TERM_TIME_WARMUP:
         return -expm1_f(-t_s * t->inv_tau);
     case CE_TERM_TIME_LINEAR:
         return t_s;
-    case CE_TERM_DIRECTION_SIGN: /* hysteresis: flips after a move of threshold from the extreme */
-        if (!t->started) {
-            t->started = 1;
-            t->high = t->low = in->raw;
-            t->state = 0.0f;
-        }
-        if (in->raw > t->high) {
-            t->high = in->raw;
-        }
-        if (in->raw < t->low) {
-            t->low = in->raw;
-        }
-        if (t->state <= 0.0f && in->raw - t->low > t->threshold) {
-            t->state = 1.0f;
-            t->high = in->raw;
-        } else if (t->state >= 0.0f && t->high - in->raw > t->threshold) {
-            t->state = -1.0f;
-            t->low = in->raw;
-        }
-        return t->state;
+    case CE_TERM_DIRECTION_SIGN: /* hysteresis on the raw output */
+        return hysteresis(t, in->raw);
     case CE_TERM_DIRECTION_SLOPE: /* d(raw)/dt smoothed with time constant tau */
         if (t->started && (int32_t)(in->time_ms - t->last_ms) > 0) {
             float dt = (float)(in->time_ms - t->last_ms) * 0.001f;

@@ -8,7 +8,7 @@
  *
  * - No heap, no recursion, no libm: the per-sample path uses float32 add, subtract,
  *   multiply, divide and compare only (a Cortex-M4F's FPU does all of them in hardware);
- *   exp() for the warm-up and slope terms is computed here with those operations.
+ *   exp() for the warm-up, slope, lag and derivative terms is computed here with those operations.
  *   ce_load() parses numbers in double precision (software floating point on a
  *   single-precision FPU: load time only, never per sample).
  * - Bounded work per sample: at most CE_MAX_TERMS terms, CE_MAX_SEGMENTS segments and
@@ -35,7 +35,7 @@ extern "C" {
 #define CE_MAX_COEFFS 10 /* coefficients per polynomial (order 9) */
 #endif
 #ifndef CE_MAX_TERMS
-#define CE_MAX_TERMS 8 /* effect terms of a set */
+#define CE_MAX_TERMS 12 /* effect terms of a set */
 #endif
 #ifndef CE_MAX_INPUTS
 #define CE_MAX_INPUTS 8 /* run-time channels a device offers */
@@ -93,6 +93,12 @@ typedef struct {
     float state, high, low, last_raw;
     uint32_t last_ms;
     uint8_t started;
+    /* state of a channel's lag and derivative terms: the lag y as a float pair (y + y_err), the
+     * running mean's count and start for the first tau (mean_ms: tau in whole milliseconds) */
+    uint8_t lagging;
+    float y, y_err;
+    uint32_t start_ms, count;
+    int32_t mean_ms;
 } ce_term;
 
 typedef struct {
@@ -123,7 +129,7 @@ uint32_t ce_crc32(const uint8_t *data, uint32_t length);
 int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t declared_crc,
             const ce_device *device);
 
-/* Forget direction and slope state (a new stream of samples begins). */
+/* Forget direction, slope, lag and derivative state (a new stream of samples begins). */
 void ce_reset(ce_set *set);
 
 /* Correct the next sample of the stream: *rate_dps in deg/s. Returns 1 when the sample

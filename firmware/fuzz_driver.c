@@ -95,7 +95,11 @@ static int try_load(const uint8_t *data, uint32_t len, uint32_t crc, const ce_de
             ce_sample s;
             float rate;
             s.raw = (float)((int32_t)(next_u32() % 80000u) - 40000);
-            s.time_ms = (uint32_t)i * 10u;
+            /* 100 ms apart across the counter's wrap: lag and derivative terms with tau of a few
+             * seconds reach their lag phase; channels that move flip direction terms */
+            s.time_ms = 0xFFFFF000u + (uint32_t)i * 100u;
+            inputs[0] = 25.0f + (float)(next_u32() % 7u) * 0.3f;
+            inputs[1] = 12.0f + (float)(next_u32() % 5u) * 0.02f;
             s.inputs = inputs;
             if (ce_eval(&set, &s, &rate) < 0) {
                 exit(4);

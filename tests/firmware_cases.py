@@ -23,6 +23,8 @@ SERIAL = 4711
 SENSOR = str(SERIAL)
 AXIS = "z"
 CHANNELS = ("temp_c", "supply_v")
+TEMP_STEP = 0.1  # degC: the Temperature signal of canical.dbc
+SUPPLY_STEP = 0.001  # V: SupplyVoltage
 
 MODELS = {
     "segmented-inverse": CalibrateOptions(segments=3, order=3, extend=False),
@@ -80,7 +82,40 @@ TERMS = {
         "coefficient": 2e-3,
         "tau_s": 0.05,
     },
+    "channel-lag": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "lag",
+        "form": "bias",
+        "coefficient": 2.8,
+        "reference": 25.0,
+        "tau_s": 120.0,
+    },
+    "channel-derivative": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "derivative",
+        "form": "scale",
+        "coefficient": 0.02,
+        "tau_s": 2.5,
+    },
+    "channel-direction": {  # threshold off the 1 mV grid of the IMU's supply frames: no ties
+        "kind": "channel",
+        "channel": "supply_v",
+        "feature": "direction",
+        "form": "bias",
+        "coefficient": 4.5,
+        "threshold_raw": 0.0375,
+    },
 }
+
+#: The stateful channel transforms in their other form (TERMS holds one form of each).
+OTHER_FORMS = {
+    "channel-lag-scale": dict(TERMS["channel-lag"], form="scale", coefficient=1e-4),
+    "channel-derivative-bias": dict(TERMS["channel-derivative"], form="bias", coefficient=150.0),
+    "channel-direction-scale": dict(TERMS["channel-direction"], form="scale", coefficient=3e-4),
+}
+ALL_TERMS = {**TERMS, **OTHER_FORMS}
 
 
 @functools.cache
@@ -92,7 +127,7 @@ def model_set(name: str) -> CoefficientSet:
 
 def with_terms(cset: CoefficientSet, names: tuple[str, ...]) -> CoefficientSet:
     """The set with effect terms attached, validated through the file format."""
-    terms = tuple(term_from_dict(TERMS[n]).to_dict() for n in names)
+    terms = tuple(term_from_dict(ALL_TERMS[n]).to_dict() for n in names)
     out = replace(cset, terms=terms)
     return coefficient_file.loads(coefficient_file.dumps(out))
 
@@ -103,7 +138,12 @@ def term_set(names: tuple[str, ...]) -> CoefficientSet:
 
 def stream(cset: CoefficientSet, n: int, seed: int = 0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """n samples at 100 Hz: integer counts sweeping the span and 15% beyond it (so out-of-span
-    samples occur at both ends), with wiggles that reverse direction, temperature, supply, time."""
+    samples occur at both ends), with wiggles that reverse direction, temperature, supply, time.
+
+    Channels come at the resolution the IMU's frames carry them (as a device's ADC delivers
+    them), not as arbitrary doubles: the firmware gets float32 values, and a channel-direction
+    decision made within float32 rounding of its threshold can only agree with canical's double
+    one if the values sit on a grid the threshold is off."""
     rng = np.random.default_rng(seed)
     lo, hi = cset.span_raw
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * 1.15
@@ -114,4 +154,9 @@ def stream(cset: CoefficientSet, n: int, seed: int = 0) -> tuple[np.ndarray, dic
     time_s = k / 100.0
     temp = 25.0 + 18.0 * np.sin(2 * np.pi * k / 250_000.0) + rng.normal(0.0, 0.05, n)
     supply = 12.0 + 0.6 * np.sin(2 * np.pi * k / 90_000.0) + rng.normal(0.0, 0.01, n)
+    temp, supply = on_grid(temp, TEMP_STEP), on_grid(supply, SUPPLY_STEP)
     return raw, {"time_s": time_s, "temp_c": temp, "supply_v": supply}
+
+
+def on_grid(values: np.ndarray, step: float) -> np.ndarray:
+    return np.round(values / step) * step

@@ -15,7 +15,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from firmware_cases import AXIS, CHANNELS, MODELS, SERIAL, TERMS, model_set, stream, term_set
+from firmware_cases import (
+    ALL_TERMS,
+    AXIS,
+    CHANNELS,
+    MODELS,
+    SERIAL,
+    TERMS,
+    model_set,
+    stream,
+    term_set,
+)
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -130,7 +140,7 @@ def lib_for_hypothesis(lib):
 # ----------------------------------------------------------------------------------------------
 
 CASES = {f"model {m}": (lambda m=m: model_set(m)) for m in MODELS}
-CASES.update({f"term {t}": (lambda t=t: term_set((t,))) for t in TERMS})
+CASES.update({f"term {t}": (lambda t=t: term_set((t,))) for t in ALL_TERMS})
 CASES["every term at once"] = lambda: term_set(tuple(TERMS))
 
 
@@ -200,6 +210,16 @@ def _huge(d):
     d["model"]["coefficients"] = [d["model"]["coefficients"][0]] * (n + 1)
 
 
+def _term_edit(which: str, **fields):
+    """Change the channel term of feature ``which`` (a stateful channel transform) in a bank's dict."""
+
+    def change(d):
+        (term,) = [t for t in d["terms"] if t["kind"] == "channel" and t["feature"] == which]
+        term.update(fields)
+
+    return change
+
+
 REFUSALS = {
     "truncated": (lambda c: c[:-1], "CE_ERR_SYNTAX"),
     "white space": (lambda c: c.replace(b",", b", ", 1), "CE_ERR_NOT_CANONICAL"),
@@ -237,6 +257,23 @@ REFUSALS = {
         lambda c: _edit(c, lambda d: [t.update(tau_s=-1.0) for t in d["terms"] if t["tau_s"] is not None]),
         "CE_ERR_FIELD",
     ),
+    "lag without tau": (lambda c: _edit(c, _term_edit("lag", tau_s=None)), "CE_ERR_FIELD"),
+    "derivative with tau 0": (lambda c: _edit(c, _term_edit("derivative", tau_s=0.0)), "CE_ERR_FIELD"),
+    "derivative with tau as text": (lambda c: _edit(c, _term_edit("derivative", tau_s="1")), "CE_ERR_FIELD"),
+    "lag of no channel": (lambda c: _edit(c, _term_edit("lag", channel=None)), "CE_ERR_FIELD"),
+    "channel direction without threshold": (
+        lambda c: _edit(c, _term_edit("direction", threshold_raw=None)),
+        "CE_ERR_FIELD",
+    ),
+    "channel direction threshold negative": (
+        lambda c: _edit(c, _term_edit("direction", threshold_raw=-0.5)),
+        "CE_ERR_FIELD",
+    ),
+    "channel direction with tau negative": (
+        lambda c: _edit(c, _term_edit("direction", tau_s=-1.0)),
+        "CE_ERR_FIELD",
+    ),
+    "channel transform misspelt": (lambda c: _edit(c, _term_edit("lag", feature="Lag")), "CE_ERR_TERM_KIND"),
     "another sensor": (lambda c: _edit(c, lambda d: d["sensor"].update(id="4712")), "CE_ERR_SENSOR"),
     "another axis": (lambda c: _edit(c, lambda d: d["sensor"].update(axis="x")), "CE_ERR_AXIS"),
 }
@@ -353,6 +390,7 @@ def malformed(base: dict, rng: random.Random) -> tuple[bytes, int, str]:
             "non-canonical",
             "schema",
             "term",
+            "channel-term",
             "order-of-knots",
             "identity",
         )
@@ -476,6 +514,30 @@ def malformed(base: dict, rng: random.Random) -> tuple[bytes, int, str]:
         d["terms"] = [*d["terms"], term]
         if not piecewise:
             d["terms"] = [dict(term, kind="time", feature="linear")]  # terms need a segmented model
+    elif kind == "channel-term":  # a stateful channel transform with a parameter wrong
+        feature = rng.choice(("lag", "derivative", "direction"))
+        term = dict(ALL_TERMS[f"channel-{feature}"], reference=0.0)
+        term.setdefault("tau_s", None)
+        term.setdefault("threshold_raw", None)
+        need = "threshold_raw" if feature == "direction" else "tau_s"
+        change = rng.choice(
+            ("missing", "not positive", "wrong type", "other's", "channel", "feature", "coefficient")
+        )
+        if change == "missing":
+            term[need] = None
+        elif change == "not positive":
+            term[need] = rng.choice((0.0, -1.0, -1e-300, -5e30))
+        elif change == "wrong type":
+            term[need] = rng.choice(("1", [2.5], {}, True, marker))
+        elif change == "other's":  # the optional one given, but not positive
+            term["threshold_raw" if need == "tau_s" else "tau_s"] = rng.choice((0.0, -2.0, marker))
+        elif change == "channel":
+            term["channel"] = rng.choice(("", None, 5, [], marker))
+        elif change == "feature":
+            term["feature"] = rng.choice(("Lag", "lag ", "d/dt", "derivative2", "sign", "slope", ""))
+        else:
+            term["coefficient"] = rng.choice((None, "1", marker, False))
+        d["terms"] = [*d["terms"], term] if piecewise else [term]
     elif kind == "order-of-knots" and piecewise and len(m["knots_raw"]) >= 2:
         m["knots_raw"][0], m["knots_raw"][1] = m["knots_raw"][1], m["knots_raw"][0]
     elif kind == "order-of-knots":
@@ -581,6 +643,8 @@ def test_emulated_imu_corrects_its_frames_with_the_firmware(caplog):
     from canical.imu_dictionary import pack_active
 
     cset = term_set(tuple(TERMS))
+    transforms = {t["feature"] for t in cset.terms if t["kind"] == "channel"}
+    assert transforms >= {"lag", "derivative", "direction"}  # the stateful channel terms run in C too
     imu = EmulatedImu(EmulatorConfig(serial=SERIAL), canopen.Network())
     content, crc = encode_set(cset)
     imu.store.write_content(AXIS, "B", content)
@@ -623,9 +687,10 @@ def random_sets(draw):
         model = {"kind": "segmented-inverse", "knots_raw": [k + v0 for k in knots], "segment_points_dps": [],
                  "scale": scale, "coefficients": rows, "smoothness": None, "span_raw": [lo + v0, hi + v0],
                  "out_of_span": "linear-extrapolation"}  # fmt: skip
-        names = draw(st.lists(st.sampled_from(sorted(TERMS)), unique=True, max_size=4))
+        names = draw(st.lists(st.sampled_from(sorted(ALL_TERMS)), unique=True, max_size=4))
         terms = tuple(
-            dict(TERMS[n], coefficient=TERMS[n]["coefficient"] * draw(st.floats(-2, 2))) for n in names
+            dict(ALL_TERMS[n], coefficient=ALL_TERMS[n]["coefficient"] * draw(st.floats(-2, 2)))
+            for n in names
         )
     else:
         a1 = draw(st.floats(5000, 30000))
@@ -665,6 +730,62 @@ def test_property_any_valid_set_evaluates_like_canical(lib_for_hypothesis, cset,
     for r, e, o in zip(raw.astype(np.int32).tolist(), expected.tolist(), expected_oos.tolist(), strict=True):
         assert lib.ce_fixed_eval(fixed, r, ctypes.byref(out)) == o
         assert abs(out.value / 65536.0 - e) < 1e-3
+
+
+#: Coefficients of the stateful channel terms per form (raw units per unit of x, or relative gain).
+TRANSFORM_COEFFICIENTS = {
+    ("lag", "bias"): 2.8,
+    ("lag", "scale"): 1e-4,
+    ("derivative", "bias"): 150.0,
+    ("derivative", "scale"): 0.02,
+    ("direction", "bias"): 4.5,
+    ("direction", "scale"): 3e-4,
+}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    feature=st.sampled_from(("lag", "derivative", "direction")),
+    form=st.sampled_from(("bias", "scale")),
+    tau_ms=st.integers(5, 3_000),  # the lag's phase after τ within the stream's seconds
+    threshold_steps=st.integers(1, 40),
+    n=st.integers(2, 800),
+    longest_step_ms=st.integers(0, 80),
+    start_ms=st.one_of(st.integers(0, 2**32 - 1), st.integers(2**32 - 20_000, 2**32 - 1)),  # wraps
+    seed=st.integers(0, 1000),
+)
+def test_property_channel_transforms_on_any_time_spacing(
+    lib_for_hypothesis, feature, form, tau_ms, threshold_steps, n, longest_step_ms, start_ms, seed
+):
+    """A channel's lag, derivative and direction, sample by sample as the device runs them, with
+    samples at any spacing (repeated times too) and from any point of the millisecond counter
+    (it wraps after 49.7 days; canical's seconds do not): canical's rates within 1e-4 deg/s and
+    its out-of-span flags.
+
+    τ lies half a millisecond off the millisecond grid and the threshold half a step off the
+    channel's 0.01 grid: exactly at τ after the first sample, or a move of exactly the
+    threshold, canical's double-precision comparison falls either way by rounding, while the
+    device decides on whole milliseconds and float32 values."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(seed)
+    term = {"kind": "channel", "channel": "temp_c", "feature": feature, "form": form,
+            "coefficient": TRANSFORM_COEFFICIENTS[feature, form], "reference": 25.0,
+            "tau_s": (tau_ms + 0.5) / 1000.0 if feature != "direction" else None,
+            "threshold_raw": (threshold_steps + 0.5) * 0.01 if feature == "direction" else None}  # fmt: skip
+    base = model_set("segmented-inverse")
+    one = replace(base, terms=(term_from_dict(term).to_dict(),))
+    cset = coefficient_file.loads(coefficient_file.dumps(one))
+    raw, _ = stream(cset, n, seed=seed)
+    time_s = (start_ms + np.cumsum(rng.integers(0, longest_step_ms + 1, n))) / 1000.0
+    temp = (2500 + np.cumsum(rng.integers(-4, 5, n))) * 0.01
+    python, device = Corrector(cset), FirmwareCorrector(cset, lib=lib_for_hypothesis)
+    for r, t, v in zip(raw.tolist(), time_s.tolist(), temp.tolist(), strict=True):
+        inputs = {"time_s": t, "temp_c": v}
+        expected, expected_oos = python.correct_one(r, inputs)
+        rate, oos = device.correct_one(r, inputs)
+        assert oos == expected_oos
+        assert abs(rate - expected) <= TOLERANCE_DPS, (t, rate, expected)
 
 
 def test_agrees_with_canical_on_fields_it_does_not_read(lib):

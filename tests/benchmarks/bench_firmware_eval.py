@@ -44,14 +44,21 @@ PER_SAMPLE = (
     "horner",
     "horner_slope",
     "term_feature",
+    "hysteresis",
+    "pair_add",
+    "channel_lag_gap",
 )
-LIMITS = {"segments": 16, "coeffs": 10, "terms": 8, "newton": 40}
+LIMITS = {"segments": 16, "coeffs": 10, "terms": 12, "newton": 40}
 
 # Operations counted from canical_eval.c along each path (see firmware/README.md, "Cost per
 # sample"): float add, subtract, multiply, divide, negate, compare and int<->float conversion
 # each count one; integer arithmetic is not counted.
 EXPM1 = 29  # checks 3, range reduction 10, degree-7 polynomial 13, scaling 3
-TERM_OPS = {"offset": 1, "square": 2, "warmup": 3 + EXPM1, "linear": 0, "sign": 8, "slope": 10 + EXPM1}
+# A channel's lag y after its first τ (the costlier branch; the running mean before it is 16):
+# dt 2, exp argument 2, expm1, negate 1, step 3, float-pair add 10, gap 2.
+LAG_GAP = 20 + EXPM1
+TERM_OPS = {"offset": 1, "square": 2, "warmup": 3 + EXPM1, "linear": 0, "sign": 8, "slope": 10 + EXPM1,
+            "lag": LAG_GAP + 2, "derivative": LAG_GAP + 1, "direction": 8}  # fmt: skip
 
 
 def operations(segments: int, coeffs: int, features: list[str], scale_terms: int) -> tuple[int, int]:
@@ -109,11 +116,11 @@ def main() -> None:
                 segments, coeffs, [t.feature for t in terms], sum(t.form == "scale" for t in terms)
             )
         print(f"{name:34s} {segments:4d} {coeffs:4d} {c_ns:7.1f} {py_us:17.2f} {ops[0]:9d} / {ops[1]:<7d}")
-    worst = operations(LIMITS["segments"], LIMITS["coeffs"], ["slope"] * LIMITS["terms"], LIMITS["terms"])
+    worst = operations(LIMITS["segments"], LIMITS["coeffs"], ["lag"] * LIMITS["terms"], LIMITS["terms"])
     fwd = forward_operations(LIMITS["coeffs"], LIMITS["newton"])
     print(
         f"worst case the limits allow: piecewise {max(worst)} operations (16 segments, order 9, "
-        f"8 slope terms), forward polynomial {max(fwd)} (order 9, 40 Newton steps)"
+        f"{LIMITS['terms']} lag terms), forward polynomial {max(fwd)} (order 9, 40 Newton steps)"
     )
     print("(forward polynomial counted with 3 Newton steps from the chord; a counting build measured 2.2 on")
     print(" average over this stream, out-of-span samples included)")
