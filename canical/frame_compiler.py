@@ -132,7 +132,9 @@ def compile_codec(message: Message) -> CompiledCodec:
     ranges: list[str] = []  # checked after every value is converted, as cantools does
     rounded: list[str] = []  # the signals that need round() even for an integer (scaled ones)
     rounded_ranges: list[str] = []
-    checks, fast_fields = [], {"little_endian": [], "big_endian": []}  # integers as they are
+    checks: list[str] = []  # signed fields, one check each
+    unsigned: dict[int, list[str]] = {}  # unsigned fields by width: one check for all of a width
+    fast_fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}  # integers as they are
     fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}
     outs = []
     for i, sig in enumerate(message.signals):
@@ -173,7 +175,10 @@ def compile_codec(message: Message) -> CompiledCodec:
         part = f"(r{i} & {mask:#x})" if sig.is_signed else f"r{i}"
         fields[order].append(f"({part} << {shift})" if shift else part)
         if isinstance(conv, IdentityConversion):  # an int needs no rounding: skip round() per flag
-            checks.append(f"((v{i}{bias}) >> {n})")
+            if sig.is_signed:
+                checks.append(f"((v{i}{bias}) >> {n})")
+            else:  # a negative or too wide value leaves a bit above n in the OR of them all
+                unsigned.setdefault(n, []).append(f"v{i}")
             vpart = f"(v{i} & {mask:#x})" if sig.is_signed else f"v{i}"
             fast_fields[order].append(f"({vpart} << {shift})" if shift else vpart)
         else:
@@ -192,6 +197,7 @@ def compile_codec(message: Message) -> CompiledCodec:
 
     exact = ["def encode_exact(values):", unpack, *exact, *ranges, f"    return {packed(fields)}"]
     enc = ["def encode(values):"]
+    checks += [f"(({' | '.join(names_)}) >> {n})" for n, names_ in unsigned.items()]
     if checks:
         # The common case, integers (or bools) in range, without a round() per signal; a float,
         # a negative or too wide value goes the exact way, which rounds, or raises as cantools does.

@@ -58,12 +58,25 @@ def base_set(axis: str, seed: int = 0) -> CoefficientSet:
     return result.coefficients
 
 
-def write_sets(folder: Path, *, variant: int = 0) -> dict[str, Path]:
-    """imu-x/y/z.yaml with the TERMS; ``variant`` shifts V0 (0.1 deg/s per step) so generations differ."""
+#: Terms on every axis, every kind once: what the per-frame benchmarks correct with.
+ALL_TERMS = {
+    "x": TERMS["x"],
+    "y": (*TERMS["y"], {"kind": "direction", "feature": "slope", "form": "scale", "coefficient": 1e-6,
+                        "tau_s": 0.05}),
+    "z": ({"kind": "channel", "channel": "supply_v", "feature": "square", "form": "scale",
+           "coefficient": 0.001, "reference": 5.0},
+          {"kind": "time", "feature": "linear", "form": "bias", "coefficient": 0.001}),
+}
+
+
+def write_sets(folder: Path, *, variant: int = 0, terms: dict | None = None) -> dict[str, Path]:
+    """imu-x/y/z.yaml with the TERMS (or ``terms``); ``variant`` shifts V0 (0.1 deg/s per step)
+    so generations differ."""
     paths = {}
     base = base_set("z")
+    terms = TERMS if terms is None else terms
     for axis in AXES:
-        cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * variant)
+        cset = dataclasses.replace(base, axis=axis, terms=terms[axis], v0=base.v0 + 40.0 * variant)
         paths[axis] = folder / f"imu-{axis}.yaml"
         coefficient_file.save(paths[axis], cset)
     return paths
@@ -162,6 +175,7 @@ class NotifyListener:
         self.sock.bind(b"\0" + self.name[1:].encode())
         self.sock.settimeout(0.2)
         self.messages: list[dict[str, str]] = []
+        self.arrived: dict[str, float] = {}  # time.monotonic() a key first came (READY: start-up time)
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -174,7 +188,10 @@ class NotifyListener:
                 continue
             except OSError:
                 return
+            now = time.monotonic()
             fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
+            for key in fields:
+                self.arrived.setdefault(key, now)
             self.messages.append(fields)
 
     def wait_for(self, key: str, timeout: float) -> dict[str, str]:
@@ -202,13 +219,14 @@ class DaemonProcess:
     """``canical serve`` as a child process with a notify socket and a watchdog, as systemd runs it."""
 
     def __init__(self, config: Path, *, watchdog_usec: int = 1_000_000, ready_timeout: float = 90.0,
-                 extra_args: tuple[str, ...] = ()) -> None:
+                 extra_args: tuple[str, ...] = (), extra_env: dict[str, str] | None = None) -> None:
         self.notify = NotifyListener()
         self.log_path = config.with_suffix(".daemon.log")
         env = dict(os.environ, NOTIFY_SOCKET=self.notify.name, WATCHDOG_USEC=str(watchdog_usec),
-                   PYTHONUNBUFFERED="1")
+                   PYTHONUNBUFFERED="1", **(extra_env or {}))
         env.pop("WATCHDOG_PID", None)
         self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
+        self.started = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "canical", "serve", "--config", str(config), *extra_args],
             stdout=self._log, stderr=subprocess.STDOUT, env=env, cwd=ROOT)
