@@ -2,11 +2,14 @@
 
 One thread does everything, in this order, so nothing needs a lock:
 
-* ``recv`` one frame (the kernel's receive filters pass only the raw frame and the frames
-  that carry configured inputs; error frames always come through and are counted);
+* receive one frame (the kernel's receive filters pass only the raw frame and the frames
+  that carry configured inputs; error frames always come through and are counted): on
+  SocketCAN one ``recvmsg`` on the bus's raw socket, elsewhere python-can's ``recv``;
 * classify it: error, remote, CAN FD, unknown id and wrong length are counted and dropped;
   an input frame updates the held value and time of its signals; a raw frame is decoded,
-  corrected on its three axes with the sets read from ``self.sets`` **once**, encoded and sent;
+  corrected on its three axes with the sets read from ``self.sets`` **once**, encoded and sent
+  (codecs generated from the DBC and correctors generated from the sets, at load:
+  :mod:`canical.frame_compiler`, :mod:`canical.fast_corrector`);
 * between frames, at deadlines: watchdog ping, status frames and systemd STATUS, file checks
   and SIGHUP reloads. Signal handlers only set flags; the loop acts on them.
 

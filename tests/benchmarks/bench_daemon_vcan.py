@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
+import signal
 import socket
 import statistics
 import struct
@@ -168,6 +170,22 @@ class Subject:
                       "rss_kb": memory_kb(self.pid, "VmRSS")}
         return self
 
+    def syscalls(self, frames: list[bytes], rate_hz: float | None) -> dict[str, float]:
+        """System calls per raw frame (``strace -c`` attached to every thread meanwhile)."""
+        out = Path(tempfile.mkdtemp(prefix="bench-strace-")) / "summary"
+        tracer = subprocess.Popen(["strace", "-c", "-f", "-p", str(self.pid), "-o", str(out)],
+                                  stderr=subprocess.DEVNULL)
+        time.sleep(1.0)  # attached
+        sent = measure(frames, rate_hz, self.pid)["sent"]
+        tracer.send_signal(signal.SIGINT)
+        tracer.wait()
+        calls: dict[str, float] = {}
+        for line in out.read_text().splitlines():
+            parts = line.split()
+            if len(parts) >= 5 and parts[3].isdigit() and parts[-1] != "total":
+                calls[parts[-1]] = int(parts[3]) / max(sent, 1)
+        return calls
+
     def __exit__(self, *exc) -> None:
         if self.daemon is not None:
             self.start["hwm_kb"] = memory_kb(self.pid, "VmHWM")
@@ -193,7 +211,9 @@ def run(args: argparse.Namespace) -> None:
                 measure(raw[:200], 1000.0, subject.pid)  # warm-up
                 paced = {r: measure(raw[: per_rate[r]], r, subject.pid) for r in rates}
                 blast = measure(raw[: args.frames], None, subject.pid)
-            runs[name].append({"paced": paced, "blast": blast, **subject.start})
+                traced = (subject.syscalls(raw[: per_rate[args.strace_rate]], args.strace_rate)
+                          if args.strace_rate and shutil.which("strace") else None)
+            runs[name].append({"paced": paced, "blast": blast, "syscalls": traced, **subject.start})
     where = "UML guest, 1 CPU" if os.environ.get(vcan_harness.ENV_IN_UML) == "1" else "host kernel"
     print(f"end to end on {CHANNEL} ({where}; Python {sys.version.split()[0]}); sender, subject and "
           f"receiver share the machine; {args.rounds} round(s), subjects in turn; ranges over rounds")
@@ -223,6 +243,15 @@ def run(args: argparse.Namespace) -> None:
         print(f"  {name}: exec -> READY=1 {span([r['ready_s'] for r in rs], '.2f')} s, resident after start "
               f"{span(rss, '.1f')} MB, peak {span(hwm, '.1f')} MB")
 
+    if runs[names[0]][0]["syscalls"] is not None:
+        print(f"  system calls per raw frame at {args.strace_rate:.0f}/s (strace -c, every thread; "
+              "last round)")
+        for name in names:
+            calls = runs[name][-1]["syscalls"]
+            top = sorted(calls.items(), key=lambda kv: -kv[1])
+            print(f"    {name:13s}: {sum(calls.values()):5.2f}  ("
+                  + ", ".join(f"{k} {v:.2f}" for k, v in top if v >= 0.01) + ")")
+
     def lossless(name: str, k: int) -> float:
         ok = [r for r in rates if runs[name][k]["paced"][r]["loss"] <= 0.001]
         return max(ok) if ok else 0.0
@@ -251,6 +280,8 @@ def main() -> int:
     parser.add_argument("--rates", default="200,1000,2000,3000,4000,6000", help="paced rates, frames/s")
     parser.add_argument("--rounds", type=int, default=2, help="rounds of all subjects in turn")
     parser.add_argument("--baseline", help="source tree of a daemon to compare (before/after)")
+    parser.add_argument("--strace-rate", type=float, default=1000.0,
+                        help="paced rate at which system calls are counted (0: not)")
     args = parser.parse_args()
     status = vcan_harness.run_script_on_vcan(timeout=3000.0)
     if status is not None:
