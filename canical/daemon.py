@@ -143,7 +143,7 @@ class Daemon:
             for key, (decoder, pairs) in self.input_frames.items()
         }
         self._raw_values, self._raw_length = self.raw.values, self.raw.length
-        self._encode_rate = self.rate.encode_xyz
+        self._encode_rate = self.rate.encode_in_order  # None: encode_xyz arranges the values
         self._rate_head = FRAME_HEAD.pack(frame_key(self.rate.frame_id, self.rate.is_extended),
                                           self.rate.length, 0, 0)
         self._rate_pad = bytes(max(0, 8 - self.rate.length))
@@ -471,9 +471,18 @@ class Daemon:
         if stale:
             stats.stale_frames += 1
         counter = self._tx_counter
-        payload = self._encode_rate(rx if isfinite(rx) else 0.0, ry if isfinite(ry) else 0.0,
-                                    rz if isfinite(rz) else 0.0, ox, oy, oz, ux, uy, uz, stale, gap,
-                                    sets.tag, counter)
+        rx = rx if isfinite(rx) else 0.0
+        ry = ry if isfinite(ry) else 0.0
+        rz = rz if isfinite(rz) else 0.0
+        encode = self._encode_rate
+        if encode is None:
+            payload = self.rate.encode_xyz(rx, ry, rz, ox, oy, oz, ux, uy, uz, stale, gap, sets.tag, counter)
+        else:  # encode_xyz written out: saturated to each rate signal's range
+            (lx, hx), (ly, hy), (lz, hz) = self.rate.limits
+            payload = encode((lx if rx < lx else hx if rx > hx else rx,
+                              ly if ry < ly else hy if ry > hy else ry,
+                              lz if rz < lz else hz if rz > hz else rz,
+                              ox, oy, oz, ux, uy, uz, stale, gap, sets.tag, counter))
         self._tx_counter = (counter + 1) & 0xF
         sock = self._sock if self.bus is self._sock_of else self._raw_socket()
         if sock is None:

@@ -78,8 +78,8 @@ class RawDecoder:
 class RateEncoder:
     """Encode the corrected frame: three rates saturated to their signal range, flags, tag, counter."""
 
-    __slots__ = ("_encode", "_order", "flag_names", "frame_id", "is_extended", "length", "limits",
-                 "name", "rate_names")
+    __slots__ = ("_encode", "_order", "encode_in_order", "flag_names", "frame_id", "is_extended", "length",
+                 "limits", "name", "rate_names")
 
     def __init__(self, message: Message, axes: Iterable[str] = ("x", "y", "z"), *,
                  compiled: bool = True) -> None:
@@ -97,6 +97,9 @@ class RateEncoder:
                      "Stale", "CounterGap", "SetTag", "Counter"]
         order = tuple(canonical.index(n) if n in canonical else None for n in codec.names)
         self._order = None if order == tuple(range(len(canonical))) else order  # None: as it comes
+        #: The codec's encode, when it takes :meth:`encode_xyz`'s arguments as they are (rates
+        #: saturated by the caller); None when the frame's signals come in another order.
+        self.encode_in_order = codec.encode if self._order is None and len(self.limits) == 3 else None
 
     def encode(
         self,
