@@ -345,8 +345,8 @@ class Daemon:
                     frame(can_id, cf[8:8 + length], stamp, len(cf) == CANFD_MTU)
                 if first is None:
                     first = stamp
-                elif not 0.0 <= stamp - first < BURST_SPAN_S:
-                    break
+                elif not 0.0 <= stamp - first < BURST_SPAN_S or self._next_periodic == 0.0:
+                    break  # (a signal asked for the periodic step: SIGHUP, SIGTERM)
 
     def _dispatch(self, msg: can.Message) -> None:
         """A python-can message into :meth:`_frame`."""
