@@ -163,7 +163,8 @@ class Subject:
 
         folder = Path(tempfile.mkdtemp(prefix=f"bench-{self.name}-"))
         write_sets(folder, terms=ALL_TERMS)
-        env = {"PYTHONPATH": self.baseline} if self.baseline else None
+        # PYTHONSAFEPATH: "-m canical" must not find this tree's package in its working directory
+        env = {"PYTHONPATH": self.baseline, "PYTHONSAFEPATH": "1"} if self.baseline else None
         self.daemon = DaemonProcess(write_config(folder, CHANNEL), watchdog_usec=5_000_000, extra_env=env)
         self.pid = self.daemon.proc.pid
         self.start = {"ready_s": self.daemon.notify.arrived["READY"] - self.daemon.started,
@@ -171,20 +172,25 @@ class Subject:
         return self
 
     def syscalls(self, frames: list[bytes], rate_hz: float | None) -> dict[str, float]:
-        """System calls per raw frame (``strace -c`` attached to every thread meanwhile)."""
+        """System calls per frame handled (``strace -c`` attached to every thread meanwhile).
+
+        Tracing slows the subject down so much that it drops frames: counts are divided by
+        the frames it received (its ``recvmsg`` calls), not by the frames sent.
+        """
         out = Path(tempfile.mkdtemp(prefix="bench-strace-")) / "summary"
         tracer = subprocess.Popen(["strace", "-c", "-f", "-p", str(self.pid), "-o", str(out)],
                                   stderr=subprocess.DEVNULL)
         time.sleep(1.0)  # attached
-        sent = measure(frames, rate_hz, self.pid)["sent"]
+        measure(frames, rate_hz, self.pid)
         tracer.send_signal(signal.SIGINT)
         tracer.wait()
-        calls: dict[str, float] = {}
+        calls: dict[str, int] = {}
         for line in out.read_text().splitlines():
             parts = line.split()
             if len(parts) >= 5 and parts[3].isdigit() and parts[-1] != "total":
-                calls[parts[-1]] = int(parts[3]) / max(sent, 1)
-        return calls
+                calls[parts[-1]] = int(parts[3])
+        handled = max(calls.get("recvmsg", 0), 1)
+        return {name: n / handled for name, n in calls.items()}
 
     def __exit__(self, *exc) -> None:
         if self.daemon is not None:
@@ -244,7 +250,7 @@ def run(args: argparse.Namespace) -> None:
               f"{span(rss, '.1f')} MB, peak {span(hwm, '.1f')} MB")
 
     if runs[names[0]][0]["syscalls"] is not None:
-        print(f"  system calls per raw frame at {args.strace_rate:.0f}/s (strace -c, every thread; "
+        print(f"  system calls per frame handled at {args.strace_rate:.0f}/s (strace -c, every thread; "
               "last round)")
         for name in names:
             calls = runs[name][-1]["syscalls"]

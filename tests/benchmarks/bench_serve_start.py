@@ -37,7 +37,9 @@ def main() -> None:
     folder = Path(tempfile.mkdtemp(prefix="canical-start-"))
     write_sets(folder, terms=ALL_TERMS)
     config = write_config(folder, "bench", interface="virtual")
-    subjects = {"this tree": None, **({"baseline": {"PYTHONPATH": args.baseline}} if args.baseline else {})}
+    # PYTHONSAFEPATH: "-m canical" must not find this tree's package in its working directory
+    baseline = {"baseline": {"PYTHONPATH": args.baseline, "PYTHONSAFEPATH": "1"}} if args.baseline else {}
+    subjects = {"this tree": None, **baseline}
     figures: dict[str, list[tuple[float, float]]] = {name: [] for name in subjects}
     for _ in range(args.runs):
         for name, env in subjects.items():
