@@ -3,6 +3,9 @@
 The content goes to a temporary file in the target's directory, is flushed to
 disk, and is renamed over the target in one step. A crash or an error midway
 leaves the old file (or none) in place, never a truncated one.
+
+While a command's :class:`~canical.output_plan.OutputPlan` is open, the rename
+waits until the whole command has succeeded, together with its other outputs.
 """
 
 from __future__ import annotations
@@ -14,10 +17,17 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
+from canical import output_plan
+
 
 @contextlib.contextmanager
 def atomic_writer(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO]:
     """Yield a file handle whose content replaces ``path`` only on clean exit."""
+    plan = output_plan.current()
+    if plan is not None and plan.covers(path):
+        with plan.open(path, mode) as handle:
+            yield handle
+        return
     target = Path(path)
     directory = target.parent if str(target.parent) else Path(".")
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
@@ -31,6 +41,13 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO]
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
         raise
+
+
+def make_dirs(path: str | os.PathLike[str]) -> None:
+    """Make a folder for outputs; under an output plan the folders come with the files, at the end."""
+    plan = output_plan.current()
+    if plan is None or not plan.covers(path):
+        Path(path).mkdir(parents=True, exist_ok=True)
 
 
 def write_text_atomic(path: str | os.PathLike[str], text: str) -> None:

@@ -6,21 +6,62 @@ blocks of a few seconds and keeps, per block, the mean ΔV, the table rate, the
 mean of every auxiliary channel, the mean time since power-on and the direction
 state the run time would compute from the raw signal. Blocks of one plateau
 share its ``plateau`` index, so cross-validation can leave whole plateaus out.
+
+Transforms of a channel that have state (its lag with a time constant still to
+be estimated, its smoothed derivative, the direction of its last change) are
+computed on the samples, in time order, as the run time would, and only then
+averaged per block: :class:`ChannelSamples` does that on demand and caches it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from canical.fit_points import FitPoints
 from canical.plateaus import Plateaus
 from canical.session import Session
-from canical.terms import direction_state, slope_state
+from canical.terms import Term, direction_state, lag_filter, slope_state
 
 BLOCK_S = 2.0
 SLOPE_TAU_S = 0.5
+
+
+@dataclass(frozen=True)
+class ChannelSamples:
+    """Auxiliary channels sample by sample, and the sample range of every block.
+
+    Block means of a channel's stateful transforms are computed once per
+    (channel, transform, τ or threshold) and shared by every subset of blocks.
+    """
+
+    time_s: np.ndarray
+    values: dict[str, np.ndarray]
+    starts: np.ndarray
+    stops: np.ndarray
+    cache: dict[Any, np.ndarray] = field(default_factory=dict, compare=False)
+
+    def means(self, values: np.ndarray) -> np.ndarray:
+        csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
+        return (csum[self.stops] - csum[self.starts]) / (self.stops - self.starts)
+
+    def lag_means(self, channel: str, tau_s: float) -> np.ndarray:
+        """Block means of the channel's lag y with time constant τ (all blocks)."""
+        key = ("lag", channel, float(tau_s))
+        if key not in self.cache:
+            if len(self.cache) > 512:  # τ searches visit many values; keep memory bounded
+                self.cache.clear()
+            self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
+        return self.cache[key]
+
+    def direction_means(self, channel: str, threshold: float) -> np.ndarray:
+        """Block means of the sign of the channel's last change larger than ``threshold``."""
+        key = ("direction", channel, float(threshold))
+        if key not in self.cache:
+            self.cache[key] = self.means(direction_state(self.values[channel], threshold))
+        return self.cache[key]
 
 
 @dataclass(frozen=True)
@@ -34,11 +75,14 @@ class Blocks:
     direction: np.ndarray  # mean run-time direction state in the block
     direction_threshold_raw: float
     slope: np.ndarray  # mean run-time rate of change of raw (raw units/s) in the block
+    samples: ChannelSamples | None = None  # for stateful channel transforms
+    rows: np.ndarray | None = None  # these blocks' positions among the samples' blocks
 
     def __len__(self) -> int:
         return len(self.points)
 
     def take(self, index: np.ndarray) -> Blocks:
+        rows = np.arange(len(self)) if self.rows is None else self.rows
         return Blocks(
             self.points.take(index),
             self.plateau[index],
@@ -47,7 +91,22 @@ class Blocks:
             self.direction[index],
             self.direction_threshold_raw,
             self.slope[index],
+            self.samples,
+            rows[index],
         )
+
+    def channel_feature(self, term: Term) -> np.ndarray:
+        """Block means of a stateful channel transform (lag, derivative, direction) for a term."""
+        if self.samples is None:
+            raise ValueError("these blocks were built without their samples")
+        rows = slice(None) if self.rows is None else self.rows
+        ch = term.channel or ""
+        if term.feature == "direction":
+            return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
+        y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
+        if term.feature == "lag":
+            return y - term.reference
+        return (self.aux[ch] - y) / (term.tau_s or 1.0)
 
 
 def _block_bounds(plateaus: Plateaus, time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, ...]:
@@ -96,4 +155,5 @@ def make_blocks(
         direction=means(direction),
         direction_threshold_raw=direction_threshold_raw,
         slope=means(slope_state(raw, session.time_s, SLOPE_TAU_S)),
+        samples=ChannelSamples(session.time_s, dict(session.aux), starts, stops),
     )

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from canical.blocks import BLOCK_S, make_blocks
-from canical.closed_loop import LoopResult, run_loop
+from canical.closed_loop import LoopResult, predict, run_loop
 from canical.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
 from canical.cross_validation import cross_validate, prediction_errors
 from canical.errors import CanicalError
@@ -25,10 +25,12 @@ from canical.model_fit import FittedModel, ModelSpec, fit_model
 from canical.model_selection import select_model
 from canical.models.forward_poly import ForwardPoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
-from canical.plateaus import Plateaus, detect_plateaus, saturated
+from canical.noise_records import noise_analysis, sample_interval, zero_rate_records
+from canical.plateaus import Plateaus, detect_plateaus, explain_too_few, saturated
 from canical.segment_points import rate_noise
 from canical.session import Session
-from canical.zero_bias import zero_bias
+from canical.unexplained import account
+from canical.zero_bias import zero_bias, zero_rate
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
 
@@ -42,9 +44,10 @@ class CalibrateOptions:
     order: int | None = None
     smoothness: int | None = 0
     breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS
-    rate_tol: float = 0.05
+    rate_tol: float | None = None  # None: from the reference's estimated noise
     min_duration_s: float = 1.0
-    settle_s: float = 0.5
+    settle_s: float | None = None  # None: 0.5 s or a tenth of the steady stretch
+    latency_s: float | None = None  # the reference's latency behind the sensor; None: estimated
     extend: bool = True  # run the closed loop (segmented-inverse only)
     prefer: tuple[str, ...] = ()  # candidate names to pick when confounded
     direction_threshold_dps: float = 1.0
@@ -74,15 +77,14 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
     if session.ref_dps is None:
         raise CanicalError("the session has no reference rate column: cannot calibrate")
     progress("finding plateaus")
-    plateaus = detect_plateaus(
-        session.time_s,
-        session.ref_dps,
-        rate_tol=options.rate_tol,
-        min_duration_s=options.min_duration_s,
-        settle_s=options.settle_s,
-    )
+    plateaus = find_plateaus(session, options)
     if plateaus.count == 0:
-        raise CanicalError("no constant-rate plateau found (check the ref_dps column and --ref-column)")
+        raise CanicalError(explain_too_few(plateaus, min_duration_s=options.min_duration_s,
+                                           what="no constant-rate plateau found"))
+    if not np.any(np.abs(plateaus.rate_dps) <= np.maximum(1e-3, 4.0 * plateaus.rate_uncertainty())):
+        raise CanicalError(explain_too_few(
+            plateaus, min_duration_s=options.min_duration_s,
+            what=f"no zero-rate plateau among {plateaus.count} plateaus (V0 cannot be measured)"))
     v0 = zero_bias(session.raw, plateaus)
     clipped = saturated(session.raw, plateaus)
     points = fit_points(session.raw, v0, plateaus).take(~clipped)
@@ -91,12 +93,28 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
         progress(f"left out {int(clipped.sum())} plateaus where the sensor saturates ({rates} deg/s)")
     n_rates = int(points.rate_groups().max()) + 1
     if n_rates < 4:
-        raise CanicalError(f"only {n_rates} distinct plateau rates: at least 4 are needed to calibrate")
+        raise CanicalError(explain_too_few(
+            plateaus, min_duration_s=options.min_duration_s,
+            what=f"only {n_rates} distinct plateau rates (at least 4 are needed)"))
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
     spec, candidates = _choose_spec(points, options)
     fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
     return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates)
+
+
+def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
+    """The session's plateaus with the user's thresholds (auto where not given)."""
+    return detect_plateaus(
+        session.time_s,
+        session.ref_dps,
+        rate_tol=options.rate_tol,
+        min_duration_s=options.min_duration_s,
+        settle_s=options.settle_s,
+        settled=session.settled,
+        latency_s=options.latency_s,
+        raw=session.raw,
+    )
 
 
 def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, list[dict[str, Any]]]:
@@ -166,6 +184,7 @@ def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
             "settling": base.plateaus.n_settling,
         },
         "plateaus": base.plateaus.count,
+        "plateau_finding": base.plateaus.describe(),
         "saturated_rates_dps": list(base.saturated_rates),
         "rates": int(base.points.rate_groups().max()) + 1,
         "segment_points": [
@@ -190,6 +209,23 @@ def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
     if jumps is not None:
         report["max_jump_at_segment_points_dps"] = float(np.max(np.abs(jumps()), initial=0.0))
     return report
+
+
+def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
+    """Allan analysis of the zero-rate plateaus, as rate through the fitted model.
+
+    Only the plateaus' used samples count (no ramp, no settling); each plateau is its own
+    record, so the longest τ is a third of the longest zero-rate plateau and terms that
+    need longer (rate random walk, usually) are reported as not resolved.
+    """
+    zero = np.flatnonzero(zero_rate(base.plateaus))
+    start, stop = base.plateaus.start[zero], base.plateaus.stop[zero]
+    rate = np.zeros(len(session))
+    for a, b in zip(start, stop, strict=True):
+        rate[a:b] = base.fitted.model.evaluate(session.raw[a:b] - base.v0)[0]
+    dt = sample_interval(session.time_s)
+    records = zero_rate_records(session.time_s, rate, start, stop, dt)
+    return noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
 
 
 @dataclass(frozen=True)
@@ -227,6 +263,11 @@ def extend_model(
     )
 
 
+def fitted_residual(loop: LoopResult) -> np.ndarray:
+    """The final model's residual at every block (deg/s), with the effects it found."""
+    return loop.blocks.points.rate - predict(loop.fit, loop.blocks)
+
+
 def loop_report(loop: LoopResult) -> dict[str, Any]:
     """Report fields of the closed loop: before/after on held-out plateaus, effects, confounded."""
     return {
@@ -248,6 +289,7 @@ def loop_report(loop: LoopResult) -> dict[str, Any]:
             for name, r2 in loop.untestable.items()
         ],
         "rounds": loop.rounds,
+        "steps": loop.steps,
     }
 
 
@@ -264,6 +306,8 @@ def calibrate(
     base = fit_base(session, options, progress)
     progress("cross-validating the chosen model")
     report = base_report(session, base)
+    progress("Allan deviation of the zero-rate plateaus")
+    report["allan"] = zero_rate_noise(session, base)
     model = model_dict(base.fitted, base.v0)
     terms: tuple[dict[str, Any], ...] = ()
     loop = None
@@ -282,10 +326,18 @@ def calibrate(
         report["effects"] = loop.effects
         report["confounded"] = loop.confounded
         report["closed_loop"] = loop_report(loop)
+        report["unexplained"] = account(
+            loop.errors_after, fitted_residual(loop), loop.blocks, loop.candidates
+        )
     elif options.extend:
         report["closed_loop"] = {
             "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
         }
+    # What the coefficient file holds: the loop's final model, or the rate model alone.
+    report["written"] = {
+        "spec": loop.structure.spec.describe() if loop is not None else report["spec"],
+        "effect_terms": len(terms),
+    }
     fit_stats = {
         "samples_used": report["samples"]["used"],
         "plateaus": report["plateaus"],
@@ -297,6 +349,8 @@ def calibrate(
     if loop is not None:
         fit_stats["extended_held_out_rms_dps"] = loop.rms_after
         fit_stats["effects"] = [e["name"] for e in loop.effects]
+        if np.isfinite(report["unexplained"]["ratio"]):
+            fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
     cset = CoefficientSet(
         sensor_id=sensor_id,
         axis=axis,

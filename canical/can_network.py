@@ -10,11 +10,16 @@ from __future__ import annotations
 import contextlib
 import logging
 from collections.abc import Iterator
-from typing import Any
-
-import canopen
+from typing import TYPE_CHECKING, Any
 
 from canical.errors import CanicalError
+
+if TYPE_CHECKING:
+    import canopen
+
+# Seconds to wait for each SDO answer; here, not in sdo_download, so that the commands' --help
+# can show it without importing canopen.
+DEFAULT_SDO_TIMEOUT_S = 1.0
 
 
 def quiet_canopen_logging() -> None:
@@ -29,6 +34,8 @@ def quiet_canopen_logging() -> None:
 
 def open_network(interface: str, channel: str, **options: Any) -> canopen.Network:
     """A connected canopen network; :class:`CanicalError` if the interface cannot be opened."""
+    import canopen  # here, not at the top: every command's --help imports this module
+
     network = canopen.Network()
     try:
         network.connect(interface=interface, channel=channel, **options)

@@ -27,14 +27,29 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, help_text in COMMANDS.items():
         if command is None or name == command:
-            importlib.import_module(f"canical.commands.{name}").register(sub)
+            importlib.import_module(f"canical.commands.{name.replace('-', '_')}").register(sub)
         else:
             sub.add_parser(name, help=help_text)
     return parser
 
 
+def skip_mdf4_import(argv: Sequence[str]) -> None:
+    """Keep python-can from importing asammdf when no argument names an MDF4 (.mf4) file.
+
+    python-can imports its optional MDF4 support (asammdf, which pulls in pandas and sympy)
+    at ``import can`` whenever it is installed: 2.7 s on every start of the daemon, ``push``
+    or ``record`` once ``canical[mf4]`` is installed. Only in a fresh process (``can`` not
+    imported yet), and only for asammdf: python-can then treats MDF4 as not installed.
+    """
+    if "can" in sys.modules or "asammdf" in sys.modules:
+        return
+    if not any(a.lower().endswith((".mf4", ".mf4.gz")) for a in argv):
+        sys.modules["asammdf"] = None  # type: ignore[assignment]  # import asammdf -> ImportError
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    skip_mdf4_import(argv)
     command = next((a for a in argv if not a.startswith("-")), "")
     parser = build_parser(command if command in COMMANDS else "")
     args = parser.parse_args(argv)

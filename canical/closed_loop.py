@@ -1,9 +1,11 @@
 """Close the loop: find what the rate model lacks, add it, and prove it on held-out data.
 
 Starting from the fitted base model, each round scores every candidate
-explanation (auxiliary channels, warm-up, drift, direction of approach — and, as
-the competing explanation, more capacity in the base model) by the rms error on
-plateaus left out of the fit. A candidate is accepted only when
+explanation (auxiliary channels and their transforms — level, derivative, lag,
+direction of change —, warm-up, drift, direction of approach; and, as the
+competing explanation, more capacity in the base model) by the rms error on
+plateaus left out of the fit. The F-test's Bonferroni divisor counts every
+candidate, so more transforms make each one harder to accept. A candidate is accepted only when
 
 * it lowers the held-out rms by at least ``MIN_GAIN`` (relative), and by two
   standard errors of the rms estimate itself (about 1/sqrt(2·plateaus)), and
@@ -16,6 +18,8 @@ nothing passes. When another candidate explains the same residual — it passes
 alone, yet neither adds anything once the other is in — the two are reported as
 *confounded*, with the session that would separate them, and neither is added
 unless the user names one with ``prefer``: a guess would be wrong in the field.
+A channel's lag that ties with its level is the level (τ → 0), not a confound.
+What the loop leaves unexplained is judged afterwards (:mod:`canical.unexplained`).
 """
 
 from __future__ import annotations
@@ -30,8 +34,10 @@ from canical.blocks import Blocks
 from canical.effect_candidates import (
     Candidate,
     build_candidates,
+    lag_grid,
     shift_columns,
     tau_grid,
+    tau_groups,
     untestable,
     with_tau,
 )
@@ -69,7 +75,9 @@ class Fit:
 GAUSS_NEWTON_STEPS = 4
 
 
-def _solve(blocks: Blocks, s: Structure, terms: tuple[Term, ...]) -> tuple[PiecewisePoly, np.ndarray, float]:
+def _solve(
+    blocks: Blocks, s: Structure, terms: tuple[Term, ...], steps: int = GAUSS_NEWTON_STEPS
+) -> tuple[PiecewisePoly, np.ndarray, float]:
     """Fit ω = f(ΔV − Σ c·column) jointly for the base model f and the coefficients c.
 
     The model is nonlinear in c (the effect shifts ΔV inside f), so it is solved by
@@ -81,7 +89,7 @@ def _solve(blocks: Blocks, s: Structure, terms: tuple[Term, ...]) -> tuple[Piece
     cols = shift_columns(terms, blocks)
     coef = np.zeros(cols.shape[1])
     slope = np.full(len(p), 1.0 / _mean_sensitivity(p))
-    for _ in range(GAUSS_NEWTON_STEPS if terms else 1):
+    for _ in range(steps if terms else 1):
         dv = p.dv - cols @ coef
         fit = fit_segmented_inverse(
             dv,
@@ -108,28 +116,38 @@ def _mean_sensitivity(p: FitPoints) -> float:
 
 
 def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
-    """Joint least squares of base model and terms; a warm-up's τ by grid search on these blocks."""
+    """Joint least squares of base model and terms; each time constant (warm-up, channel lag)
+    by grid search on these blocks, one after the other."""
     terms = s.terms
-    if any(t.feature == "warmup" for t in terms):
-        terms = with_tau(terms, _best_tau(blocks, s, duration_s))
+    for group in tau_groups(terms):
+        terms = with_tau(terms, _best_tau(blocks, replace(s, terms=terms), duration_s, group), group)
     poly, coef, _ = _solve(blocks, s, terms)
     return Fit(poly, tuple(replace(t, coefficient=float(c)) for t, c in zip(terms, coef, strict=True)))
 
 
-def _best_tau(blocks: Blocks, s: Structure, duration_s: float) -> float:
-    """τ of the warm-up terms: the best of a log grid, refined between its neighbours.
+def _best_tau(
+    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None] = ("warmup", None)
+) -> float:
+    """τ of one group of terms (the warm-up, or one channel's lag): the best of a log grid,
+    refined between its neighbours.
 
     A τ off by a grid step leaves an exponential-shaped residual that a drift
-    term would then "explain"; refining removes that false second effect.
+    term would then "explain" (for a lag: a derivative term); refining removes
+    that false second effect.
     """
-    grid = tau_grid(duration_s)
+    warmup = group[0] == "warmup"
+    grid = tau_grid(duration_s) if warmup else lag_grid(duration_s)
+    # A lag's τ is searched on the linearised fit (one Gauss-Newton step): its terms
+    # are small next to full scale, and there may be one lag per channel to search.
+    steps = GAUSS_NEWTON_STEPS if warmup else 1
 
     def rss(log_tau: float) -> float:
-        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau))))[2]
+        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau)), group), steps)[2]
 
     i = int(np.argmin([rss(np.log(t)) for t in grid]))
     lo, hi = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, grid.size - 1)])
-    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+    xatol = 1e-3 if warmup else 1e-2
+    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
     return float(np.exp(res.x))
 
 
@@ -218,12 +236,21 @@ def recommend(a: Candidate, b: Candidate) -> str:
     """The session that would tell two confounded explanations apart."""
     kinds = {a.kind, b.kind}
     names = {c.kind: c for c in (a, b)}
+    if kinds == {"channel", "time"} and names["channel"].name.startswith(("d/dt", "lag(", "sign")):
+        ch = names["channel"].channel
+        return (
+            f"record a session that cycles {ch} up and down after the sensor is warm (powered on long "
+            f"before the first plateau), so that changes of {ch} no longer follow time since power-on"
+        )
     if kinds == {"channel", "time"}:
         ch = names["channel"].channel
         return (
             f"record a session in which {ch} does not follow time since power-on: soak the sensor "
             f"before powering it on, then step {ch} up and down in random order"
         )
+    if kinds == {"channel"} and a.channel == b.channel:
+        return (f"record a session in which {a.channel} changes at several speeds and holds between "
+                "changes, so its level, its rate of change and its direction of change separate")
     if kinds == {"channel"}:
         return f"record a session in which {a.channel} and {b.channel} are varied independently"
     if "direction" in kinds:
@@ -248,6 +275,15 @@ class LoopResult:
     errors_after: np.ndarray
     capacity_changes: list[str]
     untestable: dict[str, float] = field(default_factory=dict)
+    # Each change to the model in order, with the held-out error after it (same scheme throughout),
+    # so a report can be read from the rate model alone down to the set that was written.
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    candidates: list[Candidate] = field(default_factory=list)  # every candidate built, for the residual
+
+
+def _step(scorer: Scorer, s: Structure, what: str) -> dict[str, Any]:
+    rms_dps, _, _ = scorer.score(s)
+    return {"step": what, "spec": s.spec.describe(), "terms": len(s.terms), "held_out_rms_dps": rms_dps}
 
 
 def _capacity_options(s: Structure) -> list[ModelSpec]:
@@ -307,6 +343,7 @@ def run_loop(
     scorer = Scorer(blocks, folds, duration_s)
     s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
     pool = build_candidates(blocks, duration_s)
+    every_candidate = list(pool)
     tied = untestable(pool, blocks)
     if tied:
         progress(f"not testable here (follow the table rate): {', '.join(tied)}")
@@ -319,6 +356,7 @@ def run_loop(
     confounded: list[dict[str, Any]] = []
     rounds: list[list[dict[str, Any]]] = []
     capacity_changes: list[str] = []
+    steps = [_step(scorer, s, "rate model alone")]
     for _round in range(12):
         current = scorer.score(s)
         progress(f"round {len(rounds) + 1}: held-out rms {current[0]:.4f} deg/s, {len(pool)} candidates")
@@ -352,6 +390,7 @@ def run_loop(
         if isinstance(best, Structure):
             capacity_changes.append(best_name)
             s = best
+            steps.append(_step(scorer, s, f"base model grown to {s.spec.describe()}"))
             continue
         # Every candidate, not only those that passed at the current base size: with its
         # own best base size a candidate may turn out to explain the same residual.
@@ -400,12 +439,22 @@ def run_loop(
             }
         )
         progress(f"accepted {best.name}: held-out rms {current[0]:.4f} -> {after[0]:.4f} deg/s")
+        steps.append(_step(scorer, s_new, f"added {best.name}"))
         s = reselect_size(scorer, s_new, duration_s)
+        if s is not s_new:
+            steps.append(_step(scorer, s, "base size chosen again with the effect in"))
         pool = [c for c in pool if c is not best]
-    s = _prune_all(scorer, s)
+    pruned_all = _prune_all(scorer, s)
+    if len(pruned_all.terms) != len(s.terms):
+        steps.append(_step(scorer, pruned_all, "terms that no longer pay removed"))
+    s = pruned_all
     final_fit = fit_structure(blocks, s, duration_s)
     # Effect terms in the report carry the final joint coefficients of the terms that stayed.
     final_terms = {(t.kind, t.channel, t.feature, t.form): t for t in final_fit.terms}
+    for eff in effects:  # a readable name with the final time constant: lag(temp_c, τ=140 s)
+        lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "lag"]
+        is_lag = lagged and eff["name"].startswith("lag(")
+        eff["description"] = lagged[0].describe() if is_lag else eff["name"]
     for eff in effects:
         keys = [(t["kind"], t["channel"], t["feature"], t["form"]) for t in eff["terms"]]
         eff["terms"] = [final_terms[k].to_dict() for k in keys if k in final_terms]
@@ -425,6 +474,8 @@ def run_loop(
         errors_after=held_out_errors(blocks, s, folds, duration_s),
         capacity_changes=capacity_changes,
         untestable=tied,
+        steps=steps,
+        candidates=every_candidate,
     )
 
 
@@ -446,8 +497,12 @@ def _confounded_with(
         return scorer.score(grown)[0]
 
     r_now = scorer.score(s)[0]
-    alone = {c.name: grown_rms(c.terms) for c in pool}
-    useful = [c for c in pool if alone[c.name] < r_now * (1 - min_gain)] or [best]
+    # A candidate that gains nothing at the current size is not re-scored with its own
+    # size (that costs a model selection each); one that gains a little might still tie.
+    hopeful = [c for c in pool if c is best
+               or scorer.score(replace(s, terms=s.terms + c.terms))[0] < r_now * (1 - min_gain / 2)]
+    alone = {c.name: grown_rms(c.terms) for c in hopeful}
+    useful = [c for c in hopeful if alone[c.name] < r_now * (1 - min_gain)] or [best]
     best = min(useful, key=lambda c: alone.get(c.name, r_now))
     r_best = alone.get(best.name, r_now)
     twins, shadows = [], []
@@ -459,7 +514,23 @@ def _confounded_with(
         if r_both >= r_best * (1 - min_gain):
             twin = r_other <= r_best * (1 + min_gain) and r_both >= r_other * (1 - min_gain)
             (twins if twin else shadows).append(other)
+    # A channel's level is its lag with τ → 0: when the two tie, the data do not need
+    # the lag's time constant, and the simpler one is the answer (not a confound).
+    level = next((c for c in twins if _nests(best, c)), None)
+    if level is not None:
+        twins.remove(level)
+        shadows.append(best)
+        best = level
+    for twin in [c for c in twins if _nests(c, best)]:
+        twins.remove(twin)
+        shadows.append(twin)
     return best, twins, shadows
+
+
+def _nests(general: Candidate, simple: Candidate) -> bool:
+    """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0)."""
+    return (general.kind == simple.kind == "channel" and general.channel == simple.channel
+            and general.name.startswith("lag(") and simple.name.startswith("channel:"))
 
 
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:

@@ -108,4 +108,9 @@ def forward_model_dict(model: ForwardPoly, v0: float) -> dict[str, Any]:
 
 def finite(value: Any) -> bool:
     """A real, finite number (bools excluded)."""
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not isinstance(value, int | float) or isinstance(value, bool):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:  # an integer beyond float range
+        return False

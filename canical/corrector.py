@@ -5,7 +5,8 @@ computed here), then called per block of samples (``correct``) or per frame
 (``correct_one``). It never sees a reference rate: in the field there is none.
 
 Effect terms correct the raw output before the rate model (see
-:mod:`canical.terms`). A direction or slope term has state, so one Corrector
+:mod:`canical.terms`). A direction or slope term, and a channel's lag,
+derivative or direction term, has state, so one Corrector
 serves one stream of samples in time order; ``correct`` on a block starts from
 a fresh state, exactly as ``correct_one`` does on a new Corrector, so the two
 agree sample for sample.
@@ -22,7 +23,9 @@ from canical.coefficient_file import set_crc
 from canical.coefficients import CoefficientSet
 from canical.errors import CanicalError
 from canical.terms import (
+    STATEFUL_CHANNEL,
     TIME_INPUT,
+    ChannelTracker,
     DirectionTracker,
     SlopeTracker,
     Term,
@@ -41,12 +44,12 @@ class Corrector:
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
         self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
-        names = [t.input_name for t in self.terms if t.input_name]
+        names = [n for t in self.terms for n in t.input_names]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
         self.reset()
 
     def reset(self) -> None:
-        """Forget the direction and slope state (a new stream of samples begins)."""
+        """Forget the direction, slope, lag and derivative state (a new stream of samples begins)."""
         self._trackers = [_tracker(t) for t in self.terms]
 
     def correct(
@@ -70,8 +73,11 @@ class Corrector:
         dv = raw - self.v0
         shift = 0.0
         for term, tracker in zip(self.terms, self._trackers, strict=True):
-            if isinstance(tracker, DirectionTracker):
-                x = tracker.update(raw)
+            if isinstance(tracker, ChannelTracker):
+                x = tracker.update(float(inputs[term.channel]), float(inputs[TIME_INPUT]))  # type: ignore[index]
+            elif isinstance(tracker, DirectionTracker):
+                source = float(inputs[term.channel]) if term.kind == "channel" else raw  # type: ignore[index]
+                x = tracker.update(source)
             elif tracker is not None:
                 x = tracker.update(raw, float(inputs[TIME_INPUT]))  # type: ignore[index]
             else:
@@ -88,7 +94,11 @@ class Corrector:
         return self.model.evaluate_one(dv - shift)
 
 
-def _tracker(term: Term) -> DirectionTracker | SlopeTracker | None:
+def _tracker(term: Term) -> ChannelTracker | DirectionTracker | SlopeTracker | None:
+    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
+        if term.feature == "direction":
+            return DirectionTracker(term.threshold_raw or 1.0)
+        return ChannelTracker(term)
     if term.feature == "sign":
         return DirectionTracker(term.threshold_raw or 1.0)
     if term.feature == "slope":

@@ -18,8 +18,11 @@ worker thread (so frames keep flowing meanwhile) and the loop then assigns it in
 statement, between two frames: no frame ever sees two sets.
 
 The interface going away (down, bus-off, unplugged) shows up as an error from ``recv`` or
-``send``: the daemon closes the bus and reopens it until that works again, pinging the
-watchdog meanwhile, and carries on with the same sets and counters.
+``send`` (binding to a down vcan succeeds, so opening alone proves nothing): the daemon closes
+the bus and reopens it with a capped back-off until a status frame goes out again, and carries
+on with the same sets and counters. The outage is logged when it starts, once a minute while it
+lasts and when it ends, and shown in STATUS. The watchdog is pinged whatever the bus does: it
+watches the daemon's loop, and a bus outage is not a reason to kill a working daemon.
 """
 
 from __future__ import annotations
@@ -52,12 +55,18 @@ log = logging.getLogger("canical.serve")
 
 STATE_STARTING, STATE_RUNNING, STATE_DEGRADED, STATE_STOPPING = 0, 1, 2, 3
 AXIS_CODES = {"x": 0, "y": 1, "z": 2}
+#: Status pages whose counters stop at their maximum (fault counts: 255 means "255 or more");
+#: page 0's frame counters are rolling and wrap, so receivers can take differences.
+SATURATING_PAGES = frozenset({2})
 #: errno values that mean "not a problem of this frame": the transmit queue is full.
 TX_FULL = {errno.ENOBUFS, errno.EAGAIN}
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
 RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
 BURST, BURST_SPAN_S = 32, 0.02  # frames handled between two reads of the clock, at most
-REOPEN_BACKOFF_S = (0.05, 0.1, 0.2, 0.5, 1.0)
+#: Pause before each reopen while the bus stays down: doubling from 50 ms, capped at 2 s.
+REOPEN_BACKOFF_S = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6, 2.0)
+OUTAGE_LOG_EVERY_S = 60.0  # a lasting outage is logged again this often, not on every attempt
+WAIT_SLICE_S = 0.05  # sleeping in back-off: how often stop requests and the watchdog are served
 
 BusFactory = Callable[..., can.BusABC]
 #: Per generation of sets: the sets, (input, maximum age) pairs, per axis (raw signal position,
@@ -103,6 +112,24 @@ class Stats:
 
 class _BusLost(Exception):
     """The interface failed under us; reopen it."""
+
+
+class Outage:
+    """One bus outage: from the first failure until a status frame goes out again."""
+
+    __slots__ = ("attempts", "next_log", "reason", "since")
+
+    def __init__(self, since: float, reason: str) -> None:
+        self.since = since
+        self.reason = reason  # the latest failure
+        self.attempts = 0  # reopen attempts so far
+        self.next_log = since + OUTAGE_LOG_EVERY_S
+
+    def delay(self) -> float:
+        """Back-off before the next reopen attempt (and count the attempt)."""
+        delay = REOPEN_BACKOFF_S[min(self.attempts, len(REOPEN_BACKOFF_S) - 1)]
+        self.attempts += 1
+        return delay
 
 
 class Daemon:
@@ -170,6 +197,7 @@ class Daemon:
         self._next_watch = 0.0
         self._next_watchdog = 0.0
         self._state = STATE_STARTING
+        self.outage: Outage | None = None
 
     # ----------------------------------------------------------------------------------
     # Set-up
@@ -530,6 +558,8 @@ class Daemon:
 
     def _periodic(self) -> None:
         now = time.monotonic()
+        # First: the loop is alive, whatever the bus does next (a status send may fail).
+        self._ping_watchdog(now)
         self._finish_reload()
         if self._reload_requested:
             self._reload_requested = False
@@ -539,10 +569,11 @@ class Daemon:
                 self._start_reload(force=False, why="file changed")
             self._next_watch = now + self.config.watch_period_s
         if now >= self._next_status:
-            self._send_status()
-            self.notifier.status(self.status_line())
             self._next_status = max(self._next_status + self.config.status_period_s, now)
-        self._ping_watchdog(now)
+            self._send_status()  # raises _BusLost while the bus is down
+            if self.outage is not None:
+                self._end_outage(now)
+            self.notifier.status(self.status_line())
         deadlines = [self._next_status, self._next_watch]
         if self.notifier.watchdog_s is not None:
             deadlines.append(self._next_watchdog)
@@ -628,11 +659,15 @@ class Daemon:
 
     def _send_status(self) -> None:
         for page, values in self.status_pages():
-            self._send(self.status.frame_id, self.status.is_extended, self.status.encode(page, values))
+            payload = self.status.encode(page, values, saturate=page in SATURATING_PAGES)
+            self._send(self.status.frame_id, self.status.is_extended, payload)
 
     def status_line(self) -> str:
         s = self.stats
         state = ("starting", "running", "degraded", "stopping")[self._state]
+        if self.outage is not None:
+            down = time.monotonic() - self.outage.since
+            state = f"{state}, {self.config.channel} down for {down:.0f} s ({self.outage.reason})"
         return (f"{state}: {s.frames_in} frames in, {s.frames_out} out, {s.bad} bad, "
                 f"{s.counter_gaps} gaps, {s.error_frames} error frames, {s.bus_restarts} bus restarts; "
                 f"sets {self.sets.describe()}")
@@ -643,37 +678,64 @@ class Daemon:
 
     def _connect(self, *, first: bool) -> None:
         """Open the bus, retrying with back-off (and pinging the watchdog) until it works or we stop."""
-        attempt = 0
-        last_error = ""
         while self._running:
             try:
                 self.bus = self.open_bus()
-                if not first:
-                    log.info("%s %s reopened", self.config.interface, self.config.channel)
                 return
             except (OSError, can.CanError) as exc:
-                error = str(exc)
-                if error != last_error:
-                    log.warning("cannot open %s %s: %s; retrying", self.config.interface,
-                                self.config.channel, error)
-                    self.notifier.status(f"waiting for {self.config.channel}: {error}")
-                    last_error = error
-            if self._reload_requested:
+                self._bus_failed(f"cannot open: {exc}")
+            if first and self._reload_requested:
                 self._reload_requested = False
                 self._reload(force=True, why="SIGHUP")
-            delay = REOPEN_BACKOFF_S[min(attempt, len(REOPEN_BACKOFF_S) - 1)]
-            attempt += 1
-            end = time.monotonic() + delay
-            while self._running and time.monotonic() < end:
-                self._ping_watchdog(time.monotonic())
-                time.sleep(min(0.05, delay))
+            self._back_off()
 
     def _reconnect(self, why: str) -> None:
-        self.stats.bus_restarts += 1
-        log.warning("%s %s: %s; reopening", self.config.interface, self.config.channel, why)
+        """The bus failed: close it, wait the outage's back-off, open it again."""
         self._close_bus()
+        self._bus_failed(why)
+        self._back_off()
         self._connect(first=False)
+        # Probe at once: the next periodic step sends a status frame, which ends the outage.
+        self._next_status = 0.0
         self._next_periodic = 0.0
+
+    def _bus_failed(self, why: str) -> None:
+        """Start an outage (logged once) or note the latest reason of the ongoing one."""
+        now = time.monotonic()
+        if self.outage is None:
+            self.outage = Outage(now, why)
+            if self._state != STATE_STARTING:  # at start the bus was never there to lose
+                self.stats.bus_restarts += 1
+            log.warning("%s %s lost: %s; reopening with back-off up to %.0f s", self.config.interface,
+                        self.config.channel, why, REOPEN_BACKOFF_S[-1])
+            self.notifier.status(self.status_line())
+        else:
+            self.outage.reason = why
+
+    def _end_outage(self, now: float) -> None:
+        outage, self.outage = self.outage, None
+        assert outage is not None
+        log.info("%s %s reopened: back after %.1f s down (%d reopen attempts)", self.config.interface,
+                 self.config.channel, now - outage.since, outage.attempts)
+
+    def _back_off(self) -> None:
+        """Sleep the outage's next back-off, pinging the watchdog and keeping STATUS current."""
+        outage = self.outage
+        assert outage is not None
+        end = time.monotonic() + outage.delay()
+        while self._running:
+            now = time.monotonic()
+            self._ping_watchdog(now)
+            if now >= self._next_status:
+                self._next_status = now + self.config.status_period_s
+                self.notifier.status(self.status_line())
+            if now >= outage.next_log:
+                outage.next_log = now + OUTAGE_LOG_EVERY_S
+                log.warning("%s %s still down after %.0f s (%d reopen attempts): %s", self.config.interface,
+                            self.config.channel, now - outage.since, outage.attempts, outage.reason)
+            if now >= end:
+                return
+            time.sleep(min(WAIT_SLICE_S, end - now))
 
     def _close_bus(self) -> None:
         if self.bus is not None:

@@ -21,6 +21,11 @@ new set, agreement with apply) for tests and benchmarks.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import math
+import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -30,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from canical import coefficient_file
-from canical.atomic_file import write_text_atomic
+from canical.atomic_file import make_dirs, write_text_atomic
 from canical.bus_recording import Recording, open_recorder_bus, record
 from canical.calibration import CalibrateOptions, calibrate
 from canical.can_network import open_network, sdo_client_filters, sdo_server_filters
@@ -39,6 +44,7 @@ from canical.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES, sensor_id_for_serial
 from canical.imu_frames import ImuFrames, set_tag
+from canical.report_markdown import written_model
 from canical.sdo_download import ImuClient, PushResult, push_sets
 from canical.session_csv import format_session, read_table
 
@@ -58,6 +64,12 @@ class BusDemoOptions:
     table_rates: tuple[float, ...] = tuple(np.arange(-60.0, 60.1, 3.0).tolist())
     dwell_s: float = 2.0
     field_samples: int = 1500
+    # The live comparison uses the first field_samples samples of this pass of the table
+    # programme (0: the pass recorded for calibration), chosen by the device's sample index, so
+    # that one seed compares the same frames whatever the timing. It must begin after the push:
+    # 3 leaves ~20 s for recording, calibration and push at the defaults. None: the frames from
+    # the first one corrected with the new set on (timing-dependent; for an external device).
+    field_pass: int | None = 3
     emulate: bool = True  # False: a device is already running (``canical emulate``)
     timeout_s: float = 1.0
 
@@ -118,13 +130,13 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
     """Run the loop; files go to ``out_dir``. See the module doc."""
     o = options or BusDemoOptions()
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
+    # The device's flash and the files `canical apply` reads back are scratch, not results.
+    scratch = Path(tempfile.mkdtemp(prefix="canical-demo-bus-"))
     frames = ImuFrames(o.node_id)
     device_net = device = thread = None
     if o.emulate:
-        state = out / "imu-state.json"
-        state.unlink(missing_ok=True)  # a factory-fresh device every demo
-        device_net, device = _emulator(o, state)
+        device_net, device = _emulator(o, scratch / "imu-state.json")  # a factory-fresh device
         thread = threading.Thread(target=device.run, name="emulated-imu", daemon=True)
     bus = open_recorder_bus(o.interface, o.channel, frames)
     tool_net = open_network(o.interface, o.channel, can_filters=sdo_client_filters(o.node_id))
@@ -155,11 +167,12 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         effects = [e.get("name", str(e)) for e in result.report.get("effects", [])]
         before, after = loop.get("held_out_rms_before_dps"), loop.get("held_out_rms_after_dps")
         found = ", ".join(effects) or "none"
-        say(f"calibrated: {result.report['spec']}; undeclared effect(s) found: {found}")
+        say(f"calibrated: {written_model(result.report)}; undeclared effect(s) found: {found}")
         if before is not None and after is not None:
-            say(f"  held-out error without / with the effect terms: rms {before:.4f} / {after:.4f} deg/s")
+            say(f"  held-out rms (2 s blocks, whole plateaus left out): rate model alone {before:.4f}, "
+                f"written set {after:.4f} deg/s")
         set_id = set_crc(result.coefficients)
-        say(f"  set 0x{set_id:08x} -> {coeffs}")
+        say(f"  set 0x{set_id:08x} (its id covers its creation time: new every run) -> {coeffs}")
 
         # 3. Push while the device keeps streaming, and time until it corrects with the new set.
         new_tag = set_tag({a: (set_id if a == o.axis else 0) for a in AXES})
@@ -169,35 +182,34 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         say(f"pushed over SDO in {pushed.timings_s['total']:.3f} s "
             f"({pushed.bytes_written} bytes downloaded in {pushed.timings_s['download']:.3f} s); "
             f"device runs {pushed.status.describe()}")
-        live = record(bus, frames, until=lambda r: _tagged(r, new_tag) >= o.field_samples)
+        window = FieldWindow(new_tag, o.sample_rate_hz, n_pass, o.field_samples, o.field_pass)
+        live = record(bus, frames, until=window)
         first = _first_tagged(live, new_tag)
         latency = float(live.array("received_s")[first] - t_push)
-        say(f"first frame corrected on the device with the new set {latency:.3f} s after the push began")
+        say(f"first frame corrected on the device with the new set {latency:.3f} s after the push began "
+            f"(device sample {window.first_tagged})")
 
         # 4. The device's corrected rates against `canical apply` on the same frames.
-        keep = np.arange(len(live)) >= first
+        say(window.describe())
+        keep = window.selects(live)
         keep &= live.array("device_tag") == new_tag
         # A raw frame whose IMU_RATE was not matched (lost, or paired with another counter
         # value) has no device rate: compare only frames that have both.
         keep &= np.isfinite(live.array(f"device_rate_{o.axis}"))
-        field_csv = out / "bus-field.csv"
         field_session = _field_session(live, keep, o.axis, sensor)
-        write_text_atomic(field_csv, format_session(field_session))
-        applied = out / "bus-field-applied.csv"
-        from canical.cli import main as cli_main
-
-        if cli_main(["apply", str(coeffs), str(field_csv), "-o", str(applied)]) != 0:
-            raise CanicalError("canical apply failed on the recorded field data")
+        applied = _apply_in(scratch, result.coefficients, format_session(field_session), out, say)
+        write_text_atomic(out / "bus-field.csv", format_session(field_session))
+        write_text_atomic(out / "bus-field-applied.csv", applied.read_text())
         apply_rate = read_table(applied, columns=["rate_dps"]).columns["rate_dps"]
         device_rate = live.array(f"device_rate_{o.axis}")[keep]
         diff = float(np.max(np.abs(apply_rate - device_rate)))
         ref = live.array("ref_dps")[keep]
         settled = live.array("settled")[keep] == 1
         nominal = (field_session.raw - result.coefficients.v0) / NOMINAL_COUNTS_PER_DPS
-        before = _plateau_rms(nominal, ref, settled)
+        nominal_rms = _plateau_rms(nominal, ref, settled)
         live_rms = _plateau_rms(device_rate, ref, settled)
         say(f"live: {int(keep.sum())} frames corrected on the device; error of plateau means against the "
-            f"table: rms {before:.3f} deg/s with the datasheet's linear scale "
+            f"table: rms {nominal_rms:.3f} deg/s with the datasheet's linear scale "
             f"({NOMINAL_COUNTS_PER_DPS:g} counts per deg/s), {live_rms:.4f} deg/s corrected")
         say(f"  device output vs canical apply on the same frames: largest difference {diff:.4f} deg/s "
             f"(frame resolution 0.01)")
@@ -212,6 +224,26 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         bus.shutdown()
         if device_net is not None:
             device_net.disconnect()
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _apply_in(scratch: Path, cset, field_csv: str, out: Path, say: Callable[[str], None]) -> Path:
+    """``canical apply`` itself, run on the field frames in ``scratch``; returns the file it wrote.
+
+    Its line is shown with the name the result gets in ``out``.
+    """
+    from canical.cli import main as cli_main
+
+    coeffs, data, applied = scratch / "set.yaml", scratch / "field.csv", scratch / "applied.csv"
+    coeffs.write_text(coefficient_file.dumps(cset))
+    data.write_text(field_csv)
+    said = io.StringIO()
+    with contextlib.redirect_stdout(said):
+        status = cli_main(["apply", str(coeffs), str(data), "-o", str(applied)])
+    if status != 0:
+        raise CanicalError("canical apply failed on the recorded field data")
+    say(said.getvalue().strip().replace(str(applied), str(out / "bus-field-applied.csv")))
+    return applied
 
 
 def _pass_samples(o: BusDemoOptions) -> int:
@@ -222,9 +254,56 @@ def _pass_samples(o: BusDemoOptions) -> int:
     return len(t)
 
 
-def _tagged(rec: Recording, tag: int) -> int:
-    tags = rec.columns["device_tag"]
-    return sum(1 for t in tags[-5000:] if t == tag)
+class FieldWindow:
+    """Which recorded samples the live comparison uses: by the device's sample index, not arrival.
+
+    The index is the frame's uptime (simulated time since power-on) times the sample rate, so
+    a seed's stream gives the same samples in the window however late the push or slow the bus.
+    Called with the recording so far, it says when the window is complete.
+    """
+
+    def __init__(self, tag: int, fs_hz: float, pass_samples: int, n: int, pass_index: int | None) -> None:
+        self.tag, self.fs, self.pass_samples, self.n = tag, fs_hz, pass_samples, n
+        self.wanted_pass = pass_index
+        self.start: int | None = None  # first sample index of the window
+        self.first_tagged: int | None = None  # sample index of the first frame with the new set
+        self._seen = 0
+
+    def _index(self, t: float) -> int | None:
+        return round(t * self.fs) if math.isfinite(t) else None
+
+    def __call__(self, rec: Recording) -> bool:
+        cols = rec.columns
+        # The newest sample may still get its corrected frame (device tag): look up to the one before.
+        while self._seen < len(rec) - 1:
+            i, self._seen = self._seen, self._seen + 1
+            k = self._index(cols["time_s"][i])
+            if k is None:
+                continue
+            if self.first_tagged is None and cols["device_tag"][i] == self.tag:
+                self.first_tagged = k
+                if self.wanted_pass is None:
+                    self.start = k
+                else:  # the wanted pass, or the first to begin after the set was running
+                    after = -(-k // self.pass_samples)
+                    self.start = max(self.wanted_pass, after) * self.pass_samples
+            if self.start is not None and k >= self.start + self.n:
+                return True
+        return False
+
+    def selects(self, rec: Recording) -> np.ndarray:
+        k = np.rint(rec.array("time_s") * self.fs)
+        return (k >= self.start) & (k < self.start + self.n)
+
+    def describe(self) -> str:
+        where = f"samples {self.start}..{self.start + self.n - 1} of the device"
+        if self.wanted_pass is None:
+            return f"compared: {where}, from the first corrected with the new set"
+        used = self.start // self.pass_samples
+        if used == self.wanted_pass:
+            return f"compared: {where} (table pass {used}, chosen by sample index: the same every run)"
+        return (f"compared: {where} (table pass {used}: pass {self.wanted_pass} had begun before the "
+                "new set ran, a slow machine; the figures below differ from the README's)")
 
 
 def _first_tagged(rec: Recording, tag: int) -> int:

@@ -1,11 +1,22 @@
 """Candidate explanations of a residual, built from the session itself.
 
-Every auxiliary column is a candidate by its name (its meaning is never
-assumed), and so are time since power-on (a warm-up 1 − exp(−t/τ) with τ
-estimated, and a linear drift) and the direction of approach (the raw signal's
-last significant change, up or down) and its rate of change. Each candidate brings its terms in bias
-form (ΔV gains c·x) and scale-factor form (ΔV gains c·x·ΔV); a channel also brings a
-quadratic bias. Columns that do not earn their keep are pruned after acceptance.
+Every auxiliary column is a source of candidates by its name (its meaning is
+never assumed), in the forms a calibration engineer would try when a sensor
+feels a channel other than directly:
+
+* ``channel:<ch>`` — its level (and its square);
+* ``d/dt <ch>`` — its rate of change, smoothed over a window chosen from the
+  channel's own noise (a thermal transient: the die heats before the sensor reads);
+* ``lag(<ch>)`` — the channel seen through a first-order lag whose τ is
+  estimated (the sensor feels the channel late);
+* ``sign d/dt <ch>`` — the direction of its last significant change, with a
+  threshold above its noise (hysteresis: heating vs cooling).
+
+Time since power-on brings a warm-up 1 − exp(−t/τ) with τ estimated and a
+linear drift; the table brings the direction of approach (the raw signal's last
+significant change) and its rate of change. Each candidate brings its terms in
+bias form (ΔV gains c·x) and scale-factor form (ΔV gains c·x·ΔV). Columns that
+do not earn their keep are pruned after acceptance.
 """
 
 from __future__ import annotations
@@ -15,9 +26,18 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from canical.blocks import SLOPE_TAU_S, Blocks
-from canical.terms import TIME_INPUT, Term
+from canical.terms import STATEFUL_CHANNEL, TIME_INPUT, Term, channel_feature_name
 
 TAU_GRID_POINTS = 24
+LAG_GRID_POINTS = 12
+# Hysteresis threshold: this many per-sample noise sigmas (a noise excursion
+# over a whole session stays below it), and at least this share of the range.
+DIRECTION_NOISE_SIGMAS = 10.0
+DIRECTION_MIN_SHARE = 0.02
+# Derivative window: the shortest whose block-mean noise is this share of the
+# derivative's spread (or the longest tried).
+DERIVATIVE_NOISE_SHARE = 0.1
+DERIVATIVE_WINDOWS_S = (2.0, 4.0, 8.0, 15.0, 30.0, 60.0)
 
 
 @dataclass(frozen=True)
@@ -42,6 +62,8 @@ def feature(term: Term, blocks: Blocks) -> np.ndarray:
         return blocks.direction
     if term.feature == "slope":
         return blocks.slope
+    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
+        return blocks.channel_feature(term)
     if term.kind == "time":
         t = blocks.time_s
         return 1.0 - np.exp(-t / term.tau_s) if term.feature == "warmup" else t
@@ -106,6 +128,7 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
             Term(kind="channel", feature="square", form="bias", coefficient=0.0, channel=name, reference=ref),
         )
         out.append(Candidate(f"channel:{name}", "channel", name, terms))
+        out.extend(_transform_candidates(blocks, name, ref, session_duration_s))
     if np.ptp(blocks.time_s) > 0:
         tau = float(session_duration_s) / 3.0
         out.append(Candidate("time:warm-up", "time", None, _pair("time", "warmup", tau_s=tau)))
@@ -128,13 +151,83 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
     return out
 
 
+def sample_noise(values: np.ndarray) -> float:
+    """Per-sample white noise of a channel, robustly from successive differences."""
+    d = np.diff(np.asarray(values, dtype=float))
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def derivative_window(blocks: Blocks, channel: str) -> float:
+    """The derivative's smoothing τ: the shortest at which noise no longer dominates it.
+
+    Per block, the derivative (v − y)/τ carries the channel's noise σ divided by
+    τ·sqrt(samples per block); the window is the shortest for which that is a
+    small share of the derivative's spread over the session.
+    """
+    samples = blocks.samples
+    assert samples is not None
+    sigma = sample_noise(samples.values[channel])
+    per_block = float(np.median(samples.stops - samples.starts))
+    for tau in DERIVATIVE_WINDOWS_S:
+        d = feature(Term("channel", "derivative", "bias", 0.0, channel=channel, tau_s=tau), blocks)
+        if sigma / (tau * np.sqrt(per_block)) <= DERIVATIVE_NOISE_SHARE * float(np.std(d)):
+            return tau
+    return DERIVATIVE_WINDOWS_S[-1]
+
+
+def direction_threshold(values: np.ndarray) -> float:
+    """Hysteresis threshold of a channel: well above its noise, and a visible share of its range."""
+    return max(DIRECTION_NOISE_SIGMAS * sample_noise(values), DIRECTION_MIN_SHARE * float(np.ptp(values)),
+               1e-12)
+
+
+def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: float) -> list[Candidate]:
+    """The channel's stateful transforms: derivative, lag, direction of change."""
+    if blocks.samples is None or name not in blocks.samples.values:
+        return []
+    values = blocks.samples.values[name]
+    tau_d = derivative_window(blocks, name)
+    tau_lag = float(np.sqrt(lag_grid(duration_s)[0] * lag_grid(duration_s)[-1]))
+    thr = direction_threshold(values)
+    return [
+        Candidate(channel_feature_name("derivative", name), "channel", name,
+                  _pair("channel", "derivative", channel=name, tau_s=tau_d)),
+        Candidate(channel_feature_name("lag", name), "channel", name,
+                  _pair("channel", "lag", channel=name, reference=ref, tau_s=tau_lag)),
+        Candidate(channel_feature_name("direction", name), "channel", name,
+                  _pair("channel", "direction", channel=name, threshold_raw=thr)),
+    ]
+
+
+def lag_grid(session_duration_s: float) -> np.ndarray:
+    """Lag time constants worth trying: from a few blocks to a third of the session."""
+    return np.geomspace(5.0, max(20.0, session_duration_s / 3.0), LAG_GRID_POINTS)
+
+
 def tau_grid(session_duration_s: float) -> np.ndarray:
     """Warm-up time constants worth trying: from seconds to beyond the session's length."""
     return np.geomspace(5.0, max(10.0, 3.0 * session_duration_s), TAU_GRID_POINTS)
 
 
-def with_tau(terms: tuple[Term, ...], tau: float) -> tuple[Term, ...]:
-    return tuple(replace(t, tau_s=tau) if t.feature == "warmup" else t for t in terms)
+def tau_groups(terms: tuple[Term, ...]) -> list[tuple[str, str | None]]:
+    """The time constants a fit estimates: one for the warm-up terms, one per lagged channel."""
+    groups: list[tuple[str, str | None]] = []
+    for t in terms:
+        key = ("warmup", None) if t.feature == "warmup" else ("lag", t.channel)
+        if t.feature in ("warmup", "lag") and key not in groups:
+            groups.append(key)
+    return groups
+
+
+def in_group(term: Term, group: tuple[str, str | None]) -> bool:
+    return term.feature == group[0] and (group[0] == "warmup" or term.channel == group[1])
+
+
+def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] = ("warmup", None)
+             ) -> tuple[Term, ...]:
+    return tuple(replace(t, tau_s=tau) if in_group(t, group) else t for t in terms)
 
 
 def uses_time(terms: tuple[Term, ...]) -> bool:

@@ -8,7 +8,11 @@ coefficient banks by the rules of :mod:`canical.coefficient_banks` in a state
 file so a restart (a power cycle) keeps what was stored, and on request
 (object "Correction mode" = 1) corrects its own raw samples with its active
 sets and transmits them as IMU_RATE (TPDO3): on-device correction, to check
-the daemon and the device against each other.
+the daemon and the device against each other. It corrects with the firmware's own
+C evaluator (``firmware/canical_eval.c`` through :mod:`canical.firmware_eval`), so
+the bus tests run the code a sensor would; where that library cannot be built, or
+does not evaluate a set (a term kind newer than it), the Python evaluator takes
+over with a log line.
 
 Correction inputs are taken from the device's own frames as a receiver decodes
 them (temperature in 0.1 degC, supply in mV, uptime in ms), so the device, the
@@ -23,6 +27,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import canopen
 from canopen.sdo import SdoAbortedError
@@ -40,6 +45,9 @@ from canical.imu_dictionary import (
 )
 from canical.imu_frames import CHANNELS, ImuFrames, set_tag
 from canical.set_admission import DeviceLimits
+
+if TYPE_CHECKING:
+    from canical.firmware_eval import FirmwareCorrector
 
 log = logging.getLogger("canical.imu")
 
@@ -176,10 +184,15 @@ class EmulatedImu:
         axis = stream.table.axis  # type: ignore[attr-defined]
         for block in imu_blocks(stream):  # type: ignore[arg-type]
             raw = {a: block.raw[a].tolist() for a in AXES}
+            ref = block.ref_dps if block.ref_dps is not None else block.table_rate_dps
             rows = zip(
-                block.time_s.tolist(), block.table_rate_dps.tolist(), block.settled.tolist(),
+                block.time_s.tolist(), ref.tolist(), block.settled.tolist(),
                 block.temp_c.tolist(), block.supply_v.tolist(), strict=True,
             )
+            kept = block.kept.tolist() if block.kept is not None else None
+            # The table's own frames, on its own clock, sent as their time comes.
+            table_frames = [f.tolist() for f in block.table_frames] if block.table_frames else None
+            j = 0
             for i, (t, w, settled, temp, supply) in enumerate(rows):
                 if self.stop_event.is_set():
                     return
@@ -192,21 +205,42 @@ class EmulatedImu:
                 elif now - target > MAX_LAG_S:
                     start = now - k * period  # fell far behind (slow host): carry on from here
                 k += 1
+                if table_frames is not None and self.config.table_ref:
+                    ft, fw, fs = table_frames
+                    while j < len(ft) and ft[j] <= t:
+                        send(*frames.table(fw[j], axis, fs[j], j))
+                        j += 1
+                if kept is not None and not kept[i]:
+                    continue  # the sample's frames are lost (a logger or bus overload drops a burst)
                 counts = (raw["x"][i], raw["y"][i], raw["z"][i])
                 aux_id, aux_data = frames.aux(supply, t, k)
                 raw_id, raw_data = frames.raw(counts, temp, k)
                 send(aux_id, aux_data)
                 send(raw_id, raw_data)
-                if self.config.table_ref:
+                if self.config.table_ref and table_frames is None:
                     send(*frames.table(w, axis, settled, k))
                 self.frames_sent += 1
                 if not self.correction:
                     continue
                 if self.store.generation != generation:
                     generation = self.store.generation
-                    correctors = {a: Corrector(c) for a, c in self.store.active_sets().items()}
+                    correctors = self.device_correctors()
                     tag = set_tag({a: self.store.active_id(a) for a in AXES})
                 send(*self._corrected(correctors, tag, raw_id, raw_data, aux_id, aux_data, k))
+
+    def device_correctors(self) -> dict[str, FirmwareCorrector | Corrector]:
+        """The active sets as the device runs them: in the firmware's C evaluator
+        (:mod:`canical.firmware_eval`), or in Python where it cannot (logged there)."""
+        from canical.firmware_eval import FirmwareCorrector, corrector_for  # ctypes only when correcting
+
+        out: dict[str, FirmwareCorrector | Corrector] = {}
+        for axis, cset in self.store.active_sets().items():
+            c = corrector_for(cset, serial=self.config.serial, axis=axis,
+                              rated_range_dps=float(self.config.rated_range_dps.get(axis, 0.0)))  # fmt: skip
+            engine = "the firmware evaluator (C)" if isinstance(c, FirmwareCorrector) else "Python"
+            log.info("axis %s: set 0x%08x corrected on the device with %s", axis, c.set_id, engine)
+            out[axis] = c
+        return out
 
     def _corrected(self, correctors, tag, raw_id, raw_data, aux_id, aux_data, k):
         """IMU_RATE for one sample, from the frames exactly as a receiver decodes them."""

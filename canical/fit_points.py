@@ -14,6 +14,8 @@ import numpy as np
 
 from canical.plateaus import Plateaus, plateau_means, plateau_stds
 
+RATE_GROUP_TOL_DPS = 0.05
+
 
 @dataclass(frozen=True)
 class FitPoints:
@@ -30,8 +32,12 @@ class FitPoints:
     def take(self, index: np.ndarray) -> FitPoints:
         return FitPoints(self.rate[index], self.dv[index], self.weight[index], self.dv_sem[index])
 
-    def rate_groups(self, tol: float = 1e-3) -> np.ndarray:
-        """Group index per point: plateaus at the same table rate (repeated sweeps) share one."""
+    def rate_groups(self, tol: float = RATE_GROUP_TOL_DPS) -> np.ndarray:
+        """Group index per point: plateaus at the same table rate (repeated sweeps) share one.
+
+        The tolerance is wider than a measured reference's scatter of plateau means (its
+        jitter over a plateau's updates), far narrower than any useful rate step.
+        """
         order = np.argsort(self.rate, kind="stable")
         sorted_rate = self.rate[order]
         new = np.concatenate(([True], np.diff(sorted_rate) > tol))

@@ -135,7 +135,7 @@ class RateEncoder:
 
 
 class StatusEncoder:
-    """Encode pages of the multiplexed status frame; counters wrap to their signal width."""
+    """Encode pages of the multiplexed status frame; counters wrap to their signal width or saturate."""
 
     __slots__ = ("_message", "_pages", "_widths", "frame_id", "is_extended", "length", "name")
 
@@ -155,9 +155,12 @@ class StatusEncoder:
     def pages(self) -> tuple[int, ...]:
         return tuple(sorted(self._pages))
 
-    def encode(self, page: int, values: dict[str, int]) -> bytes:
-        """Page ``page``: its signals from ``values`` (0 when absent), counters modulo their width."""
+    def encode(self, page: int, values: dict[str, int], *, saturate: bool = False) -> bytes:
+        """Page ``page``: its signals from ``values`` (0 when absent), counters modulo their width,
+        or held at their maximum with ``saturate`` (fault counts, where a wrap would read as few)."""
         data: dict[str, int] = {"Page": page}
         for name in self._pages.get(page, ()):
-            data[name] = int(values.get(name, 0)) & ((1 << self._widths[name]) - 1)
+            top = (1 << self._widths[name]) - 1
+            value = int(values.get(name, 0))
+            data[name] = min(value, top) if saturate else value & top
         return self._message.encode(data, strict=False)

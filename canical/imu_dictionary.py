@@ -15,10 +15,12 @@ import functools
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-
-import canopen
+from typing import TYPE_CHECKING
 
 from canical.errors import CanicalError
+
+if TYPE_CHECKING:
+    import canopen
 
 EDS_NAME = "canical-imu.eds"
 AXES = ("x", "y", "z")
@@ -69,6 +71,8 @@ def object_dictionary(node_id: int) -> canopen.ObjectDictionary:
     path = eds_path()
     if not path.is_file():
         raise CanicalError(f"{path}: IMU EDS file missing from the installation")
+    import canopen  # here, not at the top: `canical emulate --help` lists AXES
+
     return canopen.import_od(str(path), node_id)
 
 

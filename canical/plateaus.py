@@ -1,16 +1,30 @@
-"""Find the constant-rate plateaus of a turntable session.
+"""Find the constant-rate plateaus of a turntable session, as real tables record them.
 
-Only samples taken at a steady, settled table rate say anything about the scale
-factor: during a rate change the table's reference and the sensor's output do
-not refer to the same instant, and just after it the table overshoots and the
-sensor's filter catches up. So a sample enters the fit only when
+Only samples taken at a steady, settled table rate say anything about the scale factor.
+Real recordings make "steady" hard to see sample by sample: a gentle ramp (1 deg/s²) changes
+the reference by less than its own jitter between two samples, an encoder-derived reference
+is noisy, a reference updated at 10 Hz is held between updates, and rows go missing. So:
 
-* the reference rate has been steady (within ``rate_tol``) for a run of samples
-  lasting at least ``min_duration_s``, and
-* it lies past the run's settling start: ``settle_s`` seconds or
-  ``settle_fraction`` of the run, whichever is longer.
+* **Steadiness is judged over a time window**, robustly: at every instant the median of the
+  reference over the window before is compared with the median over the window after
+  (on a uniform time grid, holding the latest value, so lost rows, duplicated timestamps and
+  uneven sampling change nothing). A ramp of ``a`` deg/s² moves that difference by ``a·W``;
+  a single outlier does not move a median at all.
+* **The tolerance follows from the session**: the reference's own noise is estimated from
+  its successive updates (median absolute deviation) and the tolerance is set to a multiple
+  of the noise of a window median, never below a floor. Both are reported.
+* **A noiseless reference** (the commanded rate, exact on every plateau) shows the row where
+  each plateau begins: the steady stretches start there.
+* **Both ends of each plateau are guarded.** The start: the servo's overshoot and ringing
+  and the sensor's filter settle over ``settle_s`` (auto: 0.5 s or a tenth of the steady
+  stretch, whichever is longer). The end: a reference that is held between updates or late
+  shows the next ramp only after its update interval (estimated from the spacing of its
+  changes, i.e. how long values are held) plus its latency (given, or estimated from when
+  the sensor and the reference each show the rate changing); that much is cut.
+* **A settled flag** recorded by the table narrows the plateaus further; it never makes a
+  visibly moving reference steady.
 
-Each run is its own plateau, so a session with repeated sweeps gives several
+Each steady stretch is its own plateau, so a session with repeated sweeps gives several
 plateaus at the same rate; cross-validation groups and hysteresis both rely on that.
 """
 
@@ -19,18 +33,48 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.signal import correlate, correlation_lags
+
+from canical.errors import CanicalError
+
+MIN_WINDOW_S = 0.5  # shortest window over which steadiness is judged
+WINDOW_UPDATES = 8  # ...and at least this many reference updates
+TOL_FLOOR_DPS = 0.01  # tolerance floor, for references without noise
+TOL_SIGMAS = 6.0  # tolerance in standard deviations of a window median's difference
+DEFAULT_SETTLE_S = 0.5
+SETTLE_FRACTION = 0.1
+MAX_UPDATE_S = 1.0
+GRID_PER_WINDOW = 10  # steadiness is judged every tenth of a window
+MIN_WINDOW_ROWS = 5
+MAX_LATENCY_S = 1.0  # latencies looked for when estimating one
 
 
 @dataclass(frozen=True)
 class Plateaus:
-    """Per-sample plateau labels and per-plateau summaries."""
+    """Per-sample plateau labels, per-plateau summaries, and what the session showed."""
 
     label: np.ndarray  # int per sample: plateau index, or -1 when left out
-    rate_dps: np.ndarray  # per plateau: median reference rate
+    rate_dps: np.ndarray  # per plateau: reference rate (robust mean)
     start: np.ndarray  # per plateau: first used sample index
     stop: np.ndarray  # per plateau: one past the last used sample index
     n_transition: int  # samples at a changing table rate
-    n_settling: int  # samples dropped at the start of plateaus
+    n_settling: int  # samples dropped at the guarded ends of plateaus
+    ref_noise_dps: float = 0.0  # estimated noise of one reference update
+    rate_tol_dps: float = 0.0  # tolerance used on the window medians' difference
+    update_s: float = 0.0  # the reference's update interval (how long values are held)
+    window_s: float = 0.0
+    settle_s: float = 0.0  # start guard (minimum; a tenth of long stretches when auto)
+    end_guard_s: float = 0.0  # end guard: update interval plus latency
+    latency_s: float = 0.0  # the reference's latency behind the sensor (given or estimated)
+    rate_changes: int = 0  # moving stretches seen
+    longest_steady_s: float = 0.0  # longest steady stretch, before guards
+    n_not_settled: int = 0  # steady samples the table flagged as not settled
+    rate_sem_dps: np.ndarray | None = None  # per plateau: standard error of its rate
+    n_short: int = 0  # steady stretches left out as shorter than the minimum
+
+    def rate_uncertainty(self) -> np.ndarray:
+        """Per plateau: the standard error of its reference rate (0 for a noiseless reference)."""
+        return self.rate_sem_dps if self.rate_sem_dps is not None else np.zeros(self.count)
 
     @property
     def count(self) -> int:
@@ -40,63 +84,289 @@ class Plateaus:
     def n_used(self) -> int:
         return int(np.sum(self.stop - self.start))
 
+    def describe(self) -> dict[str, float | int]:
+        """What plateau finding saw and set, for the report."""
+        return {
+            "reference_noise_dps": self.ref_noise_dps,
+            "rate_tol_dps": self.rate_tol_dps,
+            "reference_update_s": self.update_s,
+            "window_s": self.window_s,
+            "settle_s": self.settle_s,
+            "end_guard_s": self.end_guard_s,
+            "reference_latency_s": self.latency_s,
+            "rate_changes": self.rate_changes,
+            "longest_steady_s": self.longest_steady_s,
+            "not_settled_samples": self.n_not_settled,
+            "short_stretches": self.n_short,
+        }
+
+
+def check_time_order(time_s: np.ndarray, what: str = "time_s") -> None:
+    """Refuse a session whose time goes backwards, naming the first bad row (1-based)."""
+    t = np.asarray(time_s, dtype=float)
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise CanicalError(
+            f"{what} goes backwards at row {i + 1} ({t[i]:.6g} s after {t[i - 1]:.6g} s): "
+            "sort the rows or fix the clock"
+        )
+
+
+def reference_update_s(time_s: np.ndarray, ref_dps: np.ndarray) -> float:
+    """How long the reference holds a value: the typical spacing of its changes while it moves.
+
+    A reference sent at 10 Hz and joined to 100 Hz sensor rows repeats each value ten times;
+    its changes are then 0.1 s apart on ramps (and wherever it has noise). Spacings longer
+    than a second are plateaus of a noiseless reference, not holding.
+    """
+    t = np.asarray(time_s, dtype=float)
+    dt = np.diff(t)
+    sample_s = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+    changes = np.flatnonzero(np.diff(ref_dps) != 0) + 1
+    gaps = np.diff(t[changes])
+    gaps = gaps[(gaps > 0) & (gaps < MAX_UPDATE_S)]
+    return max(sample_s, float(np.median(gaps))) if gaps.size >= 3 else sample_s
+
+
+def reference_noise(time_s: np.ndarray, ref_dps: np.ndarray, update_s: float) -> float:
+    """Noise of one reference update, deg/s rms, from the reference sampled once per update.
+
+    Second differences cancel ramps (and nearly cancel S-curves); their median absolute
+    deviation ignores steps. A noiseless reference (commanded rate) gives 0, a held one is
+    not mistaken for a quiet one because it is sampled at its own update interval.
+    """
+    t = np.asarray(time_s, dtype=float)
+    ref = np.asarray(ref_dps, dtype=float)
+    grid_t = np.arange(t[0], t[-1], update_s)
+    if grid_t.size < 4:
+        return 0.0
+    x = ref[np.clip(np.searchsorted(t, grid_t, side="right") - 1, 0, ref.size - 1)]
+    d2 = x[2:] - 2 * x[1:-1] + x[:-2]
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+def reference_latency(time_s: np.ndarray, ref_dps: np.ndarray, raw: np.ndarray, update_s: float,
+                      max_lag_s: float = MAX_LATENCY_S) -> float:
+    """How late the reference is behind the sensor, s, from when each shows the rate changing.
+
+    Cross-correlates the reference's and the sensor's changes (each smoothed over one
+    reference update, so a held reference lines up with a smooth sensor) over lags up to
+    ``max_lag_s``. A held reference is late by half an update on average; that part is the
+    hold guard's, so it is taken off. Never negative: an early reference needs no end guard.
+    """
+    t = np.asarray(time_s, dtype=float)
+    dt = np.diff(t)
+    if t.size < 16 or not np.any(dt > 0):
+        return 0.0
+    step = float(np.median(dt[dt > 0]))
+    grid = np.arange(t[0], t[-1], step)
+    idx = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 1)
+    x = np.diff(np.asarray(ref_dps, dtype=float)[idx])
+    y = np.diff(np.asarray(raw, dtype=float)[idx])
+    k = max(1, round(update_s / step))
+    kernel = np.ones(k) / k
+    x, y = np.convolve(x, kernel, mode="same"), np.convolve(y, kernel, mode="same")
+    if not (np.any(x) and np.any(y)):
+        return 0.0
+    c = correlate(x, y, mode="full", method="fft")
+    lags = correlation_lags(x.size, y.size)
+    near = np.abs(lags) <= round(max_lag_s / step)
+    lag = float(lags[near][np.argmax(np.abs(c[near]))]) * step  # the sensor may count either way
+    held = update_s if update_s > 1.5 * step else 0.0
+    return max(0.0, lag - held / 2)
+
 
 def detect_plateaus(
     time_s: np.ndarray,
     ref_dps: np.ndarray,
     *,
-    rate_tol: float = 0.05,
+    rate_tol: float | None = None,
     min_duration_s: float = 1.0,
-    settle_s: float = 0.5,
-    settle_fraction: float = 0.1,
+    settle_s: float | None = None,
+    settled: np.ndarray | None = None,
+    latency_s: float | None = 0.0,
+    window_s: float | None = None,
+    raw: np.ndarray | None = None,
 ) -> Plateaus:
-    """Label the settled constant-rate samples of a session."""
+    """Label the settled constant-rate samples of a session (``None`` options: from the session).
+
+    ``latency_s=None`` estimates the reference's latency from the sensor's ``raw`` output.
+    """
     ref = np.asarray(ref_dps, dtype=float)
     t = np.asarray(time_s, dtype=float)
     n = ref.shape[0]
     label = np.full(n, -1, dtype=np.int64)
-    if n == 0:
+    if n < 2:
         empty = np.zeros(0)
-        return Plateaus(label, empty, empty.astype(int), empty.astype(int), 0, 0)
-    # A run breaks wherever the reference jumps by more than the tolerance.
-    breaks = np.flatnonzero(np.abs(np.diff(ref)) > rate_tol) + 1
-    run_starts = np.concatenate(([0], breaks))
-    run_stops = np.concatenate((breaks, [n]))
-    rates, starts, stops = [], [], []
-    n_settling = 0
-    for a, b in zip(run_starts, run_stops, strict=True):
-        a, b = _steady_tail(ref, int(a), int(b), rate_tol)
-        if b - a < 2 or t[b - 1] - t[a] < min_duration_s:
+        return Plateaus(label, empty, empty.astype(int), empty.astype(int), n, 0)
+    check_time_order(t)
+    update = reference_update_s(t, ref)
+    noise = reference_noise(t, ref, update)
+    window = window_s if window_s is not None else max(MIN_WINDOW_S, WINDOW_UPDATES * update)
+    before, after, grid_t, rows_before, rows_after = window_medians(t, ref, window)
+    # Noise of a window median: ~1.25 σ/√(independent updates in it), for each side; a window
+    # thinned by lost rows is noisier, so its tolerance is wider.
+    dt = np.diff(t)
+    row_s = float(np.median(dt[dt > 0])) if np.any(dt > 0) else update
+    per_update = row_s / update
+    full = max(1.0, window / update)
+
+    def auto_tol(n_before, n_after):
+        eff_b = np.clip(n_before * per_update, 1.0, full)
+        eff_a = np.clip(n_after * per_update, 1.0, full)
+        return np.maximum(TOL_FLOOR_DPS, TOL_SIGMAS * 1.2533 * noise * np.sqrt(1 / eff_b + 1 / eff_a))
+
+    tol = rate_tol if rate_tol is not None else float(auto_tol(full / per_update, full / per_update))
+    tol_grid = tol if rate_tol is not None else auto_tol(rows_before, rows_after)
+    steady_grid = np.abs(after - before) <= tol_grid
+    moving_starts = np.flatnonzero(np.diff(steady_grid.astype(np.int8)) == -1)
+    rate_changes = int(moving_starts.size + (not steady_grid[0]))
+    # A row is steady when the grid points on both sides of it are.
+    right = np.clip(np.searchsorted(grid_t, t, side="left"), 0, grid_t.size - 1)
+    left = np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, grid_t.size - 1)
+    steady = steady_grid[left] & steady_grid[right]
+    stretches = _runs(steady)
+    if noise == 0.0:
+        stretches = _exact_edges(ref, stretches)
+    # What the reference itself shows, for the report and the errors (before the flag).
+    longest = max((float(t[b - 1] - t[a]) for a, b in stretches), default=0.0)
+    n_flagged = 0
+    if settled is not None:  # the flag narrows stretches, never joins or widens them
+        flag = np.asarray(settled, dtype=bool)
+        narrowed = []
+        for a, b in stretches:
+            n_flagged += int(np.count_nonzero(~flag[a:b]))
+            narrowed += [(a + c, a + d) for c, d in _runs(flag[a:b])]
+        stretches = narrowed
+    if latency_s is None:
+        latency_s = reference_latency(t, ref, raw, update) if raw is not None else 0.0
+    # A value held between updates may be up to one update old; one sent with every row is current.
+    end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
+    slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
+    rates, starts, stops, sems = [], [], [], []
+    in_stretch = n_short = 0
+    for a, b in stretches:
+        in_stretch += b - a
+        duration = float(t[b - 1] - t[a])
+        if duration < min_duration_s:
+            n_short += duration >= window / 2  # a stretch, not a flicker between two ramps
             continue
-        settle = max(settle_s, settle_fraction * (t[b - 1] - t[a]))
-        first = int(np.searchsorted(t[a:b], t[a] + settle)) + a
-        if b - first < 2:
+        settle = settle_s if settle_s is not None else max(DEFAULT_SETTLE_S, SETTLE_FRACTION * duration)
+        first = a + int(np.searchsorted(t[a:b], t[a] + settle - slack, side="left"))
+        last = a + int(np.searchsorted(t[a:b], t[b - 1] - end_guard + slack, side="right"))
+        if last - first < 2:
             continue
-        n_settling += first - a
-        label[first:b] = len(rates)
-        rates.append(float(np.median(ref[first:b])))
+        label[first:last] = len(rates)
+        rates.append(_robust_mean(ref[first:last], tol))
         starts.append(first)
-        stops.append(b)
+        stops.append(last)
+        # Held repeats are one update: the rate averages (duration / update interval) of them.
+        sems.append(noise / np.sqrt(max(1.0, (t[last - 1] - t[first]) / update)))
     n_used = int(np.sum(np.array(stops) - np.array(starts))) if stops else 0
     return Plateaus(
         label=label,
         rate_dps=np.array(rates, dtype=float),
         start=np.array(starts, dtype=np.int64),
         stop=np.array(stops, dtype=np.int64),
-        n_transition=n - n_used - n_settling,
-        n_settling=n_settling,
+        n_transition=n - in_stretch,
+        n_settling=in_stretch - n_used,
+        ref_noise_dps=noise,
+        rate_tol_dps=float(tol),
+        update_s=update,
+        window_s=float(window),
+        settle_s=float(settle_s if settle_s is not None else DEFAULT_SETTLE_S),
+        end_guard_s=float(end_guard),
+        latency_s=float(latency_s),
+        rate_changes=rate_changes,
+        longest_steady_s=longest,
+        n_not_settled=n_flagged,
+        rate_sem_dps=np.array(sems, dtype=float),
+        n_short=n_short,
     )
 
 
-def _steady_tail(ref: np.ndarray, a: int, b: int, tol: float) -> tuple[int, int]:
-    """Trim the slow-ramp head of a run: keep the tail that stays within ``tol`` of its end."""
-    if b - a < 2:
-        return a, b
-    level = np.median(ref[a + (b - a) // 2 : b])
-    off = np.abs(ref[a:b] - level) > tol
-    if not off.any():
-        return a, b
-    return a + int(np.flatnonzero(off)[-1]) + 1, b
+def window_medians(
+    t: np.ndarray, ref: np.ndarray, window: float, min_rows: int = MIN_WINDOW_ROWS
+) -> tuple[np.ndarray, ...]:
+    """Median of the reference over the window before and after each point of a time grid.
+
+    Returns (median before, median after, grid times, rows before, rows after).
+    Over rows, not a resampled signal: a burst of lost rows then shrinks a window rather
+    than filling it with one held value. A window with fewer than ``min_rows`` rows takes the
+    nearest ``min_rows`` on its side, so a rate change hidden in a gap still shows.
+    """
+    step = window / GRID_PER_WINDOW
+    dt = np.diff(t)
+    # Half a row off the rows' own clock, so timestamps jittered by a logger fall on the same side.
+    offset = 0.5 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    grid_t = np.arange(t[0] + offset, t[-1] + step, step)
+    lo = np.searchsorted(t, grid_t - window, side="left")
+    mid = np.searchsorted(t, grid_t, side="left")
+    hi = np.searchsorted(t, grid_t + window, side="left")
+    n = t.size
+    lo = np.minimum(lo, np.maximum(mid - min_rows, 0))
+    hi = np.maximum(hi, np.minimum(mid + min_rows, n))
+    before = np.array([np.median(ref[a:b]) if b > a else np.nan for a, b in zip(lo, mid, strict=True)])
+    after = np.array([np.median(ref[a:b]) if b > a else np.nan for a, b in zip(mid, hi, strict=True)])
+    # At the session's ends one side is empty: nothing is seen changing there.
+    before = np.where(np.isnan(before), after, before)
+    after = np.where(np.isnan(after), before, after)
+    n_before, n_after = mid - lo, hi - mid
+    rows_before = np.where(n_before > 0, n_before, n_after)
+    rows_after = np.where(n_after > 0, n_after, n_before)
+    return before, after, grid_t, rows_before, rows_after
+
+
+def _exact_edges(ref: np.ndarray, stretches: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """For a noiseless reference, start each steady stretch at the first row of exactly its value.
+
+    Such a reference (the commanded rate) shows the row where each plateau begins; the window
+    only finds it to within half a window. The end is not widened: a held or late reference
+    shows the next change only after its hold and latency, which a noiseless reference with
+    instantaneous steps does not reveal; the half window kept there covers them.
+    """
+    same = np.concatenate(([False], np.diff(ref) == 0))  # row equals the one before
+    out = []
+    for a, b in stretches:
+        while a > 0 and same[a]:
+            a -= 1
+        out.append((a, b))
+    return out
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index pairs of the True runs of a boolean array."""
+    edges = np.diff(np.concatenate(([0], mask.astype(np.int8), [0])))
+    return list(zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True))
+
+
+def _robust_mean(values: np.ndarray, tol: float) -> float:
+    """Mean of the values near their median: efficient for jitter, deaf to a stray outlier."""
+    mid = float(np.median(values))
+    spread = 1.4826 * float(np.median(np.abs(values - mid)))
+    near = np.abs(values - mid) <= max(4.0 * spread, tol)
+    return float(np.mean(values[near]))
+
+
+def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
+    """One line for a session where too little was found: what was seen, which option helps."""
+    seen = (
+        f"longest steady stretch {p.longest_steady_s:.3g} s, reference noise {p.ref_noise_dps:.3g} deg/s "
+        f"(tolerance {p.rate_tol_dps:.3g} deg/s), {p.rate_changes} rate changes"
+    )
+    if p.n_not_settled:
+        seen += f", {p.n_not_settled} steady rows flagged not settled by the table"
+    if p.longest_steady_s < p.window_s:
+        hint = f"a larger --rate-tol than {p.rate_tol_dps:.3g} deg/s would accept a noisier reference"
+    elif p.n_short:
+        hint = f"--min-plateau below {min_duration_s:g} s would accept {p.n_short} shorter stretches"
+    elif p.n_not_settled:
+        hint = ("the table's settled flag (--settled-column, TABLE_REF.TableSettled) left out the rest: "
+                "check it")
+    else:
+        hint = "a shorter --settle (or --min-plateau) would keep more, or the session needs more table rates"
+    return f"{what}: {seen}; {hint}"
 
 
 def plateau_means(values: np.ndarray, plateaus: Plateaus) -> np.ndarray:

@@ -33,6 +33,7 @@ import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
 from canical.bank_payload import decode_set, encode_set
+from canical.can_network import DEFAULT_SDO_TIMEOUT_S
 from canical.coefficients import CoefficientSet
 from canical.errors import CanicalError
 from canical.imu_dictionary import (
@@ -52,7 +53,7 @@ from canical.imu_dictionary import (
 )
 from canical.set_admission import DeviceLimits, admission_problem
 
-DEFAULT_TIMEOUT_S = 1.0
+DEFAULT_TIMEOUT_S = DEFAULT_SDO_TIMEOUT_S
 #: Abort codes after which the device's "Last refusal" text says why.
 EXPLAINED_ABORTS = (ABORT_REFUSED, ABORT_DEVICE_STATE, ABORT_TOO_LONG, ABORT_VALUE_RANGE)
 

@@ -4,6 +4,8 @@ One row per sample. ``ref_dps`` is the table's rate (absent when the data comes
 from the field, where there is no reference); ``raw`` is the sensor output for
 the calibrated axis before any correction; ``aux`` holds every other numeric
 channel by its column name, whose meaning the calibrator is not told.
+``settled`` is the table's own settled flag when the recording has one: it is
+not an auxiliary channel (it says how the table moves, not what the sensor feels).
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ class Session:
     ref_dps: np.ndarray | None = None
     aux: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, str] = field(default_factory=dict)
+    settled: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.raw.shape[0])
@@ -44,4 +47,5 @@ class Session:
             ref_dps=None if self.ref_dps is None else self.ref_dps[index],
             aux={name: values[index] for name, values in self.aux.items()},
             meta=dict(self.meta),
+            settled=None if self.settled is None else self.settled[index],
         )

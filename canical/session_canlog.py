@@ -1,4 +1,10 @@
-"""Sessions from CAN logs (candump ``.log``, Vector ``.asc``, ``.blf``) decoded with the DBC.
+"""Sessions from CAN logs decoded with the DBC: every format python-can's ``LogReader`` reads.
+
+Formats: candump ``.log``, Vector ``.asc`` and ``.blf``, PEAK ``.trc``, python-can's ``.csv``
+and SQLite ``.db``, ASAM MDF4 ``.mf4`` (with the optional ``asammdf``), each also gzip-compressed
+(``.asc.gz``). They are read through python-can, never parsed here, so a logger's format is
+python-can's job. A ``.csv`` is a CAN log only when it has python-can's header; any other CSV
+is a session CSV.
 
 Why: a turntable session recorded from the bus (the IMU's raw frames and the table's
 reference frames) should calibrate directly, and a drive recorded from the bus should be
@@ -19,20 +25,14 @@ from pathlib import Path
 import can
 import numpy as np
 
+from canical.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF, require_log_support
 from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
 from canical.session import Session
 
-CANLOG_SUFFIXES = (".log", ".asc", ".blf")
 TIME_INPUT = "time_s"
-DEFAULT_RAW_MESSAGE = "IMU_RAW"
-DEFAULT_REF = "TABLE_REF.TableRate"
 TABLE_AXIS = "TABLE_REF.TableAxis"
-
-
-def is_canlog(path: str | os.PathLike[str]) -> bool:
-    """Whether a file name says CAN log (anything else is read as a session CSV)."""
-    return Path(path).suffix.lower() in CANLOG_SUFFIXES
+TABLE_SETTLED = "TABLE_REF.TableSettled"
 
 
 @dataclass(frozen=True)
@@ -99,6 +99,7 @@ def read_canlog(
     name = str(path)
     if not Path(path).is_file():
         raise CanicalError(f"{name}: file not found")
+    require_log_support(path)
     db = load_dbc(dbc)
     raw = _message(db, raw_message, dbc)
     raw_sig = raw_signal or f"GyroRaw{axis.upper()}"
@@ -109,6 +110,9 @@ def read_canlog(
         wanted["\0ref"] = ref
     if TABLE_AXIS.split(".")[0] in {m.name for m in db.messages}:
         wanted.setdefault("\0axis", TABLE_AXIS)
+        table_signals = {sg.name for sg in db.get_message_by_name(TABLE_AXIS.split(".")[0]).signals}
+        if ref == DEFAULT_REF and TABLE_SETTLED.split(".")[1] in table_signals:
+            wanted.setdefault("\0settled", TABLE_SETTLED)  # the table's own flag goes with its rate
     # frame id -> (message, [(channel, signal)])
     by_id: dict[tuple[int, bool], tuple[object, list[tuple[str, str]]]] = {}
     for channel, sref in wanted.items():
@@ -126,8 +130,10 @@ def read_canlog(
 
     held: dict[str, float] = {}
     channels = [c for c in wanted if not c.startswith("\0")]
-    needed = [c for c in wanted if c != "\0axis"]
+    needed = [c for c in wanted if c not in ("\0axis", "\0settled")]
     times: list[float] = []
+    frame_no: list[int] = []
+    settled: list[float] = []
     raws: list[float] = []
     rows: list[list[float]] = []
     refs: list[float] = []
@@ -151,6 +157,8 @@ def read_canlog(
                     skipped += 1
                     continue
                 times.append(float(msg.timestamp))
+                frame_no.append(frames)
+                settled.append(held.get("\0settled", 1.0))
                 raws.append(float(values[raw_sig]))
                 rows.append([held[c] for c in channels])
                 if ref is not None:
@@ -177,6 +185,11 @@ def read_canlog(
     data = np.asarray(rows, dtype=float).reshape(len(raws), len(channels))
     aux = {c: data[:, i] for i, c in enumerate(channels)}
     t = np.asarray(times)
+    back = np.flatnonzero(np.diff(t) < 0)
+    if ref is not None and back.size:  # a session must be in time order; a drive is corrected as is
+        i = int(back[0]) + 1
+        raise CanicalError(f"{name}: frame {frame_no[i]}: timestamp goes backwards "
+                           f"({t[i]:.6f} after {t[i - 1]:.6f})")
     time_s = aux.pop(TIME_INPUT) if TIME_INPUT in aux else t - t[0]
     axis_code = held.get("\0axis")
     table_axis = {0: "x", 1: "y", 2: "z"}.get(int(axis_code)) if axis_code is not None else None
@@ -189,6 +202,7 @@ def read_canlog(
         ref_dps=np.asarray(refs) if ref is not None else None,
         aux=aux,
         meta=meta,
+        settled=np.asarray(settled) != 0 if "\0settled" in held else None,
     )
     return CanlogSession(session, frames, skipped, dropped, table_axis)
 

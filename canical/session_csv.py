@@ -122,10 +122,18 @@ def _locate_bad_cell(name: str, header: list[str], rows: list[str], first: int, 
 
 
 def session_from_table(
-    table: CsvTable, *, raw_column: str = "raw", ref_column: str | None = "ref_dps"
+    table: CsvTable,
+    *,
+    raw_column: str = "raw",
+    ref_column: str | None = "ref_dps",
+    settled_column: str | None = None,
 ) -> Session:
-    """Pick the session's columns out of a table; ``ref_column=None`` means field data."""
-    needed = [raw_column] + ([ref_column] if ref_column else [])
+    """Pick the session's columns out of a table; ``ref_column=None`` means field data.
+
+    ``settled_column`` names the table's settled flag (nonzero: settled); it is kept apart
+    from the auxiliary channels.
+    """
+    needed = [c for c in (raw_column, ref_column, settled_column) if c]
     for column in needed:
         if column not in table.columns:
             have = ", ".join(table.header)
@@ -137,7 +145,7 @@ def session_from_table(
     if n > 1 and np.any(np.diff(time_s) < 0):
         bad = int(np.argmax(np.diff(time_s) < 0)) + 1
         raise CanicalError(f"{table.path}: line {table.first_data_line + bad}: time_s goes backwards")
-    known = {TIME_COLUMN, raw_column, ref_column or "ref_dps"}
+    known = {TIME_COLUMN, raw_column, ref_column or "ref_dps", settled_column}
     aux = {c: v for c, v in table.columns.items() if c not in known}
     return Session(
         time_s=time_s,
@@ -145,14 +153,20 @@ def session_from_table(
         ref_dps=table.columns[ref_column] if ref_column else None,
         aux=aux,
         meta=dict(table.meta),
+        settled=table.columns[settled_column] != 0 if settled_column else None,
     )
 
 
 def read_session(
-    path: str | os.PathLike[str], *, raw_column: str = "raw", ref_column: str | None = "ref_dps"
+    path: str | os.PathLike[str],
+    *,
+    raw_column: str = "raw",
+    ref_column: str | None = "ref_dps",
+    settled_column: str | None = None,
 ) -> Session:
     """Read a session CSV file."""
-    return session_from_table(read_table(path), raw_column=raw_column, ref_column=ref_column)
+    return session_from_table(read_table(path), raw_column=raw_column, ref_column=ref_column,
+                              settled_column=settled_column)
 
 
 def format_session(session: Session, *, float_format: str = "%.9g") -> str:
@@ -167,6 +181,9 @@ def format_session(session: Session, *, float_format: str = "%.9g") -> str:
         cols.append(session.ref_dps)
     names.append("raw")
     cols.append(session.raw)
+    if session.settled is not None:
+        names.append("settled")
+        cols.append(session.settled.astype(float))
     for name, values in session.aux.items():
         names.append(name)
         cols.append(values)

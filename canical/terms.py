@@ -12,7 +12,14 @@ effect. The coefficient is the sensor's own error, so a positive temperature
 coefficient means the output rises with temperature. Features:
 
 * ``channel`` — an auxiliary signal by name, minus its reference value:
-  ``offset`` x = v − ref, ``square`` x = (v − ref)²;
+  ``offset`` x = v − ref, ``square`` x = (v − ref)²; and, with state (the sensor
+  feels the channel late or through its changes; input ``time_s`` too for the
+  first two): ``lag`` x = y − ref where y follows v through a first-order lag of
+  time constant τ (the die is where the effect acts, the channel reads elsewhere),
+  ``derivative`` x = (v − y)/τ, the rate of change of v smoothed with τ (a thermal
+  transient; for the first τ of a stream y is the mean of the samples so far),
+  ``direction`` x = ±1, the sign of the last change of v larger than
+  ``threshold_raw`` in the channel's own units (hysteresis: heating vs cooling);
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
 * ``direction`` — how the rate got where it is. ``sign``: the direction of the last
@@ -34,10 +41,16 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.signal import lfilter
 
 TIME_INPUT = "time_s"
-FEATURES = {"channel": ("offset", "square"), "time": ("warmup", "linear"), "direction": ("sign", "slope")}
+FEATURES = {
+    "channel": ("offset", "square", "lag", "derivative", "direction"),
+    "time": ("warmup", "linear"),
+    "direction": ("sign", "slope"),
+}
 FORMS = ("bias", "scale")
+STATEFUL_CHANNEL = ("lag", "derivative", "direction")
 TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw")
 
 
@@ -56,12 +69,30 @@ class Term:
 
     @property
     def input_name(self) -> str | None:
-        """The run-time input this term reads (None: derived from raw alone)."""
+        """The run-time input this term reads first (None: derived from raw alone)."""
         if self.kind == "channel":
             return self.channel
         if self.kind == "time" or self.feature == "slope":
             return TIME_INPUT
         return None
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Every run-time input this term reads: a lag or derivative needs time as well."""
+        first = self.input_name
+        if first is None:
+            return ()
+        if self.kind == "channel" and self.feature in ("lag", "derivative"):
+            return (first, TIME_INPUT)
+        return (first,)
+
+    def describe(self) -> str:
+        """A readable name for reports: ``d/dt temp_c``, ``lag(temp_c, τ=140 s)``."""
+        if self.kind == "channel":
+            return channel_feature_name(self.feature, self.channel or "?", self.tau_s)
+        if self.kind == "time":
+            return f"warm-up (τ={self.tau_s:.0f} s)" if self.feature == "warmup" else "linear drift"
+        return "direction of approach" if self.feature == "sign" else "rate of change of raw"
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -103,8 +134,10 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     channel = d.get("channel")
     if kind == "channel" and (not isinstance(channel, str) or not channel):
         raise ValueError(f"{where}: channel must name an input")
-    tau = number("tau_s", required=feature in ("warmup", "slope"), positive=True)
-    threshold = number("threshold_raw", required=feature == "sign", positive=True)
+    stateful = kind == "channel" and feature in STATEFUL_CHANNEL
+    tau = number("tau_s", required=feature in ("warmup", "slope", "lag", "derivative"), positive=True)
+    threshold = number("threshold_raw", required=feature == "sign" or (stateful and feature == "direction"),
+                       positive=True)
     return Term(
         kind=kind,
         feature=feature,
@@ -117,8 +150,28 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     )
 
 
+def channel_feature_name(feature: str, channel: str, tau_s: float | None = None) -> str:
+    """How a report names a channel transform."""
+    if feature == "offset":
+        return f"channel:{channel}"
+    if feature == "square":
+        return f"({channel})²"
+    if feature == "derivative":
+        return f"d/dt {channel}"
+    if feature == "direction":
+        return f"sign d/dt {channel}"
+    return f"lag({channel}, τ={tau_s:.0f} s)" if tau_s else f"lag({channel})"
+
+
 def feature_values(term: Term, inputs: Mapping[str, np.ndarray], raw: np.ndarray) -> np.ndarray:
-    """The term's feature x for a block of samples in time order (fresh direction state)."""
+    """The term's feature x for a block of samples in time order (fresh state)."""
+    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
+        values = np.asarray(inputs[term.channel], dtype=float)
+        if term.feature == "direction":
+            return direction_state(values, term.threshold_raw or 1.0)
+        tracker = ChannelTracker(term)
+        time_s = np.asarray(inputs[TIME_INPUT], dtype=float)
+        return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
     if term.feature == "sign":
         return direction_state(raw, term.threshold_raw or 1.0)
     if term.feature == "slope":
@@ -190,6 +243,65 @@ class SlopeTracker:
             self.value += alpha * ((raw - self.last_raw) / dt - self.value)
         self.last_raw, self.last_t = raw, t
         return self.value
+
+
+class ChannelTracker:
+    """First-order lag y of a channel (time constant τ, exact for any sample spacing).
+
+    Feature ``lag``: y − reference; feature ``derivative``: (v − y)/τ, which is dy/dt,
+    the channel's rate of change smoothed over τ. For the first τ of a stream, y is
+    the plain mean of the samples seen so far: starting from the first sample alone
+    would carry that one sample's noise for τ, an exponential decay that looks like a
+    warm-up. Block and per-sample paths start alike.
+    """
+
+    __slots__ = ("count", "derivative", "last_t", "reference", "start_t", "tau", "y")
+
+    def __init__(self, term: Term) -> None:
+        self.tau = float(term.tau_s or 1.0)
+        self.reference = float(term.reference)
+        self.derivative = term.feature == "derivative"
+        self.y: float | None = None
+        self.start_t = 0.0
+        self.last_t = 0.0
+        self.count = 0
+
+    def update(self, value: float, t: float) -> float:
+        if self.y is None:
+            self.y, self.start_t, self.count = value, t, 1
+        elif t - self.start_t < self.tau:
+            self.count += 1
+            self.y += (value - self.y) / self.count
+        elif t > self.last_t:
+            self.y += (1.0 - math.exp(-(t - self.last_t) / self.tau)) * (value - self.y)
+        self.last_t = t
+        return (value - self.y) / self.tau if self.derivative else self.y - self.reference
+
+
+def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """The lag y :class:`ChannelTracker` computes, for a whole record (a mean, then a lag).
+
+    Vectorised when the samples after the first τ are evenly spaced (the usual
+    case); sample by sample otherwise.
+    """
+    values = np.asarray(values, dtype=float)
+    time_s = np.asarray(time_s, dtype=float)
+    if values.size < 2:
+        return values.copy()
+    k = int(np.searchsorted(time_s - time_s[0], tau_s, side="left"))  # samples in the mean
+    k = max(k, 1)
+    out = np.empty_like(values)
+    out[:k] = np.cumsum(values[:k]) / np.arange(1, k + 1)
+    if k == values.size:
+        return out
+    dt = np.diff(time_s[k - 1 :])
+    step = float(np.median(dt))
+    if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
+        a = 1.0 - np.exp(-step / tau_s)
+        out[k:] = lfilter([a], [1.0, a - 1.0], values[k:], zi=[(1.0 - a) * out[k - 1]])[0]
+        return out
+    tracker = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="_", tau_s=tau_s))
+    return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
 
 
 def raw_shift(terms: tuple[Term, ...], features: np.ndarray, dv: np.ndarray) -> np.ndarray:

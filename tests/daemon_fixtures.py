@@ -176,6 +176,7 @@ class NotifyListener:
         self.sock.settimeout(0.2)
         self.messages: list[dict[str, str]] = []
         self.arrived: dict[str, float] = {}  # time.monotonic() a key first came (READY: start-up time)
+        self.times: list[float] = []  # time.monotonic() of each message's arrival
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -192,7 +193,12 @@ class NotifyListener:
             fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
             for key in fields:
                 self.arrived.setdefault(key, now)
+            self.times.append(now)
             self.messages.append(fields)
+
+    def arrivals(self, key: str) -> list[float]:
+        """When each message carrying ``key`` arrived."""
+        return [t for t, m in zip(list(self.times), list(self.messages), strict=False) if key in m]
 
     def wait_for(self, key: str, timeout: float) -> dict[str, str]:
         end = time.monotonic() + timeout

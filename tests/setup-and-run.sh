@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Install what the tests need on a fresh machine, then lint and run the whole suite.
-# Debian packages (user-mode Linux for the vcan tests, systemd for unit checks) are
-# installed with apt-get when running as root and missing.
+# Debian packages (user-mode Linux for the vcan tests; systemd and dbus for the unit checks
+# and the systemd guest tier; python3-venv for its install test) are installed with apt-get
+# when running as root and missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -9,7 +10,9 @@ need=()
 command -v linux.uml >/dev/null 2>&1 || need+=(user-mode-linux)
 command -v insmod >/dev/null 2>&1 || need+=(kmod)
 command -v ip >/dev/null 2>&1 || need+=(iproute2)
-command -v systemd-analyze >/dev/null 2>&1 || need+=(systemd)
+command -v systemd-analyze >/dev/null 2>&1 && [ -x /lib/systemd/systemd ] || need+=(systemd)
+command -v dbus-daemon >/dev/null 2>&1 || need+=(dbus)
+/usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || need+=(python3-venv)
 command -v cc >/dev/null 2>&1 || need+=(gcc libc6-dev)
 if [ "${#need[@]}" -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then

@@ -1,6 +1,7 @@
 """`canical calibrate` and `canical apply` as a user runs them: files in, files out, clear errors."""
 
 import json
+import re
 import subprocess
 import sys
 
@@ -146,4 +147,9 @@ def test_demo_runs(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path / "demo")]) == 0
     out = capsys.readouterr().out
     assert "lower rms" in out
+    # One scheme, one number: the written set scores what its row in the table says.
+    row = next(line for line in out.splitlines() if "auto size" in line).split()
+    written = re.search(r"the written set on the second session: held-out rms (\d\.\d{4}), "
+                        r"max (\d\.\d{4})", out)
+    assert written is not None and written.groups() == (row[-2], row[-1])
     assert (tmp_path / "demo" / "coefficients.yaml").exists()

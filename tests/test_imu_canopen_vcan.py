@@ -378,11 +378,14 @@ def test_whole_loop_on_vcan_device_corrects_like_apply(vcan_channel: str, tmp_pa
     rates = "-60:60:10"
     options = BusDemoOptions(interface="socketcan", channel=vcan_channel, node_id=NODE, serial=SERIAL,
                              sample_rate_hz=40.0, speed=2.0, dwell_s=2.0, field_samples=200, emulate=False,
+                             field_pass=None,
                              table_rates=tuple(float(r) for r in range(-60, 61, 10)))
     with device(vcan_channel, tmp_path, "--rate", "40", "--speed", "2", f"--table-rates={rates}",
-                "--dwell", "2", "--correct"):
+                "--dwell", "2", "--correct") as dev:
         result = run_bus_demo(tmp_path / "loop", options, say=print)
     assert result.max_device_vs_apply_dps <= 0.0051
+    # the device ran the firmware's C evaluator (firmware/canical_eval.c), not Python
+    assert "corrected on the device with the firmware evaluator (C)" in dev.log.read_text()
     assert result.field_samples >= 200
     assert result.push.status.active_ids["z"] == result.set_id
 

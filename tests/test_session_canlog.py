@@ -13,6 +13,8 @@ import pytest
 from daemon_fixtures import DBC, write_config, write_sets
 
 from canical import coefficient_file
+from canical.canlog_format import is_canlog
+from canical.errors import CanicalError
 from canical.frame_codec import load_dbc
 from canical.session_canlog import default_inputs, read_canlog
 from canical.session_csv import format_session, read_table
@@ -20,6 +22,8 @@ from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, sweep_session
 
 T0 = 1_700_000_000.0
+# One recording per format python-can writes and reads, compressed ones too.
+FORMATS = (".log", ".asc", ".blf", ".trc", ".csv", ".db", ".mf4", ".asc.gz", ".trc.gz", ".log.gz")
 
 
 @pytest.fixture(scope="module")
@@ -48,9 +52,11 @@ def turntable(tmp_path_factory: pytest.TempPathFactory):
     msgs.insert(5, can.Message(timestamp=T0, arbitration_id=raw.frame_id, is_extended_id=False,
                                data=bytes(3)))  # a damaged frame: dropped, like the daemon does
     paths = {}
-    for suffix in (".log", ".asc", ".blf"):
-        paths[suffix] = folder / f"session{suffix}"
+    for suffix in FORMATS:
+        paths[suffix] = folder / f"bus{suffix}"
         with can.Logger(str(paths[suffix])) as logger:
+            if isinstance(logger, can.SqliteWriter):  # python-can 4.6 drops what is queued past 500 at stop
+                logger.MAX_BUFFER_SIZE_BEFORE_WRITES = logger.MAX_TIME_BETWEEN_WRITES = float("inf")
             for m in msgs:
                 logger.on_message_received(m)
     csv = folder / "session.csv"
@@ -63,7 +69,7 @@ def _canical(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
                           timeout=300, check=False)
 
 
-@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+@pytest.mark.parametrize("suffix", FORMATS)
 def test_every_log_format_gives_the_recorded_session(turntable, suffix: str) -> None:
     session, paths, _, _ = turntable
     log = read_canlog(paths[suffix], dbc=DBC, axis="z", inputs=default_inputs(DBC))
@@ -92,13 +98,56 @@ def test_calibrate_from_a_can_log_equals_calibrate_from_csv(turntable) -> None:
     np.testing.assert_allclose(from_log.model["coefficients"], from_csv.model["coefficients"], atol=1e-6)
 
 
-def test_apply_on_a_can_log_uses_the_daemon_mapping(turntable, tmp_path: Path) -> None:
+def test_a_python_can_csv_log_is_told_from_a_session_csv(turntable) -> None:
+    _, paths, csv, _ = turntable
+    assert is_canlog(paths[".csv"]) and not is_canlog(csv)
+    assert all(is_canlog(p) for p in paths.values())
+
+
+@pytest.mark.parametrize("suffix", [".trc", ".asc.gz", ".mf4", ".db", ".csv"])
+def test_calibrate_reads_every_format_as_the_candump_log(turntable, suffix: str) -> None:
+    """A PEAK trace or a compressed log used to be taken for a session CSV; now it is the same session."""
+    from canical.cli import main
+
+    _, paths, _, folder = turntable
+    sets = {}
+    for fmt in (".log", suffix):
+        out = folder / f"cal{fmt}.yaml"
+        code = main(["calibrate", str(paths[fmt]), "--dbc", str(DBC), "--no-extend", "--segments", "3",
+                     "--order", "2", "--sensor", "IMU-0001", "-o", str(out)])
+        assert code == 0
+        sets[fmt] = coefficient_file.load(out)
+    assert sets[suffix].axis == "z"
+    assert sets[suffix].v0 == pytest.approx(sets[".log"].v0, abs=1e-9)
+    np.testing.assert_allclose(sets[suffix].model["coefficients"], sets[".log"].model["coefficients"],
+                               atol=1e-6)
+
+
+def test_mf4_without_asammdf_is_one_line_naming_the_extra(turntable, monkeypatch, capsys) -> None:
+    from canical.cli import main
+
+    _, paths, _, folder = turntable
+    monkeypatch.setitem(sys.modules, "asammdf", None)  # import asammdf now raises ImportError
+    with pytest.raises(CanicalError, match=r"asammdf: pip install 'canical\[mf4\]'"):
+        read_canlog(paths[".mf4"], dbc=DBC, axis="z", inputs={})
+    out = folder / "no-mf4.yaml"
+    assert main(["calibrate", str(paths[".mf4"]), "--dbc", str(DBC), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "canical[mf4]" in err[0] and ".mf4" in err[0]
+    assert not out.exists()
+    assert main(["record", "-o", str(folder / "r.mf4"), "--interface", "virtual", "--channel", "x",
+                 "--dbc", str(DBC)]) == 2
+    assert "canical[mf4]" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("suffix", [".log", ".trc", ".mf4", ".asc.gz"])
+def test_apply_on_a_can_log_uses_the_daemon_mapping(turntable, tmp_path: Path, suffix: str) -> None:
     """With --config, the inputs come from the signals the daemon configuration names."""
     _, paths, _, _ = turntable
     sets = write_sets(tmp_path)
     config = write_config(tmp_path, "can0")
     out = tmp_path / "z.csv"
-    proc = _canical("apply", str(sets["x"]), str(paths[".log"]), "--config", str(config), "-o", str(out),
+    proc = _canical("apply", str(sets["x"]), str(paths[suffix]), "--config", str(config), "-o", str(out),
                     cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     table = read_table(out)
@@ -131,9 +180,10 @@ def test_can_log_errors_are_one_line_and_write_nothing(turntable, tmp_path: Path
     assert not (tmp_path / "s.yaml").exists()
 
 
-def test_record_writes_a_log_that_calibrate_reads(turntable, tmp_path: Path) -> None:
+@pytest.mark.parametrize("suffix", [".log", ".blf", ".trc.gz", ".mf4", ".csv"])
+def test_record_writes_a_log_that_calibrate_reads(turntable, tmp_path: Path, suffix: str) -> None:
     """canical record on a (virtual) bus keeps the IMU's and the table's frames, drops others,
-    and the log it writes reads back as the session that was sent."""
+    and the log it writes (in the format its suffix names) reads back as the session that was sent."""
     import threading
 
     from canical.cli import main
@@ -143,7 +193,7 @@ def test_record_writes_a_log_that_calibrate_reads(turntable, tmp_path: Path) -> 
     n_raw = sum(m.arbitration_id == 0x190 for m in sent)
 
     def play() -> None:
-        with can.Bus(interface="virtual", channel="record-test") as bus:
+        with can.Bus(interface="virtual", channel=f"record-test{suffix}") as bus:
             time.sleep(0.5)
             bus.send(can.Message(arbitration_id=0x555, data=b"noise", is_extended_id=False))
             for m in sent:
@@ -151,8 +201,8 @@ def test_record_writes_a_log_that_calibrate_reads(turntable, tmp_path: Path) -> 
 
     player = threading.Thread(target=play)
     player.start()
-    out = tmp_path / "rec.log"
-    code = main(["record", "-o", str(out), "--interface", "virtual", "--channel", "record-test",
+    out = tmp_path / f"rec{suffix}"
+    code = main(["record", "-o", str(out), "--interface", "virtual", "--channel", f"record-test{suffix}",
                  "--dbc", str(DBC), "--frames", str(n_raw), "--duration", "60"])
     player.join()
     assert code == 0
@@ -161,3 +211,26 @@ def test_record_writes_a_log_that_calibrate_reads(turntable, tmp_path: Path) -> 
     assert sum(m.arbitration_id == 0x190 for m in got) == n_raw
     log = read_canlog(out, dbc=DBC, axis="z", inputs={})
     np.testing.assert_array_equal(log.session.raw, session.raw[: len(log.session.raw)])
+
+
+def test_record_refuses_formats_it_cannot_write_safely(tmp_path: Path, capsys) -> None:
+    from canical.cli import main
+
+    for name, message in (("rec.db", "does not write .db"), ("rec.txt", "must end in one of")):
+        out = tmp_path / name
+        assert main(["record", "-o", str(out), "--interface", "virtual", "--channel", "x",
+                     "--dbc", str(DBC)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0], err
+        assert not out.exists()
+
+
+def test_asammdf_is_imported_only_when_an_mf4_is_named() -> None:
+    """python-can imports asammdf (seconds: pandas, sympy) at ``import can``; canical's commands
+    skip it unless an argument is an MDF4 file, so the daemon and push start fast with canical[mf4]."""
+    probe = ("import sys; from canical.cli import skip_mdf4_import; skip_mdf4_import(sys.argv[1:]); "
+             "import can; print(sys.modules.get('asammdf') is not None)")
+    for arg, loaded in (("drive.log", "False"), ("drive.MF4", "True"), ("drive.mf4.gz", "True")):
+        proc = subprocess.run([sys.executable, "-c", probe, "calibrate", arg], capture_output=True, text=True,
+                              timeout=120, check=True)
+        assert proc.stdout.strip() == loaded, (arg, proc.stdout, proc.stderr)

@@ -14,9 +14,14 @@ from pathlib import Path
 
 import pytest
 
-UNITS = Path(__file__).resolve().parents[1] / "systemd"
+ROOT = Path(__file__).resolve().parents[1]
+UNITS = ROOT / "systemd"
+#: Every unit canical ships, by template name, with the folder it lives in.
+TEMPLATES = {"canical@.service": UNITS, "canical-can@.service": UNITS,
+             "canical-imu-emulator@.service": ROOT / "services"}
 #: Exposure levels reached (systemd-analyze security --offline=yes); lower is better, 10 is worst.
-MAX_EXPOSURE = {"canical@can0.service": 0.8, "canical-can@can0.service": 2.0}
+MAX_EXPOSURE = {"canical@can0.service": 0.8, "canical-can@can0.service": 2.0,
+                "canical-imu-emulator@can0.service": 0.8}
 
 
 def _canical_binary() -> str:
@@ -30,8 +35,8 @@ def _canical_binary() -> str:
 def instances(tmp_path_factory: pytest.TempPathFactory) -> Path:
     assert shutil.which("systemd-analyze"), "systemd-analyze missing: apt-get install systemd"
     folder = tmp_path_factory.mktemp("units")
-    for template in ("canical@.service", "canical-can@.service"):
-        text = (UNITS / template).read_text().replace("/usr/local/bin/canical", _canical_binary())
+    for template, folder_in in TEMPLATES.items():
+        text = (folder_in / template).read_text().replace("/usr/local/bin/canical", _canical_binary())
         (folder / template.replace("@", "@can0")).write_text(text)
     return folder
 
@@ -64,3 +69,18 @@ def test_daemon_unit_is_notify_with_watchdog_unprivileged() -> None:
                  "RestrictAddressFamilies=AF_CAN AF_UNIX", "NoNewPrivileges=yes", "ProtectSystem=strict",
                  "ExecReload=/bin/kill -HUP $MAINPID", "--channel %i"):
         assert line in text, line
+
+
+def test_no_unit_waits_for_a_device_unit() -> None:
+    """Device units exist only where udev runs; a dependency on one hangs 90 s elsewhere."""
+    for template, folder in TEMPLATES.items():
+        settings = [line for line in (folder / template).read_text().splitlines()
+                    if not line.startswith("#")]
+        assert not any("sys-subsystem-net-devices" in line for line in settings), template
+
+
+def test_interface_unit_sets_bit_timing_only_when_configured() -> None:
+    """vcan has no bit timing ("Operation not supported"): only a BITRATE from the .env sets it."""
+    text = (UNITS / "canical-can@.service").read_text()
+    assert "Environment=BITRATE= " in text and "EnvironmentFile=-/etc/canical/%i.env" in text
+    assert 'if [ -n "$BITRATE" ]; then' in text

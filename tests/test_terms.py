@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 from canical.coefficients import CoefficientSet, piecewise_model_dict
 from canical.corrector import Corrector
 from canical.piecewise import PiecewisePoly
-from canical.terms import DirectionTracker, SlopeTracker, term_from_dict
+from canical.terms import ChannelTracker, DirectionTracker, SlopeTracker, Term, lag_filter, term_from_dict
 
 
 def test_direction_tracker_has_hysteresis():
@@ -24,6 +24,33 @@ def test_slope_tracker_converges_to_the_ramp_slope():
     assert out[-1] == pytest.approx(3.0)
 
 
+def test_channel_lag_and_derivative_follow_a_ramp():
+    """After a ramp has run many τ, the lag trails it by slope·τ and the derivative is the slope."""
+    lag = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="t", reference=1.0, tau_s=20.0))
+    der = ChannelTracker(Term("channel", "derivative", "bias", 0.0, channel="t", tau_s=20.0))
+    times = np.arange(0, 400, 0.05)
+    for t in times:
+        x_lag, x_der = lag.update(0.5 * t, t), der.update(0.5 * t, t)
+    # Exact discrete lag: it trails by slope·(τ − dt/2) to first order in dt/τ.
+    assert x_der == pytest.approx(0.5 * (1 - 0.05 / 40.0), rel=1e-5)
+    assert x_lag == pytest.approx(0.5 * times[-1] - 0.5 * (20.0 - 0.025) - 1.0, rel=1e-5)
+    fresh = ChannelTracker(Term("channel", "derivative", "bias", 0.0, channel="t", tau_s=5.0))
+    assert fresh.update(3.0, 0.0) == 0.0  # no change seen yet
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.booleans(), st.floats(0.5, 500.0))
+def test_vectorised_lag_equals_the_tracker(seed, even, tau):
+    """The calibration's vectorised lag is the run-time tracker's, evenly spaced samples or not."""
+    rng = np.random.default_rng(seed)
+    n = 400
+    t = np.arange(n) * 0.01 if even else np.cumsum(rng.uniform(0.001, 0.05, n))
+    v = np.cumsum(rng.normal(0, 1, n))
+    tracker = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="c", tau_s=tau))
+    one = [tracker.update(a, b) for a, b in zip(v.tolist(), t.tolist(), strict=True)]
+    np.testing.assert_allclose(lag_filter(v, t, tau), one, rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize(
     ("term", "message"),
     [
@@ -36,6 +63,11 @@ def test_slope_tracker_converges_to_the_ramp_slope():
         ({"kind": "direction", "feature": "sign", "form": "bias", "coefficient": 1.0}, "threshold_raw"),
         ({"kind": "channel", "feature": "offset", "form": "bias", "coefficient": float("nan"),
           "channel": "t"}, "coefficient"),
+        ({"kind": "channel", "feature": "lag", "form": "bias", "coefficient": 1.0, "channel": "t"}, "tau_s"),
+        ({"kind": "channel", "feature": "derivative", "form": "scale", "coefficient": 1.0, "channel": "t",
+          "tau_s": -2.0}, "tau_s must be positive"),
+        ({"kind": "channel", "feature": "direction", "form": "bias", "coefficient": 1.0, "channel": "t"},
+         "threshold_raw"),
     ],
 )
 def test_bad_terms_are_refused(term, message):
@@ -54,6 +86,14 @@ ALL_TERMS = (
     {"kind": "time", "feature": "linear", "form": "scale", "coefficient": 1e-5},
     {"kind": "direction", "feature": "sign", "form": "bias", "coefficient": 0.05, "threshold_raw": 400.0},
     {"kind": "direction", "feature": "slope", "form": "bias", "coefficient": 1e-5, "tau_s": 0.5},
+    {"kind": "channel", "channel": "temp_c", "feature": "lag", "form": "bias", "coefficient": 0.02,
+     "reference": 25.0, "tau_s": 140.0},
+    {"kind": "channel", "channel": "temp_c", "feature": "derivative", "form": "scale", "coefficient": 3e-3,
+     "tau_s": 2.0},
+    {"kind": "channel", "channel": "temp_c", "feature": "derivative", "form": "bias", "coefficient": 4.0,
+     "tau_s": 0.3},
+    {"kind": "channel", "channel": "supply_v", "feature": "direction", "form": "bias", "coefficient": 0.7,
+     "threshold_raw": 0.2},
 )
 
 
@@ -80,6 +120,20 @@ def test_block_and_per_sample_corrections_agree(seed):
         r, f = one.correct_one(raw[i], {k: v[i] for k, v in inputs.items()})
         assert r == pytest.approx(block[i], abs=1e-9)
         assert f == flags[i]
+    # After a reset the stateful terms (direction, slope, lag, derivative) start again alike.
+    one.reset()
+    again = [one.correct_one(raw[i], {k: v[i] for k, v in inputs.items()})[0] for i in range(50)]
+    np.testing.assert_allclose(again, block[:50], atol=1e-9)
+
+
+def test_new_term_kinds_round_trip_a_file_and_need_time():
+    from canical import coefficient_file
+
+    cset = coefficient_file.loads(coefficient_file.dumps(extended_set()))
+    corrector = Corrector(cset)
+    assert set(corrector.required_inputs) == {"temp_c", "supply_v", "time_s"}
+    names = [term_from_dict(t).describe() for t in cset.terms[-4:]]
+    assert names == ["lag(temp_c, τ=140 s)", "d/dt temp_c", "d/dt temp_c", "sign d/dt supply_v"]
 
 
 def test_missing_input_is_named():

@@ -217,15 +217,15 @@ def test_init_script_loads_can_modules_in_dependency_order(tmp_path: Path) -> No
     uml = harness.UmlInstallation(kernel=Path("/k"), module_dir=Path("/m"),
                                   insmod=Path("/sbin/insmod"), ip=Path("/sbin/ip"))
     env = harness.guest_environment({"PATH": "/usr/bin"}, tmp_path)
-    script = harness.render_init_script(uml, tmp_path, ["python", "-c", "print('a b')"],
-                                        tmp_path, env)
+    script, command = harness.render_init_script(uml, tmp_path, ["python", "-c", "print('a b')"],
+                                                 tmp_path, env)
     positions = [script.index(f"/m/kernel/{m}") for m in harness.CAN_MODULES]
     assert positions == sorted(positions)
     assert script.index("can-dev.ko") < script.index("vcan.ko")
     for ifname in ("vcan0", "vcan1"):
         assert f"link add dev {ifname} type vcan" in script
-    assert "python -c 'print('\"'\"'a b'\"'\"')'" in script
-    assert '"$RUN/status"' in script
+    assert "python -c 'print('\"'\"'a b'\"'\"')'" in command
+    assert '"$RUN/status"' in command
 
 
 def test_locate_uml_reports_how_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -353,3 +353,23 @@ def test_run_in_uml_timeout_kills_the_whole_guest(tmp_path: Path) -> None:
     assert "timed out" in result.describe()
     time.sleep(0.2)
     assert _processes_mentioning(str(run_dir)) == []
+
+
+@uml_selftest
+def test_guest_cannot_change_the_host(tmp_path: Path) -> None:
+    """The host's / is read-only under a tmpfs overlay: the guest's writes outside its run dir
+    (a host file, a new file in /etc, removing a file) stay in the guest, halting leaves the
+    host's wtmp alone, and only the run dir carries results back."""
+    host_file = tmp_path / "host.txt"
+    host_file.write_text("host")
+    marker = Path("/etc") / f"canical-guest-{tmp_path.name}"
+    wtmp = Path("/var/log/wtmp")
+    wtmp_before = wtmp.read_bytes() if wtmp.exists() else None
+    script = (f"echo guest > {host_file} && touch {marker} && rm {host_file} && "
+              f"echo in-guest > $CANICAL_UML_RUN_DIR/out.txt")
+    result = harness.run_in_uml(["sh", "-c", script], run_dir=tmp_path / "run", timeout=120)
+    assert result.returncode == 0, result.describe()
+    assert host_file.read_text() == "host"
+    assert not marker.exists()
+    assert (tmp_path / "run" / "out.txt").read_text() == "in-guest\n"
+    assert (wtmp.read_bytes() if wtmp.exists() else None) == wtmp_before

@@ -5,16 +5,21 @@ Why this exists: the development and CI machines run a kernel built without ``CO
 working KVM and no Docker engine. Mocking the bus would not exercise the kernel's CAN stack
 (receive filters, loopback, socket semantics) that the service relies on in production. What
 does work is User-mode Linux (Debian's ``user-mode-linux`` package): a Linux kernel running as
-an ordinary process that ships the CAN modules. Booted with the host's ``/`` as a ``hostfs``
-root file system, the guest sees the same files, Python interpreter and site-packages, so a
-command can be run "as if on the host", just with ``vcan0``/``vcan1`` available.
+an ordinary process that ships the CAN modules. Booted with the host's ``/`` as a read-only
+``hostfs`` root file system under an overlay, the guest sees the same files, Python
+interpreter and site-packages, so a command can be run "as if on the host", just with
+``vcan0``/``vcan1`` available.
 
 This module is deliberately free of ``canical`` and pytest imports so it can be used from
 scripts and from the pytest plugin (``tests/vcan_plugin.py``) alike. It provides:
 
 * :func:`host_vcan_status` - does the host itself have a usable ``vcan0``?
 * :func:`locate_uml` - find ``linux.uml``, its CAN modules and the guest tools.
-* :func:`run_in_uml` - run a command in a UML guest with ``vcan0`` and ``vcan1`` up.
+* :func:`run_in_uml` - run a command in a UML guest with ``vcan0`` and ``vcan1`` up, either
+  from a shell init or under the host's own systemd booted as the guest's PID 1.
+
+A guest never changes the host: the kernel mounts the host's ``/`` read-only and the init script
+stacks an overlay with a tmpfs upper layer on it; only the run dir is mounted writable.
 
 One host quirk is handled here as well: the bookworm UML kernel (6.1) exchanges the FPU state
 with its guest processes through ``PTRACE_{GET,SET}REGSET(NT_X86_XSTATE)`` using a fixed
@@ -56,6 +61,8 @@ ENV_RUN_DIR = "CANICAL_UML_RUN_DIR"
 ENV_KERNEL = "CANICAL_UML_KERNEL"
 ENV_MODULES = "CANICAL_UML_MODULES"
 ENV_MEM = "CANICAL_UML_MEM"
+#: Set to ``1`` for a command that runs under the guest's own systemd (``run_in_uml(systemd=True)``).
+ENV_IN_SYSTEMD = "CANICAL_IN_SYSTEMD_GUEST"
 
 #: The vcan interfaces every guest brings up.
 GUEST_CHANNELS: tuple[str, ...] = ("vcan0", "vcan1")
@@ -385,6 +392,7 @@ class GuestResult:
     returncode: int | None
     stdout: str
     stderr: str
+    journal: str  # the systemd guest's journal, copied out when the command failed
     console: str
     run_dir: Path
     duration: float
@@ -418,7 +426,7 @@ class GuestResult:
             parts.append("hint: the host's XSAVE area is larger than this UML kernel handles; "
                          "install a C compiler (apt-get install gcc) so the XSAVE shim builds")
         for name, text in (("stdout", self.stdout), ("stderr", self.stderr),
-                           ("console", self.console)):
+                           ("journal", self.journal), ("console", self.console)):
             if text.strip():
                 snippet = text if len(text) <= tail else "...\n" + text[-tail:]
                 parts.append(f"----- guest {name} (last {tail} chars) -----\n{snippet.rstrip()}")
@@ -441,51 +449,139 @@ def guest_environment(base: Mapping[str, str], run_dir: Path) -> dict[str, str]:
     return env
 
 
-def render_init_script(uml: UmlInstallation, run_dir: Path, command: Sequence[str], cwd: Path,
-                       env: Mapping[str, str], channels: Sequence[str] = GUEST_CHANNELS) -> str:
-    """The guest's PID 1: set up /proc, /sys, tmpfs, CAN modules and vcans, run, halt.
+#: The overlay module, relative to ``<module dir>/kernel``: the guest's root is the host's,
+#: read-only, under a tmpfs upper layer, so nothing a guest does reaches the host's files.
+OVERLAY_MODULE = "fs/overlayfs/overlay.ko"
+#: Inside the guest: where stage 1 assembles the new root before switching into it.
+_NEWROOT = "/run/canical-root"
+#: The unit that runs the command when the guest boots systemd (``systemd=True``).
+GUEST_UNIT = "canical-guest-command.service"
 
-    The kernel's exit status does not carry the command's, so the status goes to a file in the
-    run dir (on the shared hostfs). Setup failures are written to ``setup_error`` likewise.
+
+def _guest_unit(run_dir: Path) -> str:
+    """The oneshot that runs the command after multi-user.target and powers the guest off.
+
+    ``SuccessAction=``/``FailureAction=`` belong in [Unit] (in [Service] systemd ignores them).
+    """
+    return "\n".join([
+        "[Unit]",
+        "Description=canical test command in the systemd guest",
+        "After=multi-user.target",
+        "SuccessAction=poweroff",
+        "FailureAction=poweroff",
+        "[Service]",
+        "Type=oneshot",
+        "TimeoutStartSec=infinity",
+        f"ExecStart=/bin/sh {run_dir / 'command.sh'}",
+        "StandardOutput=journal",
+        "StandardError=journal",
+        "",
+    ])
+
+
+def render_init_script(uml: UmlInstallation, run_dir: Path, command: Sequence[str], cwd: Path,
+                       env: Mapping[str, str], channels: Sequence[str] = GUEST_CHANNELS, *,
+                       systemd: bool = False) -> tuple[str, str]:
+    """The guest's PID 1 (``init.sh``) and the script that runs the command (``command.sh``).
+
+    PID 1 sets up an overlay root, CAN modules and vcans, then runs the command or systemd.
+
+    The kernel mounts the host's ``/`` read-only (hostfs ``ro``); this script stacks an overlay
+    with a tmpfs upper layer on it, binds only ``run_dir`` writable from the host, and
+    switches into that root: the guest can write anywhere, and the host sees only ``run_dir``.
+    Halting uses ``-d`` (no wtmp record, which a writable root would have put in the host's
+    ``/var/log/wtmp``).
+
+    Without ``systemd`` the command runs in the new root from this script. With it,
+    ``/lib/systemd/systemd`` is exec'd as PID 1 in the new root and :data:`GUEST_UNIT` runs the
+    command after ``multi-user.target``, then powers off; on failure the journal is copied to
+    ``run_dir/journal.txt``. The kernel's exit status does not carry the command's, so the
+    status goes to a file in the run dir; setup failures to ``setup_error`` likewise.
     """
     q = shlex.quote
     run = q(str(run_dir))
+    new = _NEWROOT
     kernel_dir = uml.module_dir / "kernel"
+    ip = q(str(uml.ip))
     lines = [
         "#!/bin/sh",
         "# Generated by tests/vcan_harness.py: PID 1 of a User-mode Linux guest.",
         f"PATH={q(_SYSTEM_PATH)}; export PATH",
         f"RUN={run}",
-        'stop() { sync; halt -f; poweroff -f; echo o > /proc/sysrq-trigger; exit 1; }',
-        'fail() { echo "canical-uml: setup failed: $*"; echo "$*" > "$RUN/setup_error"; stop; }',
+        f"NEW={new}",
+        'stop() { sync; halt -d -f; poweroff -d -f; echo o > "$NEW/proc/sysrq-trigger";'
+        ' echo o > /proc/sysrq-trigger; exit 1; }',
+        # Before the run dir is mounted, a setup failure can only be told on the console.
+        'fail() { echo "canical-uml: setup failed: $*"; echo "$*" > "$NEW$RUN/setup_error"; stop; }',
         "mount -t proc proc /proc || fail 'mount /proc'",
         "mount -t sysfs sysfs /sys || fail 'mount /sys'",
-        # /dev is the kernel's devtmpfs; /run and /dev/shm must not be the host's.
-        "mkdir -p /dev/shm /dev/pts",
-        "mount -t tmpfs -o mode=1777 tmpfs /dev/shm || fail 'mount /dev/shm'",
-        "mount -t devpts devpts /dev/pts 2>/dev/null",
-        "mount -t tmpfs -o mode=755 tmpfs /run || fail 'mount /run'",
-        f"{q(str(uml.ip))} link set lo up",
+        # The host's / is read-only here: build the writable root on a tmpfs over /run.
+        "mount -t tmpfs -o mode=755 tmpfs /run || fail 'mount tmpfs on /run'",
+        f"{q(str(uml.insmod))} {q(str(kernel_dir / OVERLAY_MODULE))} || fail 'insmod overlay'",
+        'mkdir -p /run/upper /run/work "$NEW"',
+        'mount -t overlay overlay -o lowerdir=/,upperdir=/run/upper,workdir=/run/work "$NEW"'
+        " || fail 'mount the overlay root'",
+        # A container marker makes systemd think it runs in docker (and ignore systemd.unit=).
+        'rm -f "$NEW/.dockerenv" "$NEW/run/.containerenv"',
+        'mount --move /proc "$NEW/proc" && mount --move /sys "$NEW/sys"'
+        " || fail 'move /proc and /sys'",
+        'mount --move /dev "$NEW/dev" || mount -t devtmpfs devtmpfs "$NEW/dev"'
+        " || fail 'mount /dev'",
+        'mount -t tmpfs -o mode=755 tmpfs "$NEW/run" || fail "mount $NEW/run"',
+        'mkdir -p "$NEW/dev/shm" "$NEW/dev/pts"',
+        'mount -t tmpfs -o mode=1777 tmpfs "$NEW/dev/shm" || fail "mount /dev/shm"',
+        'mount -t devpts devpts "$NEW/dev/pts" 2>/dev/null',
+        # The run dir: the one host directory the guest writes (results, logs, temp files).
+        'mkdir -p "$NEW$RUN" && mount -t hostfs hostfs -o "$RUN" "$NEW$RUN"'
+        " || fail 'mount the run dir'",
+        f"{ip} link set lo up",
     ]
     for module in CAN_MODULES:
         path = q(str(kernel_dir / module))
         lines.append(f"{q(str(uml.insmod))} {path} || fail {q('insmod ' + module)}")
     for ifname in channels:
-        ip = q(str(uml.ip))
         lines.append(f"{ip} link add dev {q(ifname)} type vcan && {ip} link set {q(ifname)} up"
                      f" || fail {q('creating ' + ifname)}")
     env_args = " ".join(q(f"{k}={v}") for k, v in sorted(env.items()))
     cmd = " ".join(q(c) for c in command)
-    lines += [
+    run_command = [
         f"mkdir -p {q(env['TMPDIR'])}",
-        ': > "$RUN/ready"',
-        f"cd {q(str(cwd))} || fail {q('cd ' + str(cwd))}",
+        f"cd {q(str(cwd))} || {{ echo {q('cd ' + str(cwd))} > \"$RUN/setup_error\"; exit 1; }}",
         f'/usr/bin/env -i {env_args} {cmd} </dev/null >"$RUN/stdout.txt" 2>"$RUN/stderr.txt"',
-        'echo $? > "$RUN/status.tmp" && mv "$RUN/status.tmp" "$RUN/status"',
-        "stop",
+        'code=$?',
+        'echo $code > "$RUN/status.tmp" && mv "$RUN/status.tmp" "$RUN/status"',
+    ]
+    if not systemd:
+        lines += [': > "$NEW$RUN/ready"', 'chroot "$NEW" /bin/sh "$RUN/command.sh"', "stop", ""]
+        return "\n".join(lines), "\n".join(["#!/bin/sh", f"RUN={run}", *run_command, ""])
+    unit_dir = "$NEW/etc/systemd/system"
+    lines += [
+        # Services the host's admin enabled (databases, ...) are not the guest's business.
+        f'rm -f "{unit_dir}"/multi-user.target.wants/*',
+        # systemd-tmpfiles empties /tmp at boot ("D /tmp"): in the overlay that would hide
+        # the host's /tmp from the guest (a checkout or cwd there), so keep /tmp as it is.
+        'mkdir -p "$NEW/etc/tmpfiles.d" && ln -sf /dev/null "$NEW/etc/tmpfiles.d/tmp.conf"',
+        f'mkdir -p "{unit_dir}/multi-user.target.wants"',
+        f'cp "$RUN/{GUEST_UNIT}" "{unit_dir}/{GUEST_UNIT}" || fail "install {GUEST_UNIT}"',
+        f'ln -sf ../{GUEST_UNIT} "{unit_dir}/multi-user.target.wants/{GUEST_UNIT}"',
+        ': > "$NEW$RUN/ready"',
+        # pivot_root, not a bare chroot: in a chroot the kernel refuses new user namespaces
+        # (PrivateUsers= would fail with EPERM) and systemd would see itself in a container.
+        'cd "$NEW" && mkdir -p run/oldroot && pivot_root . run/oldroot || fail "pivot_root"',
+        "exec chroot . /bin/sh -c 'umount -l /run/oldroot; rmdir /run/oldroot;"
+        " exec /lib/systemd/systemd --system --unit=multi-user.target'",
         "",
     ]
-    return "\n".join(lines)
+    command_script = [
+        "#!/bin/sh",
+        f"RUN={run}",
+        *run_command,
+        # On failure, the guest's whole journal goes to the run dir for the host to read.
+        '[ "$code" = 0 ] || journalctl -b --no-pager -o short-monotonic > "$RUN/journal.txt" 2>&1',
+        "exit $code",
+        "",
+    ]
+    return "\n".join(lines), "\n".join(command_script)
 
 
 def _kill_group(pgid: int) -> None:
@@ -504,8 +600,12 @@ def _read(path: Path) -> str:
 def run_in_uml(command: Sequence[str], *, cwd: str | os.PathLike[str] | None = None,
                env: Mapping[str, str] | None = None, timeout: float = DEFAULT_TIMEOUT,
                run_dir: str | os.PathLike[str] | None = None, mem: str | None = None,
-               channels: Sequence[str] = GUEST_CHANNELS) -> GuestResult:
+               channels: Sequence[str] = GUEST_CHANNELS, systemd: bool = False) -> GuestResult:
     """Run ``command`` inside a fresh UML guest with ``channels`` (vcan) up; wait for it.
+
+    With ``systemd`` the guest boots the host's systemd as PID 1 and runs the command as the
+    oneshot :data:`GUEST_UNIT` after ``multi-user.target`` (the command can then use
+    ``systemctl``, start units and read the journal); ``CANICAL_IN_SYSTEMD_GUEST=1`` is set.
 
     ``cwd`` and ``env`` default to the caller's; ``CANICAL_IN_UML=1`` is added. The command's
     stdout/stderr are written to files in ``run_dir`` (created, unique, under the temp dir if
@@ -517,12 +617,19 @@ def run_in_uml(command: Sequence[str], *, cwd: str | os.PathLike[str] | None = N
     rdir = Path(run_dir) if run_dir is not None else Path(tempfile.mkdtemp(prefix="canical-uml-"))
     rdir = rdir.resolve()
     rdir.mkdir(parents=True, exist_ok=True)
-    for stale in ("status", "status.tmp", "setup_error", "ready", "stdout.txt", "stderr.txt"):
+    for stale in ("status", "status.tmp", "setup_error", "ready", "stdout.txt", "stderr.txt",
+                  "journal.txt"):
         (rdir / stale).unlink(missing_ok=True)
     workdir = Path(cwd if cwd is not None else os.getcwd()).resolve()
     guest_env = guest_environment(os.environ if env is None else env, rdir)
+    if systemd:
+        guest_env[ENV_IN_SYSTEMD] = "1"
+        (rdir / GUEST_UNIT).write_text(_guest_unit(rdir))
+    init_text, command_text = render_init_script(uml, rdir, command, workdir, guest_env, channels,
+                                                 systemd=systemd)
+    (rdir / "command.sh").write_text(command_text)
     init = rdir / "init.sh"
-    init.write_text(render_init_script(uml, rdir, command, workdir, guest_env, channels))
+    init.write_text(init_text)
     init.chmod(0o755)
 
     host_env = {k: v for k, v in os.environ.items() if k not in {"TMPDIR", "TMP", "TEMP"}}
@@ -531,7 +638,7 @@ def run_in_uml(command: Sequence[str], *, cwd: str | os.PathLike[str] | None = N
         host_env["LD_PRELOAD"] = f"{shim} {preload}" if preload else str(shim)
     umid = f"canical-{os.getpid()}-{rdir.name[-8:]}"
     argv = [str(uml.kernel), f"mem={mem or os.environ.get(ENV_MEM, '2G')}",
-            "rootfstype=hostfs", "rootflags=/", "rw", "quiet", f"umid={umid}",
+            "rootfstype=hostfs", "rootflags=/", "ro", "quiet", f"umid={umid}",
             f"uml_dir={rdir}", f"init={init}", "con=null", "con0=fd:0,fd:1"]
 
     start = time.monotonic()
@@ -562,6 +669,7 @@ def run_in_uml(command: Sequence[str], *, cwd: str | os.PathLike[str] | None = N
         returncode=int(status_text) if status_text.lstrip("-").isdigit() else None,
         stdout=_read(rdir / "stdout.txt"),
         stderr=_read(rdir / "stderr.txt"),
+        journal=_read(rdir / "journal.txt"),
         console=_read(rdir / "console.log"),
         run_dir=rdir,
         duration=duration,

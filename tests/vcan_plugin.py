@@ -18,6 +18,13 @@ tests run is decided once per session, and only if vcan tests are selected:
     Neither: the vcan tests FAIL with an explanation (a silent skip would hide that the CAN
     code went untested), unless ``CANICAL_ALLOW_NO_VCAN=1``, which turns that into a skip.
 
+Tests also marked ``@pytest.mark.systemd_guest`` need a real systemd as PID 1 (they start the
+units, read the journal): they always go to a second guest, booted with the host's systemd
+(:func:`vcan_harness.run_in_uml` with ``systemd=True``), where pytest runs as a oneshot unit
+after ``multi-user.target``. Before it boots, the host builds the canical wheel and the
+dependencies' wheels (the guest has no network) for the install test; see
+``tests/systemd_guest.py``.
+
 ``CANICAL_VCAN_MODE=native|uml`` forces a mode (e.g. to exercise the UML path on a machine
 that has vcan). ``CANICAL_UML_TIMEOUT`` bounds the guest run (seconds, default 1800);
 ``CANICAL_UML_KEEP=1`` keeps the guest's run dir even when everything passed.
@@ -25,6 +32,7 @@ that has vcan). ``CANICAL_UML_TIMEOUT`` bounds the guest run (seconds, default 1
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -37,12 +45,15 @@ from typing import Any
 import pytest
 
 try:  # imported as a top-level module (conftest's rootdir on sys.path) or as tests.vcan_plugin
+    import systemd_guest
     import vcan_harness as harness
 except ImportError:  # pragma: no cover - depends on how pytest was started
+    from tests import systemd_guest  # type: ignore[no-redef]
     from tests import vcan_harness as harness  # type: ignore[no-redef]
 
 MARK = "vcan"
 SELFTEST_MARK = "uml_selftest"
+SYSTEMD_MARK = "systemd_guest"
 ENV_ALLOW_NO_VCAN = "CANICAL_ALLOW_NO_VCAN"
 ENV_MODE = "CANICAL_VCAN_MODE"
 ENV_TIMEOUT = "CANICAL_UML_TIMEOUT"
@@ -51,11 +62,22 @@ ENV_KEEP = "CANICAL_UML_KEEP"
 ENV_REPORT = "CANICAL_UML_REPORT"
 
 _STATE_KEY = pytest.StashKey["VcanState"]()
+_SYSTEMD_STATE_KEY = pytest.StashKey["VcanState"]()
 
 
 def in_uml_guest() -> bool:
     """True inside a guest started by :func:`vcan_harness.run_in_uml`."""
     return os.environ.get(harness.ENV_IN_UML) == "1"
+
+
+def in_systemd_guest() -> bool:
+    """True under the systemd of a guest started with ``run_in_uml(systemd=True)``."""
+    return os.environ.get(harness.ENV_IN_SYSTEMD) == "1"
+
+
+def needs_systemd(item: pytest.Item) -> bool:
+    """Whether ``item`` must run under the systemd guest."""
+    return item.get_closest_marker(SYSTEMD_MARK) is not None
 
 
 def needs_vcan(item: pytest.Item) -> bool:
@@ -159,6 +181,7 @@ class VcanState:
     """Per-session decisions and the (lazily produced) guest results."""
 
     config: pytest.Config
+    systemd: bool = False  # boot systemd in the guest (the systemd_guest tier)
     mode: str | None = None
     reason: str = ""
     nodeids: list[str] = field(default_factory=list)
@@ -169,6 +192,12 @@ class VcanState:
     def decide_mode(self) -> str:
         """Pick native/uml/missing once; probing may create vcan0 on a capable root host."""
         if self.mode is not None:
+            return self.mode
+        if self.systemd:  # only a guest of ours has a systemd the tests may drive
+            problem = harness.uml_unavailable_reason()
+            self.mode = "uml" if problem is None else "missing"
+            self.reason = ("systemd in a User-mode Linux guest" if problem is None else
+                           f"the systemd tests need User-mode Linux: {problem}")
             return self.mode
         forced = os.environ.get(ENV_MODE, "").strip().lower()
         if in_uml_guest() or forced == "native":
@@ -203,10 +232,15 @@ class VcanState:
         report_path = run_dir / "reports.jsonl"
         env = dict(os.environ, **{ENV_REPORT: str(report_path)})
         timeout = float(os.environ.get(ENV_TIMEOUT, harness.DEFAULT_TIMEOUT))
+        announce(self.config, f"vcan: booting a User-mode Linux guest for {len(self.nodeids)} vcan test(s); "
+                 f"they run in it (several minutes, bound {timeout:.0f} s) and report here when it is done")
         try:
+            if self.systemd:
+                env.update(systemd_guest.prepare_packages(run_dir))
             self.result = harness.run_in_uml(self.guest_command(run_dir),
                                              cwd=self.config.rootpath, env=env,
-                                             timeout=timeout, run_dir=run_dir)
+                                             timeout=timeout, run_dir=run_dir,
+                                             systemd=self.systemd)
         except harness.UmlUnavailable as exc:
             self.error = str(exc)
         except Exception as exc:  # e.g. the kernel binary cannot be executed
@@ -241,6 +275,17 @@ class VcanState:
         if not keep:
             shutil.rmtree(self.result.run_dir, ignore_errors=True)
         return keep
+
+
+def announce(config: pytest.Config, line: str) -> None:
+    """One line on the terminal now, past output capture: a silent guest run looks like a hang."""
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    capture = config.pluginmanager.get_plugin("capturemanager")
+    if reporter is None:
+        return
+    with capture.global_and_fixture_disabled() if capture is not None else contextlib.nullcontext():
+        reporter.ensure_newline()
+        reporter.write_line(line)
 
 
 class GuestProxyItem(pytest.Item):
@@ -303,7 +348,11 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers", f"{SELFTEST_MARK}: harness self-test that boots its own User-mode Linux guest "
         f"from the host; combine with {MARK} so that -m 'not {MARK}' never boots a guest")
+    config.addinivalue_line(
+        "markers", f"{SYSTEMD_MARK}: runs under a real systemd booted in a User-mode Linux guest "
+        f"(combine with {MARK})")
     config.stash[_STATE_KEY] = VcanState(config)
+    config.stash[_SYSTEMD_STATE_KEY] = VcanState(config, systemd=True)
 
 
 @pytest.hookimpl(trylast=True)  # after -k/-m deselection: only selected tests go to the guest
@@ -312,14 +361,20 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
     """Swap selected vcan items for guest proxies when the host cannot run them itself."""
     if in_uml_guest() or config.option.collectonly:
         return
-    vcan_items = [i for i in items if needs_vcan(i)]
+    systemd_items = [i for i in items if needs_systemd(i)]
+    if systemd_items:
+        sd_state = config.stash[_SYSTEMD_STATE_KEY]
+        sd_state.decide_mode()
+        sd_state.nodeids = [i.nodeid for i in systemd_items]
+        items[:] = [GuestProxyItem.wrap(i, sd_state) if needs_systemd(i) else i for i in items]
+    vcan_items = [i for i in items if needs_vcan(i) and not isinstance(i, GuestProxyItem)]
     if not vcan_items:
         return  # no vcan tests selected: no probing, no guest
     state = config.stash[_STATE_KEY]
     if state.decide_mode() == "native":
         return
     state.nodeids = [i.nodeid for i in vcan_items]
-    items[:] = [GuestProxyItem.wrap(i, state) if needs_vcan(i) else i for i in items]
+    items[:] = [GuestProxyItem.wrap(i, state) if i in vcan_items else i for i in items]
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
@@ -334,25 +389,28 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
 
 def pytest_terminal_summary(terminalreporter: Any, exitstatus: int,
                             config: pytest.Config) -> None:
-    """Say where vcan tests ran and how long the guest took; show guest output on trouble."""
-    state = config.stash.get(_STATE_KEY, None)
-    if state is None or state.mode is None:
-        return
-    tr = terminalreporter
+    """Say where vcan tests ran and how long each guest took; show guest output on trouble."""
+    for key, kind in ((_STATE_KEY, "vcan"), (_SYSTEMD_STATE_KEY, "systemd")):
+        state = config.stash.get(key, None)
+        if state is not None and state.mode is not None:
+            _summarize_guest(terminalreporter, state, kind)
+
+
+def _summarize_guest(tr: Any, state: VcanState, kind: str) -> None:
     result = state.result
     if state.mode != "uml" or result is None:
-        tr.write_line(f"vcan: mode {state.mode} ({state.reason})")
+        tr.write_line(f"{kind}: mode {state.mode} ({state.reason})")
         return
     kept = state.cleanup()
     boot = f"{result.boot_duration:.1f} s" if result.boot_duration is not None else "?"
-    tr.write_line(f"vcan: {len(state.nodeids)} test(s) ran in a User-mode Linux guest: "
+    tr.write_line(f"{kind}: {len(state.nodeids)} test(s) ran in a User-mode Linux guest: "
                   f"{result.duration:.1f} s total, {boot} to vcan up"
                   + (f"; run dir kept: {result.run_dir}" if kept else ""))
     if result.returncode == 1:  # tests failed: the guest's own pytest report says most
-        tr.section("UML guest pytest output")
+        tr.section(f"UML {kind} guest pytest output")
         tr.write_line(result.stdout[-20000:].rstrip())
     elif result.returncode != 0:  # the guest itself failed: show everything, console included
-        tr.section("UML guest output")
+        tr.section(f"UML {kind} guest output")
         tr.write_line(result.describe())
 
 

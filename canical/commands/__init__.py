@@ -15,4 +15,7 @@ COMMANDS = {
     "push": "download coefficient sets to the IMU (CANopen SDO) and activate them",
     "pull": "upload the IMU's active coefficient sets (verified) to YAML",
     "emulate": "run an emulated IMU node (CANopen) on a CAN interface",
+    "noise": "Allan deviation of a static record: angle/rate random walk, bias instability",
+    "export": "write coefficient sets as a DCF any CANopen tool can download to the IMU",
+    "install-service": "install the daemon as a systemd service (/opt/canical, /etc/canical, units)",
 }

@@ -9,18 +9,19 @@ from __future__ import annotations
 
 import argparse
 import io
+from typing import TYPE_CHECKING
 
-import numpy as np
-
-from canical import coefficient_file
-from canical.atomic_file import atomic_writer
+from canical.canlog_format import CANLOG_FORMATS
 from canical.commands import COMMANDS
-from canical.commands.canlog_args import add_canlog_arguments, canlog_source
-from canical.corrector import Corrector
+from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
+from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.session_canlog import TIME_INPUT, is_canlog, read_canlog
-from canical.session_csv import read_table
+
+if TYPE_CHECKING:  # the rest is imported where used: `--help` needs none of it
+    import numpy as np
+
+    from canical.corrector import Corrector
 
 CHUNK_ROWS = 100_000
 
@@ -28,7 +29,8 @@ CHUNK_ROWS = 100_000
 def register(sub) -> None:
     p = sub.add_parser("apply", help=COMMANDS["apply"])
     p.add_argument("coefficients", help="coefficient set YAML")
-    p.add_argument("input", help="CSV with a raw column, or a CAN log (.log, .asc, .blf) with --dbc/--config")
+    p.add_argument("input",
+                   help=f"CSV with a raw column, or a CAN log ({CANLOG_FORMATS}) with --dbc/--config")
     p.add_argument("-o", "--output", required=True, help="CSV to write (input + rate_dps, out_of_span)")
     p.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
     p.add_argument("--sensor", help="sensor id of the input (default: its '# sensor:' line)")
@@ -37,6 +39,18 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(args.output):
+        return apply_set(args)
+
+
+def apply_set(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from canical import coefficient_file
+    from canical.canlog_format import is_canlog
+    from canical.corrector import Corrector
+    from canical.session_csv import read_table
+
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
     if is_canlog(args.input):
@@ -65,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
 
 def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray) -> None:
     """Echo the input rows with the new columns, atomically, in chunks with progress."""
+    from canical.atomic_file import atomic_writer
+
     progress = Progress("apply", len(table.rows))
     with atomic_writer(path) as out:
         for line in table.preamble:
@@ -84,6 +100,12 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
 
     Writes time_s, raw, the inputs the set needs, rate_dps and out_of_span.
     """
+    import numpy as np
+
+    from canical.atomic_file import atomic_writer
+    from canical.commands.canlog_args import canlog_source
+    from canical.session_canlog import TIME_INPUT, read_canlog
+
     cset = corrector.cset
     source = canlog_source(args, args.input)
     sensor = args.sensor or source.sensor

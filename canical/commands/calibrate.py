@@ -7,20 +7,31 @@ import json
 import sys
 from pathlib import Path
 
-from canical import coefficient_file
-from canical.atomic_file import write_text_atomic
-from canical.calibration import CalibrateOptions, calibrate
+from canical.canlog_format import CANLOG_FORMATS
 from canical.commands import COMMANDS
-from canical.commands.canlog_args import add_canlog_arguments, canlog_source
+from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
+from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.report_markdown import render
-from canical.report_plots import write_plots
-from canical.session_canlog import default_inputs, is_canlog, read_canlog
-from canical.session_csv import read_session
+from canical.report_markdown import written_model
+
+# The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
+# used, so that `--help` and argument errors answer at once.
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
+EXIT_UNEXPLAINED = 3  # --strict: the calibration leaves an unexplained residual (2 is bad input)
+STRICT_RATIO = 3.0  # --strict without a value: this many times the session's noise floor
+
+
+def _positive_ratio(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("--strict takes a number (a multiple of the noise floor)") from None
+    if not value >= 1.0:
+        raise argparse.ArgumentTypeError("--strict must be at least 1 (a multiple of the noise floor)")
+    return value
 
 
 def _auto_or_int(name: str, low: int, high: int):
@@ -38,6 +49,40 @@ def _auto_or_int(name: str, low: int, high: int):
     return parse
 
 
+def _auto_or_seconds(name: str, unit: str):
+    def parse(text: str) -> float | None:
+        if text == "auto":
+            return None
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be 'auto' or a number of {unit}") from None
+        if not value >= 0 or value == float("inf"):
+            raise argparse.ArgumentTypeError(f"{name} must be a finite number of {unit}, 0 or more")
+        return value
+
+    return parse
+
+
+def add_plateau_arguments(parser: argparse.ArgumentParser) -> None:
+    """Thresholds of plateau finding; 'auto' takes them from the session (see the report)."""
+    parser.add_argument("--min-plateau", type=_auto_or_seconds("--min-plateau", "seconds"), default=1.0,
+                        metavar="S", help="shortest steady stretch that counts as a plateau, s [1]")
+    parser.add_argument("--settle", type=_auto_or_seconds("--settle", "seconds"), default=None,
+                        metavar="S", help="left out at the start of each plateau (table ringing, sensor "
+                        "filter), s, or 'auto': 0.5 s or a tenth of the plateau [auto]")
+    parser.add_argument("--rate-tol", type=_auto_or_seconds("--rate-tol", "deg/s"), default=None,
+                        metavar="DPS", help="largest change of the reference's windowed median that is "
+                        "still steady, deg/s, or 'auto': from the reference's estimated noise [auto]")
+    parser.add_argument("--ref-latency", type=_auto_or_seconds("--ref-latency", "seconds"), default=None,
+                        metavar="S", help="how late the reference is behind the sensor, s, cut from the "
+                        "end of each plateau with its hold interval; 'auto': estimated from when sensor "
+                        "and reference show each rate change [auto]")
+    parser.add_argument("--settled-column", metavar="NAME",
+                        help="CSV column with the table's settled flag (1 settled, 0 not); it narrows "
+                        "plateaus, never widens them (CAN logs: TABLE_REF.TableSettled)")
+
+
 def add_session_arguments(parser: argparse.ArgumentParser) -> None:
     """Options shared by commands that read a session."""
     parser.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
@@ -48,7 +93,7 @@ def register(sub) -> None:
     p = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     p.add_argument(
         "session",
-        help="session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log (.log, .asc, .blf)",
+        help=f"session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log ({CANLOG_FORMATS})",
     )
     p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
     p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
@@ -85,20 +130,37 @@ def register(sub) -> None:
     p.add_argument("--report-dir", help="folder for the full report: report.json, report.md and PNG plots")
     p.add_argument("--prefer", action="append", default=[], metavar="CANDIDATE",
                    help="when candidates are confounded, add this one (e.g. channel:temp_c, time:warm-up)")
+    p.add_argument("--strict", nargs="?", type=_positive_ratio, const=STRICT_RATIO, default=None,
+                   metavar="MULTIPLE",
+                   help="exit with status 3 when the residual after the closed loop stays above MULTIPLE "
+                   f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written")
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
     add_session_arguments(p)
+    add_plateau_arguments(p)
     add_canlog_arguments(p)
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(args.output, args.report, dirs=[args.report_dir]):
+        return calibrate_session(args)
+
+
+def calibrate_session(args: argparse.Namespace) -> int:
+    from canical import coefficient_file
+    from canical.atomic_file import write_text_atomic
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.canlog_format import is_canlog
+    from canical.session_csv import read_session
+
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
     if is_canlog(args.session):
         session = read_canlog_session(args, progress)
     else:
-        session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column)
+        session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column,
+                               settled_column=args.settled_column)
     sensor = args.sensor or session.sensor_id
     if args.sensor and session.sensor_id and args.sensor != session.sensor_id:
         raise CanicalError(f"--sensor {args.sensor} but {args.session} was recorded from {session.sensor_id}")
@@ -116,6 +178,10 @@ def run(args: argparse.Namespace) -> int:
         breakpoints_dps=args.breakpoints,
         extend=not args.no_extend,
         prefer=tuple(args.prefer),
+        rate_tol=args.rate_tol,
+        min_duration_s=args.min_plateau if args.min_plateau is not None else 1.0,
+        settle_s=args.settle,
+        latency_s=args.ref_latency,
     )
     result = calibrate(
         session,
@@ -125,27 +191,42 @@ def run(args: argparse.Namespace) -> int:
         progress=progress.step,
     )
     report = {"session": str(args.session), "coefficients": str(args.output), **result.report}
-    # Render everything first, so a failure cannot leave some outputs written and others not.
-    report_text = json.dumps(report, indent=2) + "\n"
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
-        write_text_atomic(args.report, report_text)
+        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
+    left = report.get("unexplained")
+    if args.strict is not None and (left is None or left["ratio"] > args.strict):
+        why = (f"{left['ratio']:.1f}× the noise floor, above --strict {args.strict:g}" if left
+               else "no closed loop ran, so the residual was not checked")
+        print(f"calibrate: strict: the residual stays unexplained ({why})", file=sys.stderr)
+        return EXIT_UNEXPLAINED
     return 0
 
 
 def write_report_dir(directory: Path, report: dict, loop) -> None:
     """report.json, report.md and the plots, side by side."""
-    directory.mkdir(parents=True, exist_ok=True)
+    from canical.allan_plot import write_allan_plot
+    from canical.atomic_file import make_dirs, write_text_atomic
+    from canical.report_markdown import render
+    from canical.report_plots import write_plots
+
+    make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
+    if "curve" in report.get("allan", {}):
+        plots.append(write_allan_plot(report["allan"], directory / "allan.png",
+                                      "Allan deviation, zero-rate plateaus").name)
     write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
     write_text_atomic(directory / "report.md", render(report, plots))
 
 
 def read_canlog_session(args: argparse.Namespace, progress: Progress):
     """A turntable session recorded from the bus: raw frames of one axis, the table's rate held."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.session_canlog import default_inputs, read_canlog
+
     source = canlog_source(args, args.session)
     inputs = source.inputs if (source.inputs or source.from_config) else default_inputs(source.dbc)
     axis = args.axis
@@ -171,30 +252,51 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress):
     return log.session
 
 
+def _plateau_line(found: dict | None) -> str:
+    if not found:
+        return "plateaus   (not reported)"
+    return (f"plateaus   reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
+            f"{found['rate_tol_dps']:.3g} deg/s, held {found['reference_update_s']:.3g} s, "
+            f"late {found['reference_latency_s']:.3g} s, {found['rate_changes']} rate changes")
+
+
 def summary(report: dict) -> str:
     """A few lines a calibration engineer reads first."""
     s = report["samples"]
     lines = [
-        f"model      {report['spec']}",
+        f"rate model {report['spec']} (size chosen on held-out plateau means)",
         f"samples    {s['used']} of {s['total']} used "
         f"({s['transition']} at changing rate, {s['settling']} settling), {report['plateaus']} plateaus",
+        _plateau_line(report.get("plateau_finding")),
         f"V0         {report['v0']:.3f}",
     ]
     if report["segment_points"]:
         pts = ", ".join(f"{p['rate_dps']:g}" for p in report["segment_points"])
         lines.append(f"segments   at {pts} deg/s")
     tr, ho = report["training"], report["held_out"]
-    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s")
-    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s (plateau means)")
+    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s (plateau means)")
+    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s "
+                 "(plateau means, whole table rates left out)")
     loop = report.get("closed_loop")
     if loop and "skipped" not in loop:
-        found = ", ".join(e["name"] for e in report["effects"]) or "none"
+        found = ", ".join(e.get("description", e["name"]) for e in report["effects"]) or "none"
         lines.append(f"effects    {found}")
         for c in report.get("confounded", []):
             lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
-        lines.append(f"loop       held-out rms {loop['held_out_rms_before_dps']:.4f} -> "
-                     f"{loop['held_out_rms_after_dps']:.4f} deg/s (2 s blocks, before -> after)")
-        lines.append(f"final      {loop['final_spec']} + {sum(len(e['terms']) for e in report['effects'])} "
-                     "effect terms")
-    lines.append(f"wrote      {Path(report['coefficients'])}")
+        lines.append("loop       held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
+        for step in loop.get("steps", []):
+            terms = f", {step['terms']} effect terms" if step["terms"] else ""
+            lines.append(f"           {step['held_out_rms_dps']:.4f}  {step['step']} ({step['spec']}{terms})")
+    allan = report.get("allan", {})
+    if "terms" in allan:
+        lo, hi = allan["tau_range_s"]
+        terms = "; ".join(
+            f"{t['name']} {t['value']:.3g} {t['unit']}" if t["resolved"] else f"{t['name']} not resolved"
+            for t in allan["terms"].values())
+        lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
+    if "unexplained" in report:
+        from canical.unexplained import one_line
+
+        lines.append(one_line(report["unexplained"]))
+    lines.append(f"wrote      {Path(report['coefficients'])}: {written_model(report)}")
     return "\n".join(lines)

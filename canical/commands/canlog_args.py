@@ -11,9 +11,8 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
-from canical.daemon_config import load_config
+from canical.canlog_format import CANLOG_FORMATS
 from canical.errors import CanicalError
-from canical.session_canlog import DEFAULT_RAW_MESSAGE, parse_signal_map
 
 
 @dataclass(frozen=True)
@@ -27,7 +26,7 @@ class CanlogSource:
 
 
 def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
-    group = parser.add_argument_group("CAN logs (.log, .asc, .blf)")
+    group = parser.add_argument_group(f"CAN logs ({CANLOG_FORMATS})")
     group.add_argument("--dbc", help="DBC that describes the log's frames")
     group.add_argument("--config", help="daemon configuration: its DBC, frames and input mapping")
     group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",
@@ -36,6 +35,10 @@ def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
 
 def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
     """Resolve the options; a log without a DBC is one actionable error line."""
+    from canical.canlog_format import DEFAULT_RAW_MESSAGE
+    from canical.daemon_config import load_config  # cantools: not for every command's --help
+    from canical.session_canlog import parse_signal_map
+
     inputs: dict[str, str] = {}
     raw_message = DEFAULT_RAW_MESSAGE
     raw_signals: dict[str, str] = {}

@@ -18,15 +18,12 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from canical import coefficient_file
-from canical.atomic_file import write_text_atomic
-from canical.calibration import CalibrateOptions, calibrate
+from canical.atomic_file import make_dirs, write_text_atomic
 from canical.commands import COMMANDS
-from canical.commands.calibrate import write_report_dir
-from canical.evaluation import compare_models, validation_record
-from canical.session_csv import format_session
-from canical.sim.scenarios import SCENARIOS
-from canical.sim.sessions import between_rates_session, constant_session, paper_session
+from canical.output_plan import output_plan
+
+# The simulator and the fitting modules (numpy, scipy, matplotlib) are imported where they are
+# used, so that `--help` and argument errors answer at once.
 
 
 def register(sub) -> None:
@@ -39,8 +36,23 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    with output_plan(dirs=[args.out]):
+        return demo(args)
+
+
+def demo(args: argparse.Namespace) -> int:
+    """All parts; the files appear in ``--out`` together when the demo has succeeded."""
+    import numpy as np
+
+    from canical import coefficient_file
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.evaluation import compare_models, held_out_set_errors, validation_record
+    from canical.report_markdown import written_model
+    from canical.session_csv import format_session
+    from canical.sim.sessions import between_rates_session, constant_session, paper_session
+
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     train = paper_session(seed=args.seed)
     test = between_rates_session(seed=args.seed + 1)
     write_text_atomic(out / "session.csv", format_session(train))
@@ -48,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"  -> {out / 'session.csv'}\n")
 
     scores = compare_models(train, test)
-    print("error on held-out plateaus (rates between the training rates), deg/s:")
+    print("error on held-out plateaus: plateau means of a second session, at rates between the "
+          "training rates, deg/s:")
     print(f"  {'model':46s} {'train rms':>10s} {'held-out rms':>13s} {'held-out max':>13s}")
     for s in scores:
         print(f"  {s.label:46s} {s.train_rms_dps:10.4f} {s.test_rms_dps:13.4f} {s.test_max_dps:13.4f}")
@@ -73,7 +86,11 @@ def run(args: argparse.Namespace) -> int:
     result = calibrate(train, CalibrateOptions(), sensor_id="SIM-0001", axis="z")
     coefficient_file.save(out / "coefficients.yaml", result.coefficients)
     write_text_atomic(out / "report.json", json.dumps(result.report, indent=2) + "\n")
-    print(f"\nwrote {out / 'coefficients.yaml'} and {out / 'report.json'}")
+    written = held_out_set_errors(result.coefficients, test)
+    print(f"\nwrote {out / 'coefficients.yaml'} ({written_model(result.report)}) and {out / 'report.json'}")
+    print(f"  the written set on the second session: held-out rms {np.sqrt(np.mean(written**2)):.4f}, max "
+          f"{np.max(np.abs(written)):.4f} deg/s (the table's scheme); `canical calibrate` on session.csv "
+          f"alone reports {result.report['held_out']['rms_dps']:.4f} (whole table rates left out)")
     closed_loop_demo(out, args.seed)
 
     # --- The IMU on a CAN bus (canical/demo_bus.py): emulated device, session recorded from the
@@ -89,6 +106,12 @@ def run(args: argparse.Namespace) -> int:
 
 def closed_loop_demo(out: Path, seed: int) -> Path:
     """Part 2: an undeclared effect, found and corrected; returns the coefficient file written."""
+    from canical import coefficient_file
+    from canical.calibration import CalibrateOptions, calibrate
+    from canical.commands.calibrate import write_report_dir
+    from canical.session_csv import format_session
+    from canical.sim.scenarios import SCENARIOS
+
     scenario = next(s for s in SCENARIOS if s.name.startswith("temperature bias + scale"))
     session = scenario.session(seed)
     path = out / "session_with_effect.csv"
@@ -98,13 +121,16 @@ def closed_loop_demo(out: Path, seed: int) -> Path:
           f"{channels}\n  -> {path}")
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM-0001", axis="z")
     loop = result.loop
-    print(f"rate model alone: held-out rms {loop.rms_before:.4f} deg/s")
+    print("held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
     for e in result.report["effects"]:
         terms = ", ".join(f"{t['feature']}/{t['form']}" for t in e["terms"])
-        print(f"  found {e['name']} ({terms}): held-out gain {e['evidence']['held_out_gain']:.0%}, "
-              f"p = {e['evidence']['p_value']:.1e}")
-    print(f"with the effect:  held-out rms {loop.rms_after:.4f} deg/s "
-          f"({loop.rms_before / loop.rms_after:.0f}x lower)")
+        ev = e["evidence"]
+        print(f"  (found {e['name']} ({terms}): held-out gain {ev['held_out_gain']:.0%} when added, "
+              f"p = {ev['p_value']:.1e})")
+    for step in loop.steps:
+        print(f"  {step['held_out_rms_dps']:.4f}  {step['step']} ({step['spec']})")
+    print(f"written set: held-out rms {loop.rms_after:.4f} deg/s, "
+          f"{loop.rms_before / loop.rms_after:.0f}x lower than the rate model alone")
     coeffs = out / "coefficients_with_effect.yaml"
     coefficient_file.save(coeffs, result.coefficients)
     report = {"session": str(path), "coefficients": str(coeffs), **result.report}

@@ -17,9 +17,9 @@ from pathlib import Path
 
 from canical.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
 from canical.commands import COMMANDS
-from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
+from canical.output_plan import check_dir, check_file
 
 
 def _rates(text: str) -> tuple[float, ...]:
@@ -52,6 +52,20 @@ def register(sub) -> None:
     p.add_argument("--dwell", type=float, default=3.0, help="seconds per plateau [3]")
     p.add_argument("--table-rate", type=float, default=25.0, help="rate for --table constant [25]")
     p.add_argument("--no-table-ref", action="store_true", help="do not send TABLE_REF (not on a table)")
+    t = p.add_argument_group("table recording (--table steps): move and report as a real table does")
+    t.add_argument("--table-accel", type=float, metavar="DPS2",
+                   help="acceleration limit of rate changes, deg/s² (down to 1) [100, no other effect]")
+    t.add_argument("--table-jerk", type=float, metavar="DPS3", help="jerk limit: S-curve rate changes")
+    t.add_argument("--table-overshoot", type=float, default=0.0, metavar="FRACTION",
+                   help="servo overshoot with damped ringing, fraction of each step, e.g. 0.1 [0]")
+    t.add_argument("--table-measured", type=float, metavar="DPS",
+                   help="TABLE_REF is the measured rate with this jitter, deg/s rms (else the commanded)")
+    t.add_argument("--table-ref-rate", type=float, metavar="HZ",
+                   help="TABLE_REF frames at this rate on the table's own clock (else one per sample)")
+    t.add_argument("--table-latency", type=float, default=0.0, metavar="S",
+                   help="TABLE_REF late by this much, s [0]")
+    t.add_argument("--lost-rows", type=float, default=0.0, metavar="FRACTION",
+                   help="fraction of the IMU's samples whose frames are lost, in bursts of ~0.1 s [0]")
     p.add_argument("--temp-bias", type=float, default=0.0,
                    help="undeclared effect: bias in deg/s per degC of die temperature above 25 [0]")
     p.add_argument("--temp-scale", type=float, default=0.0,
@@ -86,6 +100,27 @@ def undeclared_effects(args: argparse.Namespace) -> tuple:
     return tuple(out)
 
 
+def table_recording(args: argparse.Namespace):
+    """The table behaviour the options describe (None: the plain ramped steps)."""
+    asked = (args.table_accel, args.table_jerk, args.table_measured, args.table_ref_rate)
+    if all(v is None for v in asked) and not (args.table_overshoot or args.table_latency or args.lost_rows):
+        return None
+    from canical.sim.table_recording import TableBehaviour
+
+    return TableBehaviour(
+        accel_dps2=args.table_accel if args.table_accel is not None else 100.0,
+        jerk_dps3=args.table_jerk,
+        overshoot=args.table_overshoot,
+        reference="measured" if args.table_measured is not None else "commanded",
+        jitter_dps=args.table_measured or 0.0,
+        encoder_lsb_dps=0.0001 if args.table_measured is not None else 0.0,
+        ref_rate_hz=args.table_ref_rate,
+        asynchronous=args.table_ref_rate is not None,
+        ref_latency_s=args.table_latency,
+        loss_fraction=args.lost_rows,
+    )
+
+
 def stream_config(args: argparse.Namespace):
     """The simulator settings the options describe (None for an SDO-only device)."""
     if args.rate <= 0:
@@ -99,11 +134,13 @@ def stream_config(args: argparse.Namespace):
 
         gyros = {a: replace(g, effects=(*g.effects, *effects)) for a, g in gyros.items()}
     table = TableMotion(kind=args.table, axis=args.table_axis, rates_dps=args.table_rates,
-                        dwell_s=args.dwell, rate_dps=args.table_rate)
+                        dwell_s=args.dwell, rate_dps=args.table_rate, recording=table_recording(args))
     return StreamConfig(sample_rate_hz=args.rate, table=table, gyros=gyros, seed=args.seed)
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
+
     if args.speed <= 0:
         raise CanicalError("--speed must be positive")
     logging.basicConfig(level=logging.INFO, format="emulate: %(message)s", stream=sys.stderr)
@@ -119,7 +156,9 @@ def run(args: argparse.Namespace) -> int:
         table_ref=not args.no_table_ref,
         correction=args.correct,
     )
+    check_dir(config.state_path.parent)  # the device's flash: refused now, not at its first store
     config.state_path.parent.mkdir(parents=True, exist_ok=True)
+    check_file(config.state_path)
     network = open_network(args.interface, args.channel, can_filters=sdo_server_filters(args.node),
                            **bus_options(args))
     try:

@@ -11,14 +11,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from canical import coefficient_file
 from canical.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
-from canical.coefficient_file import set_crc
 from canical.commands import COMMANDS
 from canical.commands.push import add_node_arguments
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
-from canical.sdo_download import ImuClient, pull_sets
+from canical.output_plan import output_plan
 
 
 def register(sub) -> None:
@@ -40,6 +38,17 @@ def output_paths(template: str, axes: list[str]) -> dict[str, Path]:
 
 def run(args: argparse.Namespace) -> int:
     axes = tuple(args.axis) if args.axis else AXES
+    # Every name the files may get: one per axis, or the name as given when one axis has a set.
+    names = {*output_paths(args.output, list(axes)).values(), *output_paths(args.output, [axes[0]]).values()}
+    with output_plan(*sorted(names)):
+        return pull(args, axes)
+
+
+def pull(args: argparse.Namespace, axes: tuple[str, ...]) -> int:
+    from canical import coefficient_file
+    from canical.coefficient_file import set_crc
+    from canical.sdo_download import ImuClient, pull_sets
+
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:

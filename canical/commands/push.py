@@ -8,9 +8,10 @@ would be written and writes nothing. See :mod:`canical.sdo_download`.
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
-from canical import coefficient_file
 from canical.can_network import (
+    DEFAULT_SDO_TIMEOUT_S,
     add_bus_arguments,
     bus_options,
     network_on,
@@ -19,14 +20,16 @@ from canical.can_network import (
 )
 from canical.commands import COMMANDS
 from canical.errors import CanicalError
-from canical.sdo_download import DEFAULT_TIMEOUT_S, ImuClient, PushPlan, push_sets
+
+if TYPE_CHECKING:  # canopen and the set files are imported where used: not for `--help`
+    from canical.coefficients import CoefficientSet
 
 
 def add_node_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--node", type=lambda s: int(s, 0), required=True, help="IMU's CANopen node id")
     add_bus_arguments(parser)
-    parser.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
-                        help=f"seconds to wait for each SDO answer [{DEFAULT_TIMEOUT_S:g}]")
+    parser.add_argument("--timeout", type=float, default=DEFAULT_SDO_TIMEOUT_S,
+                        help=f"seconds to wait for each SDO answer [{DEFAULT_SDO_TIMEOUT_S:g}]")
 
 
 def register(sub) -> None:
@@ -37,9 +40,11 @@ def register(sub) -> None:
     p.set_defaults(run=run)
 
 
-def load_sets(paths: list[str]) -> dict[str, tuple[str, coefficient_file.CoefficientSet]]:
+def load_sets(paths: list[str]) -> dict[str, tuple[str, CoefficientSet]]:
     """Sets by axis; two files for one axis, or sets of different sensors, are refused."""
-    sets: dict[str, tuple[str, coefficient_file.CoefficientSet]] = {}
+    from canical import coefficient_file
+
+    sets: dict[str, tuple[str, CoefficientSet]] = {}
     for path in paths:
         cset = coefficient_file.load(path)
         if cset.axis in sets:
@@ -52,6 +57,8 @@ def load_sets(paths: list[str]) -> dict[str, tuple[str, coefficient_file.Coeffic
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.sdo_download import ImuClient, PushPlan, push_sets
+
     sets = load_sets(args.coefficients)
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)

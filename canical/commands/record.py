@@ -1,5 +1,7 @@
 """``canical record``: record a session from the bus into a CAN log that ``calibrate`` reads.
 
+python-can's ``Logger`` writes the format the output's suffix names (candump ``.log``, ``.asc``,
+``.blf``, ``.trc``, ``.csv``, ``.db``, ``.mf4``, each also ``.gz``): every one reads back.
 A log of the frames themselves (not decoded samples) is the lossless record: it is read
 back with the DBC by the same rules as the daemon, and can be re-read with another mapping.
 Only the frames a session needs pass the kernel's receive filters: the IMU's (the raw frame
@@ -10,25 +12,23 @@ when recording ends (after ``--duration``, ``--frames`` raw frames, or Ctrl-C).
 from __future__ import annotations
 
 import argparse
-import contextlib
-import os
+import errno
 import signal
-import tempfile
 import time
 from pathlib import Path
 
-import can
-
+from canical.canlog_format import CANLOG_FORMATS, CANLOG_SUFFIXES, log_format, require_log_support
 from canical.commands import COMMANDS
-from canical.daemon_config import load_config
 from canical.errors import CanicalError
-from canical.frame_codec import load_dbc
-from canical.session_canlog import CANLOG_SUFFIXES, DEFAULT_RAW_MESSAGE, DEFAULT_REF
+from canical.output_plan import cannot_write, output_plan
+
+# python-can and cantools are imported where used, so that `--help` answers at once.
 
 
 def register(sub) -> None:
     p = sub.add_parser("record", help=COMMANDS["record"])
-    p.add_argument("-o", "--output", required=True, help="CAN log to write (.log, .asc or .blf)")
+    p.add_argument("-o", "--output", required=True,
+                   help=f"CAN log to write, in the format its suffix names ({CANLOG_FORMATS})")
     p.add_argument("--config", help="daemon configuration: interface, channel, DBC and input frames")
     p.add_argument("--interface", help="python-can interface (default: the configuration's)")
     p.add_argument("--channel", help="CAN channel (default: the configuration's)")
@@ -40,6 +40,10 @@ def register(sub) -> None:
 
 def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
     """Interface, channel, DBC and the names of the messages to record."""
+    from canical.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF
+    from canical.daemon_config import load_config
+    from canical.frame_codec import load_dbc
+
     interface, channel, dbc, names = args.interface, args.channel, args.dbc, [DEFAULT_RAW_MESSAGE]
     if args.config:
         config = load_config(args.config, channel=args.channel)
@@ -63,15 +67,32 @@ def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.frame_codec import load_dbc
+
     out = Path(args.output)
-    if out.suffix.lower() not in CANLOG_SUFFIXES:
-        raise CanicalError(f"{out}: the log must end in {', '.join(CANLOG_SUFFIXES)}")
+    if log_format(out) not in CANLOG_SUFFIXES:
+        raise CanicalError(f"{out}: the log must end in one of {CANLOG_FORMATS}")
+    if log_format(out) == ".db":
+        raise CanicalError(f"{out}: record does not write .db: python-can's SQLite writer can lose the "
+                           "frames still queued when recording stops; record .log, .blf or .mf4")
+    require_log_support(out)
     interface, channel, dbc, names = _frames(args)
     db = load_dbc(dbc)
     messages = [db.get_message_by_name(n) for n in names]
     raw_id = messages[0].frame_id
     filters = [{"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if m.is_extended_frame else 0x7FF,
                 "extended": m.is_extended_frame} for m in messages]
+    with output_plan(out) as plan:
+        recorded = _record(plan.temp_path(out), args, interface, channel, filters, names, raw_id)
+    print(f"record: {recorded['raw']} {names[0]} frames, {recorded['all']} frames in all -> {out}")
+    return 0
+
+
+def _record(tmp: Path, args: argparse.Namespace, interface: str, channel: str, filters: list,
+            names: list[str], raw_id: int) -> dict[str, int]:
+    """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts."""
+    import can
+
     stop = False
 
     def on_signal(*_: object) -> None:
@@ -79,13 +100,12 @@ def run(args: argparse.Namespace) -> int:
         stop = True
 
     previous = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=out.suffix, dir=out.parent or Path("."))
-    os.close(fd)
     counts = {"raw": 0, "all": 0}
     try:
         with can.Bus(interface=interface, channel=channel, can_filters=filters) as bus, \
-                can.Logger(tmp) as logger:
-            print(f"record: {', '.join(names)} on {interface} {channel} -> {out} (Ctrl-C ends)", flush=True)
+                can.Logger(str(tmp)) as logger:
+            print(f"record: {', '.join(names)} on {interface} {channel} -> {args.output} (Ctrl-C ends)",
+                  flush=True)
             end = time.monotonic() + args.duration if args.duration else None
             while not stop and (end is None or time.monotonic() < end):
                 if args.frames is not None and counts["raw"] >= args.frames:
@@ -96,13 +116,13 @@ def run(args: argparse.Namespace) -> int:
                 logger.on_message_received(msg)
                 counts["all"] += 1
                 counts["raw"] += msg.arbitration_id == raw_id
-        os.replace(tmp, out)
-    except (OSError, can.CanError) as exc:
+    except OSError as exc:
+        if exc.filename is not None or exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
+            raise cannot_write(args.output, exc.strerror or str(exc)) from None
+        raise CanicalError(f"recording from {interface} {channel} failed: {exc}") from None
+    except can.CanError as exc:
         raise CanicalError(f"recording from {interface} {channel} failed: {exc}") from None
     finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
         signal.signal(signal.SIGINT, previous[0])
         signal.signal(signal.SIGTERM, previous[1])
-    print(f"record: {counts['raw']} {names[0]} frames, {counts['all']} frames in all -> {out}")
-    return 0
+    return counts

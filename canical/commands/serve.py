@@ -13,10 +13,10 @@ import logging
 import os
 import sys
 
-from canical import active_sets
 from canical.commands import COMMANDS
-from canical.daemon import Daemon
-from canical.daemon_config import load_config
+
+# The daemon's modules (python-can, cantools, numpy) are imported by `run`, so that `--help`
+# answers at once.
 
 
 def register(sub) -> None:
@@ -44,6 +44,10 @@ def setup_logging(verbose: bool) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical import active_sets
+    from canical.daemon import Daemon
+    from canical.daemon_config import load_config
+
     config = load_config(args.config, channel=args.channel)
     if args.check:
         for axis in config.axes:

@@ -10,9 +10,10 @@ sample at a time (:meth:`RateModel.evaluate_one`, the daemon's per-frame path).
 
 from __future__ import annotations
 
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
-import numpy as np
+if TYPE_CHECKING:  # kept out of start-up: `canical calibrate --help` lists MODEL_KINDS
+    import numpy as np
 
 MODEL_KINDS = ("segmented-inverse", "segmented-linear", "forward-poly")
 

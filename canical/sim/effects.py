@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canical.terms import DirectionTracker
+from canical.terms import DirectionTracker, lag_filter
 
 
 @dataclass(frozen=True)
@@ -67,3 +67,112 @@ class DirectionEffect:
         tracker = DirectionTracker(self.threshold_dps)
         state = np.array([tracker.update(v) for v in np.asarray(rate_dps, dtype=float).tolist()])
         return self.offset_dps * state, np.zeros_like(state)
+
+
+def _lag(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag of a channel (what a thermal mass does to a temperature)."""
+    return lag_filter(np.asarray(values, dtype=float), np.asarray(time_s, dtype=float), tau_s)
+
+
+@dataclass(frozen=True)
+class TemperatureRateEffect:
+    """A thermal transient: bias following the rate of change of temperature.
+
+    The die heats before the temperature sensor reads it, so while temperature
+    changes the bias carries k·dT/dt, smoothed by the part's thermal mass (a
+    first-order lag of ``thermal_tau_s``: causal, as heat flow is). The part was
+    already changing at power-on, so the lag starts in step with the first
+    seconds' slope rather than at rest.
+    """
+
+    channel: str = "temp_c"
+    bias_dps_per_c_per_s: float = 1.0
+    thermal_tau_s: float = 3.0
+
+    def errors(self, time_s, rate_dps, aux):
+        t = np.asarray(time_s, dtype=float)
+        v = np.asarray(aux[self.channel], dtype=float)
+        first = t - t[0] <= 10.0
+        slope0 = float(np.polyfit(t[first], v[first], 1)[0]) if first.sum() > 2 else 0.0
+        start = v[0] - self.thermal_tau_s * slope0
+        lagged = start + lag_filter(v - start, t, self.thermal_tau_s) - (v[0] - start) * np.exp(
+            -(t - t[0]) / self.thermal_tau_s)
+        slope = (v - lagged) / self.thermal_tau_s
+        return self.bias_dps_per_c_per_s * slope, np.zeros_like(slope)
+
+
+@dataclass(frozen=True)
+class LaggedTemperatureEffect:
+    """Bias (and scale) following the temperature the die had τ seconds ago (a lagged reading)."""
+
+    channel: str = "temp_c"
+    tau_s: float = 120.0
+    reference_c: float = 25.0
+    bias_dps_per_c: float = 0.01
+    scale_per_c: float = 0.0
+
+    def errors(self, time_s, rate_dps, aux):
+        dt = _lag(aux[self.channel], time_s, self.tau_s) - self.reference_c
+        return self.bias_dps_per_c * dt, self.scale_per_c * dt
+
+
+@dataclass(frozen=True)
+class TemperatureHysteresisEffect:
+    """An offset whose sign follows whether temperature last rose or fell (heating vs cooling)."""
+
+    channel: str = "temp_c"
+    offset_dps: float = 0.03
+    threshold_c: float = 1.0
+
+    def errors(self, time_s, rate_dps, aux):
+        tracker = DirectionTracker(self.threshold_c)
+        state = np.array([tracker.update(v) for v in np.asarray(aux[self.channel], dtype=float).tolist()])
+        return self.offset_dps * state, np.zeros_like(state)
+
+
+@dataclass(frozen=True)
+class CrossAxisEffect:
+    """Another axis leaking in: a share of its rate, read from its raw channel (counts)."""
+
+    channel: str = "raw_x"
+    coupling: float = 0.004  # deg/s of error per deg/s on the other axis
+    other_v0: float = 37.0
+    other_sensitivity: float = 400.0
+
+    def errors(self, time_s, rate_dps, aux):
+        other = (np.asarray(aux[self.channel], dtype=float) - self.other_v0) / self.other_sensitivity
+        return self.coupling * other, np.zeros_like(other)
+
+
+@dataclass(frozen=True)
+class HighRateTemperatureEffect:
+    """A temperature scale-factor error that acts only above a rate (a drive loop near its limit).
+
+    Relative scale error k·(T − ref)·max(|ω| − knee, 0)/|ω|: zero below the knee.
+    """
+
+    channel: str = "temp_c"
+    reference_c: float = 25.0
+    scale_per_c: float = 3e-4
+    knee_dps: float = 30.0
+
+    def errors(self, time_s, rate_dps, aux):
+        w = np.abs(np.asarray(rate_dps, dtype=float))
+        gate = np.maximum(w - self.knee_dps, 0.0) / np.maximum(w, 1e-9)
+        return np.zeros_like(w), self.scale_per_c * (aux[self.channel] - self.reference_c) * gate
+
+
+@dataclass(frozen=True)
+class HiddenVariableEffect:
+    """Bias following a variable nobody recorded (humidity, a neighbour's vibration...).
+
+    No candidate can represent it: the loop must say that the residual stays unexplained.
+    """
+
+    amplitude_dps: float = 0.06
+    period_s: float = 97.0
+
+    def errors(self, time_s, rate_dps, aux):
+        t = np.asarray(time_s, dtype=float)
+        hidden = np.sin(2 * np.pi * t / self.period_s) * np.sin(2 * np.pi * t / (3.7 * self.period_s))
+        return self.amplitude_dps * hidden, np.zeros_like(t)

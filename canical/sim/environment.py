@@ -81,3 +81,48 @@ def random_walk(step: float = 0.05, mean: float = 0.0):
         return mean + np.cumsum(step * rng.standard_normal(t.size))
 
     return f
+
+
+def temperature_cycle(mean_c: float = 25.0, amplitude_c: float = 10.0, periods_s=(410.0, 170.0),
+                      noise_c: float = 0.02):
+    """A chamber cycling temperature up and down at changing speeds (two incommensurate swings).
+
+    Level and rate of change vary independently: what separates a thermal
+    transient (dT/dt) from a temperature level.
+    """
+
+    def f(t, w, rng):
+        swing = sum(np.sin(2 * np.pi * t / p + k) / (k + 1) for k, p in enumerate(periods_s))
+        return mean_c + amplitude_c * swing + noise_c * rng.standard_normal(t.size)
+
+    return f
+
+
+def temperature_triangle(low_c: float = 15.0, high_c: float = 40.0, ramp_s=(140.0, 220.0, 180.0, 260.0),
+                         noise_c: float = 0.02):
+    """Heating and cooling ramps between two temperatures, each ramp its own length."""
+
+    def f(t, w, rng):
+        edges = np.cumsum(np.resize(np.asarray(ramp_s), 1 + int(t[-1] / min(ramp_s)) + 1))
+        k = np.searchsorted(edges, t, side="right")
+        start = np.concatenate(([0.0], edges))[k]
+        frac = (t - start) / (edges[k] - start)
+        up = k % 2 == 0
+        level = np.where(up, low_c + (high_c - low_c) * frac, high_c - (high_c - low_c) * frac)
+        return level + noise_c * rng.standard_normal(t.size)
+
+    return f
+
+
+def other_axis_raw(gyro=None, hold_s: float = 7.0, limit_dps: float = 60.0, seed: int = 11):
+    """The raw output (counts) of a second axis turned independently (a two-axis table)."""
+    from canical.sim.gyro import GyroModel
+
+    gyro = gyro or GyroModel()
+
+    def f(t, w, rng):
+        picks = np.random.default_rng(seed).uniform(-limit_dps, limit_dps, 1 + int(t[-1] / hold_s))
+        rate = picks[((t - t[0]) // hold_s).astype(int)]
+        return gyro.output(t, rate, rng=rng)
+
+    return f

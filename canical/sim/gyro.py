@@ -6,6 +6,19 @@ cubic terms from structure and electronics, plus a gentle ripple. Dynamics are a
 first-order low-pass (the sensor's bandwidth); output is noisy, quantised and
 clipped at the converter's rails.
 
+Noise is given by the terms of an Allan-deviation plot, each switchable (0 = off):
+
+* angle random walk — white rate noise, ``noise_dps`` per sample (N in
+  deg/s/√Hz is ``noise_dps / sqrt(fs)``; Allan σ(τ) = N/√τ);
+* bias instability — flicker (1/f) bias, ``bias_instability_dps`` = B, the
+  Allan floor σ ≈ 0.664·B; made as a sum of Gauss-Markov processes, one per
+  decade of correlation time from 0.1 s to 10⁵ s, each of variance B²·ln10/(2π),
+  which sums to the 1/f spectrum B²/(2πf) over that band;
+* rate random walk — ``rate_random_walk_dps_rt_s`` = K in (deg/s)/√s, a bias
+  that random-walks (Allan σ(τ) = K·√(τ/3));
+* quantisation — the converter's step ``lsb`` in counts (Allan σ(τ) = √3·Q/τ
+  with Q = lsb/(sensitivity·√12) in deg/s·s at unit sample time); 0 = no rounding.
+
 Effects the calibrator is not told about (temperature, warm-up, supply,
 direction...) plug in as :class:`Effect` objects: each adds a rate error and a
 relative scale-factor error computed from the time, the true rate and the
@@ -44,7 +57,9 @@ class GyroModel:
     ripple: float = 0.0  # relative sinusoidal nonlinearity
     ripple_period_dps: float = 40.0
     full_scale_dps: float = 60.0
-    noise_dps: float = 0.08  # white noise per sample, deg/s rms
+    noise_dps: float = 0.08  # white noise per sample (angle random walk), deg/s rms
+    bias_instability_dps: float = 0.0  # flicker floor B (Allan minimum ≈ 0.664·B)
+    rate_random_walk_dps_rt_s: float = 0.0  # K, (deg/s)/√s
     bandwidth_hz: float = 40.0
     lsb: float = 1.0  # quantisation step, counts
     rail_counts: float = 32767.0
@@ -86,6 +101,23 @@ class GyroModel:
             scale = scale * (1.0 + s)
         dv = self.transfer(sensed) * scale + self.sensitivity * bias
         dv = dv + self.sensitivity * self.noise_dps * rng.standard_normal(w.shape)
+        dv = dv + self.sensitivity * self.coloured_noise(len(w), fs_hz, rng)
         raw = self.bias_counts + dv
-        raw = np.round(raw / self.lsb) * self.lsb
+        if self.lsb > 0:
+            raw = np.round(raw / self.lsb) * self.lsb
         return np.clip(raw, -self.rail_counts - 1, self.rail_counts)
+
+    def coloured_noise(self, n: int, fs_hz: float, rng: np.random.Generator) -> np.ndarray:
+        """Bias instability plus rate random walk, deg/s per sample (zeros when both are off)."""
+        out = np.zeros(n)
+        dt = 1.0 / fs_hz
+        if self.bias_instability_dps > 0 and n:
+            variance = self.bias_instability_dps**2 * np.log(10.0) / (2 * np.pi)
+            for tau_c in 10.0 ** np.arange(-1, 6):
+                a = np.exp(-dt / tau_c)
+                drive = np.sqrt(variance * (1 - a * a)) * rng.standard_normal(n)
+                start = np.sqrt(variance) * rng.standard_normal()
+                out += lfilter([1.0], [1.0, -a], drive, zi=[a * start])[0]
+        if self.rate_random_walk_dps_rt_s > 0:
+            out += np.cumsum(self.rate_random_walk_dps_rt_s * np.sqrt(dt) * rng.standard_normal(n))
+        return out

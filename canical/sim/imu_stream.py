@@ -21,6 +21,7 @@ from canical.imu_dictionary import AXES
 from canical.sim.gyro import GyroModel
 from canical.sim.rate_table import constant_profile, step_profile
 from canical.sim.sessions import paper_rates
+from canical.sim.table_recording import TableBehaviour, record_table
 
 TABLE_KINDS = ("steps", "constant", "still")
 
@@ -45,6 +46,10 @@ class TableMotion:
     accel_dps2: float = 100.0
     rate_dps: float = 0.0  # for kind "constant"
     block_s: float = 10.0  # block length of "constant" and "still"
+    #: For kind "steps": move and record as a real table does (ramps, S-curves, ringing, a
+    #: measured, held, late or asynchronous ``TABLE_REF``, IMU frames lost in bursts);
+    #: ``accel_dps2`` above is then unused (the behaviour's own limits apply).
+    recording: TableBehaviour | None = None
 
 
 @dataclass(frozen=True)
@@ -75,6 +80,11 @@ class Block:
     raw: dict[str, np.ndarray]
     temp_c: np.ndarray
     supply_v: np.ndarray
+    #: With a recording table: the reference per sample, which samples' frames are sent, and
+    #: the table's own frames (times, rates, settled flags) when they are not one per sample.
+    ref_dps: np.ndarray | None = None
+    kept: np.ndarray | None = None
+    table_frames: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return int(self.time_s.shape[0])
@@ -103,8 +113,19 @@ def imu_blocks(config: StreamConfig) -> Iterator[Block]:
     fs = config.sample_rate_hz
     rng = np.random.default_rng(config.seed)
     t0 = 0.0
+    recording = config.table.recording if config.table.kind == "steps" else None
     while True:
-        t, w, settled = table_pass(config.table, fs, t0)
+        extra: dict = {}
+        if recording is not None:
+            rates = np.concatenate([np.asarray(config.table.rates_dps, dtype=float), [0.0]])
+            rec = record_table(rates, dwell_s=config.table.dwell_s, fs_hz=fs, behaviour=recording,
+                               rng=rng, t0_s=t0, initial_dps=0.0)
+            t, w, settled = rec.time_s, rec.true_dps, rec.settled
+            frames = None if recording.ref_rate_hz is None else (rec.frame_time_s, rec.frame_dps,
+                                                                    rec.frame_settled)
+            extra = {"ref_dps": rec.ref_dps, "kept": rec.kept, "table_frames": frames}
+        else:
+            t, w, settled = table_pass(config.table, fs, t0)
         if config.temperature is not None:
             temp = np.asarray(config.temperature(t, w, rng), dtype=float)
         else:
@@ -119,5 +140,5 @@ def imu_blocks(config: StreamConfig) -> Iterator[Block]:
         for axis in AXES:
             rate = w if axis == config.table.axis else np.zeros_like(w)
             raw[axis] = config.gyros[axis].output(t, rate, aux=aux, rng=rng, fs_hz=fs)
-        yield Block(t, w, settled, raw, temp, supply)
+        yield Block(t, w, settled, raw, temp, supply, **extra)
         t0 = float(t[-1]) + 1.0 / fs

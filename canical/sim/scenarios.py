@@ -10,7 +10,7 @@ measuring how close the loop comes to a model that was told.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -19,6 +19,7 @@ from canical.sim import effects as fx
 from canical.sim import environment as env
 from canical.sim.gyro import Effect, GyroModel
 from canical.sim.sessions import paper_rates, sweep_session
+from canical.sim.table_recording import TableBehaviour
 from canical.terms import Term
 
 
@@ -28,9 +29,13 @@ class Scenario:
     effects: tuple[Effect, ...]
     aux: dict[str, Callable] = field(default_factory=dict)
     profile: str = "shuffled"  # shuffled | up-down | ascending
+    gyro: GyroModel | None = None  # noise and nonlinearity (default GyroModel()); effects are added
     expect: tuple[str, ...] = ()  # candidate names the loop must attribute
     confounded: tuple[str, ...] = ()  # candidate names it must report as confounded
     oracle_terms: tuple[Term, ...] = ()
+    # The effect is not fully representable by any candidate: the loop must say a residual
+    # stays unexplained (as it must when it leaves a confounded pair out).
+    leaves_residual: bool = False
 
     def rates(self, seed: int) -> np.ndarray:
         base = paper_rates()
@@ -40,9 +45,10 @@ class Scenario:
             return np.concatenate([base, base[::-1], base, base[::-1]])
         return np.concatenate([base, base])
 
-    def session(self, seed: int = 0, dwell_s: float = 10.0) -> Session:
-        return sweep_session(GyroModel(effects=self.effects), self.rates(seed), dwell_s=dwell_s,
-                             seed=seed, aux=self.aux)
+    def session(self, seed: int = 0, dwell_s: float = 10.0, table: TableBehaviour | None = None) -> Session:
+        """The scenario's session; ``table`` records it as a real table would (ramps, jitter...)."""
+        gyro = replace(self.gyro or GyroModel(), effects=self.effects)
+        return sweep_session(gyro, self.rates(seed), dwell_s=dwell_s, seed=seed, aux=self.aux, table=table)
 
 
 def _t(kind: str, feature: str, form: str, **kw) -> Term:
@@ -61,6 +67,26 @@ V_SCALE = _t("channel", "offset", "scale", channel="supply_v", reference=5.0)
 WARM = _t("time", "warmup", "bias", tau_s=200.0)
 WARM_SCALE = _t("time", "warmup", "scale", tau_s=200.0)
 DIR = _t("direction", "sign", "bias", threshold_raw=400.0)
+# Environments for effects in forms nobody listed.
+# A transient follows the true temperature's rate of change, not its readout noise:
+# these temperature readouts are averaged (as on-die sensors are), noise 0.002 C.
+TEMP_CYCLE = {"temp_c": env.temperature_cycle(noise_c=0.002), **DISTRACTORS}
+TEMP_HOLD_STEPS = {"temp_c": env.temperature_steps((10.0, 20.0, 30.0, 40.0), period_s=90.0,
+                                                   time_constant_s=15.0, noise_c=0.02), **DISTRACTORS}
+TEMP_SLOW_STEPS = {"temp_c": env.temperature_steps(period_s=150.0, time_constant_s=20.0), **DISTRACTORS}
+TEMP_TRIANGLE = {"temp_c": env.temperature_triangle(), **DISTRACTORS}
+TWO_AXIS = {"raw_x": env.other_axis_raw(), **DISTRACTORS}
+# Clean-sensor checks: five channels that carry nothing, one of them slowly varying.
+FIVE_DISTRACTORS = {"noise_a": env.white_noise(3.0, 1.0), "noise_b": env.white_noise(0.0, 0.2),
+                    "wander_a": env.random_walk(0.02), "wander_b": env.random_walk(0.005, 10.0),
+                    "room_c": env.temperature_cycle(22.0, 2.0, (2400.0, 1300.0), 0.02)}
+T_RATE = _t("channel", "derivative", "bias", channel="temp_c", tau_s=3.0)
+T_LAG = _t("channel", "lag", "bias", channel="temp_c", tau_s=120.0)
+T_LAG60 = _t("channel", "lag", "bias", channel="temp_c", tau_s=60.0)
+T_LAG60_SCALE = _t("channel", "lag", "scale", channel="temp_c", tau_s=60.0)
+T_HYST = _t("channel", "direction", "bias", channel="temp_c", threshold_raw=1.0)
+X_LEAK = _t("channel", "offset", "bias", channel="raw_x")
+COLOURED = GyroModel(bias_instability_dps=0.003, rate_random_walk_dps_rt_s=1e-4)
 
 SCENARIOS: tuple[Scenario, ...] = (
     Scenario("temperature bias 0.01 dps/C, chamber steps",
@@ -108,4 +134,35 @@ SCENARIOS: tuple[Scenario, ...] = (
     Scenario("monotonic temperature ramp (confounded with drift)",
              (fx.TemperatureEffect(bias_dps_per_c=0.01),), {"temp_c": env.temperature_ramp()},
              confounded=("channel:temp_c",), oracle_terms=(T_BIAS,)),
+    # Forms nobody listed (issue 9): transforms of a channel, another axis, a rate-gated effect.
+    Scenario("thermal transient: bias 0.4 dps per C/s, temperature cycling",
+             (fx.TemperatureRateEffect(bias_dps_per_c_per_s=0.4),), TEMP_CYCLE,
+             expect=("d/dt temp_c",), oracle_terms=(T_RATE,)),
+    # Self-heating: the temperature's level, its derivative and a warm-up all follow one law.
+    Scenario("thermal transient while self-heating = warm-up law (confounded)",
+             (fx.TemperatureRateEffect(bias_dps_per_c_per_s=4.0),),
+             {"temp_c": env.temperature_warmup(noise_c=0.002)},
+             confounded=("time:warm-up",), oracle_terms=(T_RATE,)),
+    Scenario("lagged temperature, tau 120 s, slow chamber steps",
+             (fx.LaggedTemperatureEffect(tau_s=120.0, bias_dps_per_c=0.01),), TEMP_SLOW_STEPS,
+             expect=("lag(temp_c)",), oracle_terms=(T_LAG,)),
+    Scenario("lagged temperature, tau 60 s, bias + scale, heating/cooling ramps",
+             (fx.LaggedTemperatureEffect(tau_s=60.0, bias_dps_per_c=0.008, scale_per_c=2e-4),),
+             TEMP_TRIANGLE, expect=("lag(temp_c)",), oracle_terms=(T_LAG60, T_LAG60_SCALE)),
+    Scenario("temperature hysteresis 0.03 dps, heating vs cooling, steps and holds",
+             (fx.TemperatureHysteresisEffect(offset_dps=0.03),), TEMP_HOLD_STEPS,
+             expect=("sign d/dt temp_c",), oracle_terms=(T_HYST,)),
+    Scenario("cross-axis leakage 0.4 % from raw_x, two-axis session",
+             (fx.CrossAxisEffect(coupling=0.004),), TWO_AXIS,
+             expect=("channel:raw_x",), oracle_terms=(X_LEAK,)),
+    Scenario("temperature scale error only above 30 dps (told: nearest listed form)",
+             (fx.HighRateTemperatureEffect(),), TEMP_STEPS,
+             expect=("channel:temp_c",), oracle_terms=(T_SCALE,), leaves_residual=True),
+    Scenario("clean, bias instability + rate random walk, 5 distractors", (), FIVE_DISTRACTORS,
+             gyro=COLOURED),
+    Scenario("clean, white noise, 5 distractors", (), FIVE_DISTRACTORS),
 )
+
+# A sensor whose error follows a variable nobody recorded: no candidate can represent it.
+UNEXPLAINED = Scenario("bias following an unrecorded variable (unexplained)",
+                       (fx.HiddenVariableEffect(),), DISTRACTORS, leaves_residual=True)

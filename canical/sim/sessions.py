@@ -7,6 +7,7 @@ import numpy as np
 from canical.session import Session
 from canical.sim.gyro import GyroModel
 from canical.sim.rate_table import constant_profile, step_profile
+from canical.sim.table_recording import TableBehaviour, TableRecording, record_table
 
 
 def paper_rates(step: float = 3.0, limit: float = 60.0) -> np.ndarray:
@@ -25,18 +26,56 @@ def sweep_session(
     sensor: str = "SIM-0001",
     axis: str = "z",
     aux: dict[str, object] | None = None,
+    table: TableBehaviour | None = None,
 ) -> Session:
     """A turntable session visiting ``rates_dps`` in order.
 
     ``aux`` maps channel names to callables ``f(time_s, rate_dps, rng) -> values``
     (environment signals such as a temperature); they feed the gyro's effects and
-    are recorded as auxiliary columns.
+    are recorded as auxiliary columns. ``table`` records the session as a real table
+    would (ramps, ringing, a measured, held or late reference, lost rows: see
+    :mod:`canical.sim.table_recording`); without it, the table ramps at 100 deg/s² from
+    0 deg/s and the reference is the commanded rate at every sample.
     """
+    if table is not None:
+        return recorded_sweep(gyro, rates_dps, table, dwell_s=dwell_s, fs_hz=fs_hz, seed=seed,
+                              sensor=sensor, axis=axis, aux=aux)[0]
     rng = np.random.default_rng(seed)
     t, w = step_profile(rates_dps, dwell_s=dwell_s, fs_hz=fs_hz)
     channels = {name: np.asarray(f(t, w, rng), dtype=float) for name, f in (aux or {}).items()}
     raw = gyro.output(t, w, aux=channels, rng=rng, fs_hz=fs_hz)
     return Session(t, raw, w, channels, {"sensor": sensor, "axis": axis})
+
+
+def recorded_sweep(
+    gyro: GyroModel,
+    rates_dps: np.ndarray,
+    table: TableBehaviour,
+    *,
+    dwell_s: float = 10.0,
+    fs_hz: float = 200.0,
+    seed: int = 0,
+    sensor: str = "SIM-0001",
+    axis: str = "z",
+    aux: dict[str, object] | None = None,
+) -> tuple[Session, TableRecording]:
+    """A session recorded through ``table``, and the table's truth for the kept rows' ticks.
+
+    The sensor's noise comes from its own generator (``seed``), the table's from another
+    (``seed + 1``), so the same sensor recorded on different tables sees the same noise.
+    """
+    sensor_rng = np.random.default_rng(seed)
+    rec = record_table(rates_dps, dwell_s=dwell_s, fs_hz=fs_hz, behaviour=table,
+                       rng=np.random.default_rng(seed + 1))
+    t, w = rec.time_s, rec.true_dps
+    channels = {name: np.asarray(f(t, w, sensor_rng), dtype=float) for name, f in (aux or {}).items()}
+    raw = gyro.output(t, w, aux=channels, rng=sensor_rng, fs_hz=fs_hz)
+    keep = rec.kept
+    session = Session(
+        t[keep], raw[keep], rec.ref_dps[keep], {k: v[keep] for k, v in channels.items()},
+        {"sensor": sensor, "axis": axis}, settled=rec.settled[keep] if table.settled_flag else None,
+    )
+    return session, rec
 
 
 def paper_session(gyro: GyroModel | None = None, *, seed: int = 0, sweeps: int = 1, **kw) -> Session:

@@ -1,0 +1,226 @@
+"""Allan deviation of a gyro's rate output and the IEEE Std 952 noise terms read from it.
+
+Why: a gyro's noise is not one number. Its Allan deviation σ(τ) (the spread of the
+difference of successive τ-averages) separates the terms by their slope on a log-log plot:
+angle random walk (white rate noise) falls as τ^−1/2, bias instability (flicker) is flat,
+rate random walk rises as τ^+1/2. IEEE Std 952 reads each from a line of that slope laid
+against the curve: ARW = σ of the −1/2 line at τ = 1 s, BI = σ_min / 0.664 (0.664 =
+√(2 ln 2 / π), the flat level of flicker noise), RRW = σ of the +1/2 line at τ = 3 s.
+
+The deviation itself comes from allantools (overlapping ADEV); several records (the
+zero-rate plateaus of a turntable session, or a static record cut at lost rows) are pooled
+per cluster size, each record's overlapping estimate weighted by its number of terms.
+
+The three lines are laid against the curve at once: Allan variances of the terms add,
+σ²(τ) = N²/τ + (0.664·B)² + K²τ/3, fitted with non-negative N², B², K² and each point weighted
+by its own error, so each line's level is set where its term dominates and is not pulled up
+by the others. A term is *resolved* only when it dominates the fitted curve over a stretch
+of τ (a factor of 3); otherwise it is reported "not resolved" with the upper bound the data
+gives (its line laid under the curve). The curve's own minimum / 0.664, the classic graphical
+BI read-out, is reported beside the fitted one.
+
+Confidence follows IEEE Std 952 annex C: σ(τ) from K independent (non-overlapping) clusters
+has a relative error of 1/√(2(K−1)). A term's interval is ±2 of that error at the most
+precise τ where it dominates, divided by its share of the variance there. Over many seeds of
+synthetic noise (tests/benchmarks/bench_allan.py) such intervals hold the true value in 80–95%
+of seeds, ARW beside a flicker floor in half: the estimates at neighbouring τ are correlated
+and the terms share the curve, so no finer confidence is claimed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+SQRT_HOUR = 60.0  # √(3600 s)
+FLICKER_FLOOR = 0.664  # σ_min = 0.664·B for flicker (1/f) rate noise
+RRW_TAU_S = 3.0
+POINTS_PER_DECADE = 8
+MIN_CLUSTERS = 3  # the longest τ still has this many independent clusters
+
+
+@dataclass(frozen=True)
+class AllanCurve:
+    """Pooled overlapping Allan deviation of one or more records sampled at one rate."""
+
+    tau_s: np.ndarray
+    adev: np.ndarray  # in the records' unit (deg/s)
+    clusters: np.ndarray  # independent clusters of length τ, summed over the records
+    sample_rate_hz: float
+    records: int
+    duration_s: float  # summed over the records
+
+    @property
+    def rel_error(self) -> np.ndarray:
+        """IEEE 952 annex C: relative 1σ error of σ(τ) from K independent clusters."""
+        return 1.0 / np.sqrt(2.0 * np.maximum(self.clusters - 1, 1))
+
+
+@dataclass(frozen=True)
+class NoiseTerm:
+    """One read-out: value with its ~68% interval, or not resolved with an upper bound."""
+
+    name: str
+    unit: str
+    resolved: bool
+    value: float  # the read-out; when not resolved, the upper bound
+    low: float
+    high: float
+    tau_s: float  # where the line touches the curve
+    clusters: int
+    note: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "unit": self.unit,
+            "resolved": self.resolved,
+            "value": self.value if self.resolved else None,
+            "interval": [self.low, self.high] if self.resolved else None,
+            "upper_bound": None if self.resolved else self.value,
+            "tau_s": self.tau_s,
+            "clusters": self.clusters,
+            "note": self.note,
+        }
+
+
+def allan_deviation(
+    records: Sequence[np.ndarray], sample_rate_hz: float, *, points_per_decade: int = POINTS_PER_DECADE
+) -> AllanCurve:
+    """Overlapping ADEV of rate records (same sample rate), pooled per cluster size.
+
+    τ runs from one sample to the longest τ at which the longest record still has
+    ``MIN_CLUSTERS`` independent clusters, log-spaced.
+    """
+    import allantools
+
+    recs = [np.asarray(r, dtype=float) for r in records if len(r) >= 2 * MIN_CLUSTERS]
+    if not recs:
+        raise ValueError(f"no record of at least {2 * MIN_CLUSTERS} samples")
+    longest = max(len(r) for r in recs)
+    top = max(longest // MIN_CLUSTERS, 1)
+    n_points = max(int(np.ceil(np.log10(top) * points_per_decade)) + 1, 1)
+    m_grid = np.unique(np.round(np.logspace(0, np.log10(top), n_points)).astype(int))
+    var_sum = np.zeros(m_grid.size)
+    terms = np.zeros(m_grid.size)
+    clusters = np.zeros(m_grid.size, dtype=np.int64)
+    for r in recs:
+        usable = m_grid[m_grid <= len(r) // 2]
+        if usable.size == 0:
+            continue
+        taus, devs, _errs, ns = allantools.oadev(r, rate=sample_rate_hz, data_type="freq",
+                                                 taus=usable / sample_rate_hz)
+        idx = np.searchsorted(m_grid, np.round(np.asarray(taus) * sample_rate_hz).astype(int))
+        var_sum[idx] += np.asarray(ns) * np.asarray(devs) ** 2
+        terms[idx] += np.asarray(ns)
+        clusters[idx] += len(r) // m_grid[idx]
+    keep = (terms > 0) & (clusters >= 2)
+    return AllanCurve(
+        tau_s=m_grid[keep] / sample_rate_hz,
+        adev=np.sqrt(var_sum[keep] / terms[keep]),
+        clusters=clusters[keep],
+        sample_rate_hz=float(sample_rate_hz),
+        records=len(recs),
+        duration_s=float(sum(len(r) for r in recs) / sample_rate_hz),
+    )
+
+
+# Allan variance of each IEEE 952 term is a power of τ: σ² = Σ A_p·τ^p, slopes −1/2, 0, +1/2 in σ.
+# Quantisation (−1) and rate ramp (+1) are left out: free, they bend the fit along the random
+# wiggles of the overlapping estimates (which are correlated across τ); where they are really
+# there, the terms they touch are not resolved or are read high, never low.
+POWERS = {"arw": -1.0, "bias_instability": 0.0, "rrw": 1.0}
+DOMINANT_SHARE = 0.5  # a term is seen where it makes at least this share of the variance
+MIN_SPAN = 3.0  # ... over τ spanning at least this factor: a line is not drawn through a bump
+
+
+def fit_terms(curve: AllanCurve) -> dict[str, float]:
+    """Non-negative A_p of σ²(τ) = Σ A_p·τ^p, each point weighted by its relative error.
+
+    The lines of slope −1/2, 0, +1/2 laid against the curve all at once: each line's level
+    is set where its term dominates, not raised by the others.
+    """
+    from scipy.optimize import nnls
+
+    avar = curve.adev**2
+    scale = 1.0 / (avar * 2.0 * curve.rel_error)  # the relative error of σ² is twice that of σ
+    design = np.column_stack([curve.tau_s**p for p in POWERS.values()]) * scale[:, None]
+    norms = np.linalg.norm(design, axis=0)
+    coef, _ = nnls(design / norms, avar * scale)
+    return {name: float(c / n) for name, c, n in zip(POWERS, coef, norms, strict=True)}
+
+
+def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:
+    """ARW (deg/√h), bias instability (deg/h) and RRW (deg/h/√h) from a curve in deg/s.
+
+    Read-outs of the fitted lines: ARW = σ of the −1/2 line at τ = 1 s (σ² = N²/τ), BI = level
+    of the flat line / 0.664, RRW = σ of the +1/2 line at τ = 3 s (σ² = K²τ/3).
+    """
+    a = fit_terms(curve)
+    total = sum(a[k] * curve.tau_s**p for k, p in POWERS.items())
+    hi = float(curve.tau_s[-1])
+    lo = float(curve.tau_s[0])
+    return {
+        "arw": _term(curve, a, total, "arw", "angle random walk", "deg/sqrt(h)", np.sqrt, SQRT_HOUR,
+                     f"white rate noise dominates nowhere between tau {lo:.3g} and {hi:.3g} s"),
+        "bias_instability": _term(
+            curve, a, total, "bias_instability", "bias instability", "deg/h",
+            lambda x: np.sqrt(x) / FLICKER_FLOOR, 3600.0,
+            f"the curve has no flat floor between tau {lo:.3g} and {hi:.3g} s: a longer record is needed"),
+        "rrw": _term(curve, a, total, "rrw", "rate random walk", "deg/h/sqrt(h)",
+                     lambda x: np.sqrt(RRW_TAU_S * x), 3600.0 * SQRT_HOUR,
+                     f"the curve does not rise as tau^+1/2 up to {hi:.3g} s: a longer record is needed"),
+    }
+
+
+def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, name: str, unit: str,
+          level: Callable[[float], float], to_unit: float, why: str) -> NoiseTerm:
+    """Resolved where the term dominates the fitted curve over a stretch of τ; interval from there.
+
+    At the most precise such point (K clusters, share s of the variance) the term's σ is
+    known to 1/√(2(K−1))/s; the interval is twice that either side. Not resolved: the line
+    of its slope laid under the curve (each point raised by two of its errors) bounds it.
+    """
+    p = POWERS[key]
+    share = a[key] * curve.tau_s**p / total
+    e = curve.rel_error
+    seen = share >= DOMINANT_SHARE
+    if seen.any() and curve.tau_s[seen].max() >= MIN_SPAN * curve.tau_s[seen].min():
+        i = int(np.argmin(np.where(seen, e, np.inf)))
+        value = float(level(a[key])) * to_unit
+        rel = 2.0 * float(e[i] / share[i])
+        return NoiseTerm(name, unit, True, value, value * max(1.0 - rel, 0.0), value * (1.0 + rel),
+                         float(curve.tau_s[i]), int(curve.clusters[i]), "")
+    bound_var = (curve.adev * (1.0 + 2.0 * e)) ** 2 / curve.tau_s**p
+    i = int(np.argmin(bound_var))
+    value = float(level(bound_var[i])) * to_unit
+    return NoiseTerm(name, unit, False, value, value, value, float(curve.tau_s[i]), int(curve.clusters[i]),
+                     why)
+
+
+def analysis_dict(curve: AllanCurve, terms: dict[str, NoiseTerm]) -> dict[str, Any]:
+    """The analysis as JSON-ready data: the curve (for the plot) and the three terms."""
+    low = int(np.argmin(curve.adev))
+    return {
+        "method": "overlapping Allan deviation (allantools); lines of slope -1/2, 0, +1/2 fitted "
+        "together, IEEE Std 952 read-outs; intervals ±2/sqrt(2(K-1)) with K independent clusters "
+        "where the term dominates",
+        "records": curve.records,
+        "duration_s": curve.duration_s,
+        "sample_rate_hz": curve.sample_rate_hz,
+        "tau_range_s": [float(curve.tau_s[0]), float(curve.tau_s[-1])],
+        "terms": {key: t.to_dict() for key, t in terms.items()},
+        "curve_minimum": {
+            "tau_s": float(curve.tau_s[low]),
+            "adev_dps": float(curve.adev[low]),
+            "bias_instability_deg_h": float(curve.adev[low]) / FLICKER_FLOOR * 3600.0,
+        },
+        "curve": {
+            "tau_s": curve.tau_s.tolist(),
+            "adev_dps": curve.adev.tolist(),
+            "clusters": curve.clusters.tolist(),
+        },
+    }

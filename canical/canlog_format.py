@@ -1,0 +1,73 @@
+"""CAN log formats by file name: which files are CAN logs and what they need to be read.
+
+Kept apart from the log reader so that a command's ``--help`` and argument checks can
+name the formats without importing python-can, numpy or cantools.
+"""
+
+from __future__ import annotations
+
+import gzip
+import importlib
+import os
+from pathlib import Path
+
+from canical.errors import CanicalError
+
+# The suffixes python-can's LogReader dispatches on (can.io.player.MESSAGE_READERS), each
+# possibly followed by .gz. Listed, not looked up, so that --help needs no python-can import.
+CANLOG_SUFFIXES = (".asc", ".blf", ".csv", ".db", ".log", ".mf4", ".trc")
+CANLOG_FORMATS = ".log, .asc, .blf, .trc, .csv, .db, .mf4, each also .gz"
+PYTHON_CAN_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
+DEFAULT_RAW_MESSAGE = "IMU_RAW"
+DEFAULT_REF = "TABLE_REF.TableRate"
+
+
+def log_format(path: str | os.PathLike[str]) -> str:
+    """The format suffix of a log name, under any ``.gz``: ``x.asc.gz`` -> ``.asc``."""
+    suffixes = [x.lower() for x in Path(path).suffixes]
+    if suffixes and suffixes[-1] == ".gz":
+        suffixes.pop()
+    return suffixes[-1] if suffixes else ""
+
+
+def log_suffix(path: str | os.PathLike[str]) -> str:
+    """The suffix python-can dispatches on, with its ``.gz``: ``x.asc.gz`` -> ``.asc.gz``."""
+    fmt = log_format(path)
+    return fmt + ".gz" if Path(path).suffix.lower() == ".gz" else fmt
+
+
+def is_canlog(path: str | os.PathLike[str]) -> bool:
+    """Whether a file is a CAN log (anything else is read as a session CSV).
+
+    By suffix, except ``.csv``: python-can's CSV log is told from a session CSV by its header.
+    """
+    fmt = log_format(path)
+    if fmt not in CANLOG_SUFFIXES:
+        return False
+    return fmt != ".csv" or _first_line(path) == PYTHON_CAN_CSV_HEADER
+
+
+def _first_line(path: str | os.PathLike[str]) -> str:
+    opener = gzip.open if Path(path).suffix.lower() == ".gz" else open
+    try:
+        with opener(path, "rt", encoding="utf-8", errors="replace") as f:
+            return f.readline().strip()
+    except (OSError, EOFError):  # missing or unreadable: the session reader says what is wrong
+        return ""
+
+
+def require_log_support(path: str | os.PathLike[str]) -> None:
+    """Fail in one line when the format needs an optional dependency that is not installed.
+
+    python-can reads MDF4 with asammdf, an extra (``canical[mf4]``): it is large and only
+    vehicle data loggers write MDF4, so a plain install does without it.
+    """
+    if log_format(path) != ".mf4":
+        return
+    try:
+        importlib.import_module("asammdf")
+    except ImportError:
+        raise CanicalError(
+            f"{path}: reading or writing MDF4 (.mf4) needs the optional dependency asammdf: "
+            "pip install 'canical[mf4]'"
+        ) from None

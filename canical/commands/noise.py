@@ -1,0 +1,126 @@
+"""``canical noise``: Allan deviation of a static record and the IEEE 952 terms read from it.
+
+numpy, scipy, matplotlib and allantools are imported in ``run``, so ``--help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from canical.commands import COMMANDS
+from canical.commands.canlog_args import add_canlog_arguments
+from canical.errors import CanicalError
+
+RATE_COLUMN = "rate_dps"
+DESCRIPTION = (
+    "Angle random walk (deg/sqrt(h)), bias instability (deg/h) and rate random walk (deg/h/sqrt(h)) "
+    "of a static record, with their intervals, from its Allan deviation (IEEE Std 952); a term the "
+    "record is too short to show is reported as not resolved. Record the sensor at rest, as long as "
+    "possible: rate random walk shows only past the crossover, often beyond ten minutes. The rate comes "
+    "from a column in deg/s (rate_dps, as 'canical apply' writes it, or --column) or from the raw "
+    "counts through a coefficient set (--coefficients); a CAN log needs the set (its axis and model) "
+    "and --dbc or --config."
+)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("noise", help=COMMANDS["noise"], description=DESCRIPTION)
+    p.add_argument("record", help="static record: CSV with time_s and a rate or raw column, or a CAN log")
+    p.add_argument("--column", help=f"rate column in deg/s [{RATE_COLUMN}]")
+    p.add_argument("--coefficients", help="coefficient set: convert the raw column (or the log's raw frames)")
+    p.add_argument("--raw-column", default="raw", help="raw column, with --coefficients [raw]")
+    p.add_argument("--plot", help="log-log Allan deviation plot to write (PNG)")
+    p.add_argument("--json", help="the analysis (terms, intervals, curve) as JSON to write")
+    add_canlog_arguments(p)
+    p.set_defaults(run=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from canical.output_plan import output_plan
+
+    with output_plan(args.plot, args.json):
+        return characterise(args)
+
+
+def characterise(args: argparse.Namespace) -> int:
+    from canical.canlog_format import is_canlog
+    from canical.noise_records import (
+        describe,
+        first_backwards,
+        noise_analysis,
+        sample_interval,
+        uniform_records,
+    )
+
+    time_s, rate, where = _read_canlog(args) if is_canlog(args.record) else _read_csv(args)
+    bad = first_backwards(time_s)
+    if bad is not None:
+        raise CanicalError(f"{args.record}: {where(bad)}: time goes backwards "
+                           f"({time_s[bad - 1]:.6f} -> {time_s[bad]:.6f} s)")
+    dt = sample_interval(time_s)
+    records = uniform_records(time_s, rate, dt)
+    analysis = noise_analysis(records, dt, str(args.record))
+    if "skipped" in analysis:
+        raise CanicalError(f"{args.record}: {analysis['skipped']}")
+    text = json.dumps(analysis, indent=2) + "\n"
+    if args.plot:
+        from canical.allan_plot import write_allan_plot
+
+        write_allan_plot(analysis, args.plot, f"Allan deviation, {args.record}")
+    if args.json:
+        from canical.atomic_file import write_text_atomic
+
+        write_text_atomic(args.json, text)
+    print("\n".join(describe(analysis)))
+    return 0
+
+
+def _read_csv(args: argparse.Namespace):
+    """time_s and the rate of a CSV; rows are named by their line in the file."""
+    from canical.session_csv import TIME_COLUMN, read_table
+
+    if args.coefficients:
+        corrector = _corrector(args.coefficients)
+        inputs = [n for n in corrector.required_inputs if n != TIME_COLUMN]
+        table = read_table(args.record, columns=[TIME_COLUMN, args.raw_column, *inputs])
+        values = {n: table.columns[n] for n in inputs} | {TIME_COLUMN: table.columns[TIME_COLUMN]}
+        rate = corrector.correct(table.columns[args.raw_column], values)[0]
+    else:
+        column = args.column or RATE_COLUMN
+        header = read_table(args.record, columns=[]).header
+        if column not in header:
+            raise CanicalError(f"{args.record}: no {column} column: name the rate column (deg/s) with "
+                               "--column, or convert the raw column with --coefficients SET.yaml")
+        table = read_table(args.record, columns=[TIME_COLUMN, column])
+        rate = table.columns[column]
+    return table.columns[TIME_COLUMN], rate, lambda i: f"line {table.first_data_line + i}"
+
+
+def _read_canlog(args: argparse.Namespace):
+    """Frame times and the rate of the set's axis from a CAN log; rows are raw frames."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.session_canlog import TIME_INPUT, read_canlog
+
+    if not args.coefficients:
+        raise CanicalError(f"{args.record}: a CAN log holds raw counts: give --coefficients SET.yaml")
+    corrector = _corrector(args.coefficients)
+    source = canlog_source(args, args.record)
+    unmapped = [n for n in corrector.required_inputs if n not in source.inputs]
+    if unmapped:
+        raise CanicalError(f"the coefficient set needs input(s) {', '.join(unmapped)}: map them with "
+                           "--input NAME=MESSAGE.Signal or --config")
+    log = read_canlog(args.record, dbc=source.dbc, axis=corrector.cset.axis,
+                      inputs={n: source.inputs[n] for n in corrector.required_inputs}, ref=None,
+                      raw_message=source.raw_message, raw_signal=source.raw_signals.get(corrector.cset.axis))
+    s = log.session
+    inputs = dict(s.aux) | ({TIME_INPUT: s.time_s} if TIME_INPUT in corrector.required_inputs else {})
+    rate = corrector.correct(s.raw, inputs)[0]
+    return s.time_s, rate, lambda i: f"{source.raw_message} frame {i + 1}"
+
+
+def _corrector(path: str):
+    from canical import coefficient_file
+    from canical.corrector import Corrector
+
+    return Corrector(coefficient_file.load(path))

@@ -1,0 +1,1 @@
+../../firmware/canical_eval.h

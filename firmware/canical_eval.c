@@ -1,0 +1,1655 @@
+/*
+ * canical_eval: validate a coefficient bank and correct samples with it (see canical_eval.h).
+ *
+ * The bank content is canonical JSON (sorted keys, no white space, Python's shortest
+ * round-trip float spelling, ASCII with \u escapes): the bytes the set's CRC32 covers. The
+ * parser below reads exactly that grammar without recursion and without the heap; anything
+ * else is refused. It checks everything canical's own loader checks (canical/coefficient_file.py,
+ * canical/terms.py) and the device's admission rules (canical/set_admission.py), except that it
+ * does not prove a float spelling is the *shortest* round trip (it checks the form only).
+ *
+ * Adding a term kind: one row in TERM_SPECS and one case in term_feature().
+ *
+ * MIT licence, like the rest of canical.
+ */
+#include "canical_eval.h"
+
+#include <float.h>
+#include <stddef.h>
+
+/* No <string.h>: the library builds freestanding (-ffreestanding, no C library at all). */
+static size_t text_length(const char *s)
+{
+    size_t n = 0;
+    while (s[n] != '\0') {
+        n++;
+    }
+    return n;
+}
+
+static int same_bytes(const uint8_t *a, const char *b, size_t n)
+{
+    size_t i;
+    for (i = 0; i < n; i++) {
+        if (a[i] != (uint8_t)b[i]) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static void zero(void *p, size_t n)
+{
+    volatile uint8_t *b = (volatile uint8_t *)p;
+    size_t i;
+    for (i = 0; i < n; i++) {
+        b[i] = 0u;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------
+ * CRC32 (zlib), four bits at a time: a 64-byte table instead of 1 KB.
+ * ---------------------------------------------------------------------------------------- */
+
+static const uint32_t CRC_NIBBLE[16] = {
+    0x00000000u, 0x1DB71064u, 0x3B6E20C8u, 0x26D930ACu, 0x76DC4190u, 0x6B6B51F4u,
+    0x4DB26158u, 0x5005713Cu, 0xEDB88320u, 0xF00F9344u, 0xD6D6A3E8u, 0xCB61B38Cu,
+    0x9B64C2B0u, 0x86D3D2D4u, 0xA00AE278u, 0xBDBDF21Cu};
+
+uint32_t ce_crc32(const uint8_t *data, uint32_t length)
+{
+    uint32_t crc = 0xFFFFFFFFu;
+    uint32_t i;
+    if (data == NULL) {
+        return 0u;
+    }
+    for (i = 0; i < length; i++) {
+        crc ^= data[i];
+        crc = (crc >> 4) ^ CRC_NIBBLE[crc & 15u];
+        crc = (crc >> 4) ^ CRC_NIBBLE[crc & 15u];
+    }
+    return ~crc;
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Term kinds: (kind, feature) as the set names them -> evaluator code and required fields.
+ * ---------------------------------------------------------------------------------------- */
+
+enum {
+    CE_TERM_CHANNEL_OFFSET = 1,
+    CE_TERM_CHANNEL_SQUARE,
+    CE_TERM_TIME_WARMUP,
+    CE_TERM_TIME_LINEAR,
+    CE_TERM_DIRECTION_SIGN,
+    CE_TERM_DIRECTION_SLOPE
+};
+
+#define NEEDS_CHANNEL 1u
+#define NEEDS_TAU 2u
+#define NEEDS_THRESHOLD 4u
+
+typedef struct {
+    const char *kind;
+    const char *feature;
+    uint8_t code;
+    uint8_t needs;
+} term_spec;
+
+static const term_spec TERM_SPECS[] = {
+    {"channel", "offset", CE_TERM_CHANNEL_OFFSET, NEEDS_CHANNEL},
+    {"channel", "square", CE_TERM_CHANNEL_SQUARE, NEEDS_CHANNEL},
+    {"time", "warmup", CE_TERM_TIME_WARMUP, NEEDS_TAU},
+    {"time", "linear", CE_TERM_TIME_LINEAR, 0u},
+    {"direction", "sign", CE_TERM_DIRECTION_SIGN, NEEDS_THRESHOLD},
+    {"direction", "slope", CE_TERM_DIRECTION_SLOPE, NEEDS_TAU},
+};
+
+#define N_TERM_SPECS (sizeof TERM_SPECS / sizeof TERM_SPECS[0])
+
+/* ------------------------------------------------------------------------------------------
+ * Float helpers: only add, multiply, divide, compare (Cortex-M4F hardware).
+ * ---------------------------------------------------------------------------------------- */
+
+static float absf(float x) { return x < 0.0f ? -x : x; }
+
+/* 2^k for -126 <= k <= 127, from the bits. */
+static float pow2f(int k)
+{
+    union {
+        uint32_t u;
+        float f;
+    } v;
+    v.u = (uint32_t)(k + 127) << 23;
+    return v.f;
+}
+
+/* exp(x) - 1, accurate to a few ulp also for small |x| (where 1 - exp(-x) would cancel):
+ * x = k ln2 + r with |r| <= ln2/2, a degree-7 Taylor polynomial for expm1(r). */
+static float expm1_f(float x)
+{
+    const float ln2_hi = 0.693145751953125f; /* few bits: k * ln2_hi is exact */
+    const float ln2_lo = 1.428606765330187e-06f;
+    float kf, r, p, two_k;
+    int k;
+    if (!(x == x)) {
+        return x; /* NaN */
+    }
+    if (x > 88.0f) {
+        return FLT_MAX;
+    }
+    if (x < -25.0f) {
+        return -1.0f;
+    }
+    kf = x * 1.4426950408889634f;
+    k = (int)(kf < 0.0f ? kf - 0.5f : kf + 0.5f);
+    r = (x - (float)k * ln2_hi) - (float)k * ln2_lo;
+    p = r * r * (0.5f + r * (1.0f / 6 + r * (1.0f / 24 + r * (1.0f / 120 + r * (1.0f / 720 + r * (1.0f / 5040))))));
+    p = r + p; /* expm1(r) */
+    if (k == 0) {
+        return p;
+    }
+    two_k = pow2f(k);
+    return two_k * p + (two_k - 1.0f);
+}
+
+/* float pair (hi, lo) with hi + lo = d to about 2^-48 relative. */
+static void split(double d, float *hi, float *lo)
+{
+    *hi = (float)d;
+    *lo = (float)(d - (double)*hi);
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Canonical JSON reader.
+ * ---------------------------------------------------------------------------------------- */
+
+typedef struct {
+    const uint8_t *base;
+    const uint8_t *p;
+    const uint8_t *end;
+    int err;
+    uint32_t err_at;
+} cur;
+
+static int fail(cur *c, int code)
+{
+    if (c->err == 0) {
+        c->err = code;
+        c->err_at = (uint32_t)(c->p - c->base);
+    }
+    return c->err;
+}
+
+/* Next byte without consuming it, -1 at the end. White space is valid JSON but never
+ * canonical, so it is refused as such wherever a token may start. */
+static int tok(cur *c)
+{
+    int b;
+    if (c->p >= c->end) {
+        return -1;
+    }
+    b = *c->p;
+    if (b == ' ' || b == '\t' || b == '\n' || b == '\r') {
+        fail(c, CE_ERR_NOT_CANONICAL);
+        return -1;
+    }
+    return b;
+}
+
+static int expect(cur *c, int ch)
+{
+    if (tok(c) != ch) {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    c->p++;
+    return 0;
+}
+
+static int is_digit(int b) { return b >= '0' && b <= '9'; }
+
+static int hex_value(int b)
+{
+    if (is_digit(b)) {
+        return b - '0';
+    }
+    if (b >= 'a' && b <= 'f') {
+        return b - 'a' + 10;
+    }
+    if (b >= 'A' && b <= 'F') {
+        return 16 + b - 'A'; /* valid JSON, but canonical escapes are lower case */
+    }
+    return -1;
+}
+
+/* A string; *s, *n: its bytes between the quotes (escapes not decoded), *escaped if any. */
+static int parse_string(cur *c, const uint8_t **s, uint32_t *n, int *escaped)
+{
+    const uint8_t *start;
+    *escaped = 0;
+    if (expect(c, '"')) {
+        return c->err;
+    }
+    start = c->p;
+    while (c->p < c->end) {
+        int b = *c->p;
+        if (b == '"') {
+            *s = start;
+            *n = (uint32_t)(c->p - start);
+            c->p++;
+            return 0;
+        }
+        if (b < 0x20) {
+            return fail(c, CE_ERR_SYNTAX);
+        }
+        if (b >= 0x7f) {
+            return fail(c, CE_ERR_NOT_CANONICAL); /* canonical JSON is ASCII, \u-escaped */
+        }
+        if (b == '\\') {
+            int e;
+            *escaped = 1;
+            c->p++;
+            if (c->p >= c->end) {
+                return fail(c, CE_ERR_SYNTAX);
+            }
+            e = *c->p;
+            if (e == '"' || e == '\\' || e == 'b' || e == 'f' || e == 'n' || e == 'r' || e == 't') {
+                c->p++;
+            } else if (e == '/') {
+                return fail(c, CE_ERR_NOT_CANONICAL);
+            } else if (e == 'u') {
+                int i, v = 0, upper = 0;
+                c->p++;
+                for (i = 0; i < 4; i++) {
+                    int h = c->p < c->end ? hex_value(*c->p) : -1;
+                    if (h < 0) {
+                        return fail(c, CE_ERR_SYNTAX);
+                    }
+                    if (h >= 16) {
+                        upper = 1;
+                        h -= 6;
+                    }
+                    v = v * 16 + h;
+                    c->p++;
+                }
+                if (upper || v == 8 || v == 9 || v == 10 || v == 12 || v == 13 || (v >= 0x20 && v < 0x7f)) {
+                    return fail(c, CE_ERR_NOT_CANONICAL);
+                }
+            } else {
+                return fail(c, CE_ERR_SYNTAX);
+            }
+        } else {
+            c->p++;
+        }
+    }
+    return fail(c, CE_ERR_SYNTAX);
+}
+
+static const double POW10[23] = {1e0,  1e1,  1e2,  1e3,  1e4,  1e5,  1e6,  1e7,  1e8,  1e9,  1e10, 1e11,
+                                 1e12, 1e13, 1e14, 1e15, 1e16, 1e17, 1e18, 1e19, 1e20, 1e21, 1e22};
+
+/* m * 10^e, m an exact integer; within a few ulp (exact for the common |e| <= 22, m < 2^53). */
+static double scale10(double m, int e)
+{
+    if (e > 330) {
+        return m * 1e300 * 1e300; /* overflow: inf, refused as not finite */
+    }
+    if (e < -360) {
+        return 0.0;
+    }
+    while (e > 22) {
+        m *= 1e22;
+        e -= 22;
+    }
+    while (e < -22) {
+        m /= 1e22;
+        e += 22;
+    }
+    return e >= 0 ? m * POW10[e] : m / POW10[-e];
+}
+
+/* A number in the form Python's json.dumps writes it (int, or float repr). */
+static int parse_number(cur *c, double *out)
+{
+    uint64_t m = 0;
+    int neg = 0, sig = 0, nsig = 0, dexp = 0, int_digits = 0, frac_digits = 0;
+    int frac_lead_zeros = 0, frac_last = -1, int_zero = 0, has_frac = 0, has_exp = 0;
+    int exp_neg = 0, exp_digits = 0, exp_first = 0, e10 = 0, nonzero = 0, exp_val = 0;
+    int b = tok(c);
+    if (b == '-') {
+        neg = 1;
+        c->p++;
+    }
+    b = c->p < c->end ? *c->p : -1;
+    if (!is_digit(b)) {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    if (b == '0') {
+        int_zero = 1;
+        int_digits = 1;
+        c->p++;
+        if (c->p < c->end && is_digit(*c->p)) {
+            return fail(c, CE_ERR_SYNTAX); /* leading zero */
+        }
+    } else {
+        while (c->p < c->end && is_digit(*c->p)) {
+            int d = *c->p - '0';
+            nonzero = 1;
+            nsig++;
+            if (sig < 19) {
+                m = m * 10u + (uint64_t)d;
+                sig++;
+            } else {
+                dexp++;
+            }
+            int_digits++;
+            c->p++;
+        }
+    }
+    if (c->p < c->end && *c->p == '.') {
+        has_frac = 1;
+        c->p++;
+        if (!(c->p < c->end && is_digit(*c->p))) {
+            return fail(c, CE_ERR_SYNTAX);
+        }
+        while (c->p < c->end && is_digit(*c->p)) {
+            int d = *c->p - '0';
+            if (!nonzero && d == 0) {
+                frac_lead_zeros++;
+                dexp--;
+            } else {
+                nonzero = 1;
+                nsig++;
+                if (sig < 19) {
+                    m = m * 10u + (uint64_t)d;
+                    sig++;
+                    dexp--;
+                }
+            }
+            frac_last = d;
+            frac_digits++;
+            c->p++;
+        }
+    }
+    if (c->p < c->end && (*c->p == 'e' || *c->p == 'E')) {
+        has_exp = 1;
+        if (*c->p == 'E') {
+            return fail(c, CE_ERR_NOT_CANONICAL);
+        }
+        c->p++;
+        if (c->p < c->end && (*c->p == '+' || *c->p == '-')) {
+            exp_neg = *c->p == '-';
+            c->p++;
+        } else {
+            return fail(c, c->p < c->end && is_digit(*c->p) ? CE_ERR_NOT_CANONICAL : CE_ERR_SYNTAX);
+        }
+        if (!(c->p < c->end && is_digit(*c->p))) {
+            return fail(c, CE_ERR_SYNTAX);
+        }
+        exp_first = *c->p - '0';
+        while (c->p < c->end && is_digit(*c->p)) {
+            if (exp_val < 100000) {
+                exp_val = exp_val * 10 + (*c->p - '0');
+            }
+            exp_digits++;
+            c->p++;
+        }
+    }
+    /* Canonical form (Python's repr): ints plain; floats fixed for 1e-4 <= |x| < 1e16, else
+     * d[.ddd]e+XX; no trailing zeros in a fraction (but "x.0"); at most 17 digits. */
+    if (has_exp) {
+        int small_enough = exp_neg ? exp_val >= 5 : exp_val >= 16;
+        if (int_zero || int_digits != 1 || (has_frac && frac_last == 0) || nsig > 17 || exp_digits < 2 ||
+            (exp_digits > 2 && exp_first == 0) || !small_enough) {
+            return fail(c, CE_ERR_NOT_CANONICAL);
+        }
+    } else if (has_frac) {
+        int zero_frac = frac_digits == 1 && frac_last == 0;
+        if (nsig > 17 || int_digits > 16 || (!zero_frac && frac_last == 0) ||
+            (int_zero && !zero_frac && frac_lead_zeros > 3)) {
+            return fail(c, CE_ERR_NOT_CANONICAL);
+        }
+    } else if (neg && int_zero) {
+        return fail(c, CE_ERR_NOT_CANONICAL); /* -0 is written 0 */
+    }
+    e10 = dexp + (exp_neg ? -exp_val : exp_val);
+    if (m == 0) {
+        *out = neg ? -0.0 : 0.0;
+        return 0;
+    }
+    *out = scale10((double)m, e10);
+    if (*out == 0.0 || !(*out - *out == 0.0)) {
+        return fail(c, CE_ERR_NOT_CANONICAL); /* 0.0 or beyond float range: never written so */
+    }
+    if (neg) {
+        *out = -*out;
+    }
+    return 0;
+}
+
+static int match_literal(cur *c, const char *lit)
+{
+    size_t n = text_length(lit);
+    if ((size_t)(c->end - c->p) < n || !same_bytes(c->p, lit, n)) {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    c->p += n;
+    return 0;
+}
+
+/* Strictly ascending keys (canonical: sorted, no duplicates). */
+static int key_after(const uint8_t *prev, uint32_t prev_n, const uint8_t *k, uint32_t n)
+{
+    uint32_t i, common = prev_n < n ? prev_n : n;
+    if (prev == NULL) {
+        return 1;
+    }
+    for (i = 0; i < common; i++) {
+        if (k[i] != prev[i]) {
+            return k[i] > prev[i];
+        }
+    }
+    return n > prev_n;
+}
+
+/* An object key: plain ASCII (an escaped key is valid JSON but not one this library reads). */
+static int parse_key(cur *c, const uint8_t **prev, uint32_t *prev_n)
+{
+    const uint8_t *k;
+    uint32_t n;
+    int escaped;
+    if (parse_string(c, &k, &n, &escaped)) {
+        return c->err;
+    }
+    if (escaped) {
+        return fail(c, CE_ERR_FIELD);
+    }
+    if (!key_after(*prev, *prev_n, k, n)) {
+        return fail(c, CE_ERR_NOT_CANONICAL);
+    }
+    *prev = k;
+    *prev_n = n;
+    return expect(c, ':');
+}
+
+static int parse_scalar(cur *c)
+{
+    int b = tok(c);
+    const uint8_t *s;
+    uint32_t n;
+    int escaped;
+    double d;
+    if (c->err) {
+        return c->err;
+    }
+    if (b == '"') {
+        return parse_string(c, &s, &n, &escaped);
+    }
+    if (b == '-' || is_digit(b)) {
+        return parse_number(c, &d);
+    }
+    if (b == 't') {
+        return match_literal(c, "true");
+    }
+    if (b == 'f') {
+        return match_literal(c, "false");
+    }
+    if (b == 'n') {
+        return match_literal(c, "null");
+    }
+    return fail(c, CE_ERR_SYNTAX);
+}
+
+/* Any value, checked and skipped, with an explicit stack instead of recursion. */
+static int skip_value(cur *c)
+{
+    uint8_t is_obj[CE_MAX_DEPTH];
+    const uint8_t *last[CE_MAX_DEPTH];
+    uint32_t last_n[CE_MAX_DEPTH];
+    int depth = 0;
+    for (;;) {
+        int b = tok(c);
+        if (c->err) {
+            return c->err;
+        }
+        if (b == '{' || b == '[') {
+            if (depth == CE_MAX_DEPTH) {
+                return fail(c, CE_ERR_LIMIT);
+            }
+            c->p++;
+            is_obj[depth] = (uint8_t)(b == '{');
+            last[depth] = NULL;
+            last_n[depth] = 0;
+            depth++;
+            if (tok(c) == (b == '{' ? '}' : ']')) {
+                c->p++;
+                depth--;
+            } else {
+                if (is_obj[depth - 1] && parse_key(c, &last[depth - 1], &last_n[depth - 1])) {
+                    return c->err;
+                }
+                continue; /* the first member's value */
+            }
+        } else if (parse_scalar(c)) {
+            return c->err;
+        }
+        /* a value ended: close containers or move to the next member */
+        for (;;) {
+            int close;
+            if (depth == 0) {
+                return 0;
+            }
+            close = is_obj[depth - 1] ? '}' : ']';
+            b = tok(c);
+            if (b == close) {
+                c->p++;
+                depth--;
+                continue;
+            }
+            if (b != ',') {
+                return fail(c, CE_ERR_SYNTAX);
+            }
+            c->p++;
+            if (is_obj[depth - 1] && parse_key(c, &last[depth - 1], &last_n[depth - 1])) {
+                return c->err;
+            }
+            break;
+        }
+    }
+}
+
+/* Members of an object in order: 1 with the cursor at the value of *key, 0 at the end. */
+typedef struct {
+    const uint8_t *key;
+    uint32_t n;
+    int started;
+} members;
+
+static int next_member(cur *c, members *it)
+{
+    int b;
+    if (!it->started) {
+        it->started = 1;
+        if (tok(c) != '{') {
+            return fail(c, c->err ? c->err : CE_ERR_FIELD); /* not an object where one belongs */
+        }
+        c->p++;
+        if (tok(c) == '}') {
+            c->p++;
+            return 0;
+        }
+    } else {
+        b = tok(c);
+        if (b == '}') {
+            c->p++;
+            return 0;
+        }
+        if (b != ',') {
+            return fail(c, CE_ERR_SYNTAX);
+        }
+        c->p++;
+    }
+    if (c->err) {
+        return c->err;
+    }
+    return parse_key(c, &it->key, &it->n) ? c->err : 1;
+}
+
+static int key_is(const members *it, const char *name)
+{
+    size_t n = text_length(name);
+    return it->n == n && same_bytes(it->key, name, n);
+}
+
+/* Elements of an array: 1 when one follows, 0 at the end. */
+static int next_element(cur *c, int *started)
+{
+    int b;
+    if (!*started) {
+        *started = 1;
+        if (tok(c) != '[') {
+            return fail(c, c->err ? c->err : CE_ERR_FIELD);
+        }
+        c->p++;
+        if (tok(c) == ']') {
+            c->p++;
+            return 0;
+        }
+        return c->err ? c->err : 1;
+    }
+    b = tok(c);
+    if (b == ']') {
+        c->p++;
+        return 0;
+    }
+    if (b != ',') {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    c->p++;
+    return 1;
+}
+
+/* A finite number (not a boolean, not null). */
+static int number_value(cur *c, double *d)
+{
+    int b = tok(c);
+    if (c->err) {
+        return c->err;
+    }
+    if (!(b == '-' || is_digit(b))) {
+        return fail(c, CE_ERR_FIELD);
+    }
+    if (parse_number(c, d)) {
+        return c->err;
+    }
+    if (!(*d - *d == 0.0)) {
+        return fail(c, CE_ERR_FIELD); /* inf */
+    }
+    return 0;
+}
+
+/* A number or null (*present = 0). */
+static int optional_number(cur *c, double *d, int *present)
+{
+    if (tok(c) == 'n') {
+        *present = 0;
+        return match_literal(c, "null");
+    }
+    *present = 1;
+    return number_value(c, d);
+}
+
+/* A list of at most `cap` finite numbers (more: CE_ERR_LIMIT). */
+static int number_list(cur *c, double *out, int cap, int *count)
+{
+    int started = 0, r;
+    *count = 0;
+    while ((r = next_element(c, &started)) == 1) {
+        double d;
+        if (*count == cap) {
+            return fail(c, CE_ERR_LIMIT);
+        }
+        if (number_value(c, &d)) {
+            return c->err;
+        }
+        out[(*count)++] = d;
+    }
+    return r;
+}
+
+static int string_value(cur *c, const uint8_t **s, uint32_t *n)
+{
+    int escaped;
+    if (tok(c) != '"') {
+        return fail(c, c->err ? c->err : CE_ERR_FIELD);
+    }
+    return parse_string(c, s, n, &escaped);
+}
+
+static int bytes_are(const uint8_t *s, uint32_t n, const char *text)
+{
+    size_t len = text_length(text);
+    return s != NULL && n == len && same_bytes(s, text, len);
+}
+
+/* ------------------------------------------------------------------------------------------
+ * The set as read, before the device's checks.
+ * ---------------------------------------------------------------------------------------- */
+
+enum { KIND_NONE = -1, KIND_SEG_INVERSE, KIND_SEG_LINEAR, KIND_FORWARD };
+
+typedef struct {
+    int have_schema, have_sensor, have_units, have_model, have_v0, schema_ok;
+    double v0;
+    const uint8_t *sensor_id, *sensor_axis;
+    uint32_t sensor_id_n, sensor_axis_n;
+    int kind;
+    int have_knots, n_knots, have_span, have_scale, have_rate_scale, have_rate_span;
+    double knots[CE_MAX_SEGMENTS];
+    double span[2], scale, rate_scale, rate_span[2];
+    int coeff_rows; /* -1: flat list, 0 none, >0 rows of a matrix */
+    int coeff_width, have_coeffs;
+    double flat[CE_MAX_COEFFS];
+    float matrix[CE_MAX_SEGMENTS][CE_MAX_COEFFS];
+    int n_terms;
+    const uint8_t *channel[CE_MAX_TERMS];
+    uint32_t channel_n[CE_MAX_TERMS];
+} reading;
+
+static int parse_coefficients(cur *c, reading *r)
+{
+    int started = 0, more;
+    r->have_coeffs = 1;
+    r->coeff_rows = 0;
+    r->coeff_width = -1;
+    while ((more = next_element(c, &started)) == 1) {
+        if (tok(c) == '[') {
+            int row_started = 0, width = 0, m;
+            if (r->coeff_rows < 0) {
+                return fail(c, CE_ERR_FIELD);
+            }
+            if (r->coeff_rows == CE_MAX_SEGMENTS) {
+                return fail(c, CE_ERR_LIMIT);
+            }
+            while ((m = next_element(c, &row_started)) == 1) {
+                double d;
+                if (width == CE_MAX_COEFFS) {
+                    return fail(c, CE_ERR_LIMIT);
+                }
+                if (number_value(c, &d)) {
+                    return c->err;
+                }
+                r->matrix[r->coeff_rows][width++] = (float)d;
+            }
+            if (m < 0) {
+                return m;
+            }
+            if (width == 0 || (r->coeff_width >= 0 && width != r->coeff_width)) {
+                return fail(c, CE_ERR_FIELD);
+            }
+            r->coeff_width = width;
+            r->coeff_rows++;
+        } else {
+            double d;
+            if (r->coeff_rows > 0) {
+                return fail(c, CE_ERR_FIELD);
+            }
+            if (r->coeff_width == CE_MAX_COEFFS) {
+                return fail(c, CE_ERR_LIMIT);
+            }
+            if (number_value(c, &d)) {
+                return c->err;
+            }
+            r->coeff_rows = -1;
+            r->coeff_width = r->coeff_width < 0 ? 1 : r->coeff_width + 1;
+            r->flat[r->coeff_width - 1] = d;
+        }
+    }
+    return more;
+}
+
+/* A field only the other model kind has ("kind" sorts before all of them): canical does not
+ * read it, so neither does the device. */
+static int other_kinds_field(const members *it, int kind)
+{
+    int piecewise_only = key_is(it, "knots_raw") || key_is(it, "scale") || key_is(it, "smoothness");
+    int forward_only = key_is(it, "rate_scale") || key_is(it, "rate_span_dps");
+    return (kind == KIND_FORWARD && piecewise_only) ||
+           ((kind == KIND_SEG_INVERSE || kind == KIND_SEG_LINEAR) && forward_only);
+}
+
+static int parse_model(cur *c, reading *r)
+{
+    members it = {NULL, 0, 0};
+    int more;
+    r->have_model = 1;
+    while ((more = next_member(c, &it)) == 1) {
+        int n;
+        if (key_is(&it, "coefficients")) {
+            if (parse_coefficients(c, r)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "kind")) {
+            const uint8_t *s;
+            uint32_t len;
+            if (string_value(c, &s, &len)) {
+                return c->err;
+            }
+            r->kind = bytes_are(s, len, "segmented-inverse") ? KIND_SEG_INVERSE
+                      : bytes_are(s, len, "segmented-linear") ? KIND_SEG_LINEAR
+                      : bytes_are(s, len, "forward-poly")     ? KIND_FORWARD
+                                                              : KIND_NONE;
+            if (r->kind == KIND_NONE) {
+                return fail(c, CE_ERR_MODEL_KIND);
+            }
+        } else if (other_kinds_field(&it, r->kind)) {
+            if (skip_value(c)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "knots_raw")) {
+            r->have_knots = 1;
+            if (number_list(c, r->knots, CE_MAX_SEGMENTS - 1, &r->n_knots)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "span_raw") || key_is(&it, "rate_span_dps")) {
+            double two[3];
+            int span = key_is(&it, "span_raw");
+            if (number_list(c, two, 3, &n)) {
+                return c->err;
+            }
+            if (n != 2) {
+                return fail(c, CE_ERR_FIELD);
+            }
+            if (span) {
+                r->have_span = 1;
+                r->span[0] = two[0];
+                r->span[1] = two[1];
+            } else {
+                r->have_rate_span = 1;
+                r->rate_span[0] = two[0];
+                r->rate_span[1] = two[1];
+            }
+        } else if (key_is(&it, "scale")) {
+            r->have_scale = 1;
+            if (number_value(c, &r->scale)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "rate_scale")) {
+            r->have_rate_scale = 1;
+            if (number_value(c, &r->rate_scale)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "smoothness")) {
+            int b = tok(c);
+            double d;
+            if (b == 'n' || b == 't' || b == 'f') {
+                if (parse_scalar(c)) {
+                    return c->err;
+                }
+            } else if (number_value(c, &d)) {
+                return c->err;
+            } else if (!(d == 0.0 || d == 1.0)) {
+                return fail(c, CE_ERR_FIELD);
+            }
+        } else if (key_is(&it, "segment_points_dps")) {
+            int started = 0, m;
+            while ((m = next_element(c, &started)) == 1) {
+                double d;
+                if (number_value(c, &d)) {
+                    return c->err;
+                }
+            }
+            if (m < 0) {
+                return m;
+            }
+        } else if (skip_value(c)) {
+            return c->err; /* out_of_span and anything newer: not needed to evaluate */
+        }
+    }
+    return more;
+}
+
+static int parse_term(cur *c, reading *r, ce_term *t)
+{
+    members it = {NULL, 0, 0};
+    const uint8_t *kind = NULL, *feature = NULL, *form = NULL;
+    uint32_t kind_n = 0, feature_n = 0, form_n = 0;
+    double coefficient = 0.0, reference = 0.0, tau = 0.0, threshold = 0.0;
+    int have_coefficient = 0, have_tau = 0, have_threshold = 0, have_reference = 0, more;
+    int channel_ok = 0;
+    size_t i;
+    const term_spec *spec = NULL;
+    uint8_t slot = (uint8_t)r->n_terms;
+    r->channel[slot] = NULL;
+    r->channel_n[slot] = 0;
+    while ((more = next_member(c, &it)) == 1) {
+        if (key_is(&it, "channel")) {
+            if (tok(c) == '"') {
+                if (string_value(c, &r->channel[slot], &r->channel_n[slot])) {
+                    return c->err;
+                }
+                channel_ok = r->channel_n[slot] > 0;
+            } else if (skip_value(c)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "coefficient")) {
+            if (optional_number(c, &coefficient, &have_coefficient)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "feature") || key_is(&it, "form") || key_is(&it, "kind")) {
+            const uint8_t *s = NULL;
+            uint32_t n = 0;
+            if (tok(c) == '"') {
+                if (string_value(c, &s, &n)) {
+                    return c->err;
+                }
+            } else if (skip_value(c)) {
+                return c->err; /* refused below as an unknown kind, feature or form */
+            }
+            if (key_is(&it, "feature")) {
+                feature = s;
+                feature_n = n;
+            } else if (key_is(&it, "form")) {
+                form = s;
+                form_n = n;
+            } else {
+                kind = s;
+                kind_n = n;
+            }
+        } else if (key_is(&it, "reference")) {
+            if (optional_number(c, &reference, &have_reference)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "tau_s")) {
+            if (optional_number(c, &tau, &have_tau)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "threshold_raw")) {
+            if (optional_number(c, &threshold, &have_threshold)) {
+                return c->err;
+            }
+        } else if (skip_value(c)) {
+            return c->err;
+        }
+    }
+    if (more < 0) {
+        return more;
+    }
+    for (i = 0; i < N_TERM_SPECS; i++) {
+        if (bytes_are(kind, kind_n, TERM_SPECS[i].kind) && bytes_are(feature, feature_n, TERM_SPECS[i].feature)) {
+            spec = &TERM_SPECS[i];
+        }
+    }
+    if (spec == NULL) {
+        return fail(c, CE_ERR_TERM_KIND);
+    }
+    if (!bytes_are(form, form_n, "bias") && !bytes_are(form, form_n, "scale")) {
+        return fail(c, CE_ERR_FIELD);
+    }
+    if (((spec->needs & NEEDS_CHANNEL) && !channel_ok) || !have_coefficient ||
+        ((spec->needs & NEEDS_TAU) && !have_tau) || ((spec->needs & NEEDS_THRESHOLD) && !have_threshold) ||
+        (have_tau && !(tau > 0.0)) || (have_threshold && !(threshold > 0.0))) {
+        return fail(c, CE_ERR_FIELD);
+    }
+    if (!(spec->needs & NEEDS_CHANNEL)) {
+        r->channel[slot] = NULL; /* only channel terms read a named input */
+    }
+    t->feature = spec->code;
+    t->scale_form = (uint8_t)bytes_are(form, form_n, "scale");
+    t->coefficient = (float)coefficient;
+    t->reference = (float)reference;
+    t->inv_tau = have_tau ? (float)(1.0 / tau) : 0.0f;
+    t->threshold = have_threshold ? (float)threshold : 1.0f;
+    return 0;
+}
+
+static int parse_terms(cur *c, reading *r, ce_set *set)
+{
+    int started = 0, more;
+    while ((more = next_element(c, &started)) == 1) {
+        if (r->n_terms == CE_MAX_TERMS) {
+            return fail(c, CE_ERR_LIMIT);
+        }
+        if (tok(c) != '{') {
+            return fail(c, c->err ? c->err : CE_ERR_FIELD);
+        }
+        if (parse_term(c, r, &set->terms[r->n_terms])) {
+            return c->err;
+        }
+        r->n_terms++;
+    }
+    return more;
+}
+
+static int parse_sensor(cur *c, reading *r)
+{
+    members it = {NULL, 0, 0};
+    int more;
+    r->have_sensor = 1;
+    while ((more = next_member(c, &it)) == 1) {
+        if (key_is(&it, "axis") || key_is(&it, "id")) {
+            const uint8_t *s;
+            uint32_t n;
+            if (string_value(c, &s, &n)) {
+                return c->err;
+            }
+            if (key_is(&it, "axis")) {
+                r->sensor_axis = s;
+                r->sensor_axis_n = n;
+            } else {
+                r->sensor_id = s;
+                r->sensor_id_n = n;
+            }
+        } else if (skip_value(c)) {
+            return c->err;
+        }
+    }
+    return more;
+}
+
+static int parse_top(cur *c, reading *r, ce_set *set)
+{
+    members it = {NULL, 0, 0};
+    int more;
+    while ((more = next_member(c, &it)) == 1) {
+        if (key_is(&it, "crc32")) {
+            return fail(c, CE_ERR_NOT_CANONICAL); /* the CRC is never part of what it covers */
+        } else if (key_is(&it, "fit") || key_is(&it, "units")) {
+            if (tok(c) != '{') {
+                return fail(c, c->err ? c->err : CE_ERR_FIELD);
+            }
+            r->have_units |= key_is(&it, "units");
+            if (skip_value(c)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "model")) {
+            if (parse_model(c, r)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "schema")) {
+            int b = tok(c);
+            double d = 0.0;
+            r->have_schema = 1;
+            if (b == '-' || is_digit(b)) {
+                if (parse_number(c, &d)) {
+                    return c->err;
+                }
+                r->schema_ok = d == 1.0;
+            } else if (skip_value(c)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "sensor")) {
+            if (parse_sensor(c, r)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "terms")) {
+            if (parse_terms(c, r, set)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "v0")) {
+            r->have_v0 = 1;
+            if (number_value(c, &r->v0)) {
+                return c->err;
+            }
+        } else if (skip_value(c)) {
+            return c->err; /* created, and keys a newer schema may add */
+        }
+    }
+    if (more < 0) {
+        return more;
+    }
+    if (c->p != c->end) {
+        return fail(c, CE_ERR_SYNTAX); /* trailing bytes */
+    }
+    return 0;
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Evaluation.
+ * ---------------------------------------------------------------------------------------- */
+
+/* raw - shift >= k_hi + k_lo, decided to about 2^-48 of the values (raw and k_hi are close
+ * whenever the answer is close, so raw - k_hi is exact). */
+static int at_or_above(float raw, float shift, float k_hi, float k_lo)
+{
+    return (raw - k_hi) - shift >= k_lo;
+}
+
+static float horner(const float *c, int n, float u)
+{
+    float acc = c[n - 1];
+    int k;
+    for (k = n - 2; k >= 0; k--) {
+        acc = acc * u + c[k];
+    }
+    return acc;
+}
+
+/* d/du of the polynomial. */
+static float horner_slope(const float *c, int n, float u)
+{
+    float acc;
+    int k;
+    if (n < 2) {
+        return 0.0f;
+    }
+    acc = (float)(n - 1) * c[n - 1];
+    for (k = n - 2; k >= 1; k--) {
+        acc = acc * u + (float)k * c[k];
+    }
+    return acc;
+}
+
+/* Forward polynomial: the rate w with f(w) = target by safeguarded Newton from the chord,
+ * then linear beyond the span (dv - target). */
+static float forward_rate(const ce_set *s, float target, float dv)
+{
+    const float *c = s->coeffs[0];
+    int n = s->n_coeffs, i, k;
+    float w = s->w_lo + (target - s->chord_dv) * s->chord_slope;
+    float slope = 0.0f;
+    for (i = 0; i < CE_NEWTON_MAX_ITER; i++) {
+        float u = w * s->inv_scale, f = c[n - 1], df = 0.0f, step;
+        for (k = n - 2; k >= 0; k--) {
+            df = df * u + f;
+            f = f * u + c[k];
+        }
+        slope = df * s->inv_scale;
+        if (!(slope != 0.0f)) {
+            break;
+        }
+        step = (f - target) / slope;
+        w -= step;
+        w = w < s->w_lo ? s->w_lo : w > s->w_hi ? s->w_hi : w;
+        if (absf(step) < s->newton_tol) {
+            break;
+        }
+    }
+    if (dv != target) {
+        slope = horner_slope(c, n, w * s->inv_scale) * s->inv_scale;
+        return w + (dv - target) / slope;
+    }
+    return w;
+}
+
+static float term_feature(ce_term *t, const ce_sample *in, float t_s)
+{
+    float x;
+    switch (t->feature) {
+    case CE_TERM_CHANNEL_OFFSET:
+        return in->inputs[t->input] - t->reference;
+    case CE_TERM_CHANNEL_SQUARE:
+        x = in->inputs[t->input] - t->reference;
+        return x * x;
+    case CE_TERM_TIME_WARMUP:
+        return -expm1_f(-t_s * t->inv_tau);
+    case CE_TERM_TIME_LINEAR:
+        return t_s;
+    case CE_TERM_DIRECTION_SIGN: /* hysteresis: flips after a move of threshold from the extreme */
+        if (!t->started) {
+            t->started = 1;
+            t->high = t->low = in->raw;
+            t->state = 0.0f;
+        }
+        if (in->raw > t->high) {
+            t->high = in->raw;
+        }
+        if (in->raw < t->low) {
+            t->low = in->raw;
+        }
+        if (t->state <= 0.0f && in->raw - t->low > t->threshold) {
+            t->state = 1.0f;
+            t->high = in->raw;
+        } else if (t->state >= 0.0f && t->high - in->raw > t->threshold) {
+            t->state = -1.0f;
+            t->low = in->raw;
+        }
+        return t->state;
+    case CE_TERM_DIRECTION_SLOPE: /* d(raw)/dt smoothed with time constant tau */
+        if (t->started && (int32_t)(in->time_ms - t->last_ms) > 0) {
+            float dt = (float)(in->time_ms - t->last_ms) * 0.001f;
+            float alpha = -expm1_f(-dt * t->inv_tau);
+            t->state += alpha * ((in->raw - t->last_raw) / dt - t->state);
+        }
+        t->started = 1;
+        t->last_raw = in->raw;
+        t->last_ms = in->time_ms;
+        return t->state;
+    default:
+        return 0.0f; /* unreachable: ce_load refuses codes it does not know */
+    }
+}
+
+int ce_eval(ce_set *s, const ce_sample *in, float *rate_dps)
+{
+    float raw, dv, shift = 0.0f, x, t_s;
+    int seg = 0, oos = 0, i, last;
+    if (s == NULL || in == NULL || rate_dps == NULL || !s->loaded || (s->needs_inputs && in->inputs == NULL)) {
+        return CE_ERR_ARG;
+    }
+    raw = in->raw;
+    dv = (raw - s->v0_hi) - s->v0_lo;
+    t_s = (float)in->time_ms * 0.001f;
+    for (i = 0; i < s->n_terms; i++) {
+        ce_term *t = &s->terms[i];
+        float f = term_feature(t, in, t_s);
+        shift += t->coefficient * (t->scale_form ? f * dv : f);
+    }
+    if (!at_or_above(raw, shift, s->lo_hi, s->lo_lo)) {
+        oos = 1;
+        x = s->dv_lo;
+    } else if ((raw - s->hi_hi) - shift > s->hi_lo) {
+        oos = 1;
+        x = s->dv_hi;
+        seg = s->n_segments - 1;
+    } else {
+        x = dv - shift;
+        last = s->n_segments - 1;
+        while (seg < last && at_or_above(raw, shift, s->knot_hi[seg], s->knot_lo[seg])) {
+            seg++;
+        }
+    }
+    dv -= shift;
+    if (s->model == 1) {
+        *rate_dps = forward_rate(s, x, dv);
+        return oos;
+    }
+    {
+        const float *c = s->coeffs[seg];
+        float u = x * s->inv_scale;
+        float rate = horner(c, s->n_coeffs, u);
+        if (oos) {
+            rate += horner_slope(c, s->n_coeffs, u) * s->inv_scale * (dv - x);
+        }
+        *rate_dps = rate;
+    }
+    return oos;
+}
+
+int ce_eval_block(ce_set *set, uint32_t n, const float *raw, const uint32_t *time_ms, const float *inputs,
+                  uint8_t n_inputs, float *rate_dps, uint8_t *out_of_span)
+{
+    uint32_t i;
+    if (set == NULL || raw == NULL || rate_dps == NULL || out_of_span == NULL || !set->loaded) {
+        return CE_ERR_ARG;
+    }
+    for (i = 0; i < n; i++) {
+        ce_sample sample;
+        int r;
+        sample.raw = raw[i];
+        sample.time_ms = time_ms != NULL ? time_ms[i] : 0u;
+        sample.inputs = inputs != NULL ? inputs + (size_t)i * n_inputs : NULL;
+        r = ce_eval(set, &sample, &rate_dps[i]);
+        if (r < 0) {
+            return r;
+        }
+        out_of_span[i] = (uint8_t)r;
+    }
+    return CE_OK;
+}
+
+void ce_reset(ce_set *set)
+{
+    int i;
+    if (set == NULL) {
+        return;
+    }
+    for (i = 0; i < CE_MAX_TERMS; i++) {
+        set->terms[i].started = 0;
+        set->terms[i].state = 0.0f;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Loading: parse, check every field, admit for the device, derive the run-time form.
+ * ---------------------------------------------------------------------------------------- */
+
+static double horner_d(const double *c, int n, double u)
+{
+    double acc = c[n - 1];
+    int k;
+    for (k = n - 2; k >= 0; k--) {
+        acc = acc * u + c[k];
+    }
+    return acc;
+}
+
+static int serial_matches(uint32_t serial, const uint8_t *id, uint32_t n)
+{
+    char digits[10];
+    int len = 0, i;
+    do {
+        digits[len++] = (char)('0' + serial % 10u);
+        serial /= 10u;
+    } while (serial != 0u);
+    if (n != (uint32_t)len) {
+        return 0;
+    }
+    for (i = 0; i < len; i++) {
+        if (id[i] != (uint8_t)digits[len - 1 - i]) {
+            return 0;
+        }
+    }
+    return 1;
+}
+
+static int check_fields(const reading *r)
+{
+    int i;
+    if (!r->have_schema || !r->schema_ok) {
+        return CE_ERR_SCHEMA;
+    }
+    if (!r->have_sensor || !r->have_units || !r->have_model || !r->have_v0 || r->sensor_id_n == 0 ||
+        r->sensor_axis_n == 0) {
+        return CE_ERR_FIELD;
+    }
+    if (r->kind == KIND_NONE) {
+        return CE_ERR_MODEL_KIND;
+    }
+    if (!r->have_span || !(r->span[0] < r->span[1]) || !r->have_coeffs) {
+        return CE_ERR_FIELD;
+    }
+    if (r->kind == KIND_FORWARD) {
+        if (r->coeff_rows != -1 || r->coeff_width < 2 || !r->have_rate_scale || !(r->rate_scale > 0.0) ||
+            !r->have_rate_span || !(r->rate_span[0] < r->rate_span[1]) || r->n_terms > 0) {
+            return CE_ERR_FIELD;
+        }
+        return CE_OK;
+    }
+    if (!r->have_knots || !r->have_scale || !(r->scale > 0.0) || r->coeff_rows != r->n_knots + 1) {
+        return CE_ERR_FIELD;
+    }
+    for (i = 0; i < r->n_knots; i++) {
+        if ((i > 0 && !(r->knots[i - 1] < r->knots[i])) || !(r->span[0] < r->knots[i] && r->knots[i] < r->span[1])) {
+            return CE_ERR_FIELD;
+        }
+    }
+    return CE_OK;
+}
+
+/* Lowest and highest rate at the span's edges, as canical.set_admission.span_rates. */
+static void span_rates(const ce_set *s, const reading *r, float *low, float *high)
+{
+    float a, b;
+    if (s->model == 1) {
+        float e0 = (float)(r->span[0] - r->v0), e1 = (float)(r->span[1] - r->v0);
+        float t0 = e0 < s->dv_lo ? s->dv_lo : e0 > s->dv_hi ? s->dv_hi : e0;
+        float t1 = e1 < s->dv_lo ? s->dv_lo : e1 > s->dv_hi ? s->dv_hi : e1;
+        a = forward_rate(s, t0, e0);
+        b = forward_rate(s, t1, e1);
+    } else {
+        a = horner(s->coeffs[0], s->n_coeffs, s->dv_lo * s->inv_scale);
+        b = horner(s->coeffs[s->n_segments - 1], s->n_coeffs, s->dv_hi * s->inv_scale);
+    }
+    *low = a < b ? a : b;
+    *high = a < b ? b : a;
+}
+
+static int admit(ce_set *s, const reading *r, const ce_device *device)
+{
+    int i, j;
+    float low, high;
+    if (!serial_matches(device->serial, r->sensor_id, r->sensor_id_n)) {
+        return CE_ERR_SENSOR;
+    }
+    if (r->sensor_axis_n != 1 || r->sensor_axis[0] != (uint8_t)device->axis) {
+        return CE_ERR_AXIS;
+    }
+    for (i = 0; i < r->n_terms; i++) {
+        if (r->channel[i] == NULL) {
+            continue;
+        }
+        for (j = 0; j < device->n_inputs && j < CE_MAX_INPUTS; j++) {
+            const char *name = device->inputs != NULL ? device->inputs[j] : NULL;
+            if (name != NULL && bytes_are(r->channel[i], r->channel_n[i], name)) {
+                break;
+            }
+        }
+        if (j == device->n_inputs || j == CE_MAX_INPUTS) {
+            return CE_ERR_INPUT;
+        }
+        s->terms[i].input = (uint8_t)j;
+        s->needs_inputs = 1;
+    }
+    if (device->rated_range_dps > 0.0f) {
+        span_rates(s, r, &low, &high);
+        if (!(low <= -device->rated_range_dps && high >= device->rated_range_dps)) {
+            return CE_ERR_SPAN;
+        }
+    }
+    return CE_OK;
+}
+
+/* The run-time form: float pairs in raw units for every decision, floats for the rest. */
+static int derive(ce_set *s, const reading *r)
+{
+    int i, j;
+    double lo, hi;
+    split(r->v0, &s->v0_hi, &s->v0_lo);
+    s->n_terms = (uint8_t)r->n_terms;
+    if (r->kind == KIND_FORWARD) {
+        double f_lo = horner_d(r->flat, r->coeff_width, r->rate_span[0] / r->rate_scale);
+        double f_hi = horner_d(r->flat, r->coeff_width, r->rate_span[1] / r->rate_scale);
+        if (!(f_lo != f_hi) || !(f_hi - f_lo == f_hi - f_lo)) {
+            return CE_ERR_FIELD; /* flat over its rate span: no inverse */
+        }
+        s->model = 1;
+        s->n_segments = 1;
+        s->n_coeffs = (uint8_t)r->coeff_width;
+        for (j = 0; j < r->coeff_width; j++) {
+            s->coeffs[0][j] = (float)r->flat[j];
+        }
+        s->inv_scale = (float)(1.0 / r->rate_scale);
+        s->w_lo = (float)r->rate_span[0];
+        s->w_hi = (float)r->rate_span[1];
+        s->chord_dv = (float)f_lo;
+        s->chord_slope = (float)((r->rate_span[1] - r->rate_span[0]) / (f_hi - f_lo));
+        s->newton_tol = (float)(1e-6 * (r->rate_span[1] - r->rate_span[0]));
+        lo = f_lo < f_hi ? f_lo : f_hi;
+        hi = f_lo < f_hi ? f_hi : f_lo;
+    } else {
+        s->model = 0;
+        s->n_segments = (uint8_t)r->coeff_rows;
+        s->n_coeffs = (uint8_t)r->coeff_width;
+        for (i = 0; i < r->coeff_rows; i++) {
+            for (j = 0; j < r->coeff_width; j++) {
+                s->coeffs[i][j] = r->matrix[i][j];
+            }
+        }
+        for (i = 0; i < r->n_knots; i++) {
+            split(r->knots[i], &s->knot_hi[i], &s->knot_lo[i]);
+        }
+        s->inv_scale = (float)(1.0 / r->scale);
+        lo = r->span[0] - r->v0;
+        hi = r->span[1] - r->v0;
+    }
+    s->dv_lo = (float)lo;
+    s->dv_hi = (float)hi;
+    split(lo + r->v0, &s->lo_hi, &s->lo_lo);
+    split(hi + r->v0, &s->hi_hi, &s->hi_lo);
+    return CE_OK;
+}
+
+int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t declared_crc,
+            const ce_device *device)
+{
+    cur c;
+    reading r;
+    int code;
+    if (set == NULL) {
+        return CE_ERR_ARG;
+    }
+    zero(set, sizeof *set);
+    if (content == NULL || device == NULL || device->n_inputs > CE_MAX_INPUTS) {
+        return CE_ERR_ARG;
+    }
+    if (ce_crc32(content, length) != declared_crc) {
+        return CE_ERR_CRC;
+    }
+    zero(&r, sizeof r);
+    r.kind = KIND_NONE;
+    c.base = c.p = content;
+    c.end = content + length;
+    c.err = 0;
+    c.err_at = 0;
+    if (tok(&c) != '{') {
+        fail(&c, CE_ERR_SYNTAX);
+    } else {
+        parse_top(&c, &r, set);
+    }
+    code = c.err;
+    if (code == CE_OK) {
+        code = check_fields(&r);
+    }
+    if (code == CE_OK) {
+        code = derive(set, &r);
+    }
+    if (code == CE_OK) {
+        code = admit(set, &r, device);
+    }
+    if (code != CE_OK) {
+        uint32_t at = c.err ? c.err_at : length;
+        zero(set, sizeof *set);
+        set->error_at = at;
+        return code;
+    }
+    set->crc = declared_crc;
+    set->loaded = 1;
+    ce_reset(set);
+    return CE_OK;
+}
+
+/* ------------------------------------------------------------------------------------------
+ * Fixed point: integer decisions (raw counts are integers) and Q16/Q30 Horner in int64.
+ * ---------------------------------------------------------------------------------------- */
+
+static int64_t round_to_int(double d) { return (int64_t)(d < 0.0 ? d - 0.5 : d + 0.5); }
+
+/* Smallest integer >= d (|d| < 2^31). */
+static int32_t ceil_int(double d)
+{
+    int32_t i = (int32_t)d; /* toward zero */
+    return (double)i < d ? i + 1 : i;
+}
+
+int ce_fixed_from(ce_fixed *f, const ce_set *s)
+{
+    int i, j;
+    double scale, v0, lo, hi, mult, limit = 16384.0; /* |coefficient| < 2^14 deg/s keeps Q16 in int32 */
+    if (f == NULL || s == NULL || !s->loaded) {
+        return CE_ERR_ARG;
+    }
+    zero(f, sizeof *f);
+    if (s->model != 0) {
+        return CE_ERR_MODEL_KIND;
+    }
+    if (s->n_terms != 0) {
+        return CE_ERR_TERM_KIND;
+    }
+    v0 = (double)s->v0_hi + (double)s->v0_lo;
+    lo = (double)s->lo_hi + (double)s->lo_lo;
+    hi = (double)s->hi_hi + (double)s->hi_lo;
+    scale = 1.0 / (double)s->inv_scale;
+    if (!(lo > -2147483000.0 && hi < 2147483000.0)) {
+        return CE_ERR_LIMIT;
+    }
+    f->lo = ceil_int(lo);
+    f->hi = ceil_int(hi) - ((double)ceil_int(hi) > hi ? 1 : 0); /* largest integer <= hi */
+    for (i = 0; i + 1 < s->n_segments; i++) {
+        f->knot[i] = ceil_int((double)s->knot_hi[i] + (double)s->knot_lo[i]);
+    }
+    f->v0_q16 = round_to_int(v0 * 65536.0);
+    /* u_q30 = dv_q16 * 2^14 / scale = (dv_q16 * mult) >> shift, mult < 2^31 */
+    f->u_shift = 0;
+    mult = 16384.0 / scale;
+    while (mult < 536870912.0 && f->u_shift < 60) {
+        mult *= 2.0;
+        f->u_shift++;
+    }
+    if (!(mult < 1073741824.0) || f->u_shift < 1) {
+        return CE_ERR_LIMIT; /* scale below 2^-15 counts */
+    }
+    f->u_mult = round_to_int(mult);
+    f->edge_lo_q30 = round_to_int((double)s->dv_lo / scale * 1073741824.0);
+    f->edge_hi_q30 = round_to_int((double)s->dv_hi / scale * 1073741824.0);
+    if (f->edge_lo_q30 < -2 * 1073741824LL || f->edge_hi_q30 > 2 * 1073741824LL) {
+        return CE_ERR_LIMIT; /* |u| < 2 inside the span: powers of u stay in range */
+    }
+    for (i = 0; i < s->n_segments; i++) {
+        double bound = 0.0, power = 1.0; /* |polynomial| for |u| <= 2: Horner stays below 2^30 */
+        for (j = 0; j < s->n_coeffs; j++) {
+            bound += (s->coeffs[i][j] < 0.0f ? -(double)s->coeffs[i][j] : (double)s->coeffs[i][j]) * power;
+            power *= 2.0;
+        }
+        if (!(bound < limit)) {
+            return CE_ERR_LIMIT;
+        }
+        for (j = 0; j < s->n_coeffs; j++) {
+            f->coeffs[i][j] = (int32_t)round_to_int((double)s->coeffs[i][j] * 65536.0);
+        }
+    }
+    f->n_segments = s->n_segments;
+    f->n_coeffs = s->n_coeffs;
+    f->loaded = 1;
+    return CE_OK;
+}
+
+/* v / 2^bits rounded, for |v| < 2^61, with an unsigned shift (a signed one is
+ * implementation-defined in C99) and no 64-bit division (a library call on a Cortex-M). */
+static int64_t shift_round(int64_t v, int bits)
+{
+    uint64_t t = (uint64_t)(v + ((int64_t)1 << (bits - 1))) + ((uint64_t)1 << 62);
+    return (int64_t)(t >> bits) - ((int64_t)1 << (62 - bits));
+}
+
+int ce_fixed_eval(const ce_fixed *f, int32_t raw, int32_t *rate_q16)
+{
+    const int32_t *c;
+    int64_t dv_q16, u, u_full, acc, slope, du;
+    int seg = 0, k, oos = 0;
+    if (f == NULL || rate_q16 == NULL || !f->loaded) {
+        return CE_ERR_ARG;
+    }
+    dv_q16 = (int64_t)raw * 65536 - f->v0_q16;
+    if (dv_q16 > ((int64_t)1 << 32) - 1) {
+        dv_q16 = ((int64_t)1 << 32) - 1; /* |dV| < 65536 counts: a 16-bit sensor's whole range */
+    } else if (dv_q16 < -(((int64_t)1 << 32) - 1)) {
+        dv_q16 = -(((int64_t)1 << 32) - 1);
+    }
+    u_full = shift_round(dv_q16 * f->u_mult, f->u_shift);
+    if (raw < f->lo) {
+        oos = 1;
+        u = f->edge_lo_q30;
+    } else if (raw > f->hi) {
+        oos = 1;
+        u = f->edge_hi_q30;
+        seg = f->n_segments - 1;
+    } else {
+        u = u_full;
+        while (seg + 1 < f->n_segments && raw >= f->knot[seg]) {
+            seg++;
+        }
+    }
+    c = f->coeffs[seg];
+    acc = c[f->n_coeffs - 1];
+    for (k = f->n_coeffs - 2; k >= 0; k--) {
+        acc = shift_round(acc * u, 30) + c[k];
+    }
+    if (oos && f->n_coeffs > 1) {
+        slope = (int64_t)(f->n_coeffs - 1) * c[f->n_coeffs - 1];
+        for (k = f->n_coeffs - 2; k >= 1; k--) {
+            slope = shift_round(slope * u, 30) + (int64_t)k * c[k];
+        }
+        du = shift_round(u_full - u, 10); /* beyond the span, in 2^-20 of u */
+        du = du > ((int64_t)1 << 26) ? (int64_t)1 << 26 : du < -((int64_t)1 << 26) ? -((int64_t)1 << 26) : du;
+        acc += shift_round(slope * du, 20);
+    }
+    if (acc > INT32_MAX) {
+        acc = INT32_MAX;
+    } else if (acc < INT32_MIN) {
+        acc = INT32_MIN;
+    }
+    *rate_q16 = (int32_t)acc;
+    return oos;
+}
+
+uint32_t ce_sizeof_set(void) { return (uint32_t)sizeof(ce_set); }
+
+uint32_t ce_sizeof_fixed(void) { return (uint32_t)sizeof(ce_fixed); }
+
+uint32_t ce_error_offset(const ce_set *set) { return set != NULL ? set->error_at : 0u; }
+
+const char *ce_strerror(int code)
+{
+    switch (code) {
+    case CE_OK:
+        return "ok";
+    case CE_ERR_ARG:
+        return "bad argument or set not loaded";
+    case CE_ERR_CRC:
+        return "CRC mismatch";
+    case CE_ERR_SYNTAX:
+        return "not JSON (truncated, malformed or trailing bytes)";
+    case CE_ERR_NOT_CANONICAL:
+        return "not in canonical form";
+    case CE_ERR_SCHEMA:
+        return "schema not supported";
+    case CE_ERR_FIELD:
+        return "a field is missing, of the wrong type, not finite or of the wrong length";
+    case CE_ERR_MODEL_KIND:
+        return "model kind not supported";
+    case CE_ERR_TERM_KIND:
+        return "term kind not supported";
+    case CE_ERR_LIMIT:
+        return "beyond the device's limits (segments, coefficients, terms, nesting)";
+    case CE_ERR_SENSOR:
+        return "set is for another sensor";
+    case CE_ERR_AXIS:
+        return "set is for another axis";
+    case CE_ERR_SPAN:
+        return "span does not cover the rated range";
+    case CE_ERR_INPUT:
+        return "a term needs a channel the device does not have";
+    default:
+        return "unknown code";
+    }
+}

@@ -1,0 +1,171 @@
+/*
+ * canical_eval: run a canical coefficient set on the sensor's own MCU.
+ *
+ * One portable C99 library for every set: a set arrives at run time as the bytes of a
+ * coefficient bank (the set's canonical JSON, object 0x2210-0x2215 sub 1) and its declared
+ * CRC32 (sub 2). ce_load() validates those bytes exactly as the device must and turns them
+ * into a ce_set; ce_eval() corrects one sample with it.
+ *
+ * - No heap, no recursion, no libm: the per-sample path uses float32 add, subtract,
+ *   multiply, divide and compare only (a Cortex-M4F's FPU does all of them in hardware);
+ *   exp() for the warm-up and slope terms is computed here with those operations.
+ *   ce_load() parses numbers in double precision (software floating point on a
+ *   single-precision FPU: load time only, never per sample).
+ * - Bounded work per sample: at most CE_MAX_TERMS terms, CE_MAX_SEGMENTS segments and
+ *   CE_MAX_COEFFS coefficients per polynomial; the forward polynomial's Newton inversion
+ *   stops after CE_NEWTON_MAX_ITER steps.
+ * - ce_load() never reads outside [content, content + length) and writes only *set.
+ *
+ * MIT licence, like the rest of canical.
+ */
+#ifndef CANICAL_EVAL_H
+#define CANICAL_EVAL_H
+
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+/* Device limits: sets beyond them are refused with CE_ERR_LIMIT (raise them if RAM allows). */
+#ifndef CE_MAX_SEGMENTS
+#define CE_MAX_SEGMENTS 16 /* segments of a piecewise model */
+#endif
+#ifndef CE_MAX_COEFFS
+#define CE_MAX_COEFFS 10 /* coefficients per polynomial (order 9) */
+#endif
+#ifndef CE_MAX_TERMS
+#define CE_MAX_TERMS 8 /* effect terms of a set */
+#endif
+#ifndef CE_MAX_INPUTS
+#define CE_MAX_INPUTS 8 /* run-time channels a device offers */
+#endif
+#ifndef CE_MAX_DEPTH
+#define CE_MAX_DEPTH 16 /* JSON nesting (the "fit" statistics may nest) */
+#endif
+#define CE_NAME_MAX 24 /* longest channel name, bytes */
+#define CE_NEWTON_MAX_ITER 40
+
+/* Result codes: 0 success, negative refusal. */
+enum {
+    CE_OK = 0,
+    CE_ERR_ARG = -1,           /* NULL pointer or a ce_set that is not loaded */
+    CE_ERR_CRC = -2,           /* CRC32 of the content differs from the declared one */
+    CE_ERR_SYNTAX = -3,        /* not JSON, truncated, or trailing bytes */
+    CE_ERR_NOT_CANONICAL = -4, /* JSON, but not in canonical form (its CRC would not be the set id) */
+    CE_ERR_SCHEMA = -5,        /* schema is not 1 */
+    CE_ERR_FIELD = -6,         /* a field missing, of the wrong type, not finite, wrong length */
+    CE_ERR_MODEL_KIND = -7,    /* model.kind this library does not evaluate */
+    CE_ERR_TERM_KIND = -8,     /* a term kind/feature this library does not evaluate */
+    CE_ERR_LIMIT = -9,         /* more segments, coefficients, terms or nesting than CE_MAX_* */
+    CE_ERR_SENSOR = -10,       /* sensor.id is not this device's serial number */
+    CE_ERR_AXIS = -11,         /* sensor.axis is not the bank's axis */
+    CE_ERR_SPAN = -12,         /* the span does not reach +-rated range */
+    CE_ERR_INPUT = -13         /* a term reads a channel the device does not offer */
+};
+
+/* What the device says about itself; what a set must fit. */
+typedef struct {
+    uint32_t serial;        /* 0x1018 sub 4; a set's sensor.id must be it in decimal */
+    char axis;              /* 'x', 'y' or 'z': the bank's axis */
+    float rated_range_dps;  /* 0x2201: the set's span must reach -R..+R (0: not checked) */
+    const char *const *inputs; /* names of the run-time channels, e.g. {"temp_c", "supply_v"} */
+    uint8_t n_inputs;       /* sample.inputs[i] is the value of inputs[i] */
+} ce_device;
+
+/* One sample's inputs. */
+typedef struct {
+    float raw;              /* raw output, counts */
+    uint32_t time_ms;       /* time since power-on (the term input time_s), milliseconds */
+    const float *inputs;    /* ce_device.n_inputs channel values (NULL if there are none) */
+} ce_sample;
+
+/* Internal layout below: read-only to the caller. */
+typedef struct {
+    uint8_t feature;        /* CE_TERM_* in canical_eval.c */
+    uint8_t scale_form;     /* 0: bias (dV' = dV - c x), 1: scale (dV' = dV - c x dV) */
+    uint8_t input;          /* channel slot for channel terms */
+    float coefficient;
+    float reference;
+    float inv_tau;          /* 1 / tau_s */
+    float threshold;        /* direction threshold, raw units */
+    /* state of direction and slope terms */
+    float state, high, low, last_raw;
+    uint32_t last_ms;
+    uint8_t started;
+} ce_term;
+
+typedef struct {
+    uint32_t crc;           /* the set's identifier */
+    uint8_t loaded;
+    uint8_t model;          /* 0 piecewise, 1 forward polynomial */
+    uint8_t n_segments, n_coeffs, n_terms;
+    uint8_t needs_inputs;   /* a term reads a channel: ce_sample.inputs must be given */
+    float v0_hi, v0_lo;     /* zero bias as a float pair (v0_hi + v0_lo) */
+    /* Segment points and span edges in raw units as float pairs, so that the segment and the
+     * out-of-span flag are decided as in double precision. */
+    float knot_hi[CE_MAX_SEGMENTS], knot_lo[CE_MAX_SEGMENTS];
+    float lo_hi, lo_lo, hi_hi, hi_lo;
+    float dv_lo, dv_hi;     /* span edges in dV */
+    float inv_scale;        /* piecewise: 1/scale; forward: 1/rate_scale */
+    float coeffs[CE_MAX_SEGMENTS][CE_MAX_COEFFS];
+    float w_lo, w_hi, chord_dv, chord_slope, newton_tol; /* forward polynomial */
+    ce_term terms[CE_MAX_TERMS];
+    uint32_t error_at;      /* byte offset where ce_load refused (for the log) */
+} ce_set;
+
+/* zlib's CRC32 (the bank CRC). */
+uint32_t ce_crc32(const uint8_t *data, uint32_t length);
+
+/* Validate a bank (content + declared CRC) for `device` and build `set` from it.
+ * Returns CE_OK or a negative CE_ERR_*; on refusal `set` is marked not loaded (load into a
+ * scratch ce_set and copy it over the running one only when every axis passed). */
+int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t declared_crc,
+            const ce_device *device);
+
+/* Forget direction and slope state (a new stream of samples begins). */
+void ce_reset(ce_set *set);
+
+/* Correct the next sample of the stream: *rate_dps in deg/s. Returns 1 when the sample
+ * lies outside the calibrated span (rate extrapolated linearly), 0 inside, CE_ERR_ARG when
+ * the set is not loaded. */
+int ce_eval(ce_set *set, const ce_sample *sample, float *rate_dps);
+
+/* ce_eval over n samples in time order; inputs holds n_inputs values per sample. */
+int ce_eval_block(ce_set *set, uint32_t n, const float *raw, const uint32_t *time_ms,
+                  const float *inputs, uint8_t n_inputs, float *rate_dps, uint8_t *out_of_span);
+
+/* Fixed-point form of a loaded piecewise set without effect terms, for an MCU without an FPU:
+ * integer raw counts in (|raw - v0| < 65536: a 16-bit sensor), rate in 1/65536 deg/s out,
+ * int32/int64 add, multiply and shift only (within 1e-3 deg/s of the float form on canical's
+ * tests, a tenth of the corrected frame's 0.01 deg/s LSB). */
+typedef struct {
+    uint8_t loaded, n_segments, n_coeffs;
+    int32_t lo, hi;                     /* raw inside the span: lo <= raw <= hi */
+    int32_t knot[CE_MAX_SEGMENTS];      /* segment s + 1 starts at raw >= knot[s] */
+    int64_t v0_q16;                     /* zero bias, counts * 2^16 */
+    int64_t edge_lo_q30, edge_hi_q30;   /* u at the span edges, 2^30 */
+    int64_t u_mult;                     /* u_q30 = (dv_q16 * u_mult) >> u_shift */
+    int32_t u_shift;
+    int32_t coeffs[CE_MAX_SEGMENTS][CE_MAX_COEFFS]; /* deg/s * 2^16 */
+} ce_fixed;
+
+/* CE_OK, or CE_ERR_MODEL_KIND (forward polynomial), CE_ERR_TERM_KIND (effect terms),
+ * CE_ERR_LIMIT (coefficients or u beyond the fixed-point ranges). */
+int ce_fixed_from(ce_fixed *fixed, const ce_set *set);
+
+/* Rate of one integer sample in 1/65536 deg/s; returns 1 out of span, 0 inside, CE_ERR_ARG. */
+int ce_fixed_eval(const ce_fixed *fixed, int32_t raw, int32_t *rate_q16);
+
+/* For bindings that treat ce_set as opaque bytes (canical's ctypes wrapper). */
+uint32_t ce_sizeof_set(void);
+uint32_t ce_sizeof_fixed(void);
+uint32_t ce_error_offset(const ce_set *set); /* byte where the last ce_load refused */
+
+/* A short English name of a result code. */
+const char *ce_strerror(int code);
+
+#ifdef __cplusplus
+}
+#endif
+#endif
