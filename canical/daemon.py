@@ -174,7 +174,8 @@ class Daemon:
         self._rate_head = FRAME_HEAD.pack(frame_key(self.rate.frame_id, self.rate.is_extended),
                                           self.rate.length, 0, 0)
         self._rate_pad = bytes(max(0, 8 - self.rate.length))
-        self._compiled_axes: weakref.WeakKeyDictionary[Corrector, CorrectOne] = weakref.WeakKeyDictionary()
+        self._compiled_axes: weakref.WeakKeyDictionary[Corrector, CorrectOne | None] = (
+            weakref.WeakKeyDictionary())
         self._plan: Plan = (None, (), ())
         self._sock: socket.socket | None = None  # the raw socket under ``_sock_of``, when usable
         self._sock_of: can.BusABC | None = None
@@ -192,6 +193,7 @@ class Daemon:
         self._reload_worker: threading.Thread | None = None
         self._reload_done: tuple[ActiveSets, ActiveSets, list[str], str] | None = None
         self._reload_again: tuple[bool, str] | None = None
+        self._reload_times = (0.0, 0.0, 0.0)  # last reload: asked at (monotonic), wall and CPU seconds
         self._next_periodic = 0.0
         self._next_status = 0.0
         self._next_watch = 0.0
@@ -434,15 +436,15 @@ class Daemon:
             corrector = ax.corrector
             correct: CorrectOne | None = None
             if corrector is not None:
-                correct = self._compiled_axes.get(corrector)
-                if correct is None:
-                    correct = compile_corrector(corrector) if self.compiled else None
-                    if correct is None:
-                        if self.compiled:
-                            log.info("axis %s: %s; correcting with the reference path", ax.axis,
-                                     why_not(corrector))
-                        correct = corrector.correct_one
-                    self._compiled_axes[corrector] = correct
+                if corrector not in self._compiled_axes:
+                    compiled = compile_corrector(corrector) if self.compiled else None
+                    if compiled is None and self.compiled:
+                        log.info("axis %s: %s; correcting with the reference path", ax.axis,
+                                 why_not(corrector))
+                    # None for the reference path: its bound method would hold the corrector,
+                    # and the entry would outlive it (one leaked set per reload).
+                    self._compiled_axes[corrector] = compiled
+                correct = self._compiled_axes[corrector] or corrector.correct_one
             axes.append((self.raw.index[ax.raw_signal], correct, ax.required_inputs))
         ages = tuple((name, self.max_age[name]) for name in sets.inputs)
         self._plan = (sets, ages, tuple(axes))
@@ -610,12 +612,17 @@ class Daemon:
             self._reload_again = (force or bool(pending and pending[0]), why)
             return
         base = self.sets
+        asked = time.monotonic()
 
         def work() -> None:
+            cpu = time.thread_time()
             try:
                 new, messages = self._load(base, force=force)
             except Exception as exc:  # a reload must never take the daemon down
                 new, messages = base, [f"reload failed ({exc}); keeping the sets in use"]
+            # How long building took, in wall and in this thread's CPU time: a slow reload on a
+            # busy machine shows as much more wall than CPU time.
+            self._reload_times = (asked, time.monotonic() - asked, time.thread_time() - cpu)
             self._reload_done = (base, new, messages, why)
 
         self._reload_worker = threading.Thread(target=work, name="canical-reload", daemon=True)
@@ -629,6 +636,10 @@ class Daemon:
         self._reload_worker = None
         done, self._reload_done = self._reload_done, None
         if done is not None:
+            asked, built_s, cpu_s = self._reload_times
+            if done[1] is not done[0]:
+                log.info("reload (%s): built in %.0f ms (%.0f ms CPU), adopted %.0f ms after asked for",
+                         done[3], built_s * 1e3, cpu_s * 1e3, (time.monotonic() - asked) * 1e3)
             self._adopt(*done)
         again, self._reload_again = self._reload_again, None
         if again is not None:

@@ -17,11 +17,13 @@ and a new corrector, or with a stale compiled function, would differ.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import os
 import signal
 import socket
 import threading
 import time
+import weakref
 from pathlib import Path
 
 import can
@@ -216,3 +218,25 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
     for gen, (n, _) in enumerate(adopted, start=1):
         assert gen * SPACING <= n < (gen + 1) * SPACING, (gen, n)
 
+
+
+def test_replaced_correctors_are_released(tmp_path: Path) -> None:
+    """A replaced set's corrector, compiled or on the reference path (the x axis's lag term),
+    is freed once no generation uses it: a daemon reloaded for months does not grow."""
+    base = base_set("z")
+    for v, folder in enumerate((tmp_path, tmp_path / "next")):
+        folder.mkdir(exist_ok=True)
+        for axis in AXES:
+            cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * v)
+            coefficient_file.save(folder / f"imu-{axis}.yaml", cset)
+    daemon = Daemon(load_config(write_config(tmp_path, "leak")))
+    daemon.load_sets()
+    daemon._axes_plan(daemon.sets)
+    old = [weakref.ref(ax.corrector) for ax in daemon.sets.axes]
+    for axis in AXES:
+        write_text_atomic(tmp_path / f"imu-{axis}.yaml", (tmp_path / "next" / f"imu-{axis}.yaml").read_text())
+    daemon._reload(force=False, why="test")
+    daemon._axes_plan(daemon.sets)
+    gc.collect()
+    assert [ref() for ref in old] == [None, None, None]
+    assert len(daemon._compiled_axes) == 3
