@@ -150,15 +150,25 @@ def decode_stream(stream: Stream) -> list[dict[str, float]]:
     return out
 
 
-def expected_rates(signals: list[dict[str, float]], paths: dict[str, Path]) -> dict[str, np.ndarray]:
-    """What one generation of sets gives for these frames, one fresh Corrector per axis."""
+def expected_rates(signals: list[dict[str, float]], paths: dict[str, Path],
+                   switches: tuple[tuple[int, dict[str, Path]], ...] = ()) -> dict[str, np.ndarray]:
+    """What the daemon sends for these frames with one generation of sets, ``paths`` (one fresh
+    Corrector per axis), or with ``switches``: from frame ``i`` of each ``(i, paths)`` on, the
+    sets at those paths, where an axis whose set changed starts a fresh Corrector at frame ``i``
+    (the direction, slope and lag state of a new set begins with it) and an axis whose set
+    stayed carries on with its corrector and state, as the daemon does on a reload."""
     from canical.corrector import Corrector
 
     out = {}
     for axis in AXES:
+        schedule = dict(switches)
+        text = paths[axis].read_bytes()
         corrector = Corrector(coefficient_file.load(paths[axis]))
         rates = []
-        for s in signals:
+        for i, s in enumerate(signals):
+            if i in schedule and schedule[i][axis].read_bytes() != text:
+                text = schedule[i][axis].read_bytes()
+                corrector = Corrector(coefficient_file.load(schedule[i][axis]))
             inputs = {"temp_c": s["Temperature"], "time_s": s.get("Uptime", 0.0),
                       "supply_v": s.get("SupplyVoltage", 0.0)}
             rates.append(corrector.correct_one(s[f"GyroRaw{axis.upper()}"], inputs)[0])
