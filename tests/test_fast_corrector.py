@@ -12,13 +12,14 @@ import math
 import struct
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from canical.coefficients import CoefficientSet
 from canical.corrector import Corrector
 from canical.fast_corrector import COMPILED_TERMS, compile_corrector, why_not
-from canical.terms import Term
+from canical.terms import STATEFUL_CHANNEL, Term
 
 INPUTS = ("temp_c", "supply_v")
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
@@ -140,4 +141,20 @@ def test_unsorted_segment_points_are_left_to_the_reference() -> None:
              "span_raw": [-900.0, 900.0], "out_of_span": "linear-extrapolation"}
     corrector = Corrector(CoefficientSet("s", "x", 0.0, model))
     assert why_not(corrector) == "segment points not in ascending order"
+    assert compile_corrector(corrector) is None
+
+
+@pytest.mark.parametrize("feature", STATEFUL_CHANNEL)
+def test_stateful_channel_terms_are_left_to_the_reference(feature: str) -> None:
+    """Lag, derivative and direction of a channel (state kept per stream) stay on correct_one,
+    beside a term that would compile: the daemon then corrects that axis with the reference."""
+    model = {"kind": "segmented-linear", "knots_raw": [0.0], "segment_points_dps": [0.0], "scale": 1000.0,
+             "coefficients": [[0.0, 100.0], [0.0, 110.0]], "smoothness": 0, "span_raw": [-900.0, 900.0],
+             "out_of_span": "linear-extrapolation"}
+    stateful = {"kind": "channel", "channel": "temp_c", "feature": feature, "form": "bias",
+                "coefficient": 0.5, "reference": 25.0, "tau_s": 2.0, "threshold_raw": 0.5}
+    offset = {"kind": "channel", "channel": "temp_c", "feature": "offset", "form": "bias", "coefficient": 0.1,
+              "reference": 25.0}
+    corrector = Corrector(CoefficientSet("s", "x", 0.0, model, (offset, stateful)))
+    assert why_not(corrector) == f"term channel/{feature} not compiled"
     assert compile_corrector(corrector) is None
