@@ -7,6 +7,7 @@ frame. Streams are paced for the slow one-CPU guest these run in on kernels with
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import sys
@@ -212,7 +213,21 @@ def test_hot_reload_while_streaming(vcan_channel: str, tmp_path: Path, db) -> No
     for axis in ("x", "y", "z"):
         off = np.flatnonzero(np.abs(sent[axis] - expected[axis]) > HALF_LSB)
         assert off.size == 0, (axis, off[:10], a, b, log)
-    assert 0 < a <= 800 + 50 and 1600 <= b <= 1600 + 200, (a, late_s, b)  # near where asked
+    # The reload landed where asked. The daemon's part: adopt the new sets as soon as the worker
+    # has built them (the next periodic step: RELOAD_POLL_S plus at most one burst), and switch
+    # at the frame it is handling then. The build itself (YAML, validation: ~40 ms CPU in an idle
+    # guest) runs beside the frames; in the one-CPU guest it shares with this test's sender and
+    # recorder on a busy host it took 140-300 ms of wall time in the runs that failed a fixed
+    # "50 frames after SIGHUP" (137 ms): that bound measured the machine's load, not the daemon.
+    reloads = re.findall(r"reload \((SIGHUP|file changed)\): built in (\d+) ms \(\d+ ms CPU\), "
+                         r"adopted (\d+) ms", log)
+    assert [why for why, _, _ in reloads] == ["SIGHUP", "file changed", "file changed"], log
+    for _, built_ms, adopted_ms in reloads:
+        assert int(adopted_ms) - int(built_ms) <= 50 and int(built_ms) <= 2000, reloads
+    raw_hz = RATE_HZ * 10 / 11  # an aux frame before every 10th raw frame
+    hup_s, watch_s = int(reloads[0][2]) / 1e3, 0.2 + int(reloads[2][2]) / 1e3  # generation 2: file watch
+    assert 0 < a <= 800 + raw_hz * (hup_s + 0.05), (a, late_s, reloads)
+    assert 1600 <= b <= 1600 + raw_hz * (watch_s + 0.05), (b, reloads)
     tags = [g["SetTag"] for g in got]
     for start, stop in ((0, a), (a, b), (b, len(got))):
         assert len(set(tags[start:stop])) == 1
