@@ -1,10 +1,10 @@
 """Frames as the DBC describes them: decode the raw IMU frame, encode corrected and status frames.
 
 The DBC is the single source of truth for layouts: nothing here knows a byte offset.
-cantools compiles each message's codec when the database loads; what is left for the
-per-frame path is prepared once in the constructors below (message objects, the signal
-ranges rates are saturated to, a reusable dict of output values), so encoding a frame is
-one clamp per rate and one ``encode`` call.
+Each per-frame codec is generated from the DBC at start (:mod:`canical.frame_compiler`,
+cantools where a layout is not compiled); what else the per-frame path needs is prepared
+once in the constructors below (the signal ranges rates are saturated to, the order of the
+values), so encoding a frame is one clamp per rate and one ``encode`` call.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import cantools
 from cantools.database.can import Database, Message
 
 from canical.errors import CanicalError
+from canical.frame_compiler import codec_for
 
 
 def load_dbc(path: str | os.PathLike[str]) -> Database:
@@ -50,16 +51,24 @@ def signal_range(message: Message, name: str) -> tuple[float, float]:
 
 
 class RawDecoder:
-    """Decode one message (the IMU's raw frame, or a frame carrying inputs) to physical values."""
+    """Decode one message (the IMU's raw frame, or a frame carrying inputs) to physical values.
 
-    __slots__ = ("_decode", "frame_id", "is_extended", "length", "name")
+    ``values`` is the per-frame form: a tuple in signal order (``index`` maps names to
+    positions), from the codec compiled at start (:mod:`canical.frame_compiler`), or from
+    cantools where the layout is not compiled or ``compiled`` is False.
+    """
 
-    def __init__(self, message: Message) -> None:
+    __slots__ = ("_decode", "frame_id", "index", "is_extended", "length", "name", "values")
+
+    def __init__(self, message: Message, *, compiled: bool = True) -> None:
         self.name = message.name
         self.frame_id = message.frame_id
         self.is_extended = message.is_extended_frame
         self.length = message.length
         self._decode = message.decode
+        codec = codec_for(message, compiled=compiled)
+        self.values = codec.decode
+        self.index = {name: i for i, name in enumerate(codec.names)}
 
     def decode(self, data: bytes | bytearray) -> dict[str, Any]:
         """Signal name → physical value; numeric, never a choice string."""
@@ -69,19 +78,28 @@ class RawDecoder:
 class RateEncoder:
     """Encode the corrected frame: three rates saturated to their signal range, flags, tag, counter."""
 
-    __slots__ = ("_encode", "_values", "flag_names", "frame_id", "is_extended", "length", "limits",
-                 "name", "rate_names")
+    __slots__ = ("_encode", "_order", "encode_in_order", "flag_names", "frame_id", "is_extended", "length",
+                 "limits", "name", "rate_names")
 
-    def __init__(self, message: Message, axes: Iterable[str] = ("x", "y", "z")) -> None:
+    def __init__(self, message: Message, axes: Iterable[str] = ("x", "y", "z"), *,
+                 compiled: bool = True) -> None:
         self.name = message.name
         self.frame_id = message.frame_id
         self.is_extended = message.is_extended_frame
         self.length = message.length
-        self._encode = message.encode
         self.rate_names = tuple(f"Rate{a.upper()}" for a in axes)
         self.flag_names = tuple((f"OutOfSpan{a.upper()}", f"Uncalibrated{a.upper()}") for a in axes)
         self.limits = tuple(signal_range(message, n) for n in self.rate_names)
-        self._values: dict[str, float | int] = {s.name: 0 for s in message.signals}
+        codec = codec_for(message, compiled=compiled)
+        self._encode = codec.encode
+        # The arguments in one canonical order; each signal's position in it (None: always 0).
+        canonical = [*self.rate_names, *(f[0] for f in self.flag_names), *(f[1] for f in self.flag_names),
+                     "Stale", "CounterGap", "SetTag", "Counter"]
+        order = tuple(canonical.index(n) if n in canonical else None for n in codec.names)
+        self._order = None if order == tuple(range(len(canonical))) else order  # None: as it comes
+        #: The codec's encode, when it takes :meth:`encode_xyz`'s arguments as they are (rates
+        #: saturated by the caller); None when the frame's signals come in another order.
+        self.encode_in_order = codec.encode if self._order is None and len(self.limits) == 3 else None
 
     def encode(
         self,
@@ -94,18 +112,26 @@ class RateEncoder:
         counter: int,
     ) -> bytes:
         """One frame's payload. A rate beyond the signal's range is sent at the range's end."""
-        v = self._values
-        for name, (lo, hi), rate, (oos_name, unc_name), oos, unc in zip(
-            self.rate_names, self.limits, rates, self.flag_names, out_of_span, uncalibrated, strict=True
-        ):
-            v[name] = lo if rate < lo else hi if rate > hi else rate
-            v[oos_name] = 1 if oos else 0
-            v[unc_name] = 1 if unc else 0
-        v["Stale"] = 1 if stale else 0
-        v["CounterGap"] = 1 if counter_gap else 0
-        v["SetTag"] = set_tag
-        v["Counter"] = counter
-        return self._encode(v, strict=False)
+        args = [lo if r < lo else hi if r > hi else r
+                for r, (lo, hi) in zip(rates, self.limits, strict=True)]
+        args += out_of_span
+        args += uncalibrated
+        args += (stale, counter_gap, set_tag, counter)
+        order = self._order
+        if order is not None:
+            args = [0 if i is None else args[i] for i in order]
+        return self._encode(args)
+
+    def encode_xyz(self, rx: float, ry: float, rz: float, ox: bool, oy: bool, oz: bool, ux: bool, uy: bool,
+                   uz: bool, stale: bool, counter_gap: bool, set_tag: int, counter: int) -> bytes:
+        """:meth:`encode` for the three axes with the values as arguments: the per-frame form."""
+        if self._order is not None or len(self.limits) != 3:
+            return self.encode((rx, ry, rz), (ox, oy, oz), (ux, uy, uz), stale, counter_gap, set_tag, counter)
+        (lx, hx), (ly, hy), (lz, hz) = self.limits
+        return self._encode((lx if rx < lx else hx if rx > hx else rx,
+                             ly if ry < ly else hy if ry > hy else ry,
+                             lz if rz < lz else hz if rz > hz else rz,
+                             ox, oy, oz, ux, uy, uz, stale, counter_gap, set_tag, counter))
 
 
 class StatusEncoder:

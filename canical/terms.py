@@ -41,7 +41,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
 TIME_INPUT = "time_s"
 FEATURES = {
@@ -297,6 +296,8 @@ def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarr
     dt = np.diff(time_s[k - 1 :])
     step = float(np.median(dt))
     if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
+        from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
+
         a = 1.0 - np.exp(-step / tau_s)
         out[k:] = lfilter([a], [1.0, a - 1.0], values[k:], zi=[(1.0 - a) * out[k - 1]])[0]
         return out

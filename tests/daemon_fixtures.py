@@ -58,12 +58,25 @@ def base_set(axis: str, seed: int = 0) -> CoefficientSet:
     return result.coefficients
 
 
-def write_sets(folder: Path, *, variant: int = 0) -> dict[str, Path]:
-    """imu-x/y/z.yaml with the TERMS; ``variant`` shifts V0 (0.1 deg/s per step) so generations differ."""
+#: Terms on every axis, every kind once: what the per-frame benchmarks correct with.
+ALL_TERMS = {
+    "x": TERMS["x"],
+    "y": (*TERMS["y"], {"kind": "direction", "feature": "slope", "form": "scale", "coefficient": 1e-6,
+                        "tau_s": 0.05}),
+    "z": ({"kind": "channel", "channel": "supply_v", "feature": "square", "form": "scale",
+           "coefficient": 0.001, "reference": 5.0},
+          {"kind": "time", "feature": "linear", "form": "bias", "coefficient": 0.001}),
+}
+
+
+def write_sets(folder: Path, *, variant: int = 0, terms: dict | None = None) -> dict[str, Path]:
+    """imu-x/y/z.yaml with the TERMS (or ``terms``); ``variant`` shifts V0 (0.1 deg/s per step)
+    so generations differ."""
     paths = {}
     base = base_set("z")
+    terms = TERMS if terms is None else terms
     for axis in AXES:
-        cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * variant)
+        cset = dataclasses.replace(base, axis=axis, terms=terms[axis], v0=base.v0 + 40.0 * variant)
         paths[axis] = folder / f"imu-{axis}.yaml"
         coefficient_file.save(paths[axis], cset)
     return paths
@@ -137,15 +150,25 @@ def decode_stream(stream: Stream) -> list[dict[str, float]]:
     return out
 
 
-def expected_rates(signals: list[dict[str, float]], paths: dict[str, Path]) -> dict[str, np.ndarray]:
-    """What one generation of sets gives for these frames, one fresh Corrector per axis."""
+def expected_rates(signals: list[dict[str, float]], paths: dict[str, Path],
+                   switches: tuple[tuple[int, dict[str, Path]], ...] = ()) -> dict[str, np.ndarray]:
+    """What the daemon sends for these frames with one generation of sets, ``paths`` (one fresh
+    Corrector per axis), or with ``switches``: from frame ``i`` of each ``(i, paths)`` on, the
+    sets at those paths, where an axis whose set changed starts a fresh Corrector at frame ``i``
+    (the direction, slope and lag state of a new set begins with it) and an axis whose set
+    stayed carries on with its corrector and state, as the daemon does on a reload."""
     from canical.corrector import Corrector
 
     out = {}
     for axis in AXES:
+        schedule = dict(switches)
+        text = paths[axis].read_bytes()
         corrector = Corrector(coefficient_file.load(paths[axis]))
         rates = []
-        for s in signals:
+        for i, s in enumerate(signals):
+            if i in schedule and schedule[i][axis].read_bytes() != text:
+                text = schedule[i][axis].read_bytes()
+                corrector = Corrector(coefficient_file.load(schedule[i][axis]))
             inputs = {"temp_c": s["Temperature"], "time_s": s.get("Uptime", 0.0),
                       "supply_v": s.get("SupplyVoltage", 0.0)}
             rates.append(corrector.correct_one(s[f"GyroRaw{axis.upper()}"], inputs)[0])
@@ -162,6 +185,7 @@ class NotifyListener:
         self.sock.bind(b"\0" + self.name[1:].encode())
         self.sock.settimeout(0.2)
         self.messages: list[dict[str, str]] = []
+        self.arrived: dict[str, float] = {}  # time.monotonic() a key first came (READY: start-up time)
         self.times: list[float] = []  # time.monotonic() of each message's arrival
         self._stop = False
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -175,8 +199,11 @@ class NotifyListener:
                 continue
             except OSError:
                 return
+            now = time.monotonic()
             fields = dict(line.split("=", 1) for line in data.decode().splitlines() if "=" in line)
-            self.times.append(time.monotonic())
+            for key in fields:
+                self.arrived.setdefault(key, now)
+            self.times.append(now)
             self.messages.append(fields)
 
     def arrivals(self, key: str) -> list[float]:
@@ -208,13 +235,14 @@ class DaemonProcess:
     """``canical serve`` as a child process with a notify socket and a watchdog, as systemd runs it."""
 
     def __init__(self, config: Path, *, watchdog_usec: int = 1_000_000, ready_timeout: float = 90.0,
-                 extra_args: tuple[str, ...] = ()) -> None:
+                 extra_args: tuple[str, ...] = (), extra_env: dict[str, str] | None = None) -> None:
         self.notify = NotifyListener()
         self.log_path = config.with_suffix(".daemon.log")
         env = dict(os.environ, NOTIFY_SOCKET=self.notify.name, WATCHDOG_USEC=str(watchdog_usec),
-                   PYTHONUNBUFFERED="1")
+                   PYTHONUNBUFFERED="1", **(extra_env or {}))
         env.pop("WATCHDOG_PID", None)
         self._log = open(self.log_path, "w")  # noqa: SIM115 - closed in stop()
+        self.started = time.monotonic()
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "canical", "serve", "--config", str(config), *extra_args],
             stdout=self._log, stderr=subprocess.STDOUT, env=env, cwd=ROOT)

@@ -7,6 +7,7 @@ frame. Streams are paced for the slow one-CPU guest these run in on kernels with
 
 from __future__ import annotations
 
+import re
 import signal
 import subprocess
 import sys
@@ -166,6 +167,7 @@ def test_hot_reload_while_streaming(vcan_channel: str, tmp_path: Path, db) -> No
             send_paced(tx, stream.frames[: thirds[0]], RATE_HZ)
             for axis, path in live_paths.items():  # generation 1, announced by SIGHUP
                 write_text_atomic(path, gens[1][axis].read_text())
+            hup_at = time.time()  # the clock of the frames' kernel timestamps
             daemon.signal(signal.SIGHUP)
             send_paced(tx, stream.frames[thirds[0] : thirds[1]], RATE_HZ)
             write_text_atomic(live_paths["z"], "schema: 1\ncrc32: '0x0'\n")  # damaged: refused
@@ -185,23 +187,47 @@ def test_hot_reload_while_streaming(vcan_channel: str, tmp_path: Path, db) -> No
     assert [g["Counter"] for g in got] == [i & 0xF for i in range(len(got))]
     assert "axis z:" in log and "keeping set" in log
 
-    # Which generation corrected each frame: each frame must equal exactly one generation on
-    # all three axes at once (generations differ by 0.1 deg/s, far above the resolution), and
-    # the generations must follow in order. (SetTag is only 4 bits of the combined set id, so
-    # two generations may share it; it must stay constant within one.)
+    # Which generation corrected each frame, told by the x axis (its terms have no state, so each
+    # generation's rate is known for every frame; generations differ there by 0.1 deg/s, far
+    # above the resolution): they must follow in order.
     signals = decode_stream(stream)
+    x_rates = {g["x"]: expected_rates(signals, {**gens[0], "x": g["x"]})["x"] for g in gens}
     mixed = {"z": gens[1]["z"], "x": gens[2]["x"], "y": gens[2]["y"]}
-    expected = [expected_rates(signals, paths) for paths in (gens[0], gens[1], mixed)]
     sent = {axis: np.array([g[f"Rate{axis.upper()}"] for g in got]) for axis in ("x", "y", "z")}
     labels = []
     for i in range(len(got)):
-        fits = [k for k, exp in enumerate(expected)
-                if all(abs(sent[axis][i] - exp[axis][i]) <= HALF_LSB for axis in sent)]
+        fits = [k for k, paths in enumerate((gens[0], gens[1], mixed))
+                if abs(sent["x"][i] - x_rates[paths["x"]][i]) <= HALF_LSB]
         assert len(fits) == 1, (i, fits, log)
         labels.append(fits[0])
     assert labels == sorted(labels) and set(labels) == {0, 1, 2}, log
     a, b = labels.index(1), labels.index(2)
-    assert 0 < a <= 800 + 50 and 1600 <= b <= 1600 + 200  # the reloads happened near where asked
+    late_s = out[a].timestamp - hup_at  # from SIGHUP to the first frame of the new sets
+    print(f"reload adopted {a - 800} frames, {late_s * 1e3:.0f} ms after SIGHUP; file change at frame {b}")
+    print("\n".join(line for line in log.splitlines() if "reload (" in line))
+    # Then every frame, all three axes at once, must be exactly that generation's: a new set
+    # starts its own direction state at the frame it was adopted (y's direction term), a kept
+    # one (z in generation 2) carries on. A frame corrected with a mix of two generations, or
+    # with the state of an older corrector, would be 0.1 deg/s off on some axis.
+    expected = expected_rates(signals, gens[0], switches=((a, gens[1]), (b, mixed)))
+    for axis in ("x", "y", "z"):
+        off = np.flatnonzero(np.abs(sent[axis] - expected[axis]) > HALF_LSB)
+        assert off.size == 0, (axis, off[:10], a, b, log)
+    # The reload landed where asked. The daemon's part: adopt the new sets as soon as the worker
+    # has built them (the next periodic step: RELOAD_POLL_S plus at most one burst), and switch
+    # at the frame it is handling then. The build itself (YAML, validation: ~40 ms CPU in an idle
+    # guest) runs beside the frames; in the one-CPU guest it shares with this test's sender and
+    # recorder on a busy host it took 140-300 ms of wall time in the runs that failed a fixed
+    # "50 frames after SIGHUP" (137 ms): that bound measured the machine's load, not the daemon.
+    reloads = re.findall(r"reload \((SIGHUP|file changed)\): built in (\d+) ms \(\d+ ms CPU\), "
+                         r"adopted (\d+) ms", log)
+    assert [why for why, _, _ in reloads] == ["SIGHUP", "file changed", "file changed"], log
+    for _, built_ms, adopted_ms in reloads:
+        assert int(adopted_ms) - int(built_ms) <= 50 and int(built_ms) <= 2000, reloads
+    raw_hz = RATE_HZ * 10 / 11  # an aux frame before every 10th raw frame
+    hup_s, watch_s = int(reloads[0][2]) / 1e3, 0.2 + int(reloads[2][2]) / 1e3  # generation 2: file watch
+    assert 0 < a <= 800 + raw_hz * (hup_s + 0.05), (a, late_s, reloads)
+    assert 1600 <= b <= 1600 + raw_hz * (watch_s + 0.05), (b, reloads)
     tags = [g["SetTag"] for g in got]
     for start, stop in ((0, a), (a, b), (b, len(got))):
         assert len(set(tags[start:stop])) == 1

@@ -1,24 +1,34 @@
-"""End to end on vcan: the daemon against a bare python-can forwarder, in the same kernel.
+"""End to end on vcan: the daemon against a bare python-can forwarder, in the same kernel, same run.
 
-Both subjects run as separate processes on vcan0: the forwarder receives the raw frame (same
-kernel filter) and sends its payload unchanged as the corrected frame's id; the daemon
-decodes, corrects and encodes. For each, this script
+Subjects run one at a time as separate processes on vcan0, in turn, for ``--rounds`` rounds
+(so all of them see the same machine): the forwarder receives the raw frame (same kernel
+filter) and sends its payload unchanged as the corrected frame's id; the daemon decodes,
+corrects (effect terms on all three axes) and encodes; with ``--baseline DIR`` also the daemon
+of another source tree (e.g. ``git archive`` of an older commit), for a before/after table.
+For each subject this script
 
-* offers N raw frames as fast as one raw-socket sender can (throughput and loss), and
 * offers frames paced at a series of rates (loss at each; latency from raw frame to output
-  frame, both timestamped by the kernel at one receiving socket: median and p99).
+  frame, both timestamped by the kernel at one receiving socket: median and p99; the
+  subject's CPU time per wall second over the phase, from the kernel's accounting of the
+  process, ``/proc/PID/stat`` utime + stime, what ``getrusage`` reports for a process), and
+* offers N raw frames as fast as one raw-socket sender can (saturated throughput, loss, CPU);
+* for the daemons: exec to READY=1 and resident memory after start (VmRSS) and at the end
+  (VmHWM).
 
-It prints the daemon's figures as a ratio of the forwarder's. On a host without SocketCAN it
-re-runs itself inside a User-mode Linux guest (one CPU, slow system calls: absolute figures
-there are the guest's, the ratio is the point).
+It prints the figures and each daemon's ratios to the forwarder's. On a host without SocketCAN
+it re-runs itself inside a User-mode Linux guest (one CPU, slow system calls: absolute figures
+there are the guest's, the ratios are the point).
 
-    python tests/benchmarks/bench_daemon_vcan.py [--frames N] [--rates 500,1000,...]
+    python tests/benchmarks/bench_daemon_vcan.py [--frames N] [--rates 200,1000,...] [--rounds N]
+        [--baseline DIR]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
+import signal
 import socket
 import statistics
 import struct
@@ -38,6 +48,7 @@ RAW_ID, OUT_ID, AUX_ID = 0x190, 0x110, 0x290
 FRAME = struct.Struct("=IB3x8s")
 SO_RCVBUFFORCE = 33
 SO_TIMESTAMPNS = 35
+TICK = os.sysconf("SC_CLK_TCK")
 
 FORWARDER = f"""
 import can, sys
@@ -49,6 +60,19 @@ while True:
     if m is not None:
         bus.send(can.Message(arbitration_id={OUT_ID}, data=m.data, is_extended_id=False))
 """
+
+
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process so far (the kernel's accounting, as getrusage)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def memory_kb(pid: int, key: str) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(key + ":"):
+            return int(line.split()[1])
+    return 0
 
 
 def receiver() -> socket.socket:
@@ -76,8 +100,8 @@ def drain(s: socket.socket, quiet_s: float = 1.5) -> list[tuple[int, float]]:
         out.append((can_id, sec + nsec * 1e-9))
 
 
-def send_all(frames: list[bytes], rate_hz: float | None) -> float:
-    """Send pre-packed frames (as fast as possible, or paced); returns the achieved rate."""
+def send_all(frames: list[bytes], rate_hz: float | None) -> tuple[float, float]:
+    """Send pre-packed frames (as fast as possible, or paced); the achieved rate and the time taken."""
     tx = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
     tx.bind((CHANNEL,))
     start = time.perf_counter()
@@ -94,18 +118,23 @@ def send_all(frames: list[bytes], rate_hz: float | None) -> float:
                 time.sleep(lag)
     elapsed = time.perf_counter() - start
     tx.close()
-    return len(frames) / elapsed
+    return len(frames) / elapsed, elapsed
 
 
-def measure(frames: list[bytes], rate_hz: float | None) -> dict[str, float]:
+def measure(frames: list[bytes], rate_hz: float | None, pid: int) -> dict[str, float]:
     rx = receiver()
-    sent_rate = send_all(frames, rate_hz)
-    got = drain(rx)
+    cpu0, wall0 = cpu_seconds(pid), time.monotonic()
+    sent_rate, _ = send_all(frames, rate_hz)
+    got = drain(rx, quiet_s=0.3)
+    rx.settimeout(1.2)
+    got += drain(rx)
+    cpu1, wall1 = cpu_seconds(pid), time.monotonic() - 1.5  # the quiet tail is not the subject's work
     rx.close()
     raws = [t for i, t in got if i == RAW_ID]
     outs = [t for i, t in got if i == OUT_ID]
     result = {"offered_fps": sent_rate, "sent": len(raws), "out": len(outs),
-              "loss": 1.0 - len(outs) / max(len(raws), 1)}
+              "loss": 1.0 - len(outs) / max(len(raws), 1),
+              "cpu": (cpu1 - cpu0) / max(wall1 - wall0, 1e-3)}
     if len(outs) > 1:
         result["throughput_fps"] = len(outs) / (outs[-1] - raws[0])
     if len(outs) == len(raws):  # no loss: the i-th output answers the i-th raw frame
@@ -115,82 +144,152 @@ def measure(frames: list[bytes], rate_hz: float | None) -> dict[str, float]:
     return result
 
 
-def start_daemon(folder: Path):
-    from daemon_fixtures import DaemonProcess, write_config, write_sets
+class Subject:
+    """One process under test: the forwarder, or a daemon (this tree's, or a baseline's)."""
 
-    write_sets(folder)
-    return DaemonProcess(write_config(folder, CHANNEL), watchdog_usec=5_000_000)
+    def __init__(self, name: str, baseline: str | None = None) -> None:
+        self.name, self.baseline = name, baseline
+        self.proc = self.daemon = None
+        self.start: dict[str, float] = {}
 
+    def __enter__(self) -> Subject:
+        if self.name == "forwarder":
+            self.proc = subprocess.Popen([sys.executable, "-c", FORWARDER], stdout=subprocess.PIPE,
+                                         text=True)
+            assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "ready"
+            self.pid = self.proc.pid
+            return self
+        from daemon_fixtures import ALL_TERMS, DaemonProcess, write_config, write_sets
 
-def start_forwarder():
-    proc = subprocess.Popen([sys.executable, "-c", FORWARDER], stdout=subprocess.PIPE, text=True)
-    assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
-    return proc
+        folder = Path(tempfile.mkdtemp(prefix=f"bench-{self.name}-"))
+        write_sets(folder, terms=ALL_TERMS)
+        # PYTHONSAFEPATH: "-m canical" must not find this tree's package in its working directory
+        env = {"PYTHONPATH": self.baseline, "PYTHONSAFEPATH": "1"} if self.baseline else None
+        self.daemon = DaemonProcess(write_config(folder, CHANNEL), watchdog_usec=5_000_000, extra_env=env)
+        self.pid = self.daemon.proc.pid
+        self.start = {"ready_s": self.daemon.notify.arrived["READY"] - self.daemon.started,
+                      "rss_kb": memory_kb(self.pid, "VmRSS")}
+        return self
+
+    def syscalls(self, frames: list[bytes], rate_hz: float | None) -> dict[str, float]:
+        """System calls per frame handled (``strace -c`` attached to every thread meanwhile).
+
+        Tracing slows the subject down so much that it drops frames: counts are divided by
+        the frames it received (its ``recvmsg`` calls), not by the frames sent.
+        """
+        out = Path(tempfile.mkdtemp(prefix="bench-strace-")) / "summary"
+        tracer = subprocess.Popen(["strace", "-c", "-f", "-p", str(self.pid), "-o", str(out)],
+                                  stderr=subprocess.DEVNULL)
+        time.sleep(1.0)  # attached
+        measure(frames, rate_hz, self.pid)
+        tracer.send_signal(signal.SIGINT)
+        tracer.wait()
+        calls: dict[str, int] = {}
+        for line in out.read_text().splitlines():
+            parts = line.split()
+            if len(parts) >= 5 and parts[3].isdigit() and parts[-1] != "total":
+                calls[parts[-1]] = int(parts[3])
+        handled = max(calls.get("recvmsg", 0), 1)
+        return {name: n / handled for name, n in calls.items()}
+
+    def __exit__(self, *exc) -> None:
+        if self.daemon is not None:
+            self.start["hwm_kb"] = memory_kb(self.pid, "VmHWM")
+            self.daemon.stop()
+        elif self.proc is not None:
+            self.proc.terminate()
+            self.proc.wait()
 
 
 def run(args: argparse.Namespace) -> None:
     from daemon_fixtures import imu_stream
 
-    stream = imu_stream(max(args.frames, args.paced_frames), rate_limit_dps=50.0)
-    raw = [FRAME.pack(fid, len(d), d) for fid, d in stream.frames if fid == RAW_ID]
-    blast, paced = raw[: args.frames], raw[: args.paced_frames]
     rates = [float(r) for r in args.rates.split(",")]
-    results: dict[str, dict] = {}
-    for name in ("forwarder", "daemon"):
-        folder = Path(tempfile.mkdtemp(prefix=f"bench-{name}-"))
-        subject = start_forwarder() if name == "forwarder" else start_daemon(folder)
-        try:
-            time.sleep(0.5)
-            measure(raw[:200], 1000.0)  # warm-up
-            results[name] = {"paced": {r: measure(paced, r) for r in rates}, "blast": measure(blast, None)}
-        finally:
-            if name == "forwarder":
-                subject.terminate()
-                subject.wait()
-            else:
-                subject.stop()
+    per_rate = {r: max(args.paced_frames, int(r * args.paced_seconds)) for r in rates}
+    stream = imu_stream(max(args.frames, *per_rate.values()), rate_limit_dps=50.0)
+    raw = [FRAME.pack(fid, len(d), d) for fid, d in stream.frames if fid == RAW_ID]
+    names = ["forwarder", "daemon"] + (["daemon-before"] if args.baseline else [])
+    runs: dict[str, list[dict]] = {n: [] for n in names}
+    for _ in range(args.rounds):
+        for name in names:
+            with Subject(name, args.baseline if name == "daemon-before" else None) as subject:
+                time.sleep(0.5)
+                measure(raw[:200], 1000.0, subject.pid)  # warm-up
+                paced = {r: measure(raw[: per_rate[r]], r, subject.pid) for r in rates}
+                blast = measure(raw[: args.frames], None, subject.pid)
+                traced = (subject.syscalls(raw[: per_rate[args.strace_rate]], args.strace_rate)
+                          if args.strace_rate and shutil.which("strace") else None)
+            runs[name].append({"paced": paced, "blast": blast, "syscalls": traced, **subject.start})
     where = "UML guest, 1 CPU" if os.environ.get(vcan_harness.ENV_IN_UML) == "1" else "host kernel"
     print(f"end to end on {CHANNEL} ({where}; Python {sys.version.split()[0]}); sender, subject and "
-          "receiver share the machine")
-    print(f"  paced, {args.paced_frames} raw frames per rate (latency: raw frame -> output frame, "
-          "kernel timestamps at one socket)")
-    for rate in rates:
-        for name in results:
-            p = results[name]["paced"][rate]
-            lat = (f"latency median {p['lat_median_us']:7.0f} µs  p99 {p['lat_p99_us']:7.0f} µs"
-                   if "lat_median_us" in p else "latency n/a (frames lost)")
-            print(f"    {rate:6.0f}/s (got {p['offered_fps']:5.0f}) {name:9s}: "
-                  f"out {p['out']:5d} of {p['sent']:5d}, loss {100 * p['loss']:5.1f} %, {lat}")
-    print(f"  saturated: {args.frames} raw frames as fast as a raw socket sends them")
-    for name in results:
-        b = results[name]["blast"]
-        print(f"    {name:9s}: offered {b['offered_fps']:8,.0f}/s, out {b['out']:6d} of {b['sent']}, "
-              f"throughput {b.get('throughput_fps', 0):7,.0f} frames/s, loss {100 * b['loss']:5.1f} %")
+          f"receiver share the machine; {args.rounds} round(s), subjects in turn; ranges over rounds")
 
-    def lossless(name: str) -> float:
-        ok = [r for r in rates if results[name]["paced"][r]["loss"] <= 0.001]
+    def span(values: list[float], fmt: str) -> str:
+        lo, hi = min(values), max(values)
+        return format(lo, fmt) if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}–{hi:{fmt}}"
+
+    print("  paced: loss %, latency raw -> output median / p99 µs (kernel timestamps), CPU % of a core")
+    for rate in rates:
+        for name in names:
+            ps = [r["paced"][rate] for r in runs[name]]
+            lat = [p for p in ps if "lat_median_us" in p]
+            text = (f"median {span([p['lat_median_us'] for p in lat], '.0f')}  "
+                    f"p99 {span([p['lat_p99_us'] for p in lat], '.0f')}" if lat else "latency n/a (loss)")
+            print(f"    {rate:6.0f}/s {name:13s}: loss {span([100 * p['loss'] for p in ps], '.1f')} %, "
+                  f"{text}, CPU {span([100 * p['cpu'] for p in ps], '.1f')} %  ({ps[0]['sent']} frames)")
+    print(f"  saturated: {args.frames} raw frames as fast as a raw socket sends them")
+    for name in names:
+        bs = [r["blast"] for r in runs[name]]
+        fps = span([b.get("throughput_fps", 0) for b in bs], ",.0f")
+        loss, cpu = span([100 * b["loss"] for b in bs], ".1f"), span([100 * b["cpu"] for b in bs], ".0f")
+        print(f"    {name:13s}: throughput {fps} frames/s, loss {loss} %, CPU {cpu} %")
+    for name in names[1:]:
+        rs = runs[name]
+        rss, hwm = [r["rss_kb"] / 1024 for r in rs], [r["hwm_kb"] / 1024 for r in rs]
+        print(f"  {name}: exec -> READY=1 {span([r['ready_s'] for r in rs], '.2f')} s, resident after start "
+              f"{span(rss, '.1f')} MB, peak {span(hwm, '.1f')} MB")
+
+    if runs[names[0]][0]["syscalls"] is not None:
+        print(f"  system calls per frame handled at {args.strace_rate:.0f}/s (strace -c, every thread; "
+              "last round)")
+        for name in names:
+            calls = runs[name][-1]["syscalls"]
+            top = sorted(calls.items(), key=lambda kv: -kv[1])
+            print(f"    {name:13s}: {sum(calls.values()):5.2f}  ("
+                  + ", ".join(f"{k} {v:.2f}" for k, v in top if v >= 0.01) + ")")
+
+    def lossless(name: str, k: int) -> float:
+        ok = [r for r in rates if runs[name][k]["paced"][r]["loss"] <= 0.001]
         return max(ok) if ok else 0.0
 
-    f, d = results["forwarder"], results["daemon"]
-    first = rates[0]
-    lat = ""
-    if "lat_median_us" in d["paced"][first] and "lat_median_us" in f["paced"][first]:
-        lat = (f"; median latency at {first:.0f}/s {d['paced'][first]['lat_median_us']:.0f} vs "
-               f"{f['paced'][first]['lat_median_us']:.0f} µs")
-    print(f"  daemon / forwarder: saturated throughput "
-          f"{d['blast'].get('throughput_fps', 0) / f['blast']['throughput_fps']:.2f}, "
-          f"highest lossless rate tried {lossless('daemon'):.0f} vs {lossless('forwarder'):.0f} "
-          f"frames/s{lat}")
+    for name in names[1:]:
+        ratios, p99 = [], []
+        for k in range(args.rounds):
+            f, d = runs["forwarder"][k], runs[name][k]
+            ratios.append(d["blast"].get("throughput_fps", 0) / max(f["blast"].get("throughput_fps", 0), 1.0))
+            for rate in rates:
+                fp, dp = f["paced"][rate], d["paced"][rate]
+                if "lat_p99_us" in fp and "lat_p99_us" in dp:
+                    p99.append(dp["lat_p99_us"] / fp["lat_p99_us"])
+        lossless_d = [lossless(name, k) for k in range(args.rounds)]
+        lossless_f = [lossless("forwarder", k) for k in range(args.rounds)]
+        print(f"  {name} / forwarder: saturated throughput {span(ratios, '.2f')}; highest lossless rate "
+              f"{span(lossless_d, '.0f')} vs {span(lossless_f, '.0f')} frames/s; p99 latency ratio where "
+              f"both lossless {span(p99, '.2f') if p99 else 'n/a'}")
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=20_000, help="frames offered as fast as possible")
-    parser.add_argument("--paced-frames", type=int, default=2_000, help="frames per paced rate")
-    parser.add_argument("--rates", default="250,1000,2000,3000,4000,6000",
-                        help="paced rates to offer, frames/s")
+    parser.add_argument("--paced-frames", type=int, default=2_000, help="least frames per paced rate")
+    parser.add_argument("--paced-seconds", type=float, default=5.0, help="least seconds per paced rate")
+    parser.add_argument("--rates", default="200,1000,2000,3000,4000,6000", help="paced rates, frames/s")
+    parser.add_argument("--rounds", type=int, default=2, help="rounds of all subjects in turn")
+    parser.add_argument("--baseline", help="source tree of a daemon to compare (before/after)")
+    parser.add_argument("--strace-rate", type=float, default=1000.0,
+                        help="paced rate at which system calls are counted (0: not)")
     args = parser.parse_args()
-    status = vcan_harness.run_script_on_vcan()
+    status = vcan_harness.run_script_on_vcan(timeout=3000.0)
     if status is not None:
         return status
     run(args)
