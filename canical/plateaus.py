@@ -16,11 +16,17 @@ is noisy, a reference updated at 10 Hz is held between updates, and rows go miss
 * **A noiseless reference** (the commanded rate, exact on every plateau) shows the row where
   each plateau begins: the steady stretches start there.
 * **Both ends of each plateau are guarded.** The start: the servo's overshoot and ringing
-  and the sensor's filter settle over ``settle_s`` (auto: 0.5 s or a tenth of the steady
-  stretch, whichever is longer). The end: a reference that is held between updates or late
-  shows the next ramp only after its update interval (estimated from the spacing of its
-  changes, i.e. how long values are held) plus its latency (given, or estimated from when
-  the sensor and the reference each show the rate changing); that much is cut.
+  and the sensor's filter settle over ``settle_s``. Auto, it is the settling the session
+  shows: after each rate change, how long until the sensor's own output, averaged over a
+  short window, stays within its noise of the plateau's final level, pooled over the
+  plateaus (upper quartile: a few odd plateaus do not set it, most are covered); never
+  below a floor (a few rows, or half the steadiness window where the reference's noise
+  blurs where a stretch begins). A commanded reference cannot show the table ringing; the
+  sensor does. Without the sensor's output: 0.5 s or a tenth of the stretch. The end: a
+  reference that is held between updates or late shows the next ramp only after its
+  update interval (estimated from the spacing of its changes, i.e. how long values are
+  held) plus its latency (given, or estimated from when the sensor and the reference each
+  show the rate changing); that much is cut.
 * **A settled flag** recorded by the table narrows the plateaus further; it never makes a
   visibly moving reference steady.
 
@@ -41,8 +47,13 @@ MIN_WINDOW_S = 0.5  # shortest window over which steadiness is judged
 WINDOW_UPDATES = 8  # ...and at least this many reference updates
 TOL_FLOOR_DPS = 0.01  # tolerance floor, for references without noise
 TOL_SIGMAS = 6.0  # tolerance in standard deviations of a window median's difference
-DEFAULT_SETTLE_S = 0.5
+DEFAULT_SETTLE_S = 0.5  # start guard without the sensor's output to observe settling in
 SETTLE_FRACTION = 0.1
+SETTLE_FLOOR_S = 0.1  # start guard never below this (nor below half a window for a noisy reference)
+SETTLE_WINDOW_S = 0.1  # the sensor's level is averaged over this (or MIN_SETTLE_ROWS rows)...
+MIN_SETTLE_ROWS = 5
+SETTLE_SIGMAS = 4.0  # ...and is settled within this many standard errors of the final level
+SETTLE_QUANTILE = 0.75  # pooled over plateaus
 MAX_UPDATE_S = 1.0
 GRID_PER_WINDOW = 10  # steadiness is judged every tenth of a window
 MIN_WINDOW_ROWS = 5
@@ -63,7 +74,9 @@ class Plateaus:
     rate_tol_dps: float = 0.0  # tolerance used on the window medians' difference
     update_s: float = 0.0  # the reference's update interval (how long values are held)
     window_s: float = 0.0
-    settle_s: float = 0.0  # start guard (minimum; a tenth of long stretches when auto)
+    settle_s: float = 0.0  # start guard (minimum; a tenth of long stretches without a sensor output)
+    settle_source: str = "default"  # "given", "observed" (from the sensor's output) or "default"
+    observed_settling_s: float | None = None  # settling seen in the sensor's output, pooled
     end_guard_s: float = 0.0  # end guard: update interval plus latency
     latency_s: float = 0.0  # the reference's latency behind the sensor (given or estimated)
     rate_changes: int = 0  # moving stretches seen
@@ -92,6 +105,8 @@ class Plateaus:
             "reference_update_s": self.update_s,
             "window_s": self.window_s,
             "settle_s": self.settle_s,
+            "settle_source": self.settle_source,
+            "observed_settling_s": self.observed_settling_s,
             "end_guard_s": self.end_guard_s,
             "reference_latency_s": self.latency_s,
             "rate_changes": self.rate_changes,
@@ -244,6 +259,18 @@ def detect_plateaus(
     # A value held between updates may be up to one update old; one sent with every row is current.
     end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
     slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
+    observed = None
+    if raw is not None:
+        observed = observed_settling_s(t, np.asarray(raw, dtype=float), stretches, min_duration_s, row_s,
+                                       end_guard)
+    if settle_s is not None:
+        source = "given"
+    elif observed is not None:
+        source = "observed"
+        # A noisy reference places a stretch's start only to within half a window.
+        settle_s = max(observed, SETTLE_FLOOR_S, 0.0 if noise == 0.0 else window / 2)
+    else:
+        source = "default"
     rates, starts, stops, sems = [], [], [], []
     in_stretch = n_short = 0
     for a, b in stretches:
@@ -276,6 +303,8 @@ def detect_plateaus(
         update_s=update,
         window_s=float(window),
         settle_s=float(settle_s if settle_s is not None else DEFAULT_SETTLE_S),
+        settle_source=source,
+        observed_settling_s=observed,
         end_guard_s=float(end_guard),
         latency_s=float(latency_s),
         rate_changes=rate_changes,
@@ -284,6 +313,37 @@ def detect_plateaus(
         rate_sem_dps=np.array(sems, dtype=float),
         n_short=n_short,
     )
+
+
+def observed_settling_s(t: np.ndarray, raw: np.ndarray, stretches: list[tuple[int, int]],
+                        min_duration_s: float, row_s: float, end_guard_s: float = 0.0) -> float | None:
+    """How long the sensor takes to settle after a rate change, as the session shows it, s.
+
+    Per steady stretch: the sensor's final level and noise are the median and spread of its
+    second half; its level, averaged over a short window from the stretch's start, must stay
+    within ``SETTLE_SIGMAS`` standard errors of that final level; the settling time is where
+    the last window outside that band (in the first half) ends. Ringing of the table that a
+    commanded reference cannot show, and a slow sensor filter, both appear here. Pooled over
+    the stretches by their upper quartile. None when no stretch is long enough to tell.
+    """
+    m = max(MIN_SETTLE_ROWS, round(SETTLE_WINDOW_S / row_s))
+    times = []
+    for a, b in stretches:
+        b = a + int(np.searchsorted(t[a:b], t[b - 1] - end_guard_s, side="right"))  # not the next ramp
+        if b - a < 2 or t[b - 1] - t[a] < min_duration_s or b - a < 4 * m:
+            continue
+        x, tt = raw[a:b], t[a:b] - t[a]
+        tail = x[tt >= tt[-1] / 2]
+        final = float(np.median(tail))
+        sigma = 1.4826 * float(np.median(np.abs(tail - final)))
+        if sigma == 0.0:  # a quantised, noiseless output: within one step
+            sigma = float(np.min(np.abs(np.diff(np.unique(tail))), initial=1.0))
+        csum = np.concatenate(([0.0], np.cumsum(x - final)))
+        level = (csum[m:] - csum[:-m]) / m  # window k covers rows k..k+m-1
+        first_half = tt[: level.size] < tt[-1] / 2
+        outside = np.flatnonzero(first_half & (np.abs(level) > SETTLE_SIGMAS * sigma / np.sqrt(m)))
+        times.append(float(tt[outside[-1] + m - 1]) if outside.size else 0.0)
+    return float(np.quantile(times, SETTLE_QUANTILE)) if times else None
 
 
 def window_medians(

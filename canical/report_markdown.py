@@ -27,9 +27,17 @@ def _plateau_finding(found: dict[str, Any] | None) -> list[str]:
         f"- plateau finding: reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
         f"{found['rate_tol_dps']:.3g} deg/s over {found['window_s']:.3g} s windows; reference held "
         f"{found['reference_update_s']:.3g} s, late {found['reference_latency_s']:.3g} s; guards: "
-        f"settle {found['settle_s']:.3g} s, end {found['end_guard_s']:.3g} s; "
+        f"settle {found['settle_s']:.3g} s ({_settle_source(found)}), end {found['end_guard_s']:.3g} s; "
         f"{found['rate_changes']} rate changes"
     ]
+
+
+def _settle_source(found: dict[str, Any]) -> str:
+    """Where the start guard came from: given, or the settling the sensor showed."""
+    source = found.get("settle_source", "default")
+    if source == "observed":
+        return f"sensor settled in {found['observed_settling_s']:.3g} s"
+    return {"given": "--settle", "default": "0.5 s or a tenth of the plateau"}.get(source, source)
 
 
 def render(report: dict[str, Any], plots: list[str]) -> str:

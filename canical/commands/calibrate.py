@@ -70,7 +70,8 @@ def add_plateau_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="S", help="shortest steady stretch that counts as a plateau, s [1]")
     parser.add_argument("--settle", type=_auto_or_seconds("--settle", "seconds"), default=None,
                         metavar="S", help="left out at the start of each plateau (table ringing, sensor "
-                        "filter), s, or 'auto': 0.5 s or a tenth of the plateau [auto]")
+                        "filter), s, or 'auto': how long the sensor's output takes to settle after each rate "
+                        "change, as the session shows it (at least 0.1 s) [auto]")
     parser.add_argument("--rate-tol", type=_auto_or_seconds("--rate-tol", "deg/s"), default=None,
                         metavar="DPS", help="largest change of the reference's windowed median that is "
                         "still steady, deg/s, or 'auto': from the reference's estimated noise [auto]")

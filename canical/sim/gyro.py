@@ -84,8 +84,14 @@ class GyroModel:
         aux: dict[str, np.ndarray] | None = None,
         rng: np.random.Generator | None = None,
         fs_hz: float | None = None,
+        noise_dps: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Raw counts for a table rate history."""
+        """Raw counts for a table rate history.
+
+        ``noise_dps`` is the sensor's noise per sample (deg/s) to use instead of drawing it
+        from ``rng``: the same sensor can then be recorded on two tables with the same noise
+        at the same instants of each plateau (:mod:`canical.sim.paired_noise`).
+        """
         rng = rng if rng is not None else np.random.default_rng(0)
         aux = aux or {}
         w = np.asarray(rate_dps, dtype=float)
@@ -100,12 +106,17 @@ class GyroModel:
             bias = bias + b
             scale = scale * (1.0 + s)
         dv = self.transfer(sensed) * scale + self.sensitivity * bias
-        dv = dv + self.sensitivity * self.noise_dps * rng.standard_normal(w.shape)
-        dv = dv + self.sensitivity * self.coloured_noise(len(w), fs_hz, rng)
+        if noise_dps is None:
+            noise_dps = self.noise(len(w), fs_hz, rng)
+        dv = dv + self.sensitivity * np.asarray(noise_dps, dtype=float)
         raw = self.bias_counts + dv
         if self.lsb > 0:
             raw = np.round(raw / self.lsb) * self.lsb
         return np.clip(raw, -self.rail_counts - 1, self.rail_counts)
+
+    def noise(self, n: int, fs_hz: float, rng: np.random.Generator) -> np.ndarray:
+        """All the sensor's noise, deg/s per sample: white (angle random walk) plus coloured."""
+        return self.noise_dps * rng.standard_normal(n) + self.coloured_noise(n, fs_hz, rng)
 
     def coloured_noise(self, n: int, fs_hz: float, rng: np.random.Generator) -> np.ndarray:
         """Bias instability plus rate random walk, deg/s per sample (zeros when both are off)."""

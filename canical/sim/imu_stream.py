@@ -12,6 +12,7 @@ programme each, times continuing from block to block; a step programme ends at
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
@@ -19,6 +20,7 @@ import numpy as np
 
 from canical.imu_dictionary import AXES
 from canical.sim.gyro import GyroModel
+from canical.sim.paired_noise import plateau_paired_noise
 from canical.sim.rate_table import constant_profile, step_profile
 from canical.sim.sessions import paper_rates
 from canical.sim.table_recording import TableBehaviour, record_table
@@ -114,12 +116,20 @@ def imu_blocks(config: StreamConfig) -> Iterator[Block]:
     rng = np.random.default_rng(config.seed)
     t0 = 0.0
     recording = config.table.recording if config.table.kind == "steps" else None
-    while True:
+    # A recording table draws from its own generator and the gyros' noise is tied to the
+    # instants of each plateau, so the same seed on two tables is the same sensor noise.
+    table_rng = np.random.default_rng([config.seed, 1])
+    for n_pass in itertools.count():
         extra: dict = {}
+        noise: dict[str, np.ndarray | None] = dict.fromkeys(AXES)
         if recording is not None:
             rates = np.concatenate([np.asarray(config.table.rates_dps, dtype=float), [0.0]])
             rec = record_table(rates, dwell_s=config.table.dwell_s, fs_hz=fs, behaviour=recording,
-                               rng=rng, t0_s=t0, initial_dps=0.0)
+                               rng=table_rng, t0_s=t0, initial_dps=0.0)
+            noise = {a: plateau_paired_noise(config.gyros[a], rec.schedule, rec.time_s,
+                                             dwell_s=config.table.dwell_s, fs_hz=fs,
+                                             seed=(config.seed, n_pass, i))
+                     for i, a in enumerate(AXES)}
             t, w, settled = rec.time_s, rec.true_dps, rec.settled
             frames = None if recording.ref_rate_hz is None else (rec.frame_time_s, rec.frame_dps,
                                                                     rec.frame_settled)
@@ -139,6 +149,6 @@ def imu_blocks(config: StreamConfig) -> Iterator[Block]:
         raw = {}
         for axis in AXES:
             rate = w if axis == config.table.axis else np.zeros_like(w)
-            raw[axis] = config.gyros[axis].output(t, rate, aux=aux, rng=rng, fs_hz=fs)
+            raw[axis] = config.gyros[axis].output(t, rate, aux=aux, rng=rng, fs_hz=fs, noise_dps=noise[axis])
         yield Block(t, w, settled, raw, temp, supply, **extra)
         t0 = float(t[-1]) + 1.0 / fs

@@ -6,6 +6,7 @@ import numpy as np
 
 from canical.session import Session
 from canical.sim.gyro import GyroModel
+from canical.sim.paired_noise import plateau_paired_noise
 from canical.sim.rate_table import constant_profile, step_profile
 from canical.sim.table_recording import TableBehaviour, TableRecording, record_table
 
@@ -61,15 +62,17 @@ def recorded_sweep(
 ) -> tuple[Session, TableRecording]:
     """A session recorded through ``table``, and the table's truth for the kept rows' ticks.
 
-    The sensor's noise comes from its own generator (``seed``), the table's from another
-    (``seed + 1``), so the same sensor recorded on different tables sees the same noise.
+    The sensor's noise is tied to the instants of each plateau (:mod:`canical.sim.paired_noise`),
+    the table's comes from its own generator (``seed + 1``): the same sensor recorded on
+    different tables sees the same noise at the same instant of every plateau.
     """
     sensor_rng = np.random.default_rng(seed)
     rec = record_table(rates_dps, dwell_s=dwell_s, fs_hz=fs_hz, behaviour=table,
                        rng=np.random.default_rng(seed + 1))
     t, w = rec.time_s, rec.true_dps
     channels = {name: np.asarray(f(t, w, sensor_rng), dtype=float) for name, f in (aux or {}).items()}
-    raw = gyro.output(t, w, aux=channels, rng=sensor_rng, fs_hz=fs_hz)
+    noise = plateau_paired_noise(gyro, rec.schedule, t, dwell_s=dwell_s, fs_hz=fs_hz, seed=seed)
+    raw = gyro.output(t, w, aux=channels, rng=sensor_rng, fs_hz=fs_hz, noise_dps=noise)
     keep = rec.kept
     session = Session(
         t[keep], raw[keep], rec.ref_dps[keep], {k: v[keep] for k, v in channels.items()},

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from canical.calibration import CalibrateOptions, calibrate
+from canical.plateaus import Plateaus
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, recorded_sweep
-from canical.sim.table_recording import TableBehaviour
+from canical.sim.table_recording import Schedule, TableBehaviour
 
 IDEAL = TableBehaviour()
 MEASURED_02 = {"reference": "measured", "jitter_dps": 0.02, "encoder_lsb_dps": 0.001}
@@ -87,9 +88,11 @@ def grid_rates() -> np.ndarray:
 
 
 def held_out_rms(behaviour: TableBehaviour, *, seed: int, dwell_s: float, fs_hz: float,
-                 gyro: GyroModel | None = None) -> tuple[float, object, object]:
+                 gyro: GyroModel | None = None,
+                 rates: np.ndarray | None = None) -> tuple[float, object, object]:
     """Calibrate one recording; (held-out rms, the calibration result, the table's truth)."""
-    session, rec = recorded_sweep(gyro or GyroModel(), grid_rates(), behaviour, dwell_s=dwell_s,
+    rates = grid_rates() if rates is None else rates
+    session, rec = recorded_sweep(gyro or GyroModel(), rates, behaviour, dwell_s=dwell_s,
                                   fs_hz=fs_hz, seed=seed)
     result = calibrate(session, CalibrateOptions(extend=False), sensor_id="SIM", axis="z")
     return float(result.report["held_out"]["rms_dps"]), result, (session, rec)
@@ -106,23 +109,13 @@ def score_cell(name: str, behaviour: TableBehaviour, *, seed: int = 0, dwell_s: 
     found_ok = p.count == sched.rates.size
     tol = np.maximum(0.05, 5 * p.rate_uncertainty())
     rates_ok = found_ok and bool(np.all(np.abs(p.rate_dps - sched.rates) <= tol))
-    # Truth per used row: its tick time must lie on the plateau it was given, past the rate change.
-    ticks = rec.time_s[rec.kept]
-    used = p.label >= 0
-    # A plateau spans [end of its rate change, start of the next], both instants at its rate.
-    eps = 1e-9
-    if found_ok:
-        j = p.label[used]
-        on_ramp = (ticks[used] < sched.end[j] - eps) | (ticks[used] > sched.stop[j] + eps)
-    else:  # match each used row to the plateau its tick lies on
-        k = np.searchsorted(sched.start, ticks[used] - eps, side="right") - 1
-        on_ramp = ticks[used] < sched.end[np.clip(k, 0, None)] - eps
+    ramp_rows = rows_on_rate_changes(p, sched, rec.time_s[rec.kept])
     return CellResult(
         name=name,
         scheduled=int(sched.rates.size),
         found=p.count,
         rates_ok=rates_ok,
-        ramp_samples_used=int(on_ramp.sum()),
+        ramp_samples_used=ramp_rows,
         held_out_rms_dps=rms,
         ideal_rms_dps=ideal_rms,
         used=p.n_used,
@@ -130,6 +123,23 @@ def score_cell(name: str, behaviour: TableBehaviour, *, seed: int = 0, dwell_s: 
         ref_noise_dps=p.ref_noise_dps,
         rate_tol_dps=p.rate_tol_dps,
     )
+
+
+def rows_on_rate_changes(p: Plateaus, sched: Schedule, ticks: np.ndarray, eps: float = 1e-9) -> int:
+    """How many used rows lie off the plateau they were given (on a rate change), by the truth.
+
+    ``ticks`` are the rows' true instants; a plateau spans [end of its rate change, start of
+    the next], both instants at its rate; ``eps`` is how far a recorded time may be off.
+    """
+    used = p.label >= 0
+    t = ticks[used]
+    if p.count == sched.rates.size:
+        j = p.label[used]
+        on_ramp = (t < sched.end[j] - eps) | (t > sched.stop[j] + eps)
+    else:  # match each used row to the plateau its tick lies on
+        k = np.searchsorted(sched.start, t - eps, side="right") - 1
+        on_ramp = t < sched.end[np.clip(k, 0, None)] - eps
+    return int(on_ramp.sum())
 
 
 SEEDS = (0, 1, 2, 3, 4)
@@ -152,8 +162,15 @@ def score_over_seeds(name: str, behaviour: TableBehaviour, ideal: dict[int, floa
 def pooled_ratio(results: list[CellResult]) -> float:
     """Held-out rms over all seeds' plateaus, relative to the same sensors on the ideal table.
 
-    One seed's held-out rms scatters by tens of percent with the noise draw and the model
-    size it leads to; pooled over seeds the comparison measures the table, not the draw.
+    Each seed's sensor has the same noise at the same instants of every plateau on both
+    tables (:mod:`canical.sim.paired_noise`), so one seed's ratio is a paired comparison
+    (ramps alone: 0.99-1.03 per seed, where unpaired draws scattered 0.5-1.8). What still
+    varies per seed: the table's own draw (a measured reference's jitter, which rows are
+    lost) and the segment points the fit places at extrema of the data: seed 4 on the ideal
+    table finds an extremum at -21 deg/s (5 segments, held-out 0.0052 deg/s) that a few rows
+    fewer leave below the prominence threshold (4 segments, 0.0109), a ratio of 2 that asking
+    for 5 segments does not remove (the points are found, not given). Pooled over seeds the
+    comparison measures the table, not those draws.
     """
     cell = np.sqrt(np.mean([r.held_out_rms_dps**2 for r in results]))
     ideal = np.sqrt(np.mean([r.ideal_rms_dps**2 for r in results]))

@@ -1,0 +1,66 @@
+"""The table grid through the bus flow: emulated IMU -> canical record -> canical calibrate.
+
+Every cell of the CSV grid (bench_table_grid.py) played by the emulated IMU on python-can's
+virtual bus, recorded to a candump log and calibrated from it, on a shorter programme than
+the CSV grid's (-60..60 deg/s in 3 deg/s steps and 8 s plateaus as there, but 50 samples/s; see
+canical.sim.table_grid_bus). Printed per cell and seed: plateaus found of scheduled, rows on a
+rate change that were used (the table's truth is known), raw frames recorded, the held-out
+rms and its ratio to the same sensor (same seed, same noise at the same plateau instants) on
+an ideal table through the same flow, then the ratio pooled over seeds. Also the same cell
+recorded straight to a session (no bus) on the same programme, for the bus's own cost.
+
+Run: python tests/benchmarks/bench_table_grid_bus.py [SEEDS, default 0,1]
+"""
+
+from __future__ import annotations
+
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from canical.sim.table_grid import GRID, IDEAL, held_out_rms
+from canical.sim.table_grid_bus import BUS_DWELL_S, BUS_FS_HZ, BUS_RATES, bus_cell, pooled_bus_ratio
+
+
+def main(seeds: tuple[int, ...]) -> None:
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench-grid-bus-") as tmp:
+        folder = Path(tmp)
+        ideal = {s: bus_cell("ideal steps", IDEAL, folder / f"ideal-{s}", seed=s) for s in seeds}
+        print("ideal table through the bus: held-out rms "
+              + ", ".join(f"seed {s} {r.held_out_rms_dps:.4f}" for s, r in ideal.items()) + " deg/s")
+        header = (f"{'cell':58s} {'plateaus':>9s} {'ramp rows':>9s} {'frames':>7s} {'held-out':>8s} "
+                  f"{'ratio':>5s}  {'per seed':12s} {'no-bus ratio':>12s}")
+        print(header)
+        print("-" * len(header))
+        for i, (name, behaviour) in enumerate(GRID):
+            results = [bus_cell(name, behaviour, folder / f"{i}-{s}", seed=s) for s in seeds]
+            found = {r.found for r in results}
+            found_text = "/".join(str(f) for f in sorted(found))
+            ok = all(r.rates_ok for r in results)
+            pooled = float(np.sqrt(np.mean([r.held_out_rms_dps**2 for r in results])))
+            per_seed = " ".join(f"{r.held_out_rms_dps / ideal[r.seed].held_out_rms_dps:4.2f}"
+                                for r in results)
+            no_bus = _no_bus_ratio(behaviour, seeds)
+            print(f"{name[:58]:58s} {found_text:>5s}/{results[0].scheduled:<2d}{'' if ok else '!':1s} "
+                  f"{sum(r.ramp_samples_used for r in results):9d} "
+                  f"{int(np.mean([r.frames for r in results])):7d} "
+                  f"{pooled:8.4f} {pooled_bus_ratio(results, ideal):5.2f}  {per_seed:12s} {no_bus:12.2f}",
+                  flush=True)
+    print(f"({time.perf_counter() - start:.0f} s)")
+
+
+def _no_bus_ratio(behaviour, seeds) -> float:
+    """The same cell as a session straight from the simulator (same rates and plateaus), pooled over seeds."""
+    rates = np.array(BUS_RATES)
+    kw = {"dwell_s": BUS_DWELL_S, "fs_hz": BUS_FS_HZ}
+    cell = [held_out_rms(behaviour, seed=s, rates=rates, **kw)[0] for s in seeds]
+    base = [held_out_rms(IDEAL, seed=s, rates=rates, **kw)[0] for s in seeds]
+    return float(np.sqrt(np.mean(np.square(cell)) / np.mean(np.square(base))))
+
+
+if __name__ == "__main__":
+    main(tuple(int(s) for s in sys.argv[1].split(",")) if len(sys.argv) > 1 else (0, 1))
