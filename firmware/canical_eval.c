@@ -1722,9 +1722,9 @@ int ce_fixed_eval(const ce_fixed *f, int32_t raw, int32_t *rate_q16)
         for (k = f->n_coeffs - 2; k >= 1; k--) {
             slope = shift_round(slope * t, 30) + (int64_t)k * c[k];
         }
-        dt = shift_round(t_full - t, 14); /* beyond the span, in 2^-16 of t, at most 4096 */
-        dt = dt > ((int64_t)1 << 28) ? (int64_t)1 << 28 : dt < -((int64_t)1 << 28) ? -((int64_t)1 << 28) : dt;
-        acc += shift_round(slope * dt, 16);
+        dt = shift_round(t_full - t, 10); /* beyond the span, in 2^-20 of t, at most 1024 half-widths */
+        dt = dt > ((int64_t)1 << 30) ? (int64_t)1 << 30 : dt < -((int64_t)1 << 30) ? -((int64_t)1 << 30) : dt;
+        acc += shift_round(slope * dt, 20); /* |product| < 2^60 */
     }
     if (acc > INT32_MAX) {
         acc = INT32_MAX;
