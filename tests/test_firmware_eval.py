@@ -850,6 +850,7 @@ def centred_calibrations(draw):
     is a smooth local curve (rate near R*u plus a few % of nonlinearity across the segment),
     written as canical writes it, in powers of u = dV / scale. Away from u = 0 that gives large
     alternating coefficients (hundreds to millions times the rate) that cancel in float32."""
+    import itertools
     from dataclasses import replace
     from math import comb
 
@@ -859,11 +860,11 @@ def centred_calibrations(draw):
     segments, order = draw(st.integers(3, 6)), draw(st.integers(4, 9))
     inner = sorted(draw(st.lists(st.floats(0.1, 0.9), min_size=segments - 1, max_size=segments - 1)))
     edges = [lo, *(lo + f * (hi - lo) for f in inner), hi]
-    if min(b - a for a, b in zip(edges, edges[1:], strict=False)) < 0.08 * (hi - lo):
+    if min(b - a for a, b in itertools.pairwise(edges)) < 0.08 * (hi - lo):
         edges = [lo + (hi - lo) * s / segments for s in range(segments + 1)]  # wide segments only
     rated = draw(st.floats(50.0, 300.0))  # deg/s at |u| = 1
     rows = []
-    for a, b in zip(edges, edges[1:], strict=False):
+    for a, b in itertools.pairwise(edges):
         mu, hu = 0.5 * (a + b) / scale, 0.5 * (b - a) / scale
         bends = [draw(st.sampled_from((-1, 1))) * draw(st.floats(0.005, 0.03)) for _ in range(order - 1)]
         q = [rated * mu, rated * hu, *(rated * b for b in bends)]
@@ -873,9 +874,9 @@ def centred_calibrations(draw):
             for j in range(k + 1):
                 p[j] += qk * comb(k, j) * (-mu) ** (k - j) / hu**k
         rows.append(p)
-    model = {"kind": "segmented-inverse", "knots_raw": [e + v0 for e in edges[1:-1]], "segment_points_dps": [],
-             "scale": scale, "coefficients": rows, "smoothness": None, "span_raw": [lo + v0, hi + v0],
-             "out_of_span": "linear-extrapolation"}  # fmt: skip
+    model = {"kind": "segmented-inverse", "knots_raw": [e + v0 for e in edges[1:-1]],
+             "segment_points_dps": [], "scale": scale, "coefficients": rows, "smoothness": None,
+             "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"}  # fmt: skip
     cset = replace(term_set(()), v0=v0, model=model, terms=())
     return coefficient_file.loads(coefficient_file.dumps(cset))
 
