@@ -715,7 +715,7 @@ typedef struct {
     int coeff_rows; /* -1: flat list, 0 none, >0 rows of a matrix */
     int coeff_width, have_coeffs;
     double flat[CE_MAX_COEFFS];
-    float matrix[CE_MAX_SEGMENTS][CE_MAX_COEFFS];
+    double matrix[CE_MAX_SEGMENTS][CE_MAX_COEFFS]; /* double until derive() re-centres them */
     int n_terms;
     const uint8_t *channel[CE_MAX_TERMS];
     uint32_t channel_n[CE_MAX_TERMS];
@@ -744,7 +744,7 @@ static int parse_coefficients(cur *c, reading *r)
                 if (number_value(c, &d)) {
                     return c->err;
                 }
-                r->matrix[r->coeff_rows][width++] = (float)d;
+                r->matrix[r->coeff_rows][width++] = d;
             }
             if (m < 0) {
                 return m;
@@ -1279,11 +1279,12 @@ int ce_eval(ce_set *s, const ce_sample *in, float *rate_dps)
         return oos;
     }
     {
+        /* the segment's polynomial about its centre: t = (dV - mid) / half-width, |t| <= 1 */
         const float *c = s->coeffs[seg];
-        float u = x * s->inv_scale;
-        float rate = horner(c, s->n_coeffs, u);
+        float t = (x - s->seg_mid[seg]) * s->seg_inv_half[seg];
+        float rate = horner(c, s->n_coeffs, t);
         if (oos) {
-            rate += horner_slope(c, s->n_coeffs, u) * s->inv_scale * (dv - x);
+            rate += horner_slope(c, s->n_coeffs, t) * s->seg_inv_half[seg] * (dv - x);
         }
         *rate_dps = rate;
     }
@@ -1402,8 +1403,9 @@ static void span_rates(const ce_set *s, const reading *r, float *low, float *hig
         a = forward_rate(s, t0, e0);
         b = forward_rate(s, t1, e1);
     } else {
-        a = horner(s->coeffs[0], s->n_coeffs, s->dv_lo * s->inv_scale);
-        b = horner(s->coeffs[s->n_segments - 1], s->n_coeffs, s->dv_hi * s->inv_scale);
+        int last = s->n_segments - 1;
+        a = horner(s->coeffs[0], s->n_coeffs, (s->dv_lo - s->seg_mid[0]) * s->seg_inv_half[0]);
+        b = horner(s->coeffs[last], s->n_coeffs, (s->dv_hi - s->seg_mid[last]) * s->seg_inv_half[last]);
     }
     *low = a < b ? a : b;
     *high = a < b ? b : a;
@@ -1444,6 +1446,49 @@ static int admit(ce_set *s, const reading *r, const ce_device *device)
     return CE_OK;
 }
 
+/* Segment `seg`'s polynomial p(u) = sum c[k] u^k, u = dV / scale, re-expressed about the
+ * segment [a, b] (dV) as q(t) = sum s->coeffs[seg][k] t^k, t = (dV - mid) / half: the same
+ * polynomial, but |t| <= 1 across the segment. Calibrated sets have large alternating c[k]
+ * over wide segments (|u| up to ~1); summed in float32 they cancel to errors far above the
+ * rate's own rounding, whereas the centred coefficients are about the size of the rate's
+ * variation over the segment. The Taylor shift runs in double on the float32 mid and 1/half
+ * actually stored, so the only per-sample error left is float32 rounding of small terms.
+ * Should a coefficient not fit a float (never for a set whose span is reached), the
+ * segment keeps the plain form (mid 0, half = scale), exactly as before this re-centring. */
+static void recentre(ce_set *s, int seg, const double *c, int n, double scale, double a, double b)
+{
+    double d[CE_MAX_COEFFS], mid, half, shift, power = 1.0;
+    float mid_f = (float)(0.5 * (a + b)), inv_half_f = (float)(2.0 / (b - a));
+    int j, k, fits = 1;
+    mid = (double)mid_f;
+    half = 1.0 / (double)inv_half_f;
+    shift = mid / scale; /* p(shift + v): repeated synthetic division, O(n^2), in place */
+    for (j = 0; j < n; j++) {
+        d[j] = c[j];
+    }
+    for (j = 0; j < n - 1; j++) {
+        for (k = n - 2; k >= j; k--) {
+            d[k] += shift * d[k + 1];
+        }
+    }
+    for (j = 0; j < n; j++) { /* v = (half / scale) t */
+        float f = (float)(d[j] * power);
+        fits = fits && f - f == 0.0f;
+        s->coeffs[seg][j] = f;
+        power *= half / scale;
+    }
+    if (fits && inv_half_f - inv_half_f == 0.0f && inv_half_f > 0.0f) {
+        s->seg_mid[seg] = mid_f;
+        s->seg_inv_half[seg] = inv_half_f;
+        return;
+    }
+    for (j = 0; j < n; j++) {
+        s->coeffs[seg][j] = (float)c[j];
+    }
+    s->seg_mid[seg] = 0.0f;
+    s->seg_inv_half[seg] = (float)(1.0 / scale);
+}
+
 /* The run-time form: float pairs in raw units for every decision, floats for the rest. */
 static int derive(ce_set *s, const reading *r)
 {
@@ -1475,17 +1520,18 @@ static int derive(ce_set *s, const reading *r)
         s->model = 0;
         s->n_segments = (uint8_t)r->coeff_rows;
         s->n_coeffs = (uint8_t)r->coeff_width;
+        s->inv_scale = (float)(1.0 / r->scale);
+        lo = r->span[0] - r->v0;
+        hi = r->span[1] - r->v0;
         for (i = 0; i < r->coeff_rows; i++) {
-            for (j = 0; j < r->coeff_width; j++) {
-                s->coeffs[i][j] = r->matrix[i][j];
-            }
+            /* the segment in dV: [span low or knot i-1, knot i or span high] (knots lie inside) */
+            double a = i == 0 ? lo : r->knots[i - 1] - r->v0;
+            double b = i == r->n_knots ? hi : r->knots[i] - r->v0;
+            recentre(s, i, r->matrix[i], r->coeff_width, r->scale, a, b);
         }
         for (i = 0; i < r->n_knots; i++) {
             split(r->knots[i], &s->knot_hi[i], &s->knot_lo[i]);
         }
-        s->inv_scale = (float)(1.0 / r->scale);
-        lo = r->span[0] - r->v0;
-        hi = r->span[1] - r->v0;
     }
     s->dv_lo = (float)lo;
     s->dv_hi = (float)hi;
@@ -1558,8 +1604,8 @@ static int32_t ceil_int(double d)
 
 int ce_fixed_from(ce_fixed *f, const ce_set *s)
 {
-    int i, j;
-    double scale, v0, lo, hi, mult, limit = 16384.0; /* |coefficient| < 2^14 deg/s keeps Q16 in int32 */
+    int i, j, last;
+    double v0, lo, hi, limit = 16384.0; /* |coefficient| < 2^14 deg/s keeps Q16 in int32 */
     if (f == NULL || s == NULL || !s->loaded) {
         return CE_ERR_ARG;
     }
@@ -1573,7 +1619,6 @@ int ce_fixed_from(ce_fixed *f, const ce_set *s)
     v0 = (double)s->v0_hi + (double)s->v0_lo;
     lo = (double)s->lo_hi + (double)s->lo_lo;
     hi = (double)s->hi_hi + (double)s->hi_lo;
-    scale = 1.0 / (double)s->inv_scale;
     if (!(lo > -2147483000.0 && hi < 2147483000.0)) {
         return CE_ERR_LIMIT;
     }
@@ -1583,24 +1628,24 @@ int ce_fixed_from(ce_fixed *f, const ce_set *s)
         f->knot[i] = ceil_int((double)s->knot_hi[i] + (double)s->knot_lo[i]);
     }
     f->v0_q16 = round_to_int(v0 * 65536.0);
-    /* u_q30 = dv_q16 * 2^14 / scale = (dv_q16 * mult) >> shift, mult < 2^31 */
-    f->u_shift = 0;
-    mult = 16384.0 / scale;
-    while (mult < 536870912.0 && f->u_shift < 60) {
-        mult *= 2.0;
-        f->u_shift++;
-    }
-    if (!(mult < 1073741824.0) || f->u_shift < 1) {
-        return CE_ERR_LIMIT; /* scale below 2^-15 counts */
-    }
-    f->u_mult = round_to_int(mult);
-    f->edge_lo_q30 = round_to_int((double)s->dv_lo / scale * 1073741824.0);
-    f->edge_hi_q30 = round_to_int((double)s->dv_hi / scale * 1073741824.0);
-    if (f->edge_lo_q30 < -2 * 1073741824LL || f->edge_hi_q30 > 2 * 1073741824LL) {
-        return CE_ERR_LIMIT; /* |u| < 2 inside the span: powers of u stay in range */
-    }
+    /* the float form's centred segments (see recentre): t = (dV - mid) / half, |t| <= 1 */
     for (i = 0; i < s->n_segments; i++) {
-        double bound = 0.0, power = 1.0; /* |polynomial| for |u| <= 2: Horner stays below 2^30 */
+        double half = 1.0 / (double)s->seg_inv_half[i], mid = (double)s->seg_mid[i];
+        double mult = 16384.0 / half; /* t_q30 = dv_q16 * 2^14 / half = (dv_q16 * mult) >> shift */
+        double bound = 0.0, power = 1.0; /* |polynomial| for |t| <= 2: Horner stays below 2^30 */
+        if (!(mid > -2147483000.0 / 65536.0 && mid < 2147483000.0 / 65536.0)) {
+            return CE_ERR_LIMIT;
+        }
+        f->mid_q16[i] = round_to_int(mid * 65536.0);
+        f->t_shift[i] = 0;
+        while (mult < 536870912.0 && f->t_shift[i] < 60) {
+            mult *= 2.0;
+            f->t_shift[i]++;
+        }
+        if (!(mult < 1073741824.0) || f->t_shift[i] < 1) {
+            return CE_ERR_LIMIT; /* a half-width below 2^-15 counts */
+        }
+        f->t_mult[i] = round_to_int(mult);
         for (j = 0; j < s->n_coeffs; j++) {
             bound += (s->coeffs[i][j] < 0.0f ? -(double)s->coeffs[i][j] : (double)s->coeffs[i][j]) * power;
             power *= 2.0;
@@ -1612,13 +1657,20 @@ int ce_fixed_from(ce_fixed *f, const ce_set *s)
             f->coeffs[i][j] = (int32_t)round_to_int((double)s->coeffs[i][j] * 65536.0);
         }
     }
+    last = s->n_segments - 1;
+    f->edge_lo_q30 = round_to_int(((double)s->dv_lo - (double)s->seg_mid[0]) * (double)s->seg_inv_half[0] * 1073741824.0);
+    f->edge_hi_q30 =
+        round_to_int(((double)s->dv_hi - (double)s->seg_mid[last]) * (double)s->seg_inv_half[last] * 1073741824.0);
+    if (f->edge_lo_q30 < -2 * 1073741824LL || f->edge_hi_q30 > 2 * 1073741824LL) {
+        return CE_ERR_LIMIT; /* |t| < 2 inside the span: powers of t stay in range */
+    }
     f->n_segments = s->n_segments;
     f->n_coeffs = s->n_coeffs;
     f->loaded = 1;
     return CE_OK;
 }
 
-/* v / 2^bits rounded, for |v| < 2^61, with an unsigned shift (a signed one is
+/* v / 2^bits rounded, for |v| < 2^62 - 2^(bits-1), with an unsigned shift (a signed one is
  * implementation-defined in C99) and no 64-bit division (a library call on a Cortex-M). */
 static int64_t shift_round(int64_t v, int bits)
 {
@@ -1626,47 +1678,53 @@ static int64_t shift_round(int64_t v, int bits)
     return (int64_t)(t >> bits) - ((int64_t)1 << (62 - bits));
 }
 
+/* v clamped to +-(2^32 - 1): 65536 counts in Q16, a 16-bit sensor's whole range. */
+static int64_t clamp32(int64_t v)
+{
+    const int64_t m = ((int64_t)1 << 32) - 1;
+    return v > m ? m : v < -m ? -m : v;
+}
+
 int ce_fixed_eval(const ce_fixed *f, int32_t raw, int32_t *rate_q16)
 {
     const int32_t *c;
-    int64_t dv_q16, u, u_full, acc, slope, du;
+    int64_t dv_q16, t, t_full, acc, slope, dt;
     int seg = 0, k, oos = 0;
     if (f == NULL || rate_q16 == NULL || !f->loaded) {
         return CE_ERR_ARG;
     }
-    dv_q16 = (int64_t)raw * 65536 - f->v0_q16;
-    if (dv_q16 > ((int64_t)1 << 32) - 1) {
-        dv_q16 = ((int64_t)1 << 32) - 1; /* |dV| < 65536 counts: a 16-bit sensor's whole range */
-    } else if (dv_q16 < -(((int64_t)1 << 32) - 1)) {
-        dv_q16 = -(((int64_t)1 << 32) - 1);
-    }
-    u_full = shift_round(dv_q16 * f->u_mult, f->u_shift);
+    dv_q16 = clamp32((int64_t)raw * 65536 - f->v0_q16);
     if (raw < f->lo) {
         oos = 1;
-        u = f->edge_lo_q30;
+        t = f->edge_lo_q30;
     } else if (raw > f->hi) {
         oos = 1;
-        u = f->edge_hi_q30;
+        t = f->edge_hi_q30;
         seg = f->n_segments - 1;
     } else {
-        u = u_full;
         while (seg + 1 < f->n_segments && raw >= f->knot[seg]) {
             seg++;
         }
     }
+    /* |dv - mid| < 2^32, t_mult < 2^30: the product stays below 2^62 */
+    t_full = shift_round(clamp32(dv_q16 - f->mid_q16[seg]) * f->t_mult[seg], f->t_shift[seg]);
+    if (!oos) {
+        t = t_full;
+    }
     c = f->coeffs[seg];
     acc = c[f->n_coeffs - 1];
     for (k = f->n_coeffs - 2; k >= 0; k--) {
-        acc = shift_round(acc * u, 30) + c[k];
+        acc = shift_round(acc * t, 30) + c[k];
     }
     if (oos && f->n_coeffs > 1) {
+        /* |slope| <= sum k |c_k| <= sum |c_k| 2^k < 2^14 deg/s (Q16: 2^30) */
         slope = (int64_t)(f->n_coeffs - 1) * c[f->n_coeffs - 1];
         for (k = f->n_coeffs - 2; k >= 1; k--) {
-            slope = shift_round(slope * u, 30) + (int64_t)k * c[k];
+            slope = shift_round(slope * t, 30) + (int64_t)k * c[k];
         }
-        du = shift_round(u_full - u, 10); /* beyond the span, in 2^-20 of u */
-        du = du > ((int64_t)1 << 26) ? (int64_t)1 << 26 : du < -((int64_t)1 << 26) ? -((int64_t)1 << 26) : du;
-        acc += shift_round(slope * du, 20);
+        dt = shift_round(t_full - t, 10); /* beyond the span, in 2^-20 of t, at most 1024 half-widths */
+        dt = dt > ((int64_t)1 << 30) ? (int64_t)1 << 30 : dt < -((int64_t)1 << 30) ? -((int64_t)1 << 30) : dt;
+        acc += shift_round(slope * dt, 20); /* |product| < 2^60 */
     }
     if (acc > INT32_MAX) {
         acc = INT32_MAX;

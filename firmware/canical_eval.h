@@ -114,7 +114,10 @@ typedef struct {
     float lo_hi, lo_lo, hi_hi, hi_lo;
     float dv_lo, dv_hi;     /* span edges in dV */
     float inv_scale;        /* piecewise: 1/scale; forward: 1/rate_scale */
+    /* piecewise: segment s's polynomial in t = (dV - seg_mid[s]) * seg_inv_half[s], |t| <= 1
+     * inside the segment; forward: the polynomial in u = rate * inv_scale */
     float coeffs[CE_MAX_SEGMENTS][CE_MAX_COEFFS];
+    float seg_mid[CE_MAX_SEGMENTS], seg_inv_half[CE_MAX_SEGMENTS];
     float w_lo, w_hi, chord_dv, chord_slope, newton_tol; /* forward polynomial */
     ce_term terms[CE_MAX_TERMS];
     uint32_t error_at;      /* byte offset where ce_load refused (for the log) */
@@ -150,10 +153,11 @@ typedef struct {
     int32_t lo, hi;                     /* raw inside the span: lo <= raw <= hi */
     int32_t knot[CE_MAX_SEGMENTS];      /* segment s + 1 starts at raw >= knot[s] */
     int64_t v0_q16;                     /* zero bias, counts * 2^16 */
-    int64_t edge_lo_q30, edge_hi_q30;   /* u at the span edges, 2^30 */
-    int64_t u_mult;                     /* u_q30 = (dv_q16 * u_mult) >> u_shift */
-    int32_t u_shift;
-    int32_t coeffs[CE_MAX_SEGMENTS][CE_MAX_COEFFS]; /* deg/s * 2^16 */
+    int64_t edge_lo_q30, edge_hi_q30;   /* t at the span edges (first, last segment), 2^30 */
+    int64_t mid_q16[CE_MAX_SEGMENTS];   /* segment centre, dV counts * 2^16 */
+    int64_t t_mult[CE_MAX_SEGMENTS];    /* t_q30 = ((dv_q16 - mid_q16) * t_mult) >> t_shift */
+    int32_t t_shift[CE_MAX_SEGMENTS];
+    int32_t coeffs[CE_MAX_SEGMENTS][CE_MAX_COEFFS]; /* in t, deg/s * 2^16 */
 } ce_fixed;
 
 /* CE_OK, or CE_ERR_MODEL_KIND (forward polynomial), CE_ERR_TERM_KIND (effect terms),

@@ -842,3 +842,66 @@ def test_fixed_point_form_refuses_what_it_cannot_run(lib):
     assert lib.lib.ce_fixed_from(fixed, with_terms._set) == CODES["CE_ERR_TERM_KIND"]
     out = ctypes.c_int32()
     assert lib.lib.ce_fixed_eval(fixed, 0, ctypes.byref(out)) == CODES["CE_ERR_ARG"]  # nothing loaded
+
+
+@st.composite
+def centred_calibrations(draw):
+    """Piecewise sets shaped like real calibrations of high order: each wide segment's polynomial
+    is a smooth local curve (rate near R*u plus a few % of nonlinearity across the segment),
+    written as canical writes it, in powers of u = dV / scale. Away from u = 0 that gives large
+    alternating coefficients (hundreds to millions times the rate) that cancel in float32."""
+    import itertools
+    from dataclasses import replace
+    from math import comb
+
+    v0 = draw(st.floats(-800.0, 800.0))
+    lo, hi = -draw(st.floats(8000.0, 32000.0)), draw(st.floats(8000.0, 32000.0))
+    scale = max(-lo, hi)
+    segments, order = draw(st.integers(3, 6)), draw(st.integers(4, 9))
+    inner = sorted(draw(st.lists(st.floats(0.1, 0.9), min_size=segments - 1, max_size=segments - 1)))
+    edges = [lo, *(lo + f * (hi - lo) for f in inner), hi]
+    if min(b - a for a, b in itertools.pairwise(edges)) < 0.08 * (hi - lo):
+        edges = [lo + (hi - lo) * s / segments for s in range(segments + 1)]  # wide segments only
+    rated = draw(st.floats(50.0, 300.0))  # deg/s at |u| = 1
+    rows = []
+    for a, b in itertools.pairwise(edges):
+        mu, hu = 0.5 * (a + b) / scale, 0.5 * (b - a) / scale
+        bends = [draw(st.sampled_from((-1, 1))) * draw(st.floats(0.005, 0.03)) for _ in range(order - 1)]
+        q = [rated * mu, rated * hu, *(rated * b for b in bends)]
+        # p(u) = q((u - mu) / hu): binomial re-expansion in powers of u, in double
+        p = [0.0] * (order + 1)
+        for k, qk in enumerate(q):
+            for j in range(k + 1):
+                p[j] += qk * comb(k, j) * (-mu) ** (k - j) / hu**k
+        rows.append(p)
+    model = {"kind": "segmented-inverse", "knots_raw": [e + v0 for e in edges[1:-1]],
+             "segment_points_dps": [], "scale": scale, "coefficients": rows, "smoothness": None,
+             "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"}  # fmt: skip
+    cset = replace(term_set(()), v0=v0, model=model, terms=())
+    return coefficient_file.loads(coefficient_file.dumps(cset))
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(cset=centred_calibrations(), seed=st.integers(0, 1000))
+def test_property_large_alternating_coefficients_hold_the_bound(lib_for_hypothesis, cset, seed):
+    """Wide segments with large alternating coefficients (as high-order calibrations produce):
+    the float32 rates stay within 1e-4 deg/s of canical's, and the fixed-point form accepts the
+    set and stays within 1e-3 deg/s (a tenth of the frame's LSB)."""
+    import ctypes
+
+    raw, inputs = stream(cset, 20_000, seed=seed)
+    expected, expected_oos = Corrector(cset).correct(raw, inputs)
+    fw = FirmwareCorrector(cset, lib=lib_for_hypothesis)
+    rate, oos = fw.correct(raw, inputs)
+    np.testing.assert_array_equal(oos, expected_oos)
+    inside = ~expected_oos
+    worst = float(np.max(np.abs(rate - expected)[inside]))
+    assert worst <= TOLERANCE_DPS, f"largest difference {worst:.2e} deg/s"
+    lib = lib_for_hypothesis.lib
+    fixed = ctypes.create_string_buffer(lib_for_hypothesis.fixed_size)
+    assert lib.ce_fixed_from(fixed, fw._set) == 0
+    out = ctypes.c_int32()
+    for r, e, o in zip(raw[::7].astype(np.int32).tolist(), expected[::7].tolist(), expected_oos[::7].tolist(),
+                       strict=True):  # fmt: skip
+        assert lib.ce_fixed_eval(fixed, r, ctypes.byref(out)) == o
+        assert abs(out.value / 65536.0 - e) < 1e-3

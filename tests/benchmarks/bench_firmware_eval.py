@@ -65,7 +65,7 @@ def operations(segments: int, coeffs: int, features: list[str], scale_terms: int
     """Piecewise model: (inside the span, beyond it) for one sample, worst segment."""
     base = 4 + 6  # dV and time in seconds; the two span decisions (two subtractions, a compare)
     terms = sum(TERM_OPS[f] + 2 for f in features) + scale_terms  # feature, then c*x (*dV) added
-    poly = 1 + 2 * (coeffs - 1)  # u, then Horner
+    poly = 2 + 2 * (coeffs - 1)  # t = (dV' - mid) * (1/half) of the segment, then Horner
     inside = base + terms + 2 + 3 * (segments - 1) + poly  # segment search: 3 per segment point
     beyond = base + terms + 1 + poly + 4 * coeffs - 2  # slope at the edge, linear extrapolation
     return inside, beyond
