@@ -454,7 +454,7 @@ def run_loop(
     s = pruned_all
     final_fit = fit_structure(blocks, s, duration_s)
     # Effect terms in the report carry the final joint coefficients of the terms that stayed.
-    final_terms = {(t.kind, t.channel, t.feature, t.form): t for t in final_fit.terms}
+    final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
     for eff in effects:  # a readable name with the final time constant: lag(temp_c, τ=140 s)
         lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "lag"]
         gated = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "gated"]
@@ -463,7 +463,7 @@ def run_loop(
         if gated and eff["name"] == gated_name(eff["channel"]):  # temp_c × (|rate| > 30 dps)
             eff["description"] = gated_name(eff["channel"], knee_dps(final_fit.poly, gated[0].threshold_raw))
     for eff in effects:
-        keys = [(t["kind"], t["channel"], t["feature"], t["form"]) for t in eff["terms"]]
+        keys = [(t["kind"], t["channel"], t["feature"], t["form"], t["reference"]) for t in eff["terms"]]
         eff["terms"] = [final_terms[k].to_dict() for k in keys if k in final_terms]
     effects = [e for e in effects if e["terms"]]
     base_s = Structure(spec, np.asarray(knots, dtype=float), scale, span)

@@ -198,8 +198,8 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
     values = blocks.samples.values[name]
     knees = knee_grid(blocks)
     gated = [Candidate(channel_feature_name("gated", name), "channel", name,
-                       _pair("channel", "gated", channel=name, reference=ref,
-                             threshold_raw=float(np.sqrt(knees[0] * knees[-1]))))] if knees.size else []
+                       _gated_terms(name, ref, float(np.ptp(values)), float(np.sqrt(knees[0] * knees[-1]))))
+             ] if knees.size else []
     tau_d = derivative_window(blocks, name)
     tau_lag = float(np.sqrt(lag_grid(duration_s)[0] * lag_grid(duration_s)[-1]))
     thr = direction_threshold(values)
@@ -212,6 +212,19 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
                   _pair("channel", "direction", channel=name, threshold_raw=thr)),
         *gated,
     ]
+
+
+def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple[Term, ...]:
+    """The gated level in bias and scale form, and a second scale term with another reference.
+
+    The level at which the effect vanishes is unknown (the session's mean is not it), and
+    unlike a plain level a wrong reference here leaves a hinge of the rate, which the rate
+    model cannot absorb. Two references span c·(v − r) for every r: the bias multiplied by
+    the hinge, in terms the set already carries.
+    """
+    return (*_pair("channel", "gated", channel=name, reference=ref, threshold_raw=knee_raw),
+            Term(kind="channel", feature="gated", form="scale", coefficient=0.0, channel=name,
+                 reference=ref - (spread or 1.0), threshold_raw=knee_raw))
 
 
 def knee_grid(blocks: Blocks) -> np.ndarray:
