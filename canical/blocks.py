@@ -11,6 +11,8 @@ Transforms of a channel that have state (its lag with a time constant still to
 be estimated, its smoothed derivative, the direction of its last change) are
 computed on the samples, in time order, as the run time would, and only then
 averaged per block: :class:`ChannelSamples` does that on demand and caches it.
+So is a channel gated by the rate (its level times a gate of the sample's own ΔV,
+which is not the gate of the block's mean ΔV near the knee).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 from canical.fit_points import FitPoints
 from canical.plateaus import Plateaus
 from canical.session import Session
-from canical.terms import Term, direction_state, lag_filter, slope_state
+from canical.terms import Term, direction_state, lag_filter, rate_gate, slope_state
 
 BLOCK_S = 2.0
 SLOPE_TAU_S = 0.5
@@ -42,6 +44,7 @@ class ChannelSamples:
     starts: np.ndarray
     stops: np.ndarray
     cache: dict[Any, np.ndarray] = field(default_factory=dict, compare=False)
+    dv: np.ndarray | None = None  # raw − V0 per sample, for rate-gated transforms
 
     def means(self, values: np.ndarray) -> np.ndarray:
         csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
@@ -55,6 +58,23 @@ class ChannelSamples:
                 self.cache.clear()
             self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
         return self.cache[key]
+
+    def gated_means(self, channel: str, reference: float, knee_raw: float) -> np.ndarray:
+        """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks)."""
+        if self.dv is None:
+            raise ValueError("these samples were kept without their raw output")
+        key = ("gated", channel, float(reference), float(knee_raw))
+        if key not in self.cache:
+            if len(self.cache) > 512:
+                self.cache.clear()
+            self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
+        return self.cache[key]
+
+    def abs_dv_means(self) -> np.ndarray:
+        """Block means of |ΔV| (all blocks): where a knee in the rate can lie."""
+        if ("abs_dv",) not in self.cache:
+            self.cache[("abs_dv",)] = self.means(np.abs(self.dv)) if self.dv is not None else np.zeros(0)
+        return self.cache[("abs_dv",)]
 
     def direction_means(self, channel: str, threshold: float) -> np.ndarray:
         """Block means of the sign of the channel's last change larger than ``threshold``."""
@@ -96,11 +116,13 @@ class Blocks:
         )
 
     def channel_feature(self, term: Term) -> np.ndarray:
-        """Block means of a stateful channel transform (lag, derivative, direction) for a term."""
+        """Block means of a channel transform computed on samples (lag, derivative, direction, gated)."""
         if self.samples is None:
             raise ValueError("these blocks were built without their samples")
         rows = slice(None) if self.rows is None else self.rows
         ch = term.channel or ""
+        if term.feature == "gated":
+            return self.samples.gated_means(ch, term.reference, term.threshold_raw or 1.0)[rows]
         if term.feature == "direction":
             return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
         y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
@@ -155,5 +177,5 @@ def make_blocks(
         direction=means(direction),
         direction_threshold_raw=direction_threshold_raw,
         slope=means(slope_state(raw, session.time_s, SLOPE_TAU_S)),
-        samples=ChannelSamples(session.time_s, dict(session.aux), starts, stops),
+        samples=ChannelSamples(session.time_s, dict(session.aux), starts, stops, dv=raw - v0),
     )

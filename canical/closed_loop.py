@@ -34,6 +34,7 @@ from canical.blocks import Blocks
 from canical.effect_candidates import (
     Candidate,
     build_candidates,
+    knee_grid,
     lag_grid,
     shift_columns,
     tau_grid,
@@ -47,7 +48,7 @@ from canical.model_fit import ModelSpec, fit_model
 from canical.model_selection import select_model
 from canical.models.segmented_inverse import fit_segmented_inverse
 from canical.piecewise import PiecewisePoly
-from canical.terms import Term
+from canical.terms import Term, gated_name
 
 MIN_GAIN = 0.10
 ALPHA = 1e-3
@@ -128,15 +129,18 @@ def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
 def _best_tau(
     blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None] = ("warmup", None)
 ) -> float:
-    """τ of one group of terms (the warm-up, or one channel's lag): the best of a log grid,
-    refined between its neighbours.
+    """τ of one group of terms (the warm-up, or one channel's lag), or a gated channel's knee:
+    the best of a log grid, refined between its neighbours.
 
     A τ off by a grid step leaves an exponential-shaped residual that a drift
     term would then "explain" (for a lag: a derivative term); refining removes
     that false second effect.
     """
     warmup = group[0] == "warmup"
-    grid = tau_grid(duration_s) if warmup else lag_grid(duration_s)
+    if group[0] == "gated":  # a knee in raw units, searched on the same footing as a lag's τ
+        grid = knee_grid(blocks)
+    else:
+        grid = tau_grid(duration_s) if warmup else lag_grid(duration_s)
     # A lag's τ is searched on the linearised fit (one Gauss-Newton step): its terms
     # are small next to full scale, and there may be one lag per channel to search.
     steps = GAUSS_NEWTON_STEPS if warmup else 1
@@ -450,13 +454,16 @@ def run_loop(
     s = pruned_all
     final_fit = fit_structure(blocks, s, duration_s)
     # Effect terms in the report carry the final joint coefficients of the terms that stayed.
-    final_terms = {(t.kind, t.channel, t.feature, t.form): t for t in final_fit.terms}
+    final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
     for eff in effects:  # a readable name with the final time constant: lag(temp_c, τ=140 s)
         lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "lag"]
+        gated = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "gated"]
         is_lag = lagged and eff["name"].startswith("lag(")
         eff["description"] = lagged[0].describe() if is_lag else eff["name"]
+        if gated and eff["name"] == gated_name(eff["channel"]):  # temp_c × (|rate| > 30 dps)
+            eff["description"] = gated_name(eff["channel"], knee_dps(final_fit.poly, gated[0].threshold_raw))
     for eff in effects:
-        keys = [(t["kind"], t["channel"], t["feature"], t["form"]) for t in eff["terms"]]
+        keys = [(t["kind"], t["channel"], t["feature"], t["form"], t["reference"]) for t in eff["terms"]]
         eff["terms"] = [final_terms[k].to_dict() for k in keys if k in final_terms]
     effects = [e for e in effects if e["terms"]]
     base_s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
@@ -528,9 +535,18 @@ def _confounded_with(
 
 
 def _nests(general: Candidate, simple: Candidate) -> bool:
-    """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0)."""
+    """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
+    and its rate-gated form at knee → 0)."""
+    generalises = general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
     return (general.kind == simple.kind == "channel" and general.channel == simple.channel
-            and general.name.startswith("lag(") and simple.name.startswith("channel:"))
+            and generalises and simple.name.startswith("channel:"))
+
+
+def knee_dps(poly: PiecewisePoly, knee_raw: float | None) -> float:
+    """A knee in raw units as a rate: the mean |ω| the model gives at ΔV = ±knee."""
+    k = float(knee_raw or 0.0)
+    w = poly.evaluate(np.array([-k, k]))[0]
+    return float(np.mean(np.abs(w)))
 
 
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:

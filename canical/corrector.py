@@ -5,8 +5,9 @@ computed here), then called per block of samples (``correct``) or per frame
 (``correct_one``). It never sees a reference rate: in the field there is none.
 
 Effect terms correct the raw output before the rate model (see
-:mod:`canical.terms`). A direction or slope term, and a channel's lag,
-derivative or direction term, has state, so one Corrector
+:mod:`canical.terms`). A gated term reads ΔV as well, without state. A
+direction or slope term, and a channel's lag, derivative or direction term, has
+state, so one Corrector
 serves one stream of samples in time order; ``correct`` on a block starts from
 a fresh state, exactly as ``correct_one`` does on a new Corrector, so the two
 agree sample for sample.
@@ -30,6 +31,7 @@ from canical.terms import (
     SlopeTracker,
     Term,
     feature_values,
+    gate_one,
     raw_shift,
     term_from_dict,
 )
@@ -63,7 +65,7 @@ class Corrector:
             raise CanicalError(f"the coefficient set needs input(s) {', '.join(missing)}")
         dv = raw - self.v0
         if self.terms:
-            features = np.column_stack([feature_values(t, inputs, raw) for t in self.terms])
+            features = np.column_stack([feature_values(t, inputs, raw, dv) for t in self.terms])
             dv = dv - raw_shift(self.terms, features, dv)
         return self.model.evaluate(dv)
 
@@ -82,7 +84,9 @@ class Corrector:
                 x = tracker.update(raw, float(inputs[TIME_INPUT]))  # type: ignore[index]
             else:
                 value = float(inputs[term.input_name])  # type: ignore[index]
-                if term.kind == "channel":
+                if term.feature == "gated":
+                    x = (value - term.reference) * gate_one(dv, term.threshold_raw)  # type: ignore[arg-type]
+                elif term.kind == "channel":
                     x = value - term.reference
                     if term.feature == "square":
                         x = x * x

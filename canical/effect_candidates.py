@@ -10,7 +10,10 @@ feels a channel other than directly:
 * ``lag(<ch>)`` — the channel seen through a first-order lag whose τ is
   estimated (the sensor feels the channel late);
 * ``sign d/dt <ch>`` — the direction of its last significant change, with a
-  threshold above its noise (hysteresis: heating vs cooling).
+  threshold above its noise (hysteresis: heating vs cooling);
+* ``<ch> × (|rate| > knee)`` — its level acting only beyond a knee in the
+  output, |ΔV| > k, with k estimated like a time constant (an effect that
+  switches on with rate: a drive loop near its limit).
 
 Time since power-on brings a warm-up 1 − exp(−t/τ) with τ estimated and a
 linear drift; the table brings the direction of approach (the raw signal's last
@@ -38,6 +41,11 @@ DIRECTION_MIN_SHARE = 0.02
 # derivative's spread (or the longest tried).
 DERIVATIVE_NOISE_SHARE = 0.1
 DERIVATIVE_WINDOWS_S = (2.0, 4.0, 8.0, 15.0, 30.0, 60.0)
+# Knees of a rate-gated effect worth trying: shares of the largest |ΔV| of the session
+# (below the lowest the gate is 1 nearly everywhere: the plain level; above the highest
+# too few plateaus lie beyond it to fit anything).
+KNEE_GRID_POINTS = 10
+KNEE_SHARES = (0.03, 0.8)
 
 
 @dataclass(frozen=True)
@@ -62,7 +70,7 @@ def feature(term: Term, blocks: Blocks) -> np.ndarray:
         return blocks.direction
     if term.feature == "slope":
         return blocks.slope
-    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
+    if term.kind == "channel" and (term.feature in STATEFUL_CHANNEL or term.feature == "gated"):
         return blocks.channel_feature(term)
     if term.kind == "time":
         t = blocks.time_s
@@ -188,6 +196,10 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
     if blocks.samples is None or name not in blocks.samples.values:
         return []
     values = blocks.samples.values[name]
+    knees = knee_grid(blocks)
+    gated = [Candidate(channel_feature_name("gated", name), "channel", name,
+                       _gated_terms(name, ref, float(np.ptp(values)), float(np.sqrt(knees[0] * knees[-1]))))
+             ] if knees.size else []
     tau_d = derivative_window(blocks, name)
     tau_lag = float(np.sqrt(lag_grid(duration_s)[0] * lag_grid(duration_s)[-1]))
     thr = direction_threshold(values)
@@ -198,7 +210,35 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
                   _pair("channel", "lag", channel=name, reference=ref, tau_s=tau_lag)),
         Candidate(channel_feature_name("direction", name), "channel", name,
                   _pair("channel", "direction", channel=name, threshold_raw=thr)),
+        *gated,
     ]
+
+
+def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple[Term, ...]:
+    """The gated level in bias and scale form, and a second scale term with another reference.
+
+    The level at which the effect vanishes is unknown (the session's mean is not it), and
+    unlike a plain level a wrong reference here leaves a hinge of the rate, which the rate
+    model cannot absorb. Two references span c·(v − r) for every r: the bias multiplied by
+    the hinge, in terms the set already carries.
+    """
+    return (*_pair("channel", "gated", channel=name, reference=ref, threshold_raw=knee_raw),
+            Term(kind="channel", feature="gated", form="scale", coefficient=0.0, channel=name,
+                 reference=ref - (spread or 1.0), threshold_raw=knee_raw))
+
+
+def knee_grid(blocks: Blocks) -> np.ndarray:
+    """Knees (raw units) of a rate-gated effect worth trying, from the whole session's blocks.
+
+    The same grid for every subset of blocks, so cross-validation folds share the
+    cached block means. Empty when the session has no rate to speak of.
+    """
+    if blocks.samples is None or blocks.samples.dv is None:
+        return np.zeros(0)
+    top = float(np.max(blocks.samples.abs_dv_means(), initial=0.0))
+    if not top > 0:
+        return np.zeros(0)
+    return np.geomspace(KNEE_SHARES[0] * top, KNEE_SHARES[1] * top, KNEE_GRID_POINTS)
 
 
 def lag_grid(session_duration_s: float) -> np.ndarray:
@@ -212,11 +252,12 @@ def tau_grid(session_duration_s: float) -> np.ndarray:
 
 
 def tau_groups(terms: tuple[Term, ...]) -> list[tuple[str, str | None]]:
-    """The time constants a fit estimates: one for the warm-up terms, one per lagged channel."""
+    """The nonlinear parameters a fit estimates: the warm-up's τ, each lagged channel's τ and
+    each rate-gated channel's knee."""
     groups: list[tuple[str, str | None]] = []
     for t in terms:
-        key = ("warmup", None) if t.feature == "warmup" else ("lag", t.channel)
-        if t.feature in ("warmup", "lag") and key not in groups:
+        key = ("warmup", None) if t.feature == "warmup" else (t.feature, t.channel)
+        if t.feature in ("warmup", "lag", "gated") and key not in groups:
             groups.append(key)
     return groups
 
@@ -227,7 +268,9 @@ def in_group(term: Term, group: tuple[str, str | None]) -> bool:
 
 def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] = ("warmup", None)
              ) -> tuple[Term, ...]:
-    return tuple(replace(t, tau_s=tau) if in_group(t, group) else t for t in terms)
+    """The group's parameter set to ``tau``: a time constant, or a gated group's knee (raw units)."""
+    key = "threshold_raw" if group[0] == "gated" else "tau_s"
+    return tuple(replace(t, **{key: tau}) if in_group(t, group) else t for t in terms)
 
 
 def uses_time(terms: tuple[Term, ...]) -> bool:

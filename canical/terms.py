@@ -20,6 +20,11 @@ coefficient means the output rises with temperature. Features:
   transient; for the first τ of a stream y is the mean of the samples so far),
   ``direction`` x = ±1, the sign of the last change of v larger than
   ``threshold_raw`` in the channel's own units (hysteresis: heating vs cooling);
+  and, stateless but reading the raw output too, ``gated`` x = (v − ref)·g with
+  g = max(|ΔV| − k, 0)/|ΔV| and the knee k = ``threshold_raw`` in raw units: an
+  effect that acts only beyond some rate (a drive loop near its limit). In scale
+  form c·x·ΔV = c·(v − ref)·sign(ΔV)·max(|ΔV| − k, 0), a hinge; in bias form a
+  bias that switches on with rate;
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
 * ``direction`` — how the rate got where it is. ``sign``: the direction of the last
@@ -44,7 +49,7 @@ import numpy as np
 
 TIME_INPUT = "time_s"
 FEATURES = {
-    "channel": ("offset", "square", "lag", "derivative", "direction"),
+    "channel": ("offset", "square", "lag", "derivative", "direction", "gated"),
     "time": ("warmup", "linear"),
     "direction": ("sign", "slope"),
 }
@@ -87,6 +92,8 @@ class Term:
 
     def describe(self) -> str:
         """A readable name for reports: ``d/dt temp_c``, ``lag(temp_c, τ=140 s)``."""
+        if self.kind == "channel" and self.feature == "gated":
+            return f"{self.channel} × (|ΔV| > {self.threshold_raw:.0f} counts)"
         if self.kind == "channel":
             return channel_feature_name(self.feature, self.channel or "?", self.tau_s)
         if self.kind == "time":
@@ -135,8 +142,8 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
         raise ValueError(f"{where}: channel must name an input")
     stateful = kind == "channel" and feature in STATEFUL_CHANNEL
     tau = number("tau_s", required=feature in ("warmup", "slope", "lag", "derivative"), positive=True)
-    threshold = number("threshold_raw", required=feature == "sign" or (stateful and feature == "direction"),
-                       positive=True)
+    threshold = number("threshold_raw", required=feature in ("sign", "gated")
+                       or (stateful and feature == "direction"), positive=True)
     return Term(
         kind=kind,
         feature=feature,
@@ -150,7 +157,9 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
 
 
 def channel_feature_name(feature: str, channel: str, tau_s: float | None = None) -> str:
-    """How a report names a channel transform."""
+    """How a report names a channel transform (a gated one: see :func:`gated_name`)."""
+    if feature == "gated":
+        return gated_name(channel)
     if feature == "offset":
         return f"channel:{channel}"
     if feature == "square":
@@ -162,8 +171,40 @@ def channel_feature_name(feature: str, channel: str, tau_s: float | None = None)
     return f"lag({channel}, τ={tau_s:.0f} s)" if tau_s else f"lag({channel})"
 
 
-def feature_values(term: Term, inputs: Mapping[str, np.ndarray], raw: np.ndarray) -> np.ndarray:
-    """The term's feature x for a block of samples in time order (fresh state)."""
+def gated_name(channel: str, knee_dps: float | None = None) -> str:
+    """``temp_c × (|rate| > 30 dps)``; without a knee, the candidate's name (knee to be estimated)."""
+    knee = "knee" if knee_dps is None else f"{knee_dps:.0f} dps"
+    return f"{channel} × (|rate| > {knee})"
+
+
+def rate_gate(dv: np.ndarray, knee_raw: float) -> np.ndarray:
+    """g = max(|ΔV| − k, 0)/|ΔV|: 0 up to the knee, rising towards 1 beyond it.
+
+    Times ΔV (the scale form) this is a hinge, sign(ΔV)·max(|ΔV| − k, 0): continuous
+    at the knee, so the knee can be estimated by a smooth search.
+    """
+    a = np.abs(np.asarray(dv, dtype=float))
+    return np.maximum(a - knee_raw, 0.0) / np.maximum(a, knee_raw)
+
+
+def gate_one(dv: float, knee_raw: float) -> float:
+    """:func:`rate_gate` for one sample, with the same operations in the same order."""
+    a = abs(dv)
+    return max(a - knee_raw, 0.0) / max(a, knee_raw)
+
+
+def feature_values(
+    term: Term, inputs: Mapping[str, np.ndarray], raw: np.ndarray, dv: np.ndarray | None = None
+) -> np.ndarray:
+    """The term's feature x for a block of samples in time order (fresh state).
+
+    ``dv`` (raw − V0) is needed by a gated term only.
+    """
+    if term.feature == "gated":
+        if dv is None:
+            raise ValueError("a gated term needs ΔV = raw − V0")
+        x = np.asarray(inputs[term.channel], dtype=float) - term.reference
+        return x * rate_gate(dv, term.threshold_raw or 1.0)
     if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
         values = np.asarray(inputs[term.channel], dtype=float)
         if term.feature == "direction":

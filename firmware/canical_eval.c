@@ -8,7 +8,8 @@
  * canical/terms.py) and the device's admission rules (canical/set_admission.py), except that it
  * does not prove a float spelling is the *shortest* round trip (it checks the form only).
  *
- * Adding a term kind: one row in TERM_SPECS and one case in term_feature().
+ * Adding a term kind: one row in TERM_SPECS and one case in term_feature() (which gets the
+ * sample's dv = raw - V0 for terms that read the output, as a rate-gated channel does).
  *
  * MIT licence, like the rest of canical.
  */
@@ -87,6 +88,9 @@ enum {
     CE_TERM_DIRECTION_SLOPE
 };
 
+/* A channel's level beyond a knee in |dv| (canical.terms "gated"): its own code, apart from the list. */
+enum { CE_TERM_CHANNEL_GATED = 64 };
+
 #define NEEDS_CHANNEL 1u
 #define NEEDS_TAU 2u
 #define NEEDS_THRESHOLD 4u
@@ -99,6 +103,7 @@ typedef struct {
 } term_spec;
 
 static const term_spec TERM_SPECS[] = {
+    {"channel", "gated", CE_TERM_CHANNEL_GATED, NEEDS_CHANNEL | NEEDS_THRESHOLD},
     {"channel", "offset", CE_TERM_CHANNEL_OFFSET, NEEDS_CHANNEL},
     {"channel", "square", CE_TERM_CHANNEL_SQUARE, NEEDS_CHANNEL},
     {"channel", "lag", CE_TERM_CHANNEL_LAG, NEEDS_CHANNEL | NEEDS_TAU},
@@ -1207,10 +1212,13 @@ static float channel_lag_gap(ce_term *t, float v, uint32_t now_ms)
     return (v - t->y) - t->y_err;
 }
 
-static float term_feature(ce_term *t, const ce_sample *in, float t_s)
+static float term_feature(ce_term *t, const ce_sample *in, float t_s, float dv)
 {
     float x;
     switch (t->feature) {
+    case CE_TERM_CHANNEL_GATED: /* (v - ref) * max(|dv| - knee, 0) / max(|dv|, knee) */
+        x = dv < 0.0f ? -dv : dv;
+        return x > t->threshold ? (in->inputs[t->input] - t->reference) * ((x - t->threshold) / x) : 0.0f;
     case CE_TERM_CHANNEL_OFFSET:
         return in->inputs[t->input] - t->reference;
     case CE_TERM_CHANNEL_SQUARE:
@@ -1256,7 +1264,7 @@ int ce_eval(ce_set *s, const ce_sample *in, float *rate_dps)
     t_s = (float)in->time_ms * 0.001f;
     for (i = 0; i < s->n_terms; i++) {
         ce_term *t = &s->terms[i];
-        float f = term_feature(t, in, t_s);
+        float f = term_feature(t, in, t_s, dv);
         shift += t->coefficient * (t->scale_form ? f * dv : f);
     }
     if (!at_or_above(raw, shift, s->lo_hi, s->lo_lo)) {

@@ -36,6 +36,15 @@ MODELS = {
 
 #: One term of every kind and feature; bias and scale forms alternate.
 TERMS = {
+    "channel-gated": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "gated",
+        "form": "scale",
+        "coefficient": 3e-4,
+        "reference": 25.0,
+        "threshold_raw": 6000.0,
+    },
     "channel-offset": {
         "kind": "channel",
         "channel": "temp_c",

@@ -227,3 +227,34 @@ def test_thermal_transient_set_corrects_sample_by_sample():
     used = detect_plateaus(session.time_s, session.ref_dps).label >= 0
     err = np.sqrt(np.mean((rate - session.ref_dps)[used] ** 2))
     assert err < np.sqrt(np.mean((plain - session.ref_dps)[used] ** 2))
+
+
+def test_rate_gated_effect_is_found_with_its_knee_and_applied_sample_by_sample():
+    """A temperature scale error acting only above 30 dps: the loop names the channel gated by the
+    rate with the knee it estimated, and the set (no state) gives the block path's numbers one sample
+    at a time, and beats the rate model alone."""
+    scenario = next(s for s in SCENARIOS if s.name.startswith("temperature scale error only above"))
+    session = scenario.session(seed=6, dwell_s=8.0)
+    result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
+    effects = result.report["effects"]
+    assert [e["name"] for e in effects] == ["temp_c × (|rate| > knee)"]
+    knee = float(effects[0]["description"].split("> ")[1].split(" dps")[0])
+    assert 25 <= knee <= 35, effects[0]["description"]
+    assert {t["feature"] for t in result.coefficients.terms} == {"gated"}
+    cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
+    assert Corrector(cset).required_inputs == ("temp_c",)
+    temp = session.aux["temp_c"]
+    rate, _ = Corrector(cset).correct(session.raw, {"temp_c": temp})
+    one = Corrector(cset)
+    scalar = [one.correct_one(session.raw[i], {"temp_c": temp[i]})[0] for i in range(0, len(temp), 7)]
+    np.testing.assert_array_equal(scalar, rate[::7])
+    plain, _ = Corrector(calibrate(session, CalibrateOptions(extend=False), sensor_id="S",
+                                   axis="z").coefficients).correct(session.raw)
+    label = detect_plateaus(session.time_s, session.ref_dps).label
+    used = label >= 0
+
+    def plateau_rms(r):  # the sample noise averages out over a plateau; the effect does not
+        sums, counts = np.bincount(label[used], (r - session.ref_dps)[used]), np.bincount(label[used])
+        return np.sqrt(np.mean((sums[counts > 0] / counts[counts > 0]) ** 2))
+
+    assert plateau_rms(rate) < plateau_rms(plain) / 3

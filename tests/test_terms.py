@@ -8,7 +8,15 @@ from hypothesis import strategies as st
 from canical.coefficients import CoefficientSet, piecewise_model_dict
 from canical.corrector import Corrector
 from canical.piecewise import PiecewisePoly
-from canical.terms import ChannelTracker, DirectionTracker, SlopeTracker, Term, lag_filter, term_from_dict
+from canical.terms import (
+    ChannelTracker,
+    DirectionTracker,
+    SlopeTracker,
+    Term,
+    feature_values,
+    lag_filter,
+    term_from_dict,
+)
 
 
 def test_direction_tracker_has_hysteresis():
@@ -68,6 +76,10 @@ def test_vectorised_lag_equals_the_tracker(seed, even, tau):
           "tau_s": -2.0}, "tau_s must be positive"),
         ({"kind": "channel", "feature": "direction", "form": "bias", "coefficient": 1.0, "channel": "t"},
          "threshold_raw"),
+        ({"kind": "channel", "feature": "gated", "form": "scale", "coefficient": 1.0, "channel": "t"},
+         "threshold_raw"),
+        ({"kind": "channel", "feature": "gated", "form": "scale", "coefficient": 1.0, "channel": "t",
+          "threshold_raw": 0.0}, "threshold_raw must be positive"),
     ],
 )
 def test_bad_terms_are_refused(term, message):
@@ -86,6 +98,10 @@ ALL_TERMS = (
     {"kind": "time", "feature": "linear", "form": "scale", "coefficient": 1e-5},
     {"kind": "direction", "feature": "sign", "form": "bias", "coefficient": 0.05, "threshold_raw": 400.0},
     {"kind": "direction", "feature": "slope", "form": "bias", "coefficient": 1e-5, "tau_s": 0.5},
+    {"kind": "channel", "channel": "temp_c", "feature": "gated", "form": "scale", "coefficient": 3e-4,
+     "reference": 25.0, "threshold_raw": 2000.0},
+    {"kind": "channel", "channel": "supply_v", "feature": "gated", "form": "bias", "coefficient": -40.0,
+     "reference": 5.0, "threshold_raw": 900.0},
     {"kind": "channel", "channel": "temp_c", "feature": "lag", "form": "bias", "coefficient": 0.02,
      "reference": 25.0, "tau_s": 140.0},
     {"kind": "channel", "channel": "temp_c", "feature": "derivative", "form": "scale", "coefficient": 3e-3,
@@ -141,3 +157,35 @@ def test_missing_input_is_named():
 
     with pytest.raises(CanicalError, match="supply_v"):
         Corrector(extended_set()).correct(np.zeros(3), {"temp_c": np.zeros(3), "time_s": np.zeros(3)})
+
+
+def test_gated_term_is_a_hinge_beyond_the_knee():
+    """Scale form: c·(v − ref)·sign(ΔV)·max(|ΔV| − k, 0) — nothing up to the knee, linear beyond."""
+    term = term_from_dict({"kind": "channel", "channel": "temp_c", "feature": "gated", "form": "scale",
+                           "coefficient": 1.0, "reference": 25.0, "threshold_raw": 1000.0})
+    dv = np.array([-3000.0, -1000.0, -10.0, 0.0, 999.0, 1000.0, 1500.0, 4000.0])
+    temp = np.full(dv.size, 27.0)
+    x = feature_values(term, {"temp_c": temp}, dv + 30.0, dv)
+    np.testing.assert_allclose(x * dv, 2.0 * np.sign(dv) * np.maximum(np.abs(dv) - 1000.0, 0.0))
+    assert term.describe() == "temp_c × (|ΔV| > 1000 counts)"
+    assert Corrector(CoefficientSet("S", "z", 30.0, extended_set().model, terms=(term.to_dict(),))
+                     ).required_inputs == ("temp_c",)  # stateless: no time needed
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(1.0, 20_000.0), st.sampled_from(["bias", "scale"]))
+def test_gated_block_and_per_sample_paths_are_identical(seed, knee, form):
+    """A gated term has no state: one sample at a time gives the block's numbers bit for bit."""
+    rng = np.random.default_rng(seed)
+    n = 300
+    raw = rng.normal(0, 8000, n).round()
+    raw[:5] = [30.0, 30.0 + knee, 30.0 - knee, 31.0, 29.0]  # at V0 and exactly at the knee
+    temp = rng.uniform(-20, 60, n)
+    term = {"kind": "channel", "channel": "temp_c", "feature": "gated", "form": form,
+            "coefficient": 3e-4 if form == "scale" else 2.0, "reference": 25.0, "threshold_raw": knee}
+    cset = CoefficientSet("S", "z", 30.0, extended_set().model, terms=(term,))
+    block, flags = Corrector(cset).correct(raw, {"temp_c": temp})
+    one = Corrector(cset)
+    pairs = [one.correct_one(raw[i], {"temp_c": temp[i]}) for i in range(n)]
+    np.testing.assert_array_equal([p[0] for p in pairs], block)
+    np.testing.assert_array_equal([p[1] for p in pairs], flags)
