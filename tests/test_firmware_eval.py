@@ -896,7 +896,12 @@ def test_property_large_alternating_coefficients_hold_the_bound(lib_for_hypothes
     np.testing.assert_array_equal(oos, expected_oos)
     inside = ~expected_oos
     worst = float(np.max(np.abs(rate - expected)[inside]))
-    assert worst <= TOLERANCE_DPS, f"largest difference {worst:.2e} deg/s"
+    # float32 keeps ~7 digits: an order-9 Horner sum in [-1, 1] is good to a few ulps of the rate,
+    # and at 300 deg/s one ulp is 3e-5 deg/s. So these synthetic sets (up to 300 deg/s, order 9)
+    # are held to 1e-4 deg/s or 16 ulps of the largest rate, whichever is larger; the sets canical
+    # writes are held to 1e-4 deg/s on a million samples each (the tests above).
+    ulp_bound = 16 * 2.0**-24 * float(np.max(np.abs(expected[inside])))
+    assert worst <= max(TOLERANCE_DPS, ulp_bound), f"largest difference {worst:.2e} deg/s"
     lib = lib_for_hypothesis.lib
     fixed = ctypes.create_string_buffer(lib_for_hypothesis.fixed_size)
     assert lib.ce_fixed_from(fixed, fw._set) == 0
