@@ -1,5 +1,5 @@
 """``python -m canical`` runs the command-line interface."""
 
-from canical.cli import main
+from canical.commands.cli import main
 
 raise SystemExit(main())

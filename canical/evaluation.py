@@ -12,15 +12,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from canical.calibration import CalibrateOptions, calibrate, fit_base
-from canical.closed_loop import Scorer, Structure, plateau_folds, reselect_size
-from canical.coefficients import CoefficientSet
-from canical.corrector import Corrector
-from canical.cross_validation import prediction_errors
-from canical.fit_points import FitPoints, fit_points
-from canical.plateaus import detect_plateaus, plateau_means
-from canical.session import Session
-from canical.terms import TIME_INPUT
+from canical.calibrate.cross_validation import prediction_errors
+from canical.calibrate.fit_points import FitPoints, fit_points
+from canical.calibrate.plateaus import detect_plateaus, plateau_means
+from canical.closed_loop.search import Scorer, Structure, plateau_folds, reselect_size
+from canical.pipeline import CalibrateOptions, calibrate, fit_base
+from canical.sessions.session import Session
+from canical.sets.coefficients import CoefficientSet
+from canical.sets.corrector import Corrector
+from canical.sets.terms import TIME_INPUT
 
 # The models the paper discusses, and ours: (label, options).
 PAPER_MODELS: tuple[tuple[str, CalibrateOptions], ...] = (

@@ -4,8 +4,8 @@
  * The bank content is canonical JSON (sorted keys, no white space, Python's shortest
  * round-trip float spelling, ASCII with \u escapes): the bytes the set's CRC32 covers. The
  * parser below reads exactly that grammar without recursion and without the heap; anything
- * else is refused. It checks everything canical's own loader checks (canical/coefficient_file.py,
- * canical/terms.py) and the device's admission rules (canical/set_admission.py), except that it
+ * else is refused. It checks everything canical's own loader checks (canical/sets/coefficient_file.py,
+ * canical/sets/terms.py) and the device's admission rules (canical/sets/admission.py), except that it
  * does not prove a float spelling is the *shortest* round trip (it checks the form only).
  *
  * Adding a term kind: one row in TERM_SPECS and one case in term_feature() (which gets the
@@ -79,7 +79,7 @@ uint32_t ce_crc32(const uint8_t *data, uint32_t length)
 enum {
     CE_TERM_CHANNEL_OFFSET = 1,
     CE_TERM_CHANNEL_SQUARE,
-    CE_TERM_CHANNEL_LAG,        /* stateful channel transforms (canical.terms.ChannelTracker) */
+    CE_TERM_CHANNEL_LAG,        /* stateful channel transforms (canical.sets.terms.ChannelTracker) */
     CE_TERM_CHANNEL_DERIVATIVE,
     CE_TERM_CHANNEL_DIRECTION,
     CE_TERM_TIME_WARMUP,
@@ -88,7 +88,7 @@ enum {
     CE_TERM_DIRECTION_SLOPE
 };
 
-/* A channel's level beyond a knee in |dv| (canical.terms "gated"): its own code, apart from the list. */
+/* A channel's level beyond a knee in |dv| (canical.sets.terms "gated"): its own code, apart from the list. */
 enum { CE_TERM_CHANNEL_GATED = 64 };
 
 #define NEEDS_CHANNEL 1u
@@ -1147,7 +1147,7 @@ static float forward_rate(const ce_set *s, float target, float dv)
     return w;
 }
 
-/* Hysteresis on v (canical.terms.DirectionTracker): +1/-1 after a move larger than the
+/* Hysteresis on v (canical.sets.terms.DirectionTracker): +1/-1 after a move larger than the
  * threshold from the last extreme, 0 before either. */
 static float hysteresis(ce_term *t, float v)
 {
@@ -1183,7 +1183,7 @@ static void pair_add(float *hi, float *lo, float d)
     *lo = l - (*hi - s);
 }
 
-/* v minus the first-order lag y of channel v (canical.terms.ChannelTracker): for the first tau
+/* v minus the first-order lag y of channel v (canical.sets.terms.ChannelTracker): for the first tau
  * of the stream y is the running mean of the samples, then y += (1 - exp(-dt/tau)) (v - y),
  * exact for any spacing; a sample whose time does not advance leaves y alone. y is a float
  * pair: with a long tau the steps are far below y's float32 resolution. */
@@ -1400,7 +1400,7 @@ static int check_fields(const reading *r)
     return CE_OK;
 }
 
-/* Lowest and highest rate at the span's edges, as canical.set_admission.span_rates. */
+/* Lowest and highest rate at the span's edges, as canical.sets.admission.span_rates. */
 static void span_rates(const ce_set *s, const reading *r, float *low, float *high)
 {
     float a, b;

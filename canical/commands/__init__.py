@@ -1,6 +1,6 @@
 """One module per ``canical`` command; each exposes ``register(subparsers)``.
 
-Only the command that runs is imported (see :mod:`canical.cli`): the others'
+Only the command that runs is imported (see :mod:`canical.commands.cli`): the others'
 dependencies (scipy, matplotlib, canopen) would make every start, and every
 ``canical push`` on a slow vehicle computer, pay for all of them.
 """

@@ -11,17 +11,17 @@ import argparse
 import io
 from typing import TYPE_CHECKING
 
-from canical.canlog_format import CANLOG_FORMATS
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 from canical.output_plan import output_plan
 from canical.progress import Progress
+from canical.sessions.canlog_format import CANLOG_FORMATS
 
 if TYPE_CHECKING:  # the rest is imported where used: `--help` needs none of it
     import numpy as np
 
-    from canical.corrector import Corrector
+    from canical.sets.corrector import Corrector
 
 CHUNK_ROWS = 100_000
 
@@ -46,10 +46,10 @@ def run(args: argparse.Namespace) -> int:
 def apply_set(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from canical import coefficient_file
-    from canical.canlog_format import is_canlog
-    from canical.corrector import Corrector
-    from canical.session_csv import read_table
+    from canical.sessions.canlog_format import is_canlog
+    from canical.sessions.csv_file import read_table
+    from canical.sets import coefficient_file
+    from canical.sets.corrector import Corrector
 
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
@@ -104,7 +104,7 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
 
     from canical.atomic_file import atomic_writer
     from canical.commands.canlog_args import canlog_source
-    from canical.session_canlog import TIME_INPUT, read_canlog
+    from canical.sessions.canlog import TIME_INPUT, read_canlog
 
     cset = corrector.cset
     source = canlog_source(args, args.input)

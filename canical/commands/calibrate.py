@@ -7,14 +7,14 @@ import json
 import sys
 from pathlib import Path
 
-from canical.canlog_format import CANLOG_FORMATS
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
 from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.report_markdown import written_model
+from canical.report.markdown import written_model
+from canical.sessions.canlog_format import CANLOG_FORMATS
 
 # The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
 # used, so that `--help` and argument errors answer at once.
@@ -149,11 +149,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def calibrate_session(args: argparse.Namespace) -> int:
-    from canical import coefficient_file
     from canical.atomic_file import write_text_atomic
-    from canical.calibration import CalibrateOptions, calibrate
-    from canical.canlog_format import is_canlog
-    from canical.session_csv import read_session
+    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.sessions.canlog_format import is_canlog
+    from canical.sessions.csv_file import read_session
+    from canical.sets import coefficient_file
 
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
@@ -209,10 +209,10 @@ def calibrate_session(args: argparse.Namespace) -> int:
 
 def write_report_dir(directory: Path, report: dict, loop) -> None:
     """report.json, report.md and the plots, side by side."""
-    from canical.allan_plot import write_allan_plot
     from canical.atomic_file import make_dirs, write_text_atomic
-    from canical.report_markdown import render
-    from canical.report_plots import write_plots
+    from canical.report.allan_plot import write_allan_plot
+    from canical.report.markdown import render
+    from canical.report.plots import write_plots
 
     make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
@@ -226,7 +226,7 @@ def write_report_dir(directory: Path, report: dict, loop) -> None:
 def read_canlog_session(args: argparse.Namespace, progress: Progress):
     """A turntable session recorded from the bus: raw frames of one axis, the table's rate held."""
     from canical.commands.canlog_args import canlog_source
-    from canical.session_canlog import default_inputs, read_canlog
+    from canical.sessions.canlog import default_inputs, read_canlog
 
     source = canlog_source(args, args.session)
     inputs = source.inputs if (source.inputs or source.from_config) else default_inputs(source.dbc)
@@ -296,7 +296,7 @@ def summary(report: dict) -> str:
             for t in allan["terms"].values())
         lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
     if "unexplained" in report:
-        from canical.unexplained import one_line
+        from canical.closed_loop.unexplained import one_line
 
         lines.append(one_line(report["unexplained"]))
     lines.append(f"wrote      {Path(report['coefficients'])}: {written_model(report)}")

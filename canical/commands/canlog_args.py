@@ -11,8 +11,8 @@ import argparse
 from dataclasses import dataclass
 from pathlib import Path
 
-from canical.canlog_format import CANLOG_FORMATS
 from canical.errors import CanicalError
+from canical.sessions.canlog_format import CANLOG_FORMATS
 
 
 @dataclass(frozen=True)
@@ -35,9 +35,9 @@ def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
 
 def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
     """Resolve the options; a log without a DBC is one actionable error line."""
-    from canical.canlog_format import DEFAULT_RAW_MESSAGE
-    from canical.daemon_config import load_config  # cantools: not for every command's --help
-    from canical.session_canlog import parse_signal_map
+    from canical.bus.daemon_config import load_config  # cantools: not for every command's --help
+    from canical.sessions.canlog import parse_signal_map
+    from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE
 
     inputs: dict[str, str] = {}
     raw_message = DEFAULT_RAW_MESSAGE

@@ -44,11 +44,11 @@ def demo(args: argparse.Namespace) -> int:
     """All parts; the files appear in ``--out`` together when the demo has succeeded."""
     import numpy as np
 
-    from canical import coefficient_file
-    from canical.calibration import CalibrateOptions, calibrate
     from canical.evaluation import compare_models, held_out_set_errors, validation_record
-    from canical.report_markdown import written_model
-    from canical.session_csv import format_session
+    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.report.markdown import written_model
+    from canical.sessions.csv_file import format_session
+    from canical.sets import coefficient_file
     from canical.sim.sessions import between_rates_session, constant_session, paper_session
 
     out = Path(args.out)
@@ -93,10 +93,10 @@ def demo(args: argparse.Namespace) -> int:
           f"alone reports {result.report['held_out']['rms_dps']:.4f} (whole table rates left out)")
     closed_loop_demo(out, args.seed)
 
-    # --- The IMU on a CAN bus (canical/demo_bus.py): emulated device, session recorded from the
+    # --- The IMU on a CAN bus (canical/commands/demo_bus.py): emulated device, session recorded from the
     # bus, calibration, download over CANopen SDO, live on-device correction checked against apply.
     if not args.no_bus:
-        from canical.demo_bus import BusDemoOptions, default_bus, run_bus_demo
+        from canical.commands.demo_bus import BusDemoOptions, default_bus, run_bus_demo
 
         interface, channel = default_bus()
         print(f"\n--- the IMU on a CAN bus ({interface} {channel}) ---")
@@ -106,10 +106,10 @@ def demo(args: argparse.Namespace) -> int:
 
 def closed_loop_demo(out: Path, seed: int) -> Path:
     """Part 2: an undeclared effect, found and corrected; returns the coefficient file written."""
-    from canical import coefficient_file
-    from canical.calibration import CalibrateOptions, calibrate
     from canical.commands.calibrate import write_report_dir
-    from canical.session_csv import format_session
+    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.sessions.csv_file import format_session
+    from canical.sets import coefficient_file
     from canical.sim.scenarios import SCENARIOS
 
     scenario = next(s for s in SCENARIOS if s.name.startswith("temperature bias + scale"))

@@ -15,8 +15,8 @@ import signal
 import sys
 from pathlib import Path
 
-from canical.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
 from canical.commands import COMMANDS
+from canical.device.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
 from canical.output_plan import check_dir, check_file
@@ -139,7 +139,7 @@ def stream_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
+    from canical.device.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
 
     if args.speed <= 0:
         raise CanicalError("--speed must be positive")

@@ -4,7 +4,7 @@
 
 The sets are checked as ``canical push`` checks them before writing (one per axis, one
 sensor whose id is a serial number, span covering the EDS's rated range); the DCF is
-written atomically. See :mod:`canical.dcf_export` for what the file holds and its limits.
+written atomically. See :mod:`canical.device.dcf_export` for what the file holds and its limits.
 """
 
 from __future__ import annotations
@@ -42,12 +42,12 @@ def export_dcf(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from canical.atomic_file import write_text_atomic
-    from canical.coefficient_file import set_crc
     from canical.commands.push import load_sets
-    from canical.dcf_export import bank_values, dcf_text
+    from canical.device.dcf_export import bank_values, dcf_text
     from canical.errors import CanicalError
     from canical.imu_dictionary import eds_path, imu_objects, object_dictionary, sensor_id_for_serial
-    from canical.set_admission import DeviceLimits, admission_problem
+    from canical.sets.admission import DeviceLimits, admission_problem
+    from canical.sets.coefficient_file import set_crc
 
     if not 1 <= args.node <= 127:
         raise CanicalError(f"--node {args.node}: a CANopen node id is 1..127")

@@ -1,6 +1,6 @@
 """``canical install-service``: install canical as a systemd service on this machine.
 
-See :mod:`canical.service_install` for why it goes under ``/opt/canical`` and ``/etc/canical``.
+See :mod:`canical.bus.service_install` for why it goes under ``/opt/canical`` and ``/etc/canical``.
 Idempotent (a second run says "nothing to do"); ``--dry-run`` prints what it would do.
 """
 
@@ -10,8 +10,8 @@ import argparse
 from pathlib import Path
 
 from canical import __version__
+from canical.bus.service_install import Layout, Request, install
 from canical.commands import COMMANDS
-from canical.service_install import Layout, Request, install
 
 
 def register(sub) -> None:

@@ -44,14 +44,14 @@ def run(args: argparse.Namespace) -> int:
 
 
 def characterise(args: argparse.Namespace) -> int:
-    from canical.canlog_format import is_canlog
-    from canical.noise_records import (
+    from canical.calibrate.noise_records import (
         describe,
         first_backwards,
         noise_analysis,
         sample_interval,
         uniform_records,
     )
+    from canical.sessions.canlog_format import is_canlog
 
     time_s, rate, where = _read_canlog(args) if is_canlog(args.record) else _read_csv(args)
     bad = first_backwards(time_s)
@@ -65,7 +65,7 @@ def characterise(args: argparse.Namespace) -> int:
         raise CanicalError(f"{args.record}: {analysis['skipped']}")
     text = json.dumps(analysis, indent=2) + "\n"
     if args.plot:
-        from canical.allan_plot import write_allan_plot
+        from canical.report.allan_plot import write_allan_plot
 
         write_allan_plot(analysis, args.plot, f"Allan deviation, {args.record}")
     if args.json:
@@ -78,7 +78,7 @@ def characterise(args: argparse.Namespace) -> int:
 
 def _read_csv(args: argparse.Namespace):
     """time_s and the rate of a CSV; rows are named by their line in the file."""
-    from canical.session_csv import TIME_COLUMN, read_table
+    from canical.sessions.csv_file import TIME_COLUMN, read_table
 
     if args.coefficients:
         corrector = _corrector(args.coefficients)
@@ -100,7 +100,7 @@ def _read_csv(args: argparse.Namespace):
 def _read_canlog(args: argparse.Namespace):
     """Frame times and the rate of the set's axis from a CAN log; rows are raw frames."""
     from canical.commands.canlog_args import canlog_source
-    from canical.session_canlog import TIME_INPUT, read_canlog
+    from canical.sessions.canlog import TIME_INPUT, read_canlog
 
     if not args.coefficients:
         raise CanicalError(f"{args.record}: a CAN log holds raw counts: give --coefficients SET.yaml")
@@ -120,7 +120,7 @@ def _read_canlog(args: argparse.Namespace):
 
 
 def _corrector(path: str):
-    from canical import coefficient_file
-    from canical.corrector import Corrector
+    from canical.sets import coefficient_file
+    from canical.sets.corrector import Corrector
 
     return Corrector(coefficient_file.load(path))

@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from canical.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
 from canical.commands import COMMANDS
 from canical.commands.push import add_node_arguments
+from canical.device.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
 from canical.output_plan import output_plan
@@ -45,9 +45,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def pull(args: argparse.Namespace, axes: tuple[str, ...]) -> int:
-    from canical import coefficient_file
-    from canical.coefficient_file import set_crc
-    from canical.sdo_download import ImuClient, pull_sets
+    from canical.device.sdo_download import ImuClient, pull_sets
+    from canical.sets import coefficient_file
+    from canical.sets.coefficient_file import set_crc
 
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)

@@ -2,7 +2,7 @@
 
 Each set goes to its axis's inactive bank, is read back and compared, then all
 are activated with one write and stored (0x1010). ``--dry-run`` prints what
-would be written and writes nothing. See :mod:`canical.sdo_download`.
+would be written and writes nothing. See :mod:`canical.device.sdo_download`.
 """
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
-from canical.can_network import (
+from canical.commands import COMMANDS
+from canical.device.can_network import (
     DEFAULT_SDO_TIMEOUT_S,
     add_bus_arguments,
     bus_options,
@@ -18,11 +19,10 @@ from canical.can_network import (
     quiet_canopen_logging,
     sdo_client_filters,
 )
-from canical.commands import COMMANDS
 from canical.errors import CanicalError
 
 if TYPE_CHECKING:  # canopen and the set files are imported where used: not for `--help`
-    from canical.coefficients import CoefficientSet
+    from canical.sets.coefficients import CoefficientSet
 
 
 def add_node_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,7 +42,7 @@ def register(sub) -> None:
 
 def load_sets(paths: list[str]) -> dict[str, tuple[str, CoefficientSet]]:
     """Sets by axis; two files for one axis, or sets of different sensors, are refused."""
-    from canical import coefficient_file
+    from canical.sets import coefficient_file
 
     sets: dict[str, tuple[str, CoefficientSet]] = {}
     for path in paths:
@@ -57,7 +57,7 @@ def load_sets(paths: list[str]) -> dict[str, tuple[str, CoefficientSet]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical.sdo_download import ImuClient, PushPlan, push_sets
+    from canical.device.sdo_download import ImuClient, PushPlan, push_sets
 
     sets = load_sets(args.coefficients)
     quiet_canopen_logging()

@@ -17,10 +17,10 @@ import signal
 import time
 from pathlib import Path
 
-from canical.canlog_format import CANLOG_FORMATS, CANLOG_SUFFIXES, log_format, require_log_support
 from canical.commands import COMMANDS
 from canical.errors import CanicalError
 from canical.output_plan import cannot_write, output_plan
+from canical.sessions.canlog_format import CANLOG_FORMATS, CANLOG_SUFFIXES, log_format, require_log_support
 
 # python-can and cantools are imported where used, so that `--help` answers at once.
 
@@ -40,9 +40,9 @@ def register(sub) -> None:
 
 def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
     """Interface, channel, DBC and the names of the messages to record."""
-    from canical.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF
-    from canical.daemon_config import load_config
-    from canical.frame_codec import load_dbc
+    from canical.bus.daemon_config import load_config
+    from canical.frames.codec import load_dbc
+    from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF
 
     interface, channel, dbc, names = args.interface, args.channel, args.dbc, [DEFAULT_RAW_MESSAGE]
     if args.config:
@@ -67,7 +67,7 @@ def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical.frame_codec import load_dbc
+    from canical.frames.codec import load_dbc
 
     out = Path(args.output)
     if log_format(out) not in CANLOG_SUFFIXES:

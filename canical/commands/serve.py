@@ -44,9 +44,9 @@ def setup_logging(verbose: bool) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical import active_sets
-    from canical.daemon import Daemon
-    from canical.daemon_config import load_config
+    from canical.bus import active_sets
+    from canical.bus.daemon import Daemon
+    from canical.bus.daemon_config import load_config
 
     config = load_config(args.config, channel=args.channel)
     if args.check:

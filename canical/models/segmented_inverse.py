@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import null_space
 
-from canical.piecewise import PiecewisePoly
+from canical.models.piecewise import PiecewisePoly
 
 
 @dataclass(frozen=True)

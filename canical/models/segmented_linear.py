@@ -14,7 +14,7 @@ import itertools
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.piecewise import PiecewisePoly
+from canical.models.piecewise import PiecewisePoly
 
 DEFAULT_BREAKPOINTS_DPS = (-10.0, 0.0, 10.0)
 

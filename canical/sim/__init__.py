@@ -1,10 +1,12 @@
 """A virtual rate table and MEMS gyro, producing sessions in canical's CSV format.
 
+Imports only :mod:`canical.sets` (effects are written as terms), :mod:`canical.sessions` and
+the ground floor; the grid trials that run calibration on it are :mod:`canical.trials`.
+
 * :mod:`canical.sim.rate_table` — table motion: plateaus with finite acceleration between them;
 * :mod:`canical.sim.table_recording` — the table as real equipment records it: acceleration- and
   jerk-limited rate changes, servo ringing, a commanded or measured reference, held, late or
   asynchronous, rows lost in bursts (``sweep_session(..., table=TableBehaviour(...))``);
-* :mod:`canical.sim.table_grid` — the grid of those behaviours and how calibration fares on each;
 * :mod:`canical.sim.gyro` — the sensor: scale factor, smooth asymmetric nonlinearity, bias,
   bandwidth, white noise, quantisation, saturation, and pluggable *effects* the calibrator is
   not told about (:class:`canical.sim.gyro.Effect`);

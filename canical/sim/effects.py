@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from canical.terms import DirectionTracker, lag_filter
+from canical.sets.terms import DirectionTracker, lag_filter
 
 
 @dataclass(frozen=True)

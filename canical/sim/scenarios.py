@@ -14,13 +14,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from canical.session import Session
+from canical.sessions.session import Session
+from canical.sets.terms import Term
 from canical.sim import effects as fx
 from canical.sim import environment as env
 from canical.sim.gyro import Effect, GyroModel
 from canical.sim.sessions import paper_rates, sweep_session
 from canical.sim.table_recording import TableBehaviour
-from canical.terms import Term
 
 
 @dataclass(frozen=True)

@@ -1,10 +1,10 @@
-"""Ready-made simulated sessions, as :class:`canical.session.Session` objects."""
+"""Ready-made simulated sessions, as :class:`canical.sessions.session.Session` objects."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from canical.session import Session
+from canical.sessions.session import Session
 from canical.sim.gyro import GyroModel
 from canical.sim.paired_noise import plateau_paired_noise
 from canical.sim.rate_table import constant_profile, step_profile

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from canical.calibration import CalibrateOptions
 from canical.evaluation import compare_models
+from canical.pipeline import CalibrateOptions
 from canical.sim.sessions import between_rates_session, paper_session
 
 VARIANTS = (

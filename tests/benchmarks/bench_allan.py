@@ -16,9 +16,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from allan_noise import flicker_rate, rate_random_walk, rrw_for_crossover, white_rate
+from support.allan_noise import flicker_rate, rate_random_walk, rrw_for_crossover, white_rate
 
-from canical.allan import allan_deviation, noise_terms
+from canical.calibrate.allan import allan_deviation, noise_terms
 
 
 def case_white(rng):

@@ -26,10 +26,10 @@ import can
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from daemon_fixtures import ALL_TERMS, imu_stream, write_config, write_sets
+from support.daemon_fixtures import ALL_TERMS, imu_stream, write_config, write_sets
 
-from canical.daemon import CAN_MTU, FRAME_HEAD, TIMEVAL, Daemon
-from canical.daemon_config import load_config
+from canical.bus.daemon import CAN_MTU, FRAME_HEAD, TIMEVAL, Daemon
+from canical.bus.daemon_config import load_config
 
 BUS_LIMIT_FPS = 8_900  # classic CAN, 1 Mbit/s, 8-byte data frames back to back
 

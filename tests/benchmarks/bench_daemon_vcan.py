@@ -159,7 +159,7 @@ class Subject:
             assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "ready"
             self.pid = self.proc.pid
             return self
-        from daemon_fixtures import ALL_TERMS, DaemonProcess, write_config, write_sets
+        from support.daemon_fixtures import ALL_TERMS, DaemonProcess, write_config, write_sets
 
         folder = Path(tempfile.mkdtemp(prefix=f"bench-{self.name}-"))
         write_sets(folder, terms=ALL_TERMS)
@@ -202,7 +202,7 @@ class Subject:
 
 
 def run(args: argparse.Namespace) -> None:
-    from daemon_fixtures import imu_stream
+    from support.daemon_fixtures import imu_stream
 
     rates = [float(r) for r in args.rates.split(",")]
     per_rate = {r: max(args.paced_frames, int(r * args.paced_seconds)) for r in rates}

@@ -27,11 +27,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from firmware_cases import MODELS, TERMS, model_set, stream, term_set
+from support.firmware_cases import MODELS, TERMS, model_set, stream, term_set
 
-from canical.corrector import Corrector
-from canical.firmware_eval import FirmwareCorrector
-from canical.terms import term_from_dict
+from canical.device.firmware_eval import FirmwareCorrector
+from canical.sets.corrector import Corrector
+from canical.sets.terms import term_from_dict
 
 FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"
 M4_FLAGS = ["-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-ffreestanding",

@@ -3,7 +3,7 @@ the start of a push until corrected frames carry the new set (on the device, and
 
 The emulated IMU runs as its own process on vcan0 (``canical emulate``, streaming raw frames at
 ``--rate`` with on-device correction on, so the bus carries a realistic load); this script pushes
-alternating three-axis sets N times with :func:`canical.sdo_download.push_sets` and prints, per
+alternating three-axis sets N times with :func:`canical.device.sdo_download.push_sets` and prints, per
 phase, the median and worst time. "Push to corrected" is measured from the moment the push
 starts to the first IMU_RATE frame tagged with the new sets (the device's TPDO3), and, with the
 daemon (``device:`` in its configuration), to the first CANICAL_RATE frame tagged with them after
@@ -48,15 +48,15 @@ def wait_ready(proc: subprocess.Popen[str], what: str, needle: str, timeout: flo
 def run(args: argparse.Namespace) -> None:
     import can
     import yaml
-    from imu_fixtures import SERIAL, imu_sets
+    from support.imu_fixtures import SERIAL, imu_sets
 
-    from canical import coefficient_file
-    from canical.bank_payload import encode_set
-    from canical.can_network import network_on, sdo_client_filters
-    from canical.coefficient_file import set_crc
+    from canical.device.bank_payload import encode_set
+    from canical.device.can_network import network_on, sdo_client_filters
+    from canical.device.sdo_download import ImuClient, push_sets
+    from canical.frames.imu_frames import ImuFrames, set_tag
     from canical.imu_dictionary import AXES
-    from canical.imu_frames import ImuFrames, set_tag
-    from canical.sdo_download import ImuClient, push_sets
+    from canical.sets import coefficient_file
+    from canical.sets.coefficient_file import set_crc
 
     work = Path(tempfile.mkdtemp(prefix="bench-imu-"))
     families = [imu_sets(0), imu_sets(1)]
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> None:
     try:
         wait_ready(emulator, "emulator", "ready")
         # The daemon, configured to take its sets from the device (files: family 1 as fallback).
-        from daemon_fixtures import write_config
+        from support.daemon_fixtures import write_config
 
         for axis, cset in families[1].items():
             coefficient_file.save(work / f"imu-{axis}.yaml", cset)

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from canical.calibration import CalibrateOptions, calibrate, fit_base
-from canical.cli import main as cli_main
-from canical.session_csv import format_session
+from canical.commands.cli import main as cli_main
+from canical.pipeline import CalibrateOptions, calibrate, fit_base
+from canical.sessions.csv_file import format_session
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, paper_session, sweep_session
 

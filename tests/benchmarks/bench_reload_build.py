@@ -16,12 +16,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from daemon_fixtures import ALL_TERMS, write_config, write_sets
+from support.daemon_fixtures import ALL_TERMS, write_config, write_sets
 
 from canical import yaml_text
-from canical.active_sets import load_axis
-from canical.daemon_config import load_config
-from canical.fast_corrector import compile_corrector
+from canical.bus.active_sets import load_axis
+from canical.bus.daemon_config import load_config
+from canical.sets.fast_corrector import compile_corrector
 
 
 def main(rounds: int = 15) -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from daemon_fixtures import ALL_TERMS, DaemonProcess, write_config, write_sets
+from support.daemon_fixtures import ALL_TERMS, DaemonProcess, write_config, write_sets
 
 
 def resident_kb(pid: int) -> int:

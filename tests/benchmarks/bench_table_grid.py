@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from canical.sim.table_grid import GRID, HARSH, ideal_rms, pooled_ratio, score_over_seeds
+from canical.trials.table_grid import GRID, HARSH, ideal_rms, pooled_ratio, score_over_seeds
 
 
 def main() -> None:

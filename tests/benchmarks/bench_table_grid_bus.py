@@ -3,7 +3,7 @@
 Every cell of the CSV grid (bench_table_grid.py) played by the emulated IMU on python-can's
 virtual bus, recorded to a candump log and calibrated from it, on a shorter programme than
 the CSV grid's (-60..60 deg/s in 3 deg/s steps and 8 s plateaus as there, but 50 samples/s; see
-canical.sim.table_grid_bus). Printed per cell and seed: plateaus found of scheduled, rows on a
+canical.trials.table_grid_bus). Printed per cell and seed: plateaus found of scheduled, rows on a
 rate change that were used (the table's truth is known), raw frames recorded, the held-out
 rms and its ratio to the same sensor (same seed, same noise at the same plateau instants) on
 an ideal table through the same flow, then the ratio pooled over seeds. Also the same cell
@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from canical.sim.table_grid import GRID, IDEAL, held_out_rms
-from canical.sim.table_grid_bus import BUS_DWELL_S, BUS_FS_HZ, BUS_RATES, bus_cell, pooled_bus_ratio
+from canical.trials.table_grid import GRID, IDEAL, held_out_rms
+from canical.trials.table_grid_bus import BUS_DWELL_S, BUS_FS_HZ, BUS_RATES, bus_cell, pooled_bus_ratio
 
 
 def main(seeds: tuple[int, ...]) -> None:

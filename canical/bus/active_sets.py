@@ -1,0 +1,228 @@
+"""The coefficient sets a daemon corrects with, as one immutable value that is replaced whole.
+
+Why a single value: the processing loop reads ``daemon.sets`` once per frame and uses only
+what it read, so a reload (build and validate everything, then one assignment) can never make
+a frame use half of an old set and half of a new one. An axis whose file did not change keeps
+its :class:`~canical.sets.corrector.Corrector` object, and with it the state of a direction term.
+
+A candidate set is validated completely before it can replace anything: the file's own checks
+(schema, CRC, every field), then that it is for this axis and sensor, that every run-time
+input it needs is mapped in the configuration, and that it evaluates to finite rates across
+its span. A set that fails is reported and the previous one stays in use.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from canical.bus.daemon_config import DaemonConfig
+from canical.errors import CanicalError
+from canical.sets import coefficient_file
+from canical.sets.coefficients import CoefficientSet
+from canical.sets.corrector import Corrector
+
+SOURCE_NONE = 0
+SOURCE_FILE = 1
+SOURCE_DEVICE = 2  # read from the IMU over CANopen SDO (config ``device``)
+
+FileStamp = tuple[int, int, int] | None
+
+
+@dataclass(frozen=True)
+class AxisSet:
+    """What one axis corrects with; ``corrector`` None means the axis goes out uncalibrated."""
+
+    axis: str
+    raw_signal: str
+    corrector: Corrector | None = None
+    set_id: int = 0
+    source: int = SOURCE_NONE
+    reloads: int = 0
+    path: Path | None = None
+    stamp: FileStamp = None  # the file as last looked at (loaded or refused), to notice changes
+
+    @property
+    def required_inputs(self) -> tuple[str, ...]:
+        return self.corrector.required_inputs if self.corrector is not None else ()
+
+
+@dataclass(frozen=True)
+class ActiveSets:
+    """The three axes in x, y, z order, and the identifier of the combination."""
+
+    axes: tuple[AxisSet, ...]
+    combined_id: int
+    tag: int  # low 4 bits of combined_id: sent in every corrected frame
+    inputs: tuple[str, ...]  # union of the inputs the sets need
+
+    @property
+    def complete(self) -> bool:
+        return all(a.corrector is not None for a in self.axes)
+
+    def describe(self) -> str:
+        return " ".join(f"{a.axis}={a.set_id:08x}" if a.corrector else f"{a.axis}=none" for a in self.axes)
+
+
+def file_stamp(path: Path | None) -> FileStamp:
+    """Identity of a file's current content as far as stat tells (None: absent)."""
+    if path is None:
+        return None
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+def files_changed(current: ActiveSets) -> bool:
+    """Whether any set file differs from when it was last looked at (a few ``stat`` calls)."""
+    return any(ax.path is not None and file_stamp(ax.path) != ax.stamp for ax in current.axes)
+
+
+def build(axes: tuple[AxisSet, ...]) -> ActiveSets:
+    """Combine per-axis sets into the value the loop reads."""
+    combined = zlib.crc32(struct.pack(">" + "I" * len(axes), *(a.set_id for a in axes))) & 0xFFFFFFFF
+    names = tuple(dict.fromkeys(n for a in axes for n in a.required_inputs))
+    return ActiveSets(axes=axes, combined_id=combined, tag=combined & 0xF, inputs=names)
+
+
+def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:
+    """Load and fully validate the set for ``axis``; any defect is one CanicalError line."""
+    return check_set(config, axis, coefficient_file.load(path), path)
+
+
+def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path | str) -> Corrector:
+    """Validate a loaded set for ``axis`` (from a file or the device) and build its corrector."""
+    if cset.axis != axis:
+        raise CanicalError(f"{path}: set is for axis {cset.axis}, configured for axis {axis}")
+    if config.sensor is not None and cset.sensor_id != config.sensor:
+        raise CanicalError(
+            f"{path}: set is for sensor {cset.sensor_id}, configured sensor is {config.sensor}"
+        )
+    corrector = Corrector(cset)
+    missing = [n for n in corrector.required_inputs if n not in config.inputs]
+    if missing:
+        raise CanicalError(
+            f"{path}: set needs input(s) {', '.join(missing)}, not mapped under 'inputs' in {config.path}"
+        )
+    lo, hi = cset.span_raw
+    probe = np.linspace(lo, hi, 33)
+    inputs = {n: np.ones_like(probe) for n in corrector.required_inputs}
+    try:
+        rate, _ = corrector.correct(probe, inputs)
+    except Exception as exc:  # a set that cannot be evaluated must not reach the loop
+        raise CanicalError(f"{path}: set cannot be evaluated ({exc})") from None
+    if not np.all(np.isfinite(rate)):
+        raise CanicalError(f"{path}: set gives non-finite rates inside its span")
+    corrector.reset()
+    return corrector
+
+
+def initial(config: DaemonConfig) -> tuple[ActiveSets, list[str]]:
+    """The sets at start; problems are returned as messages (the axis starts uncalibrated)."""
+    empty = tuple(AxisSet(a.axis, a.raw_signal, path=a.coefficients) for a in config.axes)
+    if config.device is not None:
+        return from_device(config, build(empty))
+    return reload(config, build(empty), force=True)
+
+
+def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, list[str]]:
+    """The IMU's own active sets (config ``device``), each validated like a file; files for the rest.
+
+    The sensor carries its calibration: an axis the device has a valid set for uses it
+    (``source`` 2); an axis it has none for, or every axis when the device does not answer,
+    falls back to the configured file. The file's stamp is recorded, so only a later change
+    of the file (an operator's act) replaces a set read from the device; SIGHUP reads the
+    device again. A set whose id is already running keeps its corrector (and its state).
+    """
+    from canical.device.can_network import open_network, sdo_client_filters
+    from canical.device.sdo_download import pull_active_sets
+
+    device = config.device
+    assert device is not None
+    where = f"device node 0x{device.node:02x}"
+    pulled: dict[str, CoefficientSet] = {}
+    messages: list[str] = []
+    try:
+        network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
+                               **config.bus_options)
+        try:
+            pulled = pull_active_sets(network, device.node, tuple(a.axis for a in current.axes),
+                                      device.timeout_s)
+        finally:
+            network.disconnect()
+    except CanicalError as exc:
+        messages.append(f"{where}: {exc}; using the coefficient files")
+    files, file_messages = reload(config, current, force=True)
+    axes = list(files.axes)
+    for i, ax in enumerate(axes):
+        cset = pulled.get(ax.axis)
+        if cset is None:
+            messages += [m for m in file_messages if m.startswith(f"axis {ax.axis}:")]
+            continue
+        try:
+            corrector = check_set(config, ax.axis, cset, where)
+        except CanicalError as exc:
+            messages.append(f"axis {ax.axis}: {exc}; using the coefficient file")
+            messages += [m for m in file_messages if m.startswith(f"axis {ax.axis}:")]
+            continue
+        old = current.axes[i]
+        if old.corrector is not None and old.set_id == corrector.set_id:
+            axes[i] = replace(old, source=SOURCE_DEVICE, stamp=file_stamp(ax.path))
+            continue
+        was = f"0x{old.set_id:08x}" if old.corrector else "none"
+        messages.append(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {where} replaces {was}")
+        axes[i] = replace(ax, corrector=corrector, set_id=corrector.set_id, source=SOURCE_DEVICE,
+                          reloads=old.reloads + (1 if old.corrector is not None else 0),
+                          stamp=file_stamp(ax.path))
+    return build(tuple(axes)), messages
+
+
+def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:
+    """New sets for the files that changed (all of them with ``force``), and what happened.
+
+    The result is either ``current`` itself (nothing changed) or a new value built from
+    fully validated sets; a file that fails validation leaves its axis as it was.
+    """
+    messages: list[str] = []
+    axes = list(current.axes)
+    changed = False
+    for i, ax in enumerate(axes):
+        if ax.path is None:
+            continue
+        stamp = file_stamp(ax.path)
+        if not force and stamp == ax.stamp:
+            continue
+        keep = "keeping set " + (f"0x{ax.set_id:08x}" if ax.corrector else "none")
+        try:
+            corrector = load_axis(config, ax.axis, ax.path)
+        except CanicalError as exc:
+            messages.append(f"axis {ax.axis}: {exc}; {keep}")
+            axes[i] = replace(ax, stamp=stamp)
+            changed = changed or stamp != ax.stamp
+            continue
+        if ax.corrector is not None and corrector.set_id == ax.set_id:
+            axes[i] = replace(ax, stamp=stamp)  # same content: keep the running corrector and its state
+            changed = changed or stamp != ax.stamp
+            continue
+        old = f"0x{ax.set_id:08x}" if ax.corrector else "none"
+        messages.append(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {ax.path} replaces {old}")
+        axes[i] = replace(
+            ax,
+            corrector=corrector,
+            set_id=corrector.set_id,
+            source=SOURCE_FILE,
+            reloads=ax.reloads + (1 if ax.corrector is not None else 0),
+            stamp=stamp,
+        )
+        changed = True
+    if not changed:
+        return current, messages
+    return build(tuple(axes)), messages
+

@@ -1,0 +1,117 @@
+"""Fit one model specification to plateau points: the single entry point the pipeline,
+cross-validation and the closed loop all use, so that each fits models the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from canical.calibrate.fit_points import FitPoints
+from canical.calibrate.segment_points import Extremum, choose_knots
+from canical.errors import CanicalError
+from canical.models import RateModel
+from canical.models.forward_poly import fit_forward_poly
+from canical.models.segmented_inverse import fit_segmented_inverse
+from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS, fit_segmented_linear
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """What to fit: the model kind and its size."""
+
+    kind: str = "segmented-inverse"
+    n_segments: int = 4
+    order: int = 2
+    smoothness: int | None = 0  # None: independent segments (the paper); 0: C0; 1: C1
+    breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS  # segmented-linear only
+
+    def describe(self) -> str:
+        if self.kind == "segmented-inverse":
+            join = {None: "free", 0: "C0", 1: "C1"}[self.smoothness]
+            return f"{self.kind} segments={self.n_segments} order={self.order} joins={join}"
+        if self.kind == "segmented-linear":
+            return f"{self.kind} points={list(self.breakpoints_dps)} deg/s"
+        return f"{self.kind} order={self.order}"
+
+
+@dataclass(frozen=True)
+class FittedModel:
+    """A run-time model plus what the fit decided on the way."""
+
+    model: RateModel
+    spec: ModelSpec
+    extrema: list[Extremum] = field(default_factory=list)
+
+
+SPAN_MARGIN_SIGMA = 4.0
+
+
+def dv_span(points: FitPoints) -> tuple[float, float]:
+    """The calibrated ΔV span: the extreme plateau means widened by their sample noise.
+
+    Single samples at the extreme table rates scatter around the plateau mean;
+    without the margin half of them would be flagged out of span although the
+    rate they measure was calibrated.
+    """
+    lo, hi = int(np.argmin(points.dv)), int(np.argmax(points.dv))
+    sample_sd = points.dv_sem * np.sqrt(points.weight)
+    return (
+        float(points.dv[lo] - SPAN_MARGIN_SIGMA * sample_sd[lo]),
+        float(points.dv[hi] + SPAN_MARGIN_SIGMA * sample_sd[hi]),
+    )
+
+
+def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
+    """Fit ``spec`` to the points (segment points chosen on the way, for the segmented-inverse model)."""
+    if len(points) < 2:
+        raise CanicalError("fewer than 2 plateaus: nothing to calibrate")
+    span = dv_span(points)
+    scale = max(abs(span[0]), abs(span[1])) or 1.0
+    if spec.kind == "forward-poly":
+        model = fit_forward_poly(points.rate, points.dv, points.weight, spec.order)
+        # Widen the rate bracket by the same sample-noise margin as the ΔV span.
+        lo, hi = model.rate_span
+        slope = abs(float(np.polyfit(points.rate, points.dv, 1)[0])) or 1.0
+        margin_lo = (model.span[0] - span[0]) / slope
+        margin_hi = (span[1] - model.span[1]) / slope
+        model = replace(model, rate_span=(lo - max(margin_lo, 0.0), hi + max(margin_hi, 0.0)))
+        return FittedModel(model, spec)
+    if spec.kind == "segmented-linear":
+        model = fit_segmented_linear(
+            points.dv, points.rate, points.weight, spec.breakpoints_dps, scale=scale, span=span
+        )
+        return FittedModel(model, spec)
+    if spec.kind != "segmented-inverse":
+        raise CanicalError(f"unknown model kind {spec.kind!r}")
+    n_rates = np.unique(points.by_rate().rate).size
+    if n_rates < spec.order + 1:
+        raise CanicalError(
+            f"{spec.describe()}: needs at least {spec.order + 1} plateau rates, the session has {n_rates}"
+        )
+
+    def fit_with(knots: np.ndarray):
+        return fit_segmented_inverse(
+            points.dv,
+            points.rate,
+            points.weight,
+            knots,
+            spec.order,
+            scale=scale,
+            span=span,
+            smoothness=spec.smoothness,
+        )
+
+    merged = points.by_rate()
+
+    def refit_residual(knots: np.ndarray) -> np.ndarray:
+        fit = fit_with(knots)
+        return merged.rate - fit.poly.evaluate(merged.dv)[0]
+
+    knots, extrema = choose_knots(
+        points, spec.n_segments, min_points=spec.order + 1, refit_residual=refit_residual
+    )
+    fit = fit_with(knots)
+    actual = replace(spec, n_segments=len(knots) + 1)
+    return FittedModel(fit.poly, actual, extrema)

@@ -1,0 +1,73 @@
+"""Records for the Allan deviation: stretches of evenly sampled rate at zero input.
+
+Why: the Allan deviation assumes one sample every 1/fs with none missing. A static record
+that lost rows, or the zero-rate plateaus of a turntable session (each 10–60 s, separated
+by the sweep), is cut into evenly sampled pieces, which :func:`canical.calibrate.allan.allan_deviation`
+pools per cluster size; no sample is interpolated and no gap is averaged across.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+GAP_FACTOR = 1.5  # a step longer than this many sample intervals is a gap (rows lost)
+MIN_RECORD = 6  # samples: three independent clusters of two
+
+
+def first_backwards(time_s: np.ndarray) -> int | None:
+    """Index of the first sample whose time is earlier than the one before, if any."""
+    bad = np.flatnonzero(np.diff(time_s) < 0)
+    return int(bad[0]) + 1 if bad.size else None
+
+
+def sample_interval(time_s: np.ndarray) -> float:
+    """The nominal interval: the median step (lost rows and jitter do not move it)."""
+    steps = np.diff(time_s)
+    steps = steps[steps > 0]
+    return float(np.median(steps)) if steps.size else 0.0
+
+
+def uniform_records(time_s: np.ndarray, rate: np.ndarray, dt: float) -> list[np.ndarray]:
+    """The rate cut wherever a step exceeds ``GAP_FACTOR``·dt; pieces too short are dropped."""
+    cuts = np.flatnonzero(np.diff(time_s) > GAP_FACTOR * dt) + 1
+    return [piece for piece in np.split(np.asarray(rate, dtype=float), cuts) if piece.size >= MIN_RECORD]
+
+
+def zero_rate_records(
+    time_s: np.ndarray, rate: np.ndarray, start: np.ndarray, stop: np.ndarray, dt: float
+) -> list[np.ndarray]:
+    """The used samples of each zero-rate plateau (``start``/``stop`` index ranges), cut at gaps."""
+    out: list[np.ndarray] = []
+    for a, b in zip(start, stop, strict=True):
+        out += uniform_records(time_s[a:b], rate[a:b], dt)
+    return out
+
+
+def noise_analysis(records: list[np.ndarray], dt: float, source: str) -> dict[str, Any]:
+    """The Allan analysis of the records as report data, or why there is none."""
+    from canical.calibrate.allan import allan_deviation, analysis_dict, noise_terms
+
+    if dt <= 0 or not records:
+        return {"source": source, "skipped": f"no evenly sampled stretch of at least {MIN_RECORD} samples"}
+    curve = allan_deviation(records, 1.0 / dt)
+    return {"source": source, **analysis_dict(curve, noise_terms(curve))}
+
+
+def describe(analysis: dict[str, Any]) -> list[str]:
+    """Lines for a terminal or a report: the τ range and each term, resolved or not."""
+    if "skipped" in analysis:
+        return [f"noise analysis skipped: {analysis['skipped']}"]
+    lo, hi = analysis["tau_range_s"]
+    lines = [f"{analysis['source']}: {analysis['records']} record(s), {analysis['duration_s']:.1f} s at "
+             f"{analysis['sample_rate_hz']:.4g} Hz; tau {lo:.3g} to {hi:.3g} s"]
+    for t in analysis["terms"].values():
+        if t["resolved"]:
+            low, high = t["interval"]
+            lines.append(f"{t['name']:<18} {t['value']:.4g} {t['unit']} [{low:.3g}, {high:.3g}] "
+                         f"(tau {t['tau_s']:.3g} s, {t['clusters']} clusters)")
+        else:
+            bound = f"at most {t['upper_bound']:.3g} {t['unit']}"
+            lines.append(f"{t['name']:<18} not resolved: {t['note']} ({bound})")
+    return lines

@@ -1,0 +1,8 @@
+"""Closing the loop: find what the rate model lacks, and say what stays unexplained.
+
+:mod:`.blocks` cuts a session into held-out blocks, :mod:`.candidates` builds candidate
+variables from the session's channels (levels, derivatives, lags, hysteresis, rate-gated),
+:mod:`.search` adds effects that win on held-out data and reports confounds, and
+:mod:`.unexplained` compares what remains with the session's noise floor. Imports
+:mod:`canical.calibrate`, :mod:`canical.sets`, :mod:`canical.sessions`, :mod:`canical.models`.
+"""

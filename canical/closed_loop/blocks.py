@@ -1,0 +1,181 @@
+"""Sub-plateau blocks: the points the closed loop fits, with the conditions of each.
+
+Plateau means hide what changes within a plateau (a warm-up, a temperature
+drifting while the table turns). The closed loop therefore cuts each plateau into
+blocks of a few seconds and keeps, per block, the mean ΔV, the table rate, the
+mean of every auxiliary channel, the mean time since power-on and the direction
+state the run time would compute from the raw signal. Blocks of one plateau
+share its ``plateau`` index, so cross-validation can leave whole plateaus out.
+
+Transforms of a channel that have state (its lag with a time constant still to
+be estimated, its smoothed derivative, the direction of its last change) are
+computed on the samples, in time order, as the run time would, and only then
+averaged per block: :class:`ChannelSamples` does that on demand and caches it.
+So is a channel gated by the rate (its level times a gate of the sample's own ΔV,
+which is not the gate of the block's mean ΔV near the knee).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from canical.calibrate.fit_points import FitPoints
+from canical.calibrate.plateaus import Plateaus
+from canical.sessions.session import Session
+from canical.sets.terms import Term, direction_state, lag_filter, rate_gate, slope_state
+
+BLOCK_S = 2.0
+SLOPE_TAU_S = 0.5
+
+
+@dataclass(frozen=True)
+class ChannelSamples:
+    """Auxiliary channels sample by sample, and the sample range of every block.
+
+    Block means of a channel's stateful transforms are computed once per
+    (channel, transform, τ or threshold) and shared by every subset of blocks.
+    """
+
+    time_s: np.ndarray
+    values: dict[str, np.ndarray]
+    starts: np.ndarray
+    stops: np.ndarray
+    cache: dict[Any, np.ndarray] = field(default_factory=dict, compare=False)
+    dv: np.ndarray | None = None  # raw − V0 per sample, for rate-gated transforms
+
+    def means(self, values: np.ndarray) -> np.ndarray:
+        csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
+        return (csum[self.stops] - csum[self.starts]) / (self.stops - self.starts)
+
+    def lag_means(self, channel: str, tau_s: float) -> np.ndarray:
+        """Block means of the channel's lag y with time constant τ (all blocks)."""
+        key = ("lag", channel, float(tau_s))
+        if key not in self.cache:
+            if len(self.cache) > 512:  # τ searches visit many values; keep memory bounded
+                self.cache.clear()
+            self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
+        return self.cache[key]
+
+    def gated_means(self, channel: str, reference: float, knee_raw: float) -> np.ndarray:
+        """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks)."""
+        if self.dv is None:
+            raise ValueError("these samples were kept without their raw output")
+        key = ("gated", channel, float(reference), float(knee_raw))
+        if key not in self.cache:
+            if len(self.cache) > 512:
+                self.cache.clear()
+            self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
+        return self.cache[key]
+
+    def abs_dv_means(self) -> np.ndarray:
+        """Block means of |ΔV| (all blocks): where a knee in the rate can lie."""
+        if ("abs_dv",) not in self.cache:
+            self.cache[("abs_dv",)] = self.means(np.abs(self.dv)) if self.dv is not None else np.zeros(0)
+        return self.cache[("abs_dv",)]
+
+    def direction_means(self, channel: str, threshold: float) -> np.ndarray:
+        """Block means of the sign of the channel's last change larger than ``threshold``."""
+        key = ("direction", channel, float(threshold))
+        if key not in self.cache:
+            self.cache[key] = self.means(direction_state(self.values[channel], threshold))
+        return self.cache[key]
+
+
+@dataclass(frozen=True)
+class Blocks:
+    """Block means; ``points`` are what a rate model is fitted to."""
+
+    points: FitPoints
+    plateau: np.ndarray  # plateau index of each block
+    time_s: np.ndarray
+    aux: dict[str, np.ndarray]
+    direction: np.ndarray  # mean run-time direction state in the block
+    direction_threshold_raw: float
+    slope: np.ndarray  # mean run-time rate of change of raw (raw units/s) in the block
+    samples: ChannelSamples | None = None  # for stateful channel transforms
+    rows: np.ndarray | None = None  # these blocks' positions among the samples' blocks
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    def take(self, index: np.ndarray) -> Blocks:
+        rows = np.arange(len(self)) if self.rows is None else self.rows
+        return Blocks(
+            self.points.take(index),
+            self.plateau[index],
+            self.time_s[index],
+            {k: v[index] for k, v in self.aux.items()},
+            self.direction[index],
+            self.direction_threshold_raw,
+            self.slope[index],
+            self.samples,
+            rows[index],
+        )
+
+    def channel_feature(self, term: Term) -> np.ndarray:
+        """Block means of a channel transform computed on samples (lag, derivative, direction, gated)."""
+        if self.samples is None:
+            raise ValueError("these blocks were built without their samples")
+        rows = slice(None) if self.rows is None else self.rows
+        ch = term.channel or ""
+        if term.feature == "gated":
+            return self.samples.gated_means(ch, term.reference, term.threshold_raw or 1.0)[rows]
+        if term.feature == "direction":
+            return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
+        y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
+        if term.feature == "lag":
+            return y - term.reference
+        return (self.aux[ch] - y) / (term.tau_s or 1.0)
+
+
+def _block_bounds(plateaus: Plateaus, time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, ...]:
+    starts, stops, owner = [], [], []
+    for p, (a, b) in enumerate(zip(plateaus.start, plateaus.stop, strict=True)):
+        duration = time_s[b - 1] - time_s[a]
+        n = max(1, int(duration // block_s))
+        edges = np.linspace(a, b, n + 1).round().astype(int)
+        starts.extend(edges[:-1])
+        stops.extend(edges[1:])
+        owner.extend([p] * n)
+    return np.array(starts), np.array(stops), np.array(owner)
+
+
+def make_blocks(
+    session: Session,
+    plateaus: Plateaus,
+    v0: float,
+    *,
+    keep: np.ndarray | None = None,
+    block_s: float = BLOCK_S,
+    direction_threshold_raw: float,
+) -> Blocks:
+    """Cut the used plateaus (``keep`` masks plateaus, e.g. unsaturated ones) into blocks."""
+    starts, stops, owner = _block_bounds(plateaus, session.time_s, block_s)
+    if keep is not None:
+        sel = keep[owner]
+        starts, stops, owner = starts[sel], stops[sel], owner[sel]
+    n = (stops - starts).astype(float)
+
+    def means(values: np.ndarray) -> np.ndarray:
+        csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
+        return (csum[stops] - csum[starts]) / n
+
+    raw = session.raw
+    mean_raw = means(raw)
+    sd = np.sqrt(np.maximum(means(raw * raw) - mean_raw**2, 0.0) * n / np.maximum(n - 1, 1))
+    rate = session.ref_dps
+    points = FitPoints(means(rate), mean_raw - v0, n, sd / np.sqrt(n))
+    direction = direction_state(raw, direction_threshold_raw)
+    return Blocks(
+        points=points,
+        plateau=owner,
+        time_s=means(session.time_s),
+        aux={name: means(values) for name, values in session.aux.items()},
+        direction=means(direction),
+        direction_threshold_raw=direction_threshold_raw,
+        slope=means(slope_state(raw, session.time_s, SLOPE_TAU_S)),
+        samples=ChannelSamples(session.time_s, dict(session.aux), starts, stops, dv=raw - v0),
+    )

@@ -1,0 +1,277 @@
+"""Candidate explanations of a residual, built from the session itself.
+
+Every auxiliary column is a source of candidates by its name (its meaning is
+never assumed), in the forms a calibration engineer would try when a sensor
+feels a channel other than directly:
+
+* ``channel:<ch>`` — its level (and its square);
+* ``d/dt <ch>`` — its rate of change, smoothed over a window chosen from the
+  channel's own noise (a thermal transient: the die heats before the sensor reads);
+* ``lag(<ch>)`` — the channel seen through a first-order lag whose τ is
+  estimated (the sensor feels the channel late);
+* ``sign d/dt <ch>`` — the direction of its last significant change, with a
+  threshold above its noise (hysteresis: heating vs cooling);
+* ``<ch> × (|rate| > knee)`` — its level acting only beyond a knee in the
+  output, |ΔV| > k, with k estimated like a time constant (an effect that
+  switches on with rate: a drive loop near its limit).
+
+Time since power-on brings a warm-up 1 − exp(−t/τ) with τ estimated and a
+linear drift; the table brings the direction of approach (the raw signal's last
+significant change) and its rate of change. Each candidate brings its terms in
+bias form (ΔV gains c·x) and scale-factor form (ΔV gains c·x·ΔV). Columns that
+do not earn their keep are pruned after acceptance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from canical.closed_loop.blocks import SLOPE_TAU_S, Blocks
+from canical.sets.terms import STATEFUL_CHANNEL, TIME_INPUT, Term, channel_feature_name
+
+TAU_GRID_POINTS = 24
+LAG_GRID_POINTS = 12
+# Hysteresis threshold: this many per-sample noise sigmas (a noise excursion
+# over a whole session stays below it), and at least this share of the range.
+DIRECTION_NOISE_SIGMAS = 10.0
+DIRECTION_MIN_SHARE = 0.02
+# Derivative window: the shortest whose block-mean noise is this share of the
+# derivative's spread (or the longest tried).
+DERIVATIVE_NOISE_SHARE = 0.1
+DERIVATIVE_WINDOWS_S = (2.0, 4.0, 8.0, 15.0, 30.0, 60.0)
+# Knees of a rate-gated effect worth trying: shares of the largest |ΔV| of the session
+# (below the lowest the gate is 1 nearly everywhere: the plain level; above the highest
+# too few plateaus lie beyond it to fit anything).
+KNEE_GRID_POINTS = 10
+KNEE_SHARES = (0.03, 0.8)
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A named group of term templates (coefficients still to be fitted)."""
+
+    name: str
+    kind: str  # channel | time | direction
+    channel: str | None
+    terms: tuple[Term, ...]
+
+    def describe(self) -> str:
+        return self.name
+
+    def with_terms(self, terms: tuple[Term, ...]) -> Candidate:
+        return replace(self, terms=terms)
+
+
+def feature(term: Term, blocks: Blocks) -> np.ndarray:
+    """The term's feature x at each block (block means of the run-time inputs)."""
+    if term.feature == "sign":
+        return blocks.direction
+    if term.feature == "slope":
+        return blocks.slope
+    if term.kind == "channel" and (term.feature in STATEFUL_CHANNEL or term.feature == "gated"):
+        return blocks.channel_feature(term)
+    if term.kind == "time":
+        t = blocks.time_s
+        return 1.0 - np.exp(-t / term.tau_s) if term.feature == "warmup" else t
+    x = blocks.aux[term.channel] - term.reference
+    return x * x if term.feature == "square" else x
+
+
+def shift_columns(terms: tuple[Term, ...], blocks: Blocks) -> np.ndarray:
+    """Per term, what one unit of its coefficient adds to ΔV at each block: x, or x·ΔV."""
+    if not terms:
+        return np.zeros((len(blocks), 0))
+    dv = blocks.points.dv
+    return np.column_stack([feature(t, blocks) * (dv if t.form == "scale" else 1.0) for t in terms])
+
+
+def _pair(kind: str, feature_name: str, **kw) -> tuple[Term, ...]:
+    return tuple(
+        Term(kind=kind, feature=feature_name, form=form, coefficient=0.0, **kw) for form in ("bias", "scale")
+    )
+
+
+TIED_R2 = 0.98
+
+
+def tied_to_rate(x: np.ndarray, blocks: Blocks) -> float:
+    """R² of a feature explained by a cubic of the table rate.
+
+    When the session visits the rates in time order, time since power-on *is* the
+    table rate, and a time term would predict the reference instead of the
+    sensor's error: a leak that vanishes in the field. Such a candidate cannot be
+    tested on this session.
+    """
+    rate = blocks.points.rate
+    w = blocks.points.weight
+    design = np.vander(rate / max(np.max(np.abs(rate)), 1e-9), 4, increasing=True)
+    sw = np.sqrt(w)
+    coef, *_ = np.linalg.lstsq(design * sw[:, None], x * sw, rcond=None)
+    resid = x - design @ coef
+    total = np.sum(w * (x - np.average(x, weights=w)) ** 2)
+    return float(1.0 - np.sum(w * resid**2) / total) if total > 0 else 1.0
+
+
+def untestable(candidates: list[Candidate], blocks: Blocks) -> dict[str, float]:
+    """Candidates whose feature is a function of the table rate in this session, with that R²."""
+    out = {}
+    for cand in candidates:
+        r2 = tied_to_rate(feature(cand.terms[0], blocks), blocks)
+        if r2 >= TIED_R2:
+            out[cand.name] = r2
+    return out
+
+
+def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidate]:
+    """All candidates this session can support (a channel that never varies cannot explain anything)."""
+    out: list[Candidate] = []
+    for name, values in sorted(blocks.aux.items()):
+        if np.ptp(values) <= 1e-12 * max(1.0, float(np.max(np.abs(values)))):
+            continue
+        ref = float(np.mean(values))
+        terms = (
+            *_pair("channel", "offset", channel=name, reference=ref),
+            Term(kind="channel", feature="square", form="bias", coefficient=0.0, channel=name, reference=ref),
+        )
+        out.append(Candidate(f"channel:{name}", "channel", name, terms))
+        out.extend(_transform_candidates(blocks, name, ref, session_duration_s))
+    if np.ptp(blocks.time_s) > 0:
+        tau = float(session_duration_s) / 3.0
+        out.append(Candidate("time:warm-up", "time", None, _pair("time", "warmup", tau_s=tau)))
+        out.append(Candidate("time:linear-drift", "time", None, _pair("time", "linear")))
+    if np.ptp(blocks.direction) > 0:
+        out.append(
+            Candidate(
+                "direction",
+                "direction",
+                None,
+                _pair("direction", "sign", threshold_raw=blocks.direction_threshold_raw),
+            )
+        )
+    # On settled plateaus the rate of change is near zero; it is a candidate all the same,
+    # so that a sensor still moving in its plateaus would show it.
+    if np.ptp(blocks.slope) > 0:
+        out.append(
+            Candidate("rate-of-change", "direction", None, _pair("direction", "slope", tau_s=SLOPE_TAU_S))
+        )
+    return out
+
+
+def sample_noise(values: np.ndarray) -> float:
+    """Per-sample white noise of a channel, robustly from successive differences."""
+    d = np.diff(np.asarray(values, dtype=float))
+    if d.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+
+
+def derivative_window(blocks: Blocks, channel: str) -> float:
+    """The derivative's smoothing τ: the shortest at which noise no longer dominates it.
+
+    Per block, the derivative (v − y)/τ carries the channel's noise σ divided by
+    τ·sqrt(samples per block); the window is the shortest for which that is a
+    small share of the derivative's spread over the session.
+    """
+    samples = blocks.samples
+    assert samples is not None
+    sigma = sample_noise(samples.values[channel])
+    per_block = float(np.median(samples.stops - samples.starts))
+    for tau in DERIVATIVE_WINDOWS_S:
+        d = feature(Term("channel", "derivative", "bias", 0.0, channel=channel, tau_s=tau), blocks)
+        if sigma / (tau * np.sqrt(per_block)) <= DERIVATIVE_NOISE_SHARE * float(np.std(d)):
+            return tau
+    return DERIVATIVE_WINDOWS_S[-1]
+
+
+def direction_threshold(values: np.ndarray) -> float:
+    """Hysteresis threshold of a channel: well above its noise, and a visible share of its range."""
+    return max(DIRECTION_NOISE_SIGMAS * sample_noise(values), DIRECTION_MIN_SHARE * float(np.ptp(values)),
+               1e-12)
+
+
+def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: float) -> list[Candidate]:
+    """The channel's stateful transforms: derivative, lag, direction of change."""
+    if blocks.samples is None or name not in blocks.samples.values:
+        return []
+    values = blocks.samples.values[name]
+    knees = knee_grid(blocks)
+    gated = [Candidate(channel_feature_name("gated", name), "channel", name,
+                       _gated_terms(name, ref, float(np.ptp(values)), float(np.sqrt(knees[0] * knees[-1]))))
+             ] if knees.size else []
+    tau_d = derivative_window(blocks, name)
+    tau_lag = float(np.sqrt(lag_grid(duration_s)[0] * lag_grid(duration_s)[-1]))
+    thr = direction_threshold(values)
+    return [
+        Candidate(channel_feature_name("derivative", name), "channel", name,
+                  _pair("channel", "derivative", channel=name, tau_s=tau_d)),
+        Candidate(channel_feature_name("lag", name), "channel", name,
+                  _pair("channel", "lag", channel=name, reference=ref, tau_s=tau_lag)),
+        Candidate(channel_feature_name("direction", name), "channel", name,
+                  _pair("channel", "direction", channel=name, threshold_raw=thr)),
+        *gated,
+    ]
+
+
+def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple[Term, ...]:
+    """The gated level in bias and scale form, and a second scale term with another reference.
+
+    The level at which the effect vanishes is unknown (the session's mean is not it), and
+    unlike a plain level a wrong reference here leaves a hinge of the rate, which the rate
+    model cannot absorb. Two references span c·(v − r) for every r: the bias multiplied by
+    the hinge, in terms the set already carries.
+    """
+    return (*_pair("channel", "gated", channel=name, reference=ref, threshold_raw=knee_raw),
+            Term(kind="channel", feature="gated", form="scale", coefficient=0.0, channel=name,
+                 reference=ref - (spread or 1.0), threshold_raw=knee_raw))
+
+
+def knee_grid(blocks: Blocks) -> np.ndarray:
+    """Knees (raw units) of a rate-gated effect worth trying, from the whole session's blocks.
+
+    The same grid for every subset of blocks, so cross-validation folds share the
+    cached block means. Empty when the session has no rate to speak of.
+    """
+    if blocks.samples is None or blocks.samples.dv is None:
+        return np.zeros(0)
+    top = float(np.max(blocks.samples.abs_dv_means(), initial=0.0))
+    if not top > 0:
+        return np.zeros(0)
+    return np.geomspace(KNEE_SHARES[0] * top, KNEE_SHARES[1] * top, KNEE_GRID_POINTS)
+
+
+def lag_grid(session_duration_s: float) -> np.ndarray:
+    """Lag time constants worth trying: from a few blocks to a third of the session."""
+    return np.geomspace(5.0, max(20.0, session_duration_s / 3.0), LAG_GRID_POINTS)
+
+
+def tau_grid(session_duration_s: float) -> np.ndarray:
+    """Warm-up time constants worth trying: from seconds to beyond the session's length."""
+    return np.geomspace(5.0, max(10.0, 3.0 * session_duration_s), TAU_GRID_POINTS)
+
+
+def tau_groups(terms: tuple[Term, ...]) -> list[tuple[str, str | None]]:
+    """The nonlinear parameters a fit estimates: the warm-up's τ, each lagged channel's τ and
+    each rate-gated channel's knee."""
+    groups: list[tuple[str, str | None]] = []
+    for t in terms:
+        key = ("warmup", None) if t.feature == "warmup" else (t.feature, t.channel)
+        if t.feature in ("warmup", "lag", "gated") and key not in groups:
+            groups.append(key)
+    return groups
+
+
+def in_group(term: Term, group: tuple[str, str | None]) -> bool:
+    return term.feature == group[0] and (group[0] == "warmup" or term.channel == group[1])
+
+
+def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] = ("warmup", None)
+             ) -> tuple[Term, ...]:
+    """The group's parameter set to ``tau``: a time constant, or a gated group's knee (raw units)."""
+    key = "threshold_raw" if group[0] == "gated" else "tau_s"
+    return tuple(replace(t, **{key: tau}) if in_group(t, group) else t for t in terms)
+
+
+def uses_time(terms: tuple[Term, ...]) -> bool:
+    return any(t.input_name == TIME_INPUT for t in terms)

@@ -1,0 +1,340 @@
+"""The bus half of ``canical demo``: an emulated IMU, a session recorded from it, a download, live correction.
+
+One function runs the whole loop the product exists for, on a CAN bus: python-can's
+in-process ``virtual`` bus by default (no kernel support needed), or a real
+interface such as vcan0 with the device emulated in this process or running on
+its own (``canical emulate``):
+
+1. the IMU streams raw frames while a simulated rate table steps through its
+   programme (TABLE_REF on the bus), and it has an effect nobody declared: its
+   bias drifts with die temperature;
+2. one pass of the programme is recorded from the bus (the sensor id read from
+   the device over SDO) and calibrated; the closed loop finds the undeclared effect;
+3. the set is pushed to the device (inactive bank, read back, one-write activation,
+   store) and the device corrects its own frames with it (IMU_RATE);
+4. frames recorded after the push are corrected again offline by ``canical apply``,
+   and the two are compared sample by sample.
+
+It returns the figures (download time, time from push to corrected frames with the
+new set, agreement with apply) for tests and benchmarks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import math
+import shutil
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from canical.atomic_file import make_dirs, write_text_atomic
+from canical.bus.recording import Recording, open_recorder_bus, record
+from canical.device.can_network import open_network, sdo_client_filters, sdo_server_filters
+from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
+from canical.device.sdo_download import ImuClient, PushResult, push_sets
+from canical.errors import CanicalError
+from canical.frames.imu_frames import ImuFrames, set_tag
+from canical.imu_dictionary import AXES, sensor_id_for_serial
+from canical.pipeline import CalibrateOptions, calibrate
+from canical.report.markdown import written_model
+from canical.sessions.csv_file import format_session, read_table
+from canical.sets import coefficient_file
+from canical.sets.coefficient_file import set_crc
+
+TEMP_BIAS_DPS_PER_C = 0.03  # the undeclared effect of the demo's IMU
+NOMINAL_COUNTS_PER_DPS = 400.0  # the datasheet's scale factor, for "before"
+
+
+@dataclass(frozen=True)
+class BusDemoOptions:
+    interface: str = "virtual"
+    channel: str = "canical-demo"
+    node_id: int = 0x10
+    serial: int = 4711
+    axis: str = "z"
+    sample_rate_hz: float = 100.0
+    speed: float = 8.0
+    table_rates: tuple[float, ...] = tuple(np.arange(-60.0, 60.1, 3.0).tolist())
+    dwell_s: float = 2.0
+    field_samples: int = 1500
+    # The live comparison uses the first field_samples samples of this pass of the table
+    # programme (0: the pass recorded for calibration), chosen by the device's sample index, so
+    # that one seed compares the same frames whatever the timing. It must begin after the push:
+    # 3 leaves ~20 s for recording, calibration and push at the defaults. None: the frames from
+    # the first one corrected with the new set on (timing-dependent; for an external device).
+    field_pass: int | None = 3
+    emulate: bool = True  # False: a device is already running (``canical emulate``)
+    timeout_s: float = 1.0
+
+
+@dataclass
+class BusDemoResult:
+    session_csv: Path
+    coefficients: Path
+    set_id: int
+    effects: list[str]
+    held_out_rms_before_dps: float | None
+    held_out_rms_after_dps: float | None
+    push: PushResult
+    push_to_correction_s: float
+    field_samples: int
+    live_rms_error_dps: float
+    max_device_vs_apply_dps: float
+    figures: dict[str, float] = field(default_factory=dict)
+
+
+def default_bus() -> tuple[str, str]:
+    """vcan0 when this machine has it, else python-can's in-process virtual bus."""
+    import can
+
+    try:
+        can.Bus(interface="socketcan", channel="vcan0").shutdown()
+    except Exception:  # no SocketCAN, no vcan0: python-can raises several types
+        return "virtual", "canical-demo"
+    return "socketcan", "vcan0"
+
+
+def _emulator(options: BusDemoOptions, state: Path):
+    from canical.sim.effects import TemperatureEffect
+    from canical.sim.environment import temperature_steps
+    from canical.sim.imu_stream import StreamConfig, TableMotion, default_gyros
+
+    effect = TemperatureEffect(channel="temp_c", reference_c=25.0, bias_dps_per_c=TEMP_BIAS_DPS_PER_C)
+    gyros = {a: g.__class__(**{**g.__dict__, "effects": (effect,)}) for a, g in default_gyros().items()}
+    # The table sits in a thermal chamber stepping through temperatures in random order, so
+    # temperature does not follow time since power-on and its effect can be told from a drift.
+    chamber = temperature_steps(levels_c=(5.0, 20.0, 35.0, 50.0), period_s=12.0, time_constant_s=2.0)
+    stream = StreamConfig(
+        temperature=chamber,
+        sample_rate_hz=options.sample_rate_hz,
+        table=TableMotion(kind="steps", axis=options.axis, rates_dps=options.table_rates,
+                          dwell_s=options.dwell_s),
+        gyros=gyros,
+    )
+    filters = sdo_server_filters(options.node_id)
+    network = open_network(options.interface, options.channel, can_filters=filters)
+    config = EmulatorConfig(node_id=options.node_id, serial=options.serial, state_path=state, stream=stream,
+                            speed=options.speed, correction=True)
+    return network, EmulatedImu(config, network)
+
+
+def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
+                 say: Callable[[str], None] = print) -> BusDemoResult:
+    """Run the loop; files go to ``out_dir``. See the module doc."""
+    o = options or BusDemoOptions()
+    out = Path(out_dir)
+    make_dirs(out)
+    # The device's flash and the files `canical apply` reads back are scratch, not results.
+    scratch = Path(tempfile.mkdtemp(prefix="canical-demo-bus-"))
+    frames = ImuFrames(o.node_id)
+    device_net = device = thread = None
+    if o.emulate:
+        device_net, device = _emulator(o, scratch / "imu-state.json")  # a factory-fresh device
+        thread = threading.Thread(target=device.run, name="emulated-imu", daemon=True)
+    bus = open_recorder_bus(o.interface, o.channel, frames)
+    tool_net = open_network(o.interface, o.channel, can_filters=sdo_client_filters(o.node_id))
+    try:
+        if device is not None and thread is not None:
+            device.boot_up()
+            thread.start()
+        client = ImuClient(tool_net, o.node_id, o.timeout_s)
+        serial = client.serial()
+        sensor = sensor_id_for_serial(serial)
+        where = f"{o.interface} {o.channel}"
+        say(f"IMU node 0x{o.node_id:02x} on {where}: serial {serial} (sensor id {sensor}), "
+            f"streaming raw frames at {o.sample_rate_hz:g} samples/s (x{o.speed:g} time)")
+
+        # 1-2. Record one pass of the table programme, calibrate it.
+        n_pass = _pass_samples(o)
+        say(f"recording a turntable session from the bus: {len(o.table_rates)} plateaus, "
+            f"{o.table_rates[0]:g}..{o.table_rates[-1]:g} deg/s, about {n_pass} samples")
+        rec = record(bus, frames, samples=n_pass + 50)
+        session = rec.session(o.axis, sensor)
+        session_csv = out / "bus-session.csv"
+        write_text_atomic(session_csv, format_session(session))
+        say(f"  {len(session)} samples of axis {o.axis} ({rec.frames} frames) -> {session_csv}")
+        result = calibrate(session, CalibrateOptions(), sensor_id=sensor, axis=o.axis)
+        coeffs = out / f"imu-{o.axis}.yaml"
+        coefficient_file.save(coeffs, result.coefficients)
+        loop = result.report.get("closed_loop", {})
+        effects = [e.get("name", str(e)) for e in result.report.get("effects", [])]
+        before, after = loop.get("held_out_rms_before_dps"), loop.get("held_out_rms_after_dps")
+        found = ", ".join(effects) or "none"
+        say(f"calibrated: {written_model(result.report)}; undeclared effect(s) found: {found}")
+        if before is not None and after is not None:
+            say(f"  held-out rms (2 s blocks, whole plateaus left out): rate model alone {before:.4f}, "
+                f"written set {after:.4f} deg/s")
+        set_id = set_crc(result.coefficients)
+        say(f"  set 0x{set_id:08x} (its id covers its creation time: new every run) -> {coeffs}")
+
+        # 3. Push while the device keeps streaming, and time until it corrects with the new set.
+        new_tag = set_tag({a: (set_id if a == o.axis else 0) for a in AXES})
+        t_push = time.monotonic()
+        pushed = push_sets(client, {o.axis: (str(coeffs), result.coefficients)})
+        assert isinstance(pushed, PushResult)
+        say(f"pushed over SDO in {pushed.timings_s['total']:.3f} s "
+            f"({pushed.bytes_written} bytes downloaded in {pushed.timings_s['download']:.3f} s); "
+            f"device runs {pushed.status.describe()}")
+        window = FieldWindow(new_tag, o.sample_rate_hz, n_pass, o.field_samples, o.field_pass)
+        live = record(bus, frames, until=window)
+        first = _first_tagged(live, new_tag)
+        latency = float(live.array("received_s")[first] - t_push)
+        say(f"first frame corrected on the device with the new set {latency:.3f} s after the push began "
+            f"(device sample {window.first_tagged})")
+
+        # 4. The device's corrected rates against `canical apply` on the same frames.
+        say(window.describe())
+        keep = window.selects(live)
+        keep &= live.array("device_tag") == new_tag
+        # A raw frame whose IMU_RATE was not matched (lost, or paired with another counter
+        # value) has no device rate: compare only frames that have both.
+        keep &= np.isfinite(live.array(f"device_rate_{o.axis}"))
+        field_session = _field_session(live, keep, o.axis, sensor)
+        applied = _apply_in(scratch, result.coefficients, format_session(field_session), out, say)
+        write_text_atomic(out / "bus-field.csv", format_session(field_session))
+        write_text_atomic(out / "bus-field-applied.csv", applied.read_text())
+        apply_rate = read_table(applied, columns=["rate_dps"]).columns["rate_dps"]
+        device_rate = live.array(f"device_rate_{o.axis}")[keep]
+        diff = float(np.max(np.abs(apply_rate - device_rate)))
+        ref = live.array("ref_dps")[keep]
+        settled = live.array("settled")[keep] == 1
+        nominal = (field_session.raw - result.coefficients.v0) / NOMINAL_COUNTS_PER_DPS
+        nominal_rms = _plateau_rms(nominal, ref, settled)
+        live_rms = _plateau_rms(device_rate, ref, settled)
+        say(f"live: {int(keep.sum())} frames corrected on the device; error of plateau means against the "
+            f"table: rms {nominal_rms:.3f} deg/s with the datasheet's linear scale "
+            f"({NOMINAL_COUNTS_PER_DPS:g} counts per deg/s), {live_rms:.4f} deg/s corrected")
+        say(f"  device output vs canical apply on the same frames: largest difference {diff:.4f} deg/s "
+            f"(frame resolution 0.01)")
+        return BusDemoResult(session_csv, coeffs, set_id, effects, before, after, pushed, latency,
+                             int(keep.sum()), live_rms, diff)
+    finally:
+        if device is not None:
+            device.stop_event.set()
+        if thread is not None and thread.is_alive():
+            thread.join(5)
+        tool_net.disconnect()
+        bus.shutdown()
+        if device_net is not None:
+            device_net.disconnect()
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _apply_in(scratch: Path, cset, field_csv: str, out: Path, say: Callable[[str], None]) -> Path:
+    """``canical apply`` itself, run on the field frames in ``scratch``; returns the file it wrote.
+
+    Its line is shown with the name the result gets in ``out``.
+    """
+    from canical.commands.cli import main as cli_main
+
+    coeffs, data, applied = scratch / "set.yaml", scratch / "field.csv", scratch / "applied.csv"
+    coeffs.write_text(coefficient_file.dumps(cset))
+    data.write_text(field_csv)
+    said = io.StringIO()
+    with contextlib.redirect_stdout(said):
+        status = cli_main(["apply", str(coeffs), str(data), "-o", str(applied)])
+    if status != 0:
+        raise CanicalError("canical apply failed on the recorded field data")
+    say(said.getvalue().strip().replace(str(applied), str(out / "bus-field-applied.csv")))
+    return applied
+
+
+def _pass_samples(o: BusDemoOptions) -> int:
+    from canical.sim.imu_stream import TableMotion, table_pass
+
+    t, _, _ = table_pass(TableMotion(kind="steps", rates_dps=o.table_rates, dwell_s=o.dwell_s),
+                         o.sample_rate_hz, 0.0)
+    return len(t)
+
+
+class FieldWindow:
+    """Which recorded samples the live comparison uses: by the device's sample index, not arrival.
+
+    The index is the frame's uptime (simulated time since power-on) times the sample rate, so
+    a seed's stream gives the same samples in the window however late the push or slow the bus.
+    Called with the recording so far, it says when the window is complete.
+    """
+
+    def __init__(self, tag: int, fs_hz: float, pass_samples: int, n: int, pass_index: int | None) -> None:
+        self.tag, self.fs, self.pass_samples, self.n = tag, fs_hz, pass_samples, n
+        self.wanted_pass = pass_index
+        self.start: int | None = None  # first sample index of the window
+        self.first_tagged: int | None = None  # sample index of the first frame with the new set
+        self._seen = 0
+
+    def _index(self, t: float) -> int | None:
+        return round(t * self.fs) if math.isfinite(t) else None
+
+    def __call__(self, rec: Recording) -> bool:
+        cols = rec.columns
+        # The newest sample may still get its corrected frame (device tag): look up to the one before.
+        while self._seen < len(rec) - 1:
+            i, self._seen = self._seen, self._seen + 1
+            k = self._index(cols["time_s"][i])
+            if k is None:
+                continue
+            if self.first_tagged is None and cols["device_tag"][i] == self.tag:
+                self.first_tagged = k
+                if self.wanted_pass is None:
+                    self.start = k
+                else:  # the wanted pass, or the first to begin after the set was running
+                    after = -(-k // self.pass_samples)
+                    self.start = max(self.wanted_pass, after) * self.pass_samples
+            if self.start is not None and k >= self.start + self.n:
+                return True
+        return False
+
+    def selects(self, rec: Recording) -> np.ndarray:
+        k = np.rint(rec.array("time_s") * self.fs)
+        return (k >= self.start) & (k < self.start + self.n)
+
+    def describe(self) -> str:
+        where = f"samples {self.start}..{self.start + self.n - 1} of the device"
+        if self.wanted_pass is None:
+            return f"compared: {where}, from the first corrected with the new set"
+        used = self.start // self.pass_samples
+        if used == self.wanted_pass:
+            return f"compared: {where} (table pass {used}, chosen by sample index: the same every run)"
+        return (f"compared: {where} (table pass {used}: pass {self.wanted_pass} had begun before the "
+                "new set ran, a slow machine; the figures below differ from the README's)")
+
+
+def _first_tagged(rec: Recording, tag: int) -> int:
+    hits = np.flatnonzero(rec.array("device_tag") == tag)
+    if not hits.size:
+        raise CanicalError("the device never corrected with the new set")
+    return int(hits[0])
+
+
+def _field_session(rec: Recording, keep: np.ndarray, axis: str, sensor: str):
+    from canical.sessions.session import Session
+
+    return Session(
+        time_s=rec.array("time_s")[keep],
+        raw=rec.array(f"raw_{axis}")[keep],
+        ref_dps=rec.array("ref_dps")[keep],
+        aux={"temp_c": rec.array("temp_c")[keep], "supply_v": rec.array("supply_v")[keep]},
+        meta={"sensor": sensor, "axis": axis},
+    )
+
+
+def _plateau_rms(rate: np.ndarray, ref: np.ndarray, settled: np.ndarray) -> float:
+    """Rms over table plateaus of (mean rate − table rate): the calibration error, noise averaged out."""
+    errors = []
+    start = None
+    for i in range(len(ref) + 1):
+        inside = i < len(ref) and settled[i] and (start is None or ref[i] == ref[start])
+        if inside and start is None:
+            start = i
+        elif not inside and start is not None:
+            if i - start >= 10:
+                errors.append(float(np.mean(rate[start:i]) - ref[start]))
+            start = i if i < len(ref) and settled[i] else None
+    return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")

@@ -1,0 +1,360 @@
+"""Coefficient sets to and from an IMU over CANopen SDO: push, pull, and what the device runs.
+
+A push, for the sets given (one per axis):
+
+1. reads the device's serial number and rated ranges and refuses, before writing
+   anything, a set for another sensor, another axis, or too narrow a span
+   (:mod:`canical.sets.admission`, the same checks the device makes);
+2. takes the device's download lock (a random token; a second tool is refused);
+3. writes each set's canonical bytes and CRC32 into the axis's *inactive* bank,
+   reads both back and compares, and checks the device reports the bank valid;
+4. activates all axes with one write of the active-bank selector (the device
+   re-validates every bank it switches to, and switches all or none);
+5. stores (CiA 301 "save" to 0x1010) so the new sets survive a power cycle;
+6. reads back what the device runs and stores, and checks it is what was pushed.
+
+Any failure stops the push with one line naming the node, the step and the
+device's reason; the device keeps the set it ran before (an interrupted
+download only ever touched an inactive bank). A pull uploads the active banks
+and accepts them only if CRC, fields and the device's "Active set id" agree.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import secrets
+import struct
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import can
+import canopen
+from canopen.sdo import SdoAbortedError, SdoCommunicationError
+
+from canical.device.bank_payload import decode_set, encode_set
+from canical.device.can_network import DEFAULT_SDO_TIMEOUT_S
+from canical.errors import CanicalError
+from canical.imu_dictionary import (
+    ABORT_DEVICE_STATE,
+    ABORT_REFUSED,
+    ABORT_TOO_LONG,
+    ABORT_VALUE_RANGE,
+    AXES,
+    STATUS_TEXT,
+    STATUS_VALID,
+    STORE_SIGNATURE,
+    imu_objects,
+    object_dictionary,
+    other_bank,
+    pack_active,
+    unpack_active,
+)
+from canical.sets.admission import DeviceLimits, admission_problem
+from canical.sets.coefficients import CoefficientSet
+
+DEFAULT_TIMEOUT_S = DEFAULT_SDO_TIMEOUT_S
+#: Abort codes after which the device's "Last refusal" text says why.
+EXPLAINED_ABORTS = (ABORT_REFUSED, ABORT_DEVICE_STATE, ABORT_TOO_LONG, ABORT_VALUE_RANGE)
+
+
+class DeviceSilent(CanicalError):
+    """The device stopped answering (timeout): gone, powered off, or the bus is down."""
+
+
+class ImuClient:
+    """SDO access to one IMU node; every failure is one :class:`CanicalError` line."""
+
+    def __init__(self, network: canopen.Network, node_id: int, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+        self.node_id = node_id
+        self.timeout_s = timeout_s
+        self.objects = imu_objects()
+        self.node = canopen.RemoteNode(node_id, object_dictionary(node_id))
+        self.node.sdo.RESPONSE_TIMEOUT = timeout_s
+        network.add_node(self.node)
+        self.network = network
+
+    def close(self) -> None:
+        """Stop listening for this node's SDO responses."""
+        del self.network[self.node_id]
+
+    # ---------------------------------------------------------------------------------------
+    # Raw access with error mapping
+    # ---------------------------------------------------------------------------------------
+
+    def _fail(self, exc: Exception, what: str) -> CanicalError:
+        where = f"node 0x{self.node_id:02x}"
+        if isinstance(exc, SdoCommunicationError):
+            return DeviceSilent(f"{where}: no answer while {what} (after {self.timeout_s:g} s): "
+                                f"device gone, powered off or bus down")
+        if isinstance(exc, SdoAbortedError):
+            text = SdoAbortedError.CODES.get(exc.code, "abort")
+            reason = ""
+            if exc.code in EXPLAINED_ABORTS:
+                try:
+                    reason = self.node.sdo.upload(*self.objects.last_refusal).decode("ascii", "replace")
+                except (SdoAbortedError, SdoCommunicationError, can.CanError):
+                    reason = ""
+            detail = f": {reason}" if reason and reason != "none" else ""
+            code = f"SDO abort 0x{exc.code:08x}, {text}"
+            return CanicalError(f"{where}: device refused {what} ({code}){detail}")
+        return CanicalError(f"{where}: CAN error while {what}: {exc}")
+
+    def upload(self, key: tuple[int, int], what: str) -> bytes:
+        try:
+            return self.node.sdo.upload(*key)
+        except (SdoAbortedError, SdoCommunicationError, can.CanError) as exc:
+            raise self._fail(exc, what) from None
+
+    def download(self, key: tuple[int, int], data: bytes, what: str) -> None:
+        try:
+            self.node.sdo.download(*key, data)
+        except (SdoAbortedError, SdoCommunicationError, can.CanError) as exc:
+            raise self._fail(exc, what) from None
+
+    def read_uint(self, key: tuple[int, int], what: str) -> int:
+        return int.from_bytes(self.upload(key, what), "little")
+
+    def write_uint(self, key: tuple[int, int], value: int, size: int, what: str) -> None:
+        self.download(key, int(value).to_bytes(size, "little"), what)
+
+    # ---------------------------------------------------------------------------------------
+    # What the device says about itself
+    # ---------------------------------------------------------------------------------------
+
+    def serial(self) -> int:
+        return self.read_uint(self.objects.serial, "reading the serial number (0x1018 sub 4)")
+
+    def limits(self) -> DeviceLimits:
+        serial = self.serial()
+        ranges = {}
+        for axis, key in self.objects.rated_range.items():
+            raw = self.upload(key, f"reading the rated range of axis {axis}")
+            ranges[axis] = struct.unpack("<f", raw[:4])[0]
+        return DeviceLimits(serial, ranges)
+
+    def active(self) -> dict[str, str | None]:
+        value = self.read_uint(self.objects.active_banks, "reading the active banks")
+        try:
+            return unpack_active(value)
+        except ValueError as exc:
+            raise CanicalError(f"node 0x{self.node_id:02x}: {exc}") from None
+
+    def active_ids(self) -> dict[str, int]:
+        return {
+            a: self.read_uint(key, f"reading the active set id of axis {a}")
+            for a, key in self.objects.active_set_id.items()
+        }
+
+    def status(self) -> DeviceStatus:
+        return DeviceStatus(
+            serial=self.serial(),
+            active=self.active(),
+            active_ids=self.active_ids(),
+            stored=unpack_active(self.read_uint(self.objects.stored_state, "reading the stored state")),
+            activations=self.read_uint(self.objects.activation_count, "reading the activation count"),
+        )
+
+    def bank(self, axis: str, bank: str) -> tuple[bytes, int, int]:
+        """(content, CRC, status) of one bank."""
+        ref = self.objects.bank(axis, bank)
+        name = f"bank {axis.upper()} {bank}"
+        status = self.read_uint((ref.index, ref.status), f"reading the status of {name}")
+        content = b"" if status == 0 else self.upload((ref.index, ref.content), f"uploading {name}")
+        crc = self.read_uint((ref.index, ref.crc), f"reading the CRC of {name}")
+        return content, crc, status
+
+
+@dataclass(frozen=True)
+class DeviceStatus:
+    serial: int
+    active: dict[str, str | None]
+    active_ids: dict[str, int]
+    stored: dict[str, str | None]
+    activations: int
+
+    def describe(self) -> str:
+        parts = []
+        for axis in AXES:
+            bank = self.active[axis]
+            ident = f"0x{self.active_ids[axis]:08x} (bank {bank})"
+            parts.append(f"{axis} none" if bank is None else f"{axis} {ident}")
+        same = "stored for power-up" if self.stored == self.active else "NOT stored: a power cycle reverts"
+        return ", ".join(parts) + f"; {same}"
+
+
+@dataclass(frozen=True)
+class AxisPlan:
+    """What a push does on one axis."""
+
+    axis: str
+    source: str
+    set_id: int
+    content: bytes
+    bank: str
+    was_bank: str | None
+    was_id: int
+
+    @property
+    def unchanged(self) -> bool:
+        return self.was_bank is not None and self.was_id == self.set_id
+
+
+@dataclass(frozen=True)
+class PushPlan:
+    node_id: int
+    serial: int
+    axes: tuple[AxisPlan, ...]
+    selector_before: int
+    selector_after: int
+
+    def describe(self) -> list[str]:
+        lines = []
+        for p in self.axes:
+            was = "no set" if p.was_bank is None else f"bank {p.was_bank} 0x{p.was_id:08x}"
+            if p.unchanged:
+                lines.append(f"  {p.axis}  set 0x{p.set_id:08x} already active (bank {p.was_bank})")
+            else:
+                lines.append(f"  {p.axis}  set 0x{p.set_id:08x} {len(p.content):5d} bytes -> bank {p.bank} "
+                             f"(active now: {was})  from {p.source}")
+        lines.append(f"  selector 0x{self.selector_before:02x} -> 0x{self.selector_after:02x} (one write)")
+        return lines
+
+
+def plan_push(
+    sets: Mapping[str, tuple[str, CoefficientSet]],
+    limits: DeviceLimits,
+    active: Mapping[str, str | None],
+    active_ids: Mapping[str, int],
+    node_id: int,
+) -> PushPlan:
+    """Which bank each set goes to, and the selector that activates them; refuses inadmissible sets.
+
+    ``sets`` maps axis → (where the set came from, the set). Pure: the device's state is passed in.
+    """
+    axes = []
+    after = dict(active)
+    for axis in AXES:
+        if axis not in sets:
+            continue
+        source, cset = sets[axis]
+        problem = admission_problem(cset, axis, limits)
+        if problem:
+            raise CanicalError(f"{source}: not for this device (node 0x{node_id:02x}): {problem}")
+        content, crc = encode_set(cset)
+        was = active.get(axis)
+        plan = AxisPlan(axis, source, crc, content, other_bank(was), was, int(active_ids.get(axis, 0)))
+        if not plan.unchanged:
+            after[axis] = plan.bank
+        axes.append(plan)
+    return PushPlan(node_id, limits.serial, tuple(axes), pack_active(dict(active)), pack_active(after))
+
+
+@dataclass
+class PushResult:
+    plan: PushPlan
+    status: DeviceStatus
+    timings_s: dict[str, float] = field(default_factory=dict)
+    bytes_written: int = 0
+
+
+Progress = Callable[[str], None]
+
+
+def push_sets(
+    client: ImuClient,
+    sets: Mapping[str, tuple[str, CoefficientSet]],
+    *,
+    dry_run: bool = False,
+    progress: Progress = lambda _: None,
+) -> PushResult | PushPlan:
+    """Push sets to the device (see module doc); with ``dry_run`` only the plan, nothing written."""
+    t0 = time.perf_counter()
+    limits = client.limits()
+    plan = plan_push(sets, limits, client.active(), client.active_ids(), client.node_id)
+    if dry_run:
+        return plan
+    timings: dict[str, float] = {"read_state": time.perf_counter() - t0}
+    token = secrets.randbits(32) | 1
+    o = client.objects
+    client.write_uint(o.download_lock, token, 4, "taking the download lock (another push running?)")
+    silent = False
+    written = 0
+    try:
+        t = time.perf_counter()
+        for p in plan.axes:
+            if p.unchanged:
+                continue
+            ref = o.bank(p.axis, p.bank)
+            name = f"bank {p.axis.upper()} {p.bank}"
+            progress(f"downloading {len(p.content)} bytes to {name}")
+            client.download((ref.index, ref.content), p.content, f"downloading {name}")
+            client.write_uint((ref.index, ref.crc), p.set_id, 4, f"writing the CRC of {name}")
+            written += len(p.content) + 4
+        timings["download"] = time.perf_counter() - t
+        t = time.perf_counter()
+        for p in plan.axes:
+            if p.unchanged:
+                continue
+            content, crc, status = client.bank(p.axis, p.bank)
+            name = f"bank {p.axis.upper()} {p.bank}"
+            if content != p.content or crc != p.set_id:
+                raise CanicalError(f"node 0x{client.node_id:02x}: read-back of {name} differs from what was "
+                                   f"written (another writer on the bus?); nothing activated")
+            if status != STATUS_VALID:
+                raise CanicalError(f"node 0x{client.node_id:02x}: device reports {name} "
+                                   f"{STATUS_TEXT.get(status, status)}; nothing activated")
+        timings["verify"] = time.perf_counter() - t
+        t = time.perf_counter()
+        if plan.selector_after != plan.selector_before:
+            progress(f"activating: selector 0x{plan.selector_after:02x}")
+            client.write_uint(o.active_banks, plan.selector_after, 1, "activating the new banks")
+        timings["activate"] = time.perf_counter() - t
+        t = time.perf_counter()
+        client.write_uint(o.store, STORE_SIGNATURE, 4, "storing (0x1010)")
+        timings["store"] = time.perf_counter() - t
+        status = client.status()
+    except DeviceSilent:
+        silent = True
+        raise
+    finally:
+        if not silent:
+            with contextlib.suppress(CanicalError):  # the lease expires on the device anyway
+                client.write_uint(o.download_lock, 0, 4, "releasing the download lock")
+    timings["total"] = time.perf_counter() - t0
+    for p in plan.axes:
+        if status.active_ids[p.axis] != p.set_id:
+            raise CanicalError(f"node 0x{client.node_id:02x}: after the push axis {p.axis} runs "
+                               f"0x{status.active_ids[p.axis]:08x}, not 0x{p.set_id:08x} (another writer?)")
+    return PushResult(plan, status, timings, written)
+
+
+def pull_sets(client: ImuClient, axes: tuple[str, ...] = AXES) -> dict[str, CoefficientSet]:
+    """The device's active sets for ``axes`` (those that have one), each verified three ways."""
+    active = client.active()
+    ids = client.active_ids()
+    out = {}
+    for axis in axes:
+        bank = active[axis]
+        if bank is None:
+            continue
+        content, crc, _ = client.bank(axis, bank)
+        where = f"node 0x{client.node_id:02x} bank {axis.upper()} {bank}"
+        if crc != ids[axis]:
+            raise CanicalError(f"{where}: CRC 0x{crc:08x} is not the active set id 0x{ids[axis]:08x}")
+        cset = decode_set(content, crc, where)
+        if cset.axis != axis:
+            raise CanicalError(f"{where}: holds a set for axis {cset.axis}")
+        out[axis] = cset
+    return out
+
+
+def pull_active_sets(
+    network: canopen.Network, node_id: int, axes: tuple[str, ...] = AXES, timeout: float = DEFAULT_TIMEOUT_S
+) -> dict[str, CoefficientSet]:
+    """The sets a device runs, for a caller with its own network (the daemon at start)."""
+    client = ImuClient(network, node_id, timeout)
+    try:
+        return pull_sets(client, axes)
+    finally:
+        client.close()

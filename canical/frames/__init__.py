@@ -1,0 +1,7 @@
+"""The IMU's CAN frames, as the DBC declares them: the single source of their layout.
+
+:mod:`.imu_frames` loads the DBC and names the IMU's frame set; :mod:`.codec` encodes and
+decodes them, through codecs :mod:`.compiler` builds from the DBC at start (struct plus
+scales and masks, proven equal to cantools). Shared by the daemon, the recorder, the log
+reader and the emulated IMU; imports only the ground floor.
+"""

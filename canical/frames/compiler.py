@@ -1,0 +1,229 @@
+"""Frame codecs compiled from the DBC at start: straight-line integer code per message.
+
+Why: cantools decodes and encodes through dicts, bitstruct and a conversion object per
+signal, 2–7 µs per frame; the daemon pays that for every frame. The layout never changes
+while it runs, so each message's codec is generated once, as Python source with every
+shift, mask, scale and offset written in as a constant, and compiled:
+
+* decode: the payload as one integer (``int.from_bytes``), each signal ``(w >> shift) & mask``,
+  two's complement for signed signals, then ``raw * scale + offset`` with cantools' own
+  scale and offset objects (an integer scale stays an integer, as cantools returns it);
+* encode: the inverse with cantools' rounding (``round`` of the unscaled value, the exact
+  integer path for integer scales), the same ``OverflowError`` for a raw value outside the
+  signal's bits, and the fields OR-ed into one integer.
+
+The DBC stays the single source of truth: nothing here knows a layout, and the tests prove
+each compiled codec equal to cantools on randomised payloads and values (sign, rounding,
+edges, out of range). A layout the compiler does not handle (multiplexed, container, float
+signals, a conversion it does not know) gets :class:`CantoolsCodec`, the same interface
+over cantools, and :func:`codec_for` logs which and why.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from typing import Any, Protocol
+
+from cantools.database.can import Message
+from cantools.database.conversion import (
+    BaseConversion,
+    IdentityConversion,
+    LinearConversion,
+    LinearIntegerConversion,
+    NamedSignalConversion,
+)
+
+log = logging.getLogger("canical.frames.compiler")
+
+
+class FrameCodec(Protocol):
+    """Decode a payload to values in signal order, and encode values in that order."""
+
+    names: tuple[str, ...]
+
+    def decode(self, data: bytes | bytearray) -> tuple[Any, ...]: ...
+
+    def encode(self, values: Sequence[Any]) -> bytes: ...
+
+
+class NotCompilable(ValueError):
+    """The message's layout is outside what :func:`compile_codec` generates code for."""
+
+
+class CantoolsCodec:
+    """The reference: cantools' own encode/decode behind the same interface."""
+
+    __slots__ = ("_decode", "_encode", "names")
+
+    def __init__(self, message: Message) -> None:
+        self.names = tuple(s.name for s in message.signals)
+        self._decode = message.decode
+        self._encode = message.encode
+
+    def decode(self, data: bytes | bytearray) -> tuple[Any, ...]:
+        values = self._decode(data, decode_choices=False)
+        return tuple(values[n] for n in self.names)  # type: ignore[index]
+
+    def encode(self, values: Sequence[Any]) -> bytes:
+        return self._encode(dict(zip(self.names, values, strict=True)), strict=False)
+
+
+class CompiledCodec:
+    """A message's codec as generated code; ``source`` is kept for inspection and tests."""
+
+    __slots__ = ("decode", "encode", "names", "source")
+
+    def __init__(self, names: tuple[str, ...], source: str, namespace: dict[str, Any]) -> None:
+        self.names = names
+        self.source = source
+        self.decode = namespace["decode"]
+        self.encode = namespace["encode"]
+
+
+def _why_not(message: Message) -> str | None:
+    """Why this layout is not compiled (None: it is)."""
+    if message.is_container:
+        return "container frame"
+    if message.is_multiplexed():
+        return "multiplexed"
+    if not message.signals:
+        return "no signals"
+    for sig in message.signals:
+        conv = _numeric(sig.conversion)
+        if conv.is_float:
+            return f"signal {sig.name} is a float"
+        if type(conv) not in (IdentityConversion, LinearIntegerConversion, LinearConversion):
+            return f"signal {sig.name} has conversion {type(conv).__name__}"
+        if sig.length < 1:
+            return f"signal {sig.name} has no bits"
+        end = sig.start + sig.length if sig.byte_order == "little_endian" else (
+            _network_bit(sig.start) + sig.length)
+        if end > 8 * message.length:
+            return f"signal {sig.name} lies beyond the frame's {message.length} bytes"
+    return None
+
+
+def _numeric(conv: BaseConversion) -> BaseConversion:
+    """The numeric conversion under a signal's value table (values are numbers here, never names)."""
+    return conv._conversion if isinstance(conv, NamedSignalConversion) else conv
+
+
+def _network_bit(sawtooth: int) -> int:
+    """Big-endian start bit (DBC sawtooth numbering) as a bit index from the frame's first MSB."""
+    return 8 * (sawtooth // 8) + (7 - sawtooth % 8)
+
+
+def compile_codec(message: Message) -> CompiledCodec:
+    """Generate and compile ``message``'s codec; :class:`NotCompilable` when the layout is not handled."""
+    reason = _why_not(message)
+    if reason is not None:
+        raise NotCompilable(reason)
+    nbytes = message.length
+    names = tuple(s.name for s in message.signals)
+    orders = {s.byte_order for s in message.signals}
+    unpack = f"    ({', '.join(f'v{i}' for i in range(len(names)))},) = values"
+    dec = ["def decode(data):"]
+    if "little_endian" in orders:
+        dec.append("    le = from_bytes(data, 'little')")
+    if "big_endian" in orders:
+        dec.append("    be = from_bytes(data, 'big')")
+    exact: list[str] = []  # cantools' semantics for any number
+    ranges: list[str] = []  # checked after every value is converted, as cantools does
+    rounded: list[str] = []  # the signals that need round() even for an integer (scaled ones)
+    rounded_ranges: list[str] = []
+    checks: list[str] = []  # signed fields, one check each
+    unsigned: dict[int, list[str]] = {}  # unsigned fields by width: one check for all of a width
+    fast_fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}  # integers as they are
+    fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}
+    outs = []
+    for i, sig in enumerate(message.signals):
+        n, order = sig.length, sig.byte_order
+        mask = (1 << n) - 1
+        shift = sig.start if order == "little_endian" else 8 * nbytes - (_network_bit(sig.start) + n)
+        word = "le" if order == "little_endian" else "be"
+        conv = _numeric(sig.conversion)
+        # decode: the field's bits, two's complement, then cantools' raw * scale + offset
+        bits = f"({word} >> {shift})" if shift else word
+        dec.append(f"    r{i} = {bits} & {mask:#x}")
+        if sig.is_signed:
+            dec.append(f"    if r{i} & {1 << (n - 1):#x}: r{i} -= {1 << n:#x}")
+        if isinstance(conv, IdentityConversion):
+            outs.append(f"r{i}")
+        elif conv.offset == 0 and conv.scale > 0:  # + 0 changes nothing (r * scale is never -0.0)
+            outs.append(f"r{i} * {conv.scale!r}")
+        else:
+            outs.append(f"r{i} * {conv.scale!r} + {conv.offset!r}")
+        # encode: cantools' numeric_scaled_to_raw (round, exact integer path), range, field
+        lines = []
+        off = f" - {conv.offset!r}" if not isinstance(conv, IdentityConversion) and conv.offset != 0 else ""
+        if isinstance(conv, IdentityConversion):
+            lines.append(f"    r{i} = round(v{i})")
+        elif isinstance(conv, LinearIntegerConversion) and conv.scale != 1:
+            lines.append(f"    x = v{i}{off}")
+            lines.append(f"    q, rem = divmod(x, {conv.scale!r})")
+            lines.append(f"    r{i} = round(q if rem == 0 else x / {conv.scale!r})")
+        elif isinstance(conv, LinearIntegerConversion):
+            lines.append(f"    r{i} = round(v{i}{off})")
+        else:
+            lines.append(f"    r{i} = round((v{i}{off}) / {conv.scale!r})")
+        # in range ⇔ no bit above the field's (a signed range moved to 0…2ⁿ−1 first)
+        bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
+        check = f"    if (r{i}{bias}) >> {n}: overflow({sig.name!r}, r{i})"
+        exact += lines
+        ranges.append(check)
+        part = f"(r{i} & {mask:#x})" if sig.is_signed else f"r{i}"
+        fields[order].append(f"({part} << {shift})" if shift else part)
+        if isinstance(conv, IdentityConversion):  # an int needs no rounding: skip round() per flag
+            if sig.is_signed:
+                checks.append(f"((v{i}{bias}) >> {n})")
+            else:  # a negative or too wide value leaves a bit above n in the OR of them all
+                unsigned.setdefault(n, []).append(f"v{i}")
+            vpart = f"(v{i} & {mask:#x})" if sig.is_signed else f"v{i}"
+            fast_fields[order].append(f"({vpart} << {shift})" if shift else vpart)
+        else:
+            rounded += lines
+            rounded_ranges.append(check)
+            fast_fields[order].append(f"({part} << {shift})" if shift else part)
+    dec.append(f"    return ({', '.join(outs)},)")
+
+    def packed(parts: dict[str, list[str]]) -> str:
+        le = " | ".join(parts["little_endian"])
+        be = " | ".join(parts["big_endian"])
+        if le and be:
+            return (f"(({le}) | from_bytes(({be}).to_bytes({nbytes}, 'big'), 'little'))"
+                    f".to_bytes({nbytes}, 'little')")
+        return f"({be}).to_bytes({nbytes}, 'big')" if be else f"({le}).to_bytes({nbytes}, 'little')"
+
+    exact = ["def encode_exact(values):", unpack, *exact, *ranges, f"    return {packed(fields)}"]
+    enc = ["def encode(values):"]
+    checks += [f"(({' | '.join(names_)}) >> {n})" for n, names_ in unsigned.items()]
+    if checks:
+        # The common case, integers (or bools) in range, without a round() per signal; a float,
+        # a negative or too wide value goes the exact way, which rounds, or raises as cantools does.
+        slow = "return encode_exact(values)"
+        enc += [unpack, "    try:", f"        if {' | '.join(checks)}:", f"            {slow}",
+                "    except TypeError:", f"        {slow}"]
+        enc += [*rounded, *rounded_ranges, f"    return {packed(fast_fields)}"]
+    else:
+        enc = ["encode = encode_exact"]
+    source = "\n".join(dec) + "\n\n\n" + "\n".join(exact) + "\n\n\n" + "\n".join(enc) + "\n"
+    namespace: dict[str, Any] = {"from_bytes": int.from_bytes, "overflow": _overflow}
+    exec(compile(source, f"<codec {message.name}>", "exec"), namespace)
+    return CompiledCodec(names, source, namespace)
+
+
+def _overflow(name: str, raw: int) -> None:
+    """What cantools raises for a raw value its bits cannot hold."""
+    raise OverflowError(f"signal {name}: raw value {raw} out of range")
+
+
+def codec_for(message: Message, *, compiled: bool = True) -> FrameCodec:
+    """The compiled codec of ``message``, or cantools' (logged, with the reason) when not compilable."""
+    if not compiled:
+        return CantoolsCodec(message)
+    try:
+        return compile_codec(message)
+    except NotCompilable as exc:
+        log.info("frame %s: layout not compiled (%s); using cantools", message.name, exc)
+        return CantoolsCodec(message)

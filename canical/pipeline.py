@@ -1,0 +1,364 @@
+"""The calibration pipeline: a session in, a coefficient set and a report out.
+
+Pure: no files, no printing. Steps: find the settled plateaus, measure V0 on the
+zero-rate ones, reduce to plateau means, choose the model size by held-out
+error (or take the one asked for), fit, and gather the statistics a user needs
+to trust the result.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from canical.calibrate.cross_validation import cross_validate, prediction_errors
+from canical.calibrate.fit_points import FitPoints, fit_points
+from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
+from canical.calibrate.model_selection import select_model
+from canical.calibrate.noise_records import noise_analysis, sample_interval, zero_rate_records
+from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few, saturated
+from canical.calibrate.segment_points import rate_noise
+from canical.calibrate.zero_bias import zero_bias, zero_rate
+from canical.closed_loop.blocks import BLOCK_S, make_blocks
+from canical.closed_loop.search import LoopResult, predict, run_loop
+from canical.closed_loop.unexplained import account
+from canical.errors import CanicalError
+from canical.models.forward_poly import ForwardPoly
+from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
+from canical.sessions.session import Session
+from canical.sets.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
+
+FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
+
+
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """What the user chose; ``None`` for segments/order means choose by held-out error."""
+
+    model: str = "segmented-inverse"
+    segments: int | None = None
+    order: int | None = None
+    smoothness: int | None = 0
+    breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS
+    rate_tol: float | None = None  # None: from the reference's estimated noise
+    min_duration_s: float = 1.0
+    settle_s: float | None = None  # None: 0.5 s or a tenth of the steady stretch
+    latency_s: float | None = None  # the reference's latency behind the sensor; None: estimated
+    extend: bool = True  # run the closed loop (segmented-inverse only)
+    prefer: tuple[str, ...] = ()  # candidate names to pick when confounded
+    direction_threshold_dps: float = 1.0
+
+
+@dataclass(frozen=True)
+class BaseFit:
+    """Everything the base (rate-only) calibration found, for the report and the closed loop."""
+
+    plateaus: Plateaus
+    v0: float
+    points: FitPoints  # unsaturated plateaus only
+    fitted: FittedModel
+    saturated_rates: tuple[float, ...] = ()
+    candidates: list[dict[str, Any]] = field(default_factory=list)
+
+
+ProgressFn = Callable[[str], None]
+
+
+def _quiet(_: str) -> None:
+    pass
+
+
+def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn = _quiet) -> BaseFit:
+    """Plateaus, V0, points, and the fitted rate model (size chosen or given)."""
+    if session.ref_dps is None:
+        raise CanicalError("the session has no reference rate column: cannot calibrate")
+    progress("finding plateaus")
+    plateaus = find_plateaus(session, options)
+    if plateaus.count == 0:
+        raise CanicalError(explain_too_few(plateaus, min_duration_s=options.min_duration_s,
+                                           what="no constant-rate plateau found"))
+    if not np.any(np.abs(plateaus.rate_dps) <= np.maximum(1e-3, 4.0 * plateaus.rate_uncertainty())):
+        raise CanicalError(explain_too_few(
+            plateaus, min_duration_s=options.min_duration_s,
+            what=f"no zero-rate plateau among {plateaus.count} plateaus (V0 cannot be measured)"))
+    v0 = zero_bias(session.raw, plateaus)
+    clipped = saturated(session.raw, plateaus)
+    points = fit_points(session.raw, v0, plateaus).take(~clipped)
+    if clipped.any():
+        rates = ", ".join(f"{r:g}" for r in np.unique(plateaus.rate_dps[clipped]))
+        progress(f"left out {int(clipped.sum())} plateaus where the sensor saturates ({rates} deg/s)")
+    n_rates = int(points.rate_groups().max()) + 1
+    if n_rates < 4:
+        raise CanicalError(explain_too_few(
+            plateaus, min_duration_s=options.min_duration_s,
+            what=f"only {n_rates} distinct plateau rates (at least 4 are needed)"))
+    progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
+    spec, candidates = _choose_spec(points, options)
+    fitted = fit_model(points, spec)
+    sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
+    return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates)
+
+
+def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
+    """The session's plateaus with the user's thresholds (auto where not given)."""
+    return detect_plateaus(
+        session.time_s,
+        session.ref_dps,
+        rate_tol=options.rate_tol,
+        min_duration_s=options.min_duration_s,
+        settle_s=options.settle_s,
+        settled=session.settled,
+        latency_s=options.latency_s,
+        raw=session.raw,
+    )
+
+
+def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, list[dict[str, Any]]]:
+    base = ModelSpec(o.model, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
+    if o.model == "segmented-linear":
+        return replace(base, order=1), []
+    if o.model == "forward-poly":
+        if o.order is not None:
+            return replace(base, order=o.order), []
+        spec, cands = select_model(points, base, segments=(1,), orders=FORWARD_ORDERS)
+        return spec, [_candidate_row(c) for c in cands]
+    if o.segments is not None and o.order is not None:
+        return base, []
+    segments = (o.segments,) if o.segments is not None else (1, 2, 3, 4, 5, 6)
+    orders = (o.order,) if o.order is not None else (1, 2, 3)
+    spec, cands = select_model(points, base, segments=segments, orders=orders)
+    return spec, [_candidate_row(c) for c in cands]
+
+
+def _candidate_row(c) -> dict[str, Any]:
+    return {
+        "segments": c.spec.n_segments,
+        "order": c.spec.order,
+        "coefficients": c.n_coefficients,
+        "held_out_rms_dps": c.held_out.rms_dps,
+        "held_out_max_dps": c.held_out.max_dps,
+        "monotone": c.monotone,
+    }
+
+
+def model_dict(fitted: FittedModel, v0: float) -> dict[str, Any]:
+    """The coefficient-file form of a fitted model."""
+    model = fitted.model
+    if isinstance(model, ForwardPoly):
+        return forward_model_dict(model, v0)
+    points_dps = (
+        [e.rate_dps for e in fitted.extrema]
+        if fitted.spec.kind == "segmented-inverse"
+        else [b for b in fitted.spec.breakpoints_dps if model.span[0] < b]
+    )
+    smooth = fitted.spec.smoothness if fitted.spec.kind == "segmented-inverse" else None
+    return piecewise_model_dict(fitted.spec.kind, model, v0, smoothness=smooth, segment_points_dps=points_dps)
+
+
+def error_stats(errors: np.ndarray) -> dict[str, float]:
+    return {"rms_dps": float(np.sqrt(np.mean(errors**2))), "max_dps": float(np.max(np.abs(errors)))}
+
+
+def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
+    """Report fields of the base fit: samples, model, segment points, errors, noise."""
+    spec = base.fitted.spec
+    held = cross_validate(base.points, lambda p: fit_model(p, spec).model)
+    train = prediction_errors(base.fitted.model, base.points)
+    slope = float(np.polyfit(base.points.rate, base.points.dv, 1)[0])
+    per_sample_noise = float(np.median(base.points.dv_sem * np.sqrt(base.points.weight))) / abs(slope)
+    report: dict[str, Any] = {
+        "model": spec.kind,
+        "spec": spec.describe(),
+        "segments": spec.n_segments,
+        "order": spec.order,
+        "smoothness": spec.smoothness if spec.kind == "segmented-inverse" else None,
+        "v0": base.v0,
+        "samples": {
+            "total": len(session),
+            "used": base.plateaus.n_used,
+            "transition": base.plateaus.n_transition,
+            "settling": base.plateaus.n_settling,
+        },
+        "plateaus": base.plateaus.count,
+        "plateau_finding": base.plateaus.describe(),
+        "saturated_rates_dps": list(base.saturated_rates),
+        "rates": int(base.points.rate_groups().max()) + 1,
+        "segment_points": [
+            {
+                "rate_dps": e.rate_dps,
+                "raw": e.dv + base.v0,
+                "prominence_dps": e.prominence_dps,
+                "source": e.source,
+            }
+            for e in base.fitted.extrema
+        ],
+        "training": error_stats(train),
+        "held_out": {**error_stats(held.errors), "method": "leave-rates-out cross-validation"},
+        "noise": {
+            "per_sample_dps": per_sample_noise,
+            "plateau_mean_dps": float(np.median(rate_noise(base.points))),
+        },
+        "candidates": base.candidates,
+        "effects": [],
+    }
+    jumps = getattr(base.fitted.model, "jumps", None)
+    if jumps is not None:
+        report["max_jump_at_segment_points_dps"] = float(np.max(np.abs(jumps()), initial=0.0))
+    return report
+
+
+def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
+    """Allan analysis of the zero-rate plateaus, as rate through the fitted model.
+
+    Only the plateaus' used samples count (no ramp, no settling); each plateau is its own
+    record, so the longest τ is a third of the longest zero-rate plateau and terms that
+    need longer (rate random walk, usually) are reported as not resolved.
+    """
+    zero = np.flatnonzero(zero_rate(base.plateaus))
+    start, stop = base.plateaus.start[zero], base.plateaus.stop[zero]
+    rate = np.zeros(len(session))
+    for a, b in zip(start, stop, strict=True):
+        rate[a:b] = base.fitted.model.evaluate(session.raw[a:b] - base.v0)[0]
+    dt = sample_interval(session.time_s)
+    records = zero_rate_records(session.time_s, rate, start, stop, dt)
+    return noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    coefficients: CoefficientSet
+    report: dict[str, Any]
+    base: BaseFit
+    loop: LoopResult | None = None
+
+
+def extend_model(
+    session: Session, base: BaseFit, options: CalibrateOptions, progress: ProgressFn = _quiet
+) -> LoopResult:
+    """Run the closed loop on the base fit: blocks, candidates, acceptance, joint refit."""
+    model = base.fitted.model
+    slope = abs(float(np.polyfit(base.points.rate, base.points.dv, 1)[0]))
+    keep = ~saturated(session.raw, base.plateaus)
+    blocks = make_blocks(
+        session,
+        base.plateaus,
+        base.v0,
+        keep=keep,
+        direction_threshold_raw=options.direction_threshold_dps * slope,
+    )
+    duration = float(session.time_s[-1] - session.time_s[0])
+    return run_loop(
+        blocks,
+        base.fitted.spec,
+        model.knots,
+        model.scale,
+        model.span,
+        duration,
+        prefer=options.prefer,
+        progress=progress,
+    )
+
+
+def fitted_residual(loop: LoopResult) -> np.ndarray:
+    """The final model's residual at every block (deg/s), with the effects it found."""
+    return loop.blocks.points.rate - predict(loop.fit, loop.blocks)
+
+
+def loop_report(loop: LoopResult) -> dict[str, Any]:
+    """Report fields of the closed loop: before/after on held-out plateaus, effects, confounded."""
+    return {
+        "held_out_rms_before_dps": loop.rms_before,
+        "held_out_rms_after_dps": loop.rms_after,
+        "held_out_max_before_dps": float(np.max(np.abs(loop.errors_before))),
+        "held_out_max_after_dps": float(np.max(np.abs(loop.errors_after))),
+        "method": "leave-plateaus-out cross-validation on blocks of "
+        f"{BLOCK_S:g} s, {len(loop.blocks)} blocks",
+        "final_spec": loop.structure.spec.describe(),
+        "capacity_changes": loop.capacity_changes,
+        "untestable": [
+            {
+                "candidate": name,
+                "r2_with_table_rate": r2,
+                "why": "follows the table rate in this session; visit the rates in random order "
+                "or sweep up and down to test it",
+            }
+            for name, r2 in loop.untestable.items()
+        ],
+        "rounds": loop.rounds,
+        "steps": loop.steps,
+    }
+
+
+def calibrate(
+    session: Session,
+    options: CalibrateOptions,
+    *,
+    sensor_id: str,
+    axis: str,
+    raw_units: str = "counts",
+    progress: ProgressFn = _quiet,
+) -> CalibrationResult:
+    """Fit the chosen model to a session (closing the loop unless told not to) and package the set."""
+    base = fit_base(session, options, progress)
+    progress("cross-validating the chosen model")
+    report = base_report(session, base)
+    progress("Allan deviation of the zero-rate plateaus")
+    report["allan"] = zero_rate_noise(session, base)
+    model = model_dict(base.fitted, base.v0)
+    terms: tuple[dict[str, Any], ...] = ()
+    loop = None
+    if options.extend and options.model == "segmented-inverse":
+        progress("closing the loop: searching the residual for undeclared effects")
+        loop = extend_model(session, base, options, progress)
+        spec = loop.structure.spec
+        points_dps = [
+            float(np.interp(k, base.points.by_rate().dv, base.points.by_rate().rate))
+            for k in loop.fit.poly.knots
+        ]
+        model = piecewise_model_dict(
+            spec.kind, loop.fit.poly, base.v0, smoothness=spec.smoothness, segment_points_dps=points_dps
+        )
+        terms = tuple(t.to_dict() for t in loop.fit.terms)
+        report["effects"] = loop.effects
+        report["confounded"] = loop.confounded
+        report["closed_loop"] = loop_report(loop)
+        report["unexplained"] = account(
+            loop.errors_after, fitted_residual(loop), loop.blocks, loop.candidates
+        )
+    elif options.extend:
+        report["closed_loop"] = {
+            "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
+        }
+    # What the coefficient file holds: the loop's final model, or the rate model alone.
+    report["written"] = {
+        "spec": loop.structure.spec.describe() if loop is not None else report["spec"],
+        "effect_terms": len(terms),
+    }
+    fit_stats = {
+        "samples_used": report["samples"]["used"],
+        "plateaus": report["plateaus"],
+        "training_rms_dps": report["training"]["rms_dps"],
+        "training_max_dps": report["training"]["max_dps"],
+        "held_out_rms_dps": report["held_out"]["rms_dps"],
+        "held_out_max_dps": report["held_out"]["max_dps"],
+    }
+    if loop is not None:
+        fit_stats["extended_held_out_rms_dps"] = loop.rms_after
+        fit_stats["effects"] = [e["name"] for e in loop.effects]
+        if np.isfinite(report["unexplained"]["ratio"]):
+            fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
+    cset = CoefficientSet(
+        sensor_id=sensor_id,
+        axis=axis,
+        v0=base.v0,
+        model=model,
+        terms=terms,
+        fit=fit_stats,
+        created=dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        raw_units=raw_units,
+    )
+    return CalibrationResult(cset, report, base, loop)

@@ -1,0 +1,6 @@
+"""What a calibration tells its user: the Markdown report and the plots.
+
+:mod:`.markdown` writes report.md, :mod:`.plots` the residual, model and closed-loop figures,
+:mod:`.allan_plot` the Allan deviation. Reads results of :mod:`canical.closed_loop` and
+:mod:`canical.calibrate`; nothing below imports it.
+"""

@@ -1,0 +1,163 @@
+"""PNG plots of a calibration, for a calibration engineer who would rather look than read.
+
+* residual versus table rate, before and after the closed loop (held-out plateaus);
+* per accepted effect, the residual the effect explains versus its variable
+  (channel value, time since power-on, or direction state), with the fitted term;
+* per confounded pair, the residual against each candidate's variable;
+* what stays unexplained: the held-out residual after the loop against time and
+  against every candidate variable (each channel's level, derivative, lag,
+  direction of change...), the best-correlated first.
+
+Uses matplotlib's Agg backend: no display needed. Files are written atomically.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from canical.atomic_file import make_dirs, write_bytes_atomic
+from canical.closed_loop.blocks import Blocks
+from canical.closed_loop.search import LoopResult, effect_contribution, predict
+from canical.closed_loop.unexplained import account, candidate_variables, correlations
+from canical.sets.terms import term_from_dict
+
+
+def _save(fig, path: Path) -> None:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    write_bytes_atomic(path, buf.getvalue())
+
+
+def variable_of(name: str, blocks: Blocks, loop: LoopResult | None = None) -> tuple[np.ndarray, str]:
+    """The x-axis for a candidate: its channel (or its transform), time since power-on, or direction."""
+    cand = next((c for c in (loop.candidates if loop else []) if c.name == name), None)
+    if cand is not None and not name.startswith(("channel:", "time", "direction", "rate-of-change")):
+        return candidate_variables([cand], blocks)[name], name
+    if name.startswith("channel:"):
+        ch = name.split(":", 1)[1]
+        return blocks.aux[ch], ch
+    if name.startswith("time"):
+        return blocks.time_s, "time since power-on (s)"
+    if name == "rate-of-change":
+        return blocks.slope, "rate of change of raw (counts/s)"
+    return blocks.direction, "direction state (−1 falling, +1 rising)"
+
+
+def residual_vs_rate(loop: LoopResult, path: Path) -> None:
+    rate = loop.blocks.points.rate
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    ax.plot(
+        rate,
+        loop.errors_before,
+        ".",
+        ms=3,
+        alpha=0.6,
+        label=f"rate model only: rms {loop.rms_before:.4f} deg/s",
+    )
+    ax.plot(
+        rate, loop.errors_after, ".", ms=3, alpha=0.8, label=f"with effects: rms {loop.rms_after:.4f} deg/s"
+    )
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("table rate (deg/s)")
+    ax.set_ylabel("held-out error (deg/s)")
+    ax.set_title("Error on held-out plateaus, before and after closing the loop")
+    ax.legend(loc="best", fontsize=8)
+    _save(fig, path)
+
+
+def effect_plot(loop: LoopResult, effect: dict, path: Path) -> None:
+    """Partial residual: the final model's residual plus this effect's own contribution."""
+    blocks = loop.blocks
+    resid = blocks.points.rate - predict(loop.fit, blocks)
+    terms = tuple(term_from_dict(t) for t in effect["terms"])
+    contribution = effect_contribution(loop.fit, blocks, terms)
+    x, label = variable_of(effect["name"], blocks, loop)
+    # The correction subtracts the error, so the sensor's error is the negative contribution.
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    ax.plot(x, -(resid + contribution), ".", ms=3, alpha=0.6, label="sensor error explained (blocks)")
+    ax.plot(x, -contribution, "x", ms=3, alpha=0.8, label="fitted terms (scale-factor terms vary with rate)")
+    ax.set_xlabel(label)
+    ax.set_ylabel("rate error (deg/s)")
+    ax.set_title(
+        f"Effect {effect['name']}: when added, held-out rms {effect['rms_before_dps']:.4f} -> "
+        f"{effect['rms_after_dps']:.4f} deg/s"
+    )
+    ax.legend(loc="best", fontsize=8)
+    _save(fig, path)
+
+
+def confounded_plot(loop: LoopResult, group: dict, path: Path) -> None:
+    blocks = loop.blocks
+    resid = blocks.points.rate - loop.base_fit.poly.evaluate(blocks.points.dv)[0]
+    names = group["candidates"][:2]
+    fig, axes = plt.subplots(1, len(names), figsize=(9, 3.8), squeeze=False)
+    for ax, name in zip(axes[0], names, strict=True):
+        x, label = variable_of(name, blocks, loop)
+        ax.plot(x, resid, ".", ms=3, alpha=0.6)
+        ax.set_xlabel(label)
+        ax.set_ylabel("residual of the rate model (deg/s)")
+        ax.set_title(name, fontsize=9)
+    fig.suptitle("Confounded: both explain the same residual", fontsize=10)
+    _save(fig, path)
+
+
+def unexplained_plot(loop: LoopResult, path: Path) -> None:
+    """The residual after the loop against time and every candidate variable, best-correlated first."""
+    blocks = loop.blocks
+    resid = loop.errors_after
+    variables = candidate_variables(loop.candidates, blocks)
+    ranked = correlations(resid, variables)
+    order = ["time since power-on", *(n for n, _ in ranked if n != "time since power-on")]
+    r_of = dict(ranked)
+    cols = 4
+    rows = (len(order) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    for ax, name in zip(axes.flat, order, strict=False):
+        ax.plot(variables[name], resid, ".", ms=2, alpha=0.6)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_title(f"{name}  |r| {r_of[name]:.2f}", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(order):]:
+        ax.axis("off")
+    left = account(resid, blocks.points.rate - predict(loop.fit, blocks), blocks, loop.candidates)
+    verdict = "UNEXPLAINED" if left["unexplained"] else "explained"
+    fig.suptitle(
+        f"Held-out residual after the loop: {left['held_out_robust_rms_dps']:.4f} deg/s rms (robust), "
+        f"{left['ratio']:.1f}x the noise floor {left['noise_floor_dps']:.4f} ({verdict})",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    _save(fig, path)
+
+
+def _file_name(name: str) -> str:
+    """A candidate name as a file name part: d/dt temp_c -> d_dt_temp_c."""
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("_")
+
+
+def write_plots(loop: LoopResult, directory: Path) -> list[Path]:
+    """All plots of a loop result into ``directory``; returns the paths written."""
+    make_dirs(directory)
+    written = [directory / "residual_vs_rate.png"]
+    residual_vs_rate(loop, written[0])
+    for i, effect in enumerate(loop.effects, 1):
+        path = directory / f"effect_{i}_{_file_name(effect['name'])}.png"
+        effect_plot(loop, effect, path)
+        written.append(path)
+    for i, group in enumerate(loop.confounded, 1):
+        path = directory / f"confounded_{i}.png"
+        confounded_plot(loop, group, path)
+        written.append(path)
+    path = directory / "unexplained_residual.png"
+    unexplained_plot(loop, path)
+    written.append(path)
+    return written

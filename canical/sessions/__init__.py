@@ -1,0 +1,7 @@
+"""A calibration session as data, and the files it is read from.
+
+:class:`.session.Session` holds time, table rate, raw counts and auxiliary channels;
+:mod:`.csv_file` reads and writes the CSV format, :mod:`.canlog` decodes any CAN log
+python-can reads (names of the formats in the light :mod:`.canlog_format`). Imports only
+:mod:`canical.frames` and the ground floor.
+"""

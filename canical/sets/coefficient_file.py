@@ -1,0 +1,189 @@
+"""Coefficient sets as YAML files, with a CRC32 over their canonical content.
+
+The CRC is computed over a canonical JSON rendering of everything but the CRC
+itself (sorted keys, no spaces, shortest round-trip floats), so it does not
+depend on YAML formatting and a device can recompute it over the same bytes.
+Loading checks every field and refuses a damaged or hand-edited file with one
+line naming what is wrong.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import zlib
+from typing import Any
+
+import numpy as np
+import yaml
+
+from canical.atomic_file import write_text_atomic
+from canical.errors import CanicalError
+from canical.models import MODEL_KINDS
+from canical.sets.coefficients import PIECEWISE_KINDS, SCHEMA_VERSION, CoefficientSet, finite
+from canical.sets.terms import term_from_dict
+from canical.yaml_text import parse_yaml
+
+
+def canonical_bytes(content: dict[str, Any]) -> bytes:
+    """The bytes the CRC covers: the content without ``crc32``, as canonical JSON."""
+    body = {k: v for k, v in content.items() if k != "crc32"}
+    return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+
+def content_crc(content: dict[str, Any]) -> int:
+    return zlib.crc32(canonical_bytes(content)) & 0xFFFFFFFF
+
+
+def set_crc(cset: CoefficientSet) -> int:
+    """The set's CRC32, which also serves as its identifier on the bus."""
+    return content_crc(cset.to_dict())
+
+
+def dumps(cset: CoefficientSet) -> str:
+    """YAML text of a set, CRC last."""
+    content = cset.to_dict()
+    content["crc32"] = f"0x{content_crc(content):08x}"
+    return yaml.safe_dump(content, sort_keys=False, default_flow_style=None, width=100)
+
+
+def save(path: str | os.PathLike[str], cset: CoefficientSet) -> None:
+    """Write a set atomically (validated first, so no bad set is ever written)."""
+    text = dumps(cset)
+    loads(text, str(path))
+    write_text_atomic(path, text)
+
+
+def load(path: str | os.PathLike[str]) -> CoefficientSet:
+    name = str(path)
+    try:
+        with open(path, encoding="utf-8") as handle:
+            text = handle.read()
+    except FileNotFoundError:
+        raise CanicalError(f"{name}: coefficient file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CanicalError(f"{name}: cannot read coefficient file ({exc})") from None
+    return loads(text, name)
+
+
+def loads(text: str, source: str = "<coefficients>") -> CoefficientSet:
+    """Parse and fully validate a set; any defect raises one :class:`CanicalError` line."""
+    return from_content(parse_yaml(text, source), source)
+
+
+def from_content(content: Any, source: str) -> CoefficientSet:
+    """Validate parsed content (from YAML or from a device) and build the set."""
+
+    def fail(msg: str) -> CanicalError:
+        return CanicalError(f"{source}: {msg}")
+
+    if not isinstance(content, dict):
+        raise fail("not a coefficient set (expected a mapping at the top level)")
+    schema = content.get("schema")
+    if schema != SCHEMA_VERSION:
+        raise fail(f"schema {schema!r} not supported (this canical reads schema {SCHEMA_VERSION})")
+    crc_text = content.get("crc32")
+    if not isinstance(crc_text, str):
+        raise fail("crc32 missing")
+    try:
+        crc = int(crc_text, 16)
+    except ValueError:
+        raise fail(f"crc32 {crc_text!r} is not hexadecimal") from None
+    try:
+        actual = content_crc(content)
+    except (TypeError, ValueError) as exc:
+        raise fail(f"content cannot be checked ({exc})") from None
+    if crc != actual:
+        raise fail(f"CRC mismatch (file says 0x{crc:08x}, content gives 0x{actual:08x}): damaged or edited")
+    sensor = _mapping(content, "sensor", fail)
+    units = _mapping(content, "units", fail)
+    model = _mapping(content, "model", fail)
+    v0 = content.get("v0")
+    if not finite(v0):
+        raise fail("v0 must be a finite number")
+    for key in ("id", "axis"):
+        if not isinstance(sensor.get(key), str) or not sensor.get(key):
+            raise fail(f"sensor.{key} must be a non-empty string")
+    _check_model(model, fail)
+    terms = content.get("terms", [])
+    if not isinstance(terms, list):
+        raise fail("terms must be a list")
+    for i, term in enumerate(terms):
+        if not isinstance(term, dict):
+            raise fail(f"terms[{i}] must be a mapping")
+        try:
+            term_from_dict(term, f"terms[{i}]")
+        except ValueError as exc:
+            raise fail(str(exc)) from None
+    if terms and model.get("kind") not in PIECEWISE_KINDS:
+        raise fail("effect terms need a segmented model")
+    fit = content.get("fit", {})
+    if not isinstance(fit, dict):
+        raise fail("fit must be a mapping")
+    return CoefficientSet(
+        sensor_id=sensor["id"],
+        axis=sensor["axis"],
+        v0=float(v0),
+        model=model,
+        terms=tuple(terms),
+        fit=fit,
+        created=str(content.get("created", "")),
+        raw_units=str(units.get("raw", "counts")),
+        rate_units=str(units.get("rate", "deg/s")),
+        schema=schema,
+    )
+
+
+def _mapping(content: dict, key: str, fail) -> dict:
+    value = content.get(key)
+    if not isinstance(value, dict):
+        raise fail(f"{key} missing or not a mapping")
+    return value
+
+
+def _numbers(model: dict, key: str, fail, *, length: int | None = None) -> list[float]:
+    values = model.get(key)
+    if not isinstance(values, list) or not all(finite(v) for v in values):
+        raise fail(f"model.{key} must be a list of finite numbers")
+    if length is not None and len(values) != length:
+        raise fail(f"model.{key} must have {length} entries, has {len(values)}")
+    return values
+
+
+def _check_model(model: dict, fail) -> None:
+    kind = model.get("kind")
+    if kind not in MODEL_KINDS:
+        raise fail(f"model.kind {kind!r} unknown (known: {', '.join(MODEL_KINDS)})")
+    lo, hi = _numbers(model, "span_raw", fail, length=2)
+    if not lo < hi:
+        raise fail("model.span_raw must be ascending [low, high]")
+    if kind in PIECEWISE_KINDS:
+        knots = _numbers(model, "knots_raw", fail)
+        if any(b <= a for a, b in itertools.pairwise(knots)):
+            raise fail("model.knots_raw must be strictly ascending")
+        if knots and not (lo < knots[0] and knots[-1] < hi):
+            raise fail("model.knots_raw must lie inside model.span_raw")
+        if not finite(model.get("scale")) or model["scale"] <= 0:
+            raise fail("model.scale must be a positive number")
+        coeffs = model.get("coefficients")
+        if not isinstance(coeffs, list) or len(coeffs) != len(knots) + 1:
+            raise fail(f"model.coefficients must have one row per segment ({len(knots) + 1})")
+        widths = {len(r) if isinstance(r, list) else -1 for r in coeffs}
+        if len(widths) != 1 or widths.pop() < 1:
+            raise fail("model.coefficients rows must be lists of the same length")
+        if not all(finite(c) for row in coeffs for c in row):
+            raise fail("model.coefficients must be finite numbers")
+        if model.get("smoothness") not in (None, 0, 1):
+            raise fail("model.smoothness must be null, 0 or 1")
+    else:
+        coeffs = _numbers(model, "coefficients", fail)
+        if len(coeffs) < 2:
+            raise fail("model.coefficients needs at least 2 entries")
+        if not finite(model.get("rate_scale")) or model["rate_scale"] <= 0:
+            raise fail("model.rate_scale must be a positive number")
+        w_lo, w_hi = _numbers(model, "rate_span_dps", fail, length=2)
+        if not w_lo < w_hi:
+            raise fail("model.rate_span_dps must be ascending")
+    if not np.isfinite(np.asarray(model.get("segment_points_dps", []), dtype=float)).all():
+        raise fail("model.segment_points_dps must be finite numbers")

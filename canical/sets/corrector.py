@@ -1,0 +1,110 @@
+"""Apply a coefficient set to raw samples: the run-time side of a calibration.
+
+Built once from a validated set (everything that can be computed at load is
+computed here), then called per block of samples (``correct``) or per frame
+(``correct_one``). It never sees a reference rate: in the field there is none.
+
+Effect terms correct the raw output before the rate model (see
+:mod:`canical.sets.terms`). A gated term reads ΔV as well, without state. A
+direction or slope term, and a channel's lag, derivative or direction term, has
+state, so one Corrector
+serves one stream of samples in time order; ``correct`` on a block starts from
+a fresh state, exactly as ``correct_one`` does on a new Corrector, so the two
+agree sample for sample.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from canical.errors import CanicalError
+from canical.sets.coefficient_file import set_crc
+from canical.sets.coefficients import CoefficientSet
+from canical.sets.terms import (
+    STATEFUL_CHANNEL,
+    TIME_INPUT,
+    ChannelTracker,
+    DirectionTracker,
+    SlopeTracker,
+    Term,
+    feature_values,
+    gate_one,
+    raw_shift,
+    term_from_dict,
+)
+
+
+class Corrector:
+    """ΔV = raw − V0 → ω through the set's rate model, plus its effect terms."""
+
+    def __init__(self, cset: CoefficientSet) -> None:
+        self.cset = cset
+        self.v0 = float(cset.v0)
+        self.model = cset.rate_model()
+        self.set_id = set_crc(cset)
+        self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
+        names = [n for t in self.terms for n in t.input_names]
+        self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the direction, slope, lag and derivative state (a new stream of samples begins)."""
+        self._trackers = [_tracker(t) for t in self.terms]
+
+    def correct(
+        self, raw: np.ndarray, inputs: Mapping[str, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Calibrated rate (deg/s) and out-of-span flags for a block of samples in time order."""
+        raw = np.asarray(raw, dtype=float)
+        inputs = inputs or {}
+        missing = [n for n in self.required_inputs if n not in inputs]
+        if missing:
+            raise CanicalError(f"the coefficient set needs input(s) {', '.join(missing)}")
+        dv = raw - self.v0
+        if self.terms:
+            features = np.column_stack([feature_values(t, inputs, raw, dv) for t in self.terms])
+            dv = dv - raw_shift(self.terms, features, dv)
+        return self.model.evaluate(dv)
+
+    def correct_one(self, raw: float, inputs: Mapping[str, float] | None = None) -> tuple[float, bool]:
+        """Calibrated rate and out-of-span flag for the next sample of the stream."""
+        raw = float(raw)
+        dv = raw - self.v0
+        shift = 0.0
+        for term, tracker in zip(self.terms, self._trackers, strict=True):
+            if isinstance(tracker, ChannelTracker):
+                x = tracker.update(float(inputs[term.channel]), float(inputs[TIME_INPUT]))  # type: ignore[index]
+            elif isinstance(tracker, DirectionTracker):
+                source = float(inputs[term.channel]) if term.kind == "channel" else raw  # type: ignore[index]
+                x = tracker.update(source)
+            elif tracker is not None:
+                x = tracker.update(raw, float(inputs[TIME_INPUT]))  # type: ignore[index]
+            else:
+                value = float(inputs[term.input_name])  # type: ignore[index]
+                if term.feature == "gated":
+                    x = (value - term.reference) * gate_one(dv, term.threshold_raw)  # type: ignore[arg-type]
+                elif term.kind == "channel":
+                    x = value - term.reference
+                    if term.feature == "square":
+                        x = x * x
+                elif term.feature == "warmup":
+                    x = 1.0 - math.exp(-value / term.tau_s)  # type: ignore[operator]
+                else:
+                    x = value
+            shift += term.coefficient * (x * dv if term.form == "scale" else x)
+        return self.model.evaluate_one(dv - shift)
+
+
+def _tracker(term: Term) -> ChannelTracker | DirectionTracker | SlopeTracker | None:
+    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
+        if term.feature == "direction":
+            return DirectionTracker(term.threshold_raw or 1.0)
+        return ChannelTracker(term)
+    if term.feature == "sign":
+        return DirectionTracker(term.threshold_raw or 1.0)
+    if term.feature == "slope":
+        return SlopeTracker(term.tau_s or 1.0)
+    return None

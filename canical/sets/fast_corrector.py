@@ -1,0 +1,132 @@
+"""One axis's correction as straight-line scalar code, generated when its set is loaded.
+
+Why: :meth:`Corrector.correct_one <canical.sets.corrector.Corrector.correct_one>` is general — it
+walks its terms, asks each what it is, loops over knots and coefficients — and that costs
+more per frame than everything else the daemon does. A set never changes while it is in use,
+so its correction is written out once as Python source with every number a constant: the
+terms one line each, the segment found by ``bisect``, the polynomial in Horner form unrolled.
+
+It must give exactly what ``correct_one`` gives (the tests compare bit for bit on random sets
+and inputs), so every floating-point operation is the reference's, in the reference's order.
+The direction and slope terms keep their state in the corrector's own tracker objects, so the
+compiled function and ``correct_one`` share one stream. A term kind or model this module does
+not know is not compiled: :func:`compile_corrector` returns None and the caller keeps the
+reference path, which stays the definition.
+"""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from collections.abc import Callable, Mapping
+from itertools import pairwise
+from typing import Any
+
+from canical.models.piecewise import PiecewisePoly
+from canical.sets.corrector import Corrector
+from canical.sets.terms import TIME_INPUT, DirectionTracker, SlopeTracker, Term
+
+#: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
+CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
+
+#: The (kind, feature) pairs compiled here; anything else keeps the reference path.
+COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear"),
+                  ("direction", "sign"), ("direction", "slope")}
+
+
+def why_not(corrector: Corrector) -> str | None:
+    """Why this corrector is not compiled (None: it is)."""
+    for term, tracker in zip(corrector.terms, corrector._trackers, strict=True):
+        if (term.kind, term.feature) not in COMPILED_TERMS:
+            return f"term {term.kind}/{term.feature} not compiled"
+        expected = {"sign": DirectionTracker, "slope": SlopeTracker}.get(term.feature, type(None))
+        if type(tracker) is not expected:
+            return f"term {term.kind}/{term.feature} has state {type(tracker).__name__}"
+    model = corrector.model
+    if isinstance(model, PiecewisePoly):
+        knots = model._knots_list
+        if any(not b >= a for a, b in pairwise(knots)):  # bisect needs them sorted
+            return "segment points not in ascending order"
+    return None
+
+
+def _term_lines(j: int, term: Term, key: str | None) -> list[str]:
+    """The reference's feature x and its share of the shift, for term ``j``.
+
+    The reference converts an input with ``float()`` first; every use below combines it with
+    a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
+    call is left out. Trackers get exactly the reference's arguments.
+    """
+    if term.feature == "sign":
+        x = f"track{j}(raw)"
+    elif term.feature == "slope":
+        x = f"track{j}(raw, float(inputs[{TIME_INPUT!r}]))"
+    elif term.kind == "channel" and term.feature == "square":
+        x = f"(inputs[{key!r}] - {term.reference!r})"
+        return [f"    x = {x}", f"    shift += {term.coefficient!r} * "
+                + ("(x * x * dv)" if term.form == "scale" else "(x * x)")]
+    elif term.kind == "channel":
+        x = f"(inputs[{key!r}] - {term.reference!r})"
+    elif term.feature == "warmup":
+        x = f"(1.0 - exp(-inputs[{key!r}] / {term.tau_s!r}))"
+    else:
+        x = f"inputs[{key!r}]"
+    return [f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")]
+
+
+def _model_lines(model: PiecewisePoly, dv: str) -> list[str]:
+    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order."""
+    lo, hi = model.span
+    m = len(model._coeffs_list[0]) - 1
+    horner = f"c[{m}]"
+    for k in range(m - 1, -1, -1):
+        horner = f"({horner}) * u + c[{k}]"
+    slope = ["    slope = 0.0"] + [f"    slope = slope * u + {k} * c[{k}]" for k in range(m, 0, -1)]
+    return [
+        f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
+        "    c = COEFFS[bisect_right(KNOTS, x)]" if model._knots_list else "    c = COEFFS[0]",
+        f"    u = x / {model.scale!r}",
+        f"    acc = {horner}",
+        f"    if x == {dv}:",
+        "        return acc, False",
+        *slope,
+        f"    return acc + slope / {model.scale!r} * ({dv} - x), True",
+    ]
+
+
+def compile_corrector(corrector: Corrector) -> CorrectOne | None:
+    """``corrector.correct_one`` as generated code, or None when something in it is not compiled.
+
+    The function shares the corrector's tracker objects: build it after the last ``reset()``.
+    """
+    if why_not(corrector) is not None:
+        return None
+    terms = corrector.terms
+    lines = ["def correct_one(raw, inputs):"]
+    if any(t.feature in ("sign", "slope") for t in terms):
+        lines.append("    raw = float(raw)")
+    lines.append(f"    dv = raw - {corrector.v0!r}")
+    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right}
+    if terms:
+        lines.append("    shift = 0.0")
+        for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
+            if tracker is not None:
+                namespace[f"track{j}"] = tracker.update
+            lines += _term_lines(j, term, term.input_name)
+        lines.append("    d = dv - shift")
+        dv = "d"
+    else:
+        dv = "dv"
+    model = corrector.model
+    if isinstance(model, PiecewisePoly):
+        namespace["KNOTS"] = tuple(model._knots_list)
+        namespace["COEFFS"] = tuple(tuple(row) for row in model._coeffs_list)
+        lines += _model_lines(model, dv)
+    else:  # a forward polynomial: Newton's method stays the model's own
+        namespace["model_one"] = model.evaluate_one
+        lines.append(f"    return model_one({dv})")
+    source = "\n".join(lines) + "\n"
+    exec(compile(source, f"<corrector {corrector.set_id:08x}>", "exec"), namespace)
+    function = namespace["correct_one"]
+    function.source = source
+    return function  # type: ignore[no-any-return]

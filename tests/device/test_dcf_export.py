@@ -1,0 +1,179 @@
+"""`canical export dcf`: the IMU's EDS with the sets' bank values, for any CANopen tool.
+
+Loaded back with canopen's own object-dictionary import, and downloaded to the emulated IMU
+as a configuration tool does it: every writable object with a ParameterValue, in index order,
+by plain canopen SDO writes (no canical code on the writing side). canopen's own
+``RemoteNode.load_configuration`` would do the same but first rewrites every PDO's parameters,
+which an IMU with fixed PDOs (this one) refuses.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import subprocess
+import sys
+import uuid
+from collections.abc import Iterator
+from pathlib import Path
+
+import canopen
+import pytest
+from canopen.sdo import SdoAbortedError
+from support.imu_fixtures import SERIAL, imu_set, imu_sets
+
+from canical.device.bank_payload import encode_set
+from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
+from canical.device.sdo_download import ImuClient, push_sets
+from canical.imu_dictionary import (
+    AXES,
+    STORE_SIGNATURE,
+    eds_path,
+    imu_objects,
+    object_dictionary,
+    pack_active,
+)
+from canical.sets import coefficient_file
+
+NODE = 0x10
+
+
+def export(
+    tmp_path: Path, sets: dict, *extra: str, name: str = "imu.dcf"
+) -> tuple[Path, subprocess.CompletedProcess]:
+    paths = []
+    for axis, cset in sets.items():
+        path = tmp_path / f"imu-{axis}-{uuid.uuid4().hex[:6]}.yaml"
+        coefficient_file.save(path, cset)
+        paths.append(str(path))
+    out = tmp_path / name
+    done = subprocess.run([sys.executable, "-m", "canical", "export", "dcf", *paths, "-o", str(out), *extra],
+                          capture_output=True, text=True, check=False)  # fmt: skip
+    return out, done
+
+
+def variables(od: canopen.ObjectDictionary) -> dict[tuple[int, int], canopen.objectdictionary.ODVariable]:
+    out = {}
+    for obj in od.values():
+        members = obj.values() if not isinstance(obj, canopen.objectdictionary.ODVariable) else [obj]
+        for var in members:
+            out[(var.index, var.subindex)] = var
+    return out
+
+
+def test_dcf_loads_back_with_every_value(tmp_path: Path) -> None:
+    sets = imu_sets()
+    dcf, done = export(tmp_path, sets, "--node", "0x22", "--bank", "B")
+    assert done.returncode == 0, done.stderr
+    assert "0x22" in done.stdout and "bank B" in done.stdout
+    loaded = canopen.import_od(str(dcf), 0x22)
+    assert loaded.node_id == 0x22 and loaded.bitrate == 500_000
+    eds = variables(object_dictionary(0x22))
+    back = variables(loaded)
+    assert back.keys() == eds.keys()
+    o = imu_objects()
+    expected: dict[tuple[int, int], object] = {o.active_banks: pack_active(dict.fromkeys(AXES, "B"))}
+    for axis, cset in sets.items():
+        ref = o.bank(axis, "B")
+        content, crc = encode_set(cset)
+        expected[(ref.index, ref.content)] = content
+        expected[(ref.index, ref.crc)] = crc
+    for key, var in back.items():
+        original = eds[key]
+        assert (var.name, var.data_type, var.access_type, var.default) == (
+            original.name, original.data_type, original.access_type, original.default), key  # fmt: skip
+        assert var.value == expected.get(key), f"0x{key[0]:04x} sub {key[1]}"
+    # the DCF is the EDS plus values: nothing else in the text changed
+    eds_lines = [ln for ln in eds_path().read_text().splitlines() if not ln.startswith("FileName=")]
+    dcf_lines = [ln for ln in dcf.read_text().splitlines() if not ln.startswith("FileName=")]
+    assert [ln for ln in dcf_lines if ln not in eds_lines and not ln.startswith("ParameterValue=")] == [
+        "[DeviceComissioning]", "NodeID=0x22", "NodeName=canical IMU", "Baudrate=500", "NetNumber=1",
+        "NetworkName=canical", "CANopenManager=0"]  # fmt: skip
+
+
+def test_export_refuses_what_push_refuses(tmp_path: Path) -> None:
+    _, two = export(tmp_path, {"z": imu_set("z"), "z2": imu_set("z")})
+    assert two.returncode == 2 and "both for axis z" in two.stderr and "Traceback" not in two.stderr
+    _, named = export(tmp_path, {"z": imu_set("z", sensor="bench-7")})
+    assert named.returncode == 2 and "not an IMU serial number" in named.stderr
+    out, ok = export(tmp_path, {"z": imu_set("z")}, "--node", "200")
+    assert ok.returncode == 2 and "1..127" in ok.stderr and not out.exists()
+
+
+@contextlib.contextmanager
+def emulated(tmp_path: Path, name: str) -> Iterator[tuple[EmulatedImu, str]]:
+    channel = f"dcf-{uuid.uuid4().hex}"
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        yield (
+            EmulatedImu(EmulatorConfig(node_id=NODE, serial=SERIAL, state_path=tmp_path / name), net),
+            channel,
+        )
+    finally:
+        net.disconnect()
+
+
+@contextlib.contextmanager
+def writer(channel: str, dcf: Path | None = None) -> Iterator[canopen.Network]:
+    net = canopen.Network()
+    net.connect(interface="virtual", channel=channel, receive_own_messages=False)
+    try:
+        if dcf is not None:
+            net.add_node(NODE, str(dcf))
+        yield net
+    finally:
+        net.disconnect()
+
+
+def download(node: canopen.RemoteNode) -> int:
+    """CiA 306 DCF download with plain canopen: each writable entry that has a value, in order."""
+    written = 0
+    for key, var in sorted(variables(node.object_dictionary).items()):
+        if var.writable and var.value is not None:
+            entry = (
+                node.sdo[key[0]]
+                if isinstance(node.object_dictionary[key[0]], canopen.objectdictionary.ODVariable)
+                else node.sdo[key[0]][key[1]]
+            )
+            entry.raw = var.value
+            written += 1
+    return written
+
+
+def state(imu: EmulatedImu) -> dict:
+    s = imu.store
+    return {
+        "active": s.active_value(), "stored": s.stored_value(), "activations": s.activation_count,
+        "ids": {a: s.active_id(a) for a in AXES}, "refusal": s.last_refusal,
+        "banks": {k: (b.content, b.crc, s.check(*k).status) for k, b in s.banks.items()},
+        "file": imu.config.state_path.read_text().replace(f'"serial": {SERIAL}', ""),  # type: ignore[union-attr]
+    }  # fmt: skip
+
+
+def test_plain_canopen_download_of_the_dcf_equals_canical_push(tmp_path: Path) -> None:
+    sets = imu_sets()
+    dcf, done = export(tmp_path, sets)
+    assert done.returncode == 0, done.stderr
+    with emulated(tmp_path, "by-dcf.json") as (imu, channel), writer(channel, dcf) as net:
+        node = net[NODE]
+        assert download(node) == 2 * len(AXES) + 1  # content and CRC per axis, then the selector
+        node.sdo["Store parameters"]["Save all parameters"].raw = STORE_SIGNATURE
+        by_dcf = state(imu)
+    with emulated(tmp_path, "by-push.json") as (imu, channel), writer(channel) as net:
+        push_sets(ImuClient(net, NODE, 1.0), {a: (f"{a}.yaml", c) for a, c in sets.items()})
+        by_push = state(imu)
+    assert by_dcf["ids"] == {a: encode_set(c)[1] for a, c in sets.items()}
+    assert by_dcf == by_push
+
+
+def test_device_refuses_a_dcf_for_the_bank_it_runs(tmp_path: Path) -> None:
+    """A DCF cannot pick the inactive bank: one naming the running bank stops at the first write
+    and the device keeps running its sets."""
+    dcf, _ = export(tmp_path, imu_sets(1))
+    with emulated(tmp_path, "dev.json") as (imu, channel):
+        with writer(channel) as net:
+            push_sets(ImuClient(net, NODE, 1.0), {a: (a, c) for a, c in imu_sets().items()})  # runs bank A
+        before = state(imu)
+        with writer(channel, dcf) as net, pytest.raises(SdoAbortedError):
+            download(net[NODE])
+        assert state(imu)["ids"] == before["ids"] and "is active" in imu.store.last_refusal

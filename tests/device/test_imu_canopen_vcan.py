@@ -1,0 +1,436 @@
+"""The IMU as a CANopen device on a real SocketCAN bus: push, pull, faults, and the whole loop.
+
+The emulated IMU runs in its own process (``python -m canical emulate``), as a sensor
+would be its own box; the tools talk to it over vcan with real CANopen SDO. Every fault
+must end the tool with one line and a non-zero exit, and leave the device running the
+set it ran before: the interrupted-download test counts partial activations over many
+kills at random moments, and there must be none.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import random
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from canical.device.can_network import network_on, sdo_client_filters
+from canical.device.sdo_download import ImuClient, push_sets
+from canical.errors import CanicalError
+from canical.imu_dictionary import AXES, imu_objects, pack_active
+from canical.sets import coefficient_file
+from canical.sets.coefficient_file import set_crc
+
+try:
+    from support.imu_fixtures import SERIAL, imu_set, imu_sets
+except ImportError:  # pragma: no cover
+    from tests.imu_fixtures import SERIAL, imu_set, imu_sets  # type: ignore[no-redef]
+
+NODE = 0x22
+READY_TIMEOUT_S = 90.0  # interpreter start and imports are slow inside the UML guest
+TIMEOUT = "1.0"
+
+
+class Device:
+    """An emulated IMU process; ``start`` again after ``kill`` is a power cycle."""
+
+    def __init__(self, channel: str, state: Path, *extra: str, node: int = NODE) -> None:
+        self.channel, self.state, self.extra, self.node = channel, state, extra, node
+        self.proc: subprocess.Popen[str] | None = None
+
+    def start(self) -> Device:
+        cmd = [sys.executable, "-m", "canical", "emulate", "--interface", "socketcan", "--channel",
+               self.channel, "--node", hex(self.node), "--serial", str(SERIAL), "--state", str(self.state),
+               *self.extra]
+        self.log = self.state.with_suffix(".log")
+        with self.log.open("a") as err:
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+        line = _readline(self.proc, READY_TIMEOUT_S)
+        assert line.startswith("ready"), f"emulator did not start: {line!r}: {self.log.read_text()[-2000:]}"
+        return self
+
+    def kill(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.kill()
+
+
+def _readline(proc: subprocess.Popen[str], timeout: float) -> str:
+    out: list[str] = []
+    reader = threading.Thread(target=lambda: out.append(proc.stdout.readline()), daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    reader.join(timeout)
+    return out[0] if out else ""
+
+
+@contextlib.contextmanager
+def device(channel: str, tmp_path: Path, *extra: str, name: str = "imu.json") -> Iterator[Device]:
+    d = Device(channel, tmp_path / name, *extra).start()
+    try:
+        yield d
+    finally:
+        d.stop()
+
+
+@contextlib.contextmanager
+def client(channel: str, timeout: float = 1.0, node: int = NODE) -> Iterator[ImuClient]:
+    with network_on("socketcan", channel, can_filters=sdo_client_filters(node)) as network:
+        yield ImuClient(network, node, timeout)
+
+
+def canical(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "canical", *args], capture_output=True, text=True,
+                          timeout=timeout, check=False)
+
+
+def bus_args(channel: str) -> list[str]:
+    return ["--node", hex(NODE), "--channel", channel, "--timeout", TIMEOUT]
+
+
+def write_sets(folder: Path, family: int = 0, sensor: str | None = None) -> list[str]:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for axis, cset in (imu_sets(family) if sensor is None else imu_sets(family, sensor)).items():
+        path = folder / f"imu-{axis}.yaml"
+        coefficient_file.save(path, cset)
+        paths.append(str(path))
+    return paths
+
+
+def ids(family: int) -> dict[str, int]:
+    return {a: set_crc(imu_set(a, family)) for a in AXES}
+
+
+def assert_one_line_error(proc: subprocess.CompletedProcess[str], *needles: str) -> None:
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.vcan
+def test_push_pull_round_trip_survives_power_cycle(vcan_channel: str, tmp_path: Path) -> None:
+    paths = write_sets(tmp_path / "sets")
+    with device(vcan_channel, tmp_path, "--rate", "50") as dev:
+        dry = canical("push", *paths, *bus_args(vcan_channel), "--dry-run")
+        assert dry.returncode == 0, dry.stderr
+        assert "nothing written" in dry.stdout and "-> bank A" in dry.stdout
+        with client(vcan_channel) as c:
+            assert c.status().activations == 0
+        pushed = canical("push", *paths, *bus_args(vcan_channel))
+        assert pushed.returncode == 0, pushed.stderr
+        assert "stored for power-up" in pushed.stdout
+        dev.kill()  # power cut: what was stored must come back
+        dev.start()
+        pulled = canical("pull", *bus_args(vcan_channel), "-o", str(tmp_path / "pulled-{axis}.yaml"))
+        assert pulled.returncode == 0, pulled.stderr
+        for axis in AXES:
+            assert set_crc(coefficient_file.load(tmp_path / f"pulled-{axis}.yaml")) == ids(0)[axis]
+        again = canical("push", *write_sets(tmp_path / "sets1", family=1), *bus_args(vcan_channel))
+        assert again.returncode == 0, again.stderr
+        with client(vcan_channel) as c:
+            status = c.status()
+        assert status.active_ids == ids(1) and set(status.active.values()) == {"B"}
+
+
+@pytest.mark.vcan
+def test_the_tool_refuses_what_it_can_before_writing(vcan_channel: str, tmp_path: Path) -> None:
+    good = write_sets(tmp_path / "good")
+    foreign = write_sets(tmp_path / "foreign", sensor="4712")
+    damaged = tmp_path / "damaged.yaml"
+    damaged.write_text(Path(good[2]).read_text().replace("v0: ", "v0: 1", 1))
+    absent = canical("push", good[2], "--node", "0x33", "--channel", vcan_channel, "--timeout", "0.3")
+    assert_one_line_error(absent, "node 0x33", "no answer while reading the serial number")
+    with device(vcan_channel, tmp_path, "--rate", "0", "--rated-range", "70"):
+        assert_one_line_error(canical("push", foreign[2], *bus_args(vcan_channel)),
+                              "not for this device", "set is for sensor 4712, this device is serial 4711")
+        assert_one_line_error(canical("push", good[2], *bus_args(vcan_channel)),
+                              "does not cover the rated range ±70")
+        assert_one_line_error(canical("push", str(damaged), *bus_args(vcan_channel)), "CRC mismatch")
+        with client(vcan_channel) as c:
+            assert c.status().activations == 0 and c.bank("z", "A")[2] == 0  # nothing written
+
+
+@pytest.mark.vcan
+def test_the_device_refuses_bad_banks_with_abort_codes(vcan_channel: str, tmp_path: Path) -> None:
+    """Bypassing the tool (anyone on the bus can write): the device itself says no."""
+    from canical.device.bank_payload import encode_set
+
+    o = imu_objects()
+    with device(vcan_channel, tmp_path, "--rate", "0"):
+        with client(vcan_channel) as c:
+            assert push_sets(c, {"z": ("z", imu_set("z"))}).status.active["z"] == "A"
+            before = c.status()
+            a, b = o.bank("z", "A"), o.bank("z", "B")
+            with pytest.raises(CanicalError, match=r"0x08000022.*bank Z A is active"):
+                c.download((a.index, a.content), b"{}", "overwriting the active bank")
+            content, crc = encode_set(imu_set("z", family=1))
+            c.download((b.index, b.content), content, "downloading")
+            c.write_uint((b.index, b.crc), crc ^ 0x10, 4, "writing a wrong CRC")
+            with pytest.raises(CanicalError, match=r"0x08000020.*CRC mismatch"):
+                c.write_uint(o.active_banks, pack_active({"z": "B"}), 1, "activating")
+            foreign, fcrc = encode_set(imu_set("z", sensor="4712"))
+            c.download((b.index, b.content), foreign, "downloading")
+            c.write_uint((b.index, b.crc), fcrc, 4, "writing the CRC")
+            with pytest.raises(CanicalError, match=r"0x08000020.*serial 4711"):
+                c.write_uint(o.active_banks, pack_active({"z": "B"}), 1, "activating")
+            with pytest.raises(CanicalError, match=r"0x06090030"):
+                c.write_uint(o.active_banks, 0xFF, 1, "activating")
+            with pytest.raises(CanicalError, match=r"0x08000020"):
+                c.write_uint(o.store, 0x12345678, 4, "storing without the signature")
+            after = c.status()
+        assert after.active == before.active and after.active_ids == before.active_ids
+        assert after.activations == before.activations
+
+
+@pytest.mark.vcan
+def test_device_vanishing_mid_download_one_line_and_previous_set(vcan_channel: str, tmp_path: Path) -> None:
+    with device(vcan_channel, tmp_path, "--rate", "50") as dev:
+        proc = _second_push_mid_download(vcan_channel, tmp_path)
+        dev.kill()
+        out, err = proc.communicate(timeout=60)
+        assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, out, err),
+                              "no answer while")
+        dev.start()
+        with client(vcan_channel) as c:
+            assert c.status().active_ids == ids(0)
+
+
+def _second_push_mid_download(channel: str, tmp_path: Path) -> subprocess.Popen[str]:
+    """Push family 0, then start pushing family 1 and return once it is mid-bank."""
+    old, new = write_sets(tmp_path / "old"), write_sets(tmp_path / "new", family=1)
+    assert canical("push", *old, *bus_args(channel)).returncode == 0
+    proc = subprocess.Popen([sys.executable, "-m", "canical", "push", *new, *bus_args(channel)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _wait_for_download(channel)
+    return proc
+
+
+def _wait_for_download(channel: str, timeout: float = 30.0) -> None:
+    """Return once segmented SDO download traffic to the node is seen (the push is mid-bank)."""
+    import can
+
+    with can.Bus(interface="socketcan", channel=channel,
+                 can_filters=[{"can_id": 0x600 + NODE, "can_mask": 0x7FF}]) as bus:
+        end = time.monotonic() + timeout
+        segments = 0
+        while time.monotonic() < end:
+            msg = bus.recv(0.5)
+            if msg is not None and msg.data[0] & 0xE0 == 0x00:  # download segment request
+                segments += 1
+                if segments >= 20:
+                    return
+    raise AssertionError("no segmented download seen")
+
+
+@pytest.mark.vcan
+def test_sdo_timeout_when_the_device_freezes(vcan_channel: str, tmp_path: Path) -> None:
+    with device(vcan_channel, tmp_path, "--rate", "50") as dev:
+        proc = _second_push_mid_download(vcan_channel, tmp_path)
+        assert dev.proc is not None
+        dev.proc.send_signal(signal.SIGSTOP)
+        try:
+            out, err = proc.communicate(timeout=60)
+        finally:
+            dev.proc.send_signal(signal.SIGCONT)
+        assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, out, err),
+                              "no answer while", "after 1 s")
+        with client(vcan_channel) as c:
+            assert c.status().active_ids == ids(0)
+        time.sleep(5.5)  # the dead tool's lock lease runs out; then a push goes through
+        assert canical("push", *proc.args[4:]).returncode == 0  # the interrupted push, again
+
+
+@pytest.mark.vcan
+def test_two_pushes_at_once(vcan_channel: str, tmp_path: Path) -> None:
+    """A second tool meets the first one's download lock; racing tools never leave a mix.
+
+    Whether two processes started together really overlap depends on the machine
+    (in the test kernel one start-up takes longer than a whole push), so the lock
+    is first held deterministically, as another tool in mid-download holds it;
+    then two pushes race and either both finish one after the other or one is
+    refused, and the device runs one whole set.
+    """
+    paths = [write_sets(tmp_path / f"s{f}", family=f) for f in (0, 1, 2)]
+    with device(vcan_channel, tmp_path, "--rate", "50"):
+        assert canical("push", *paths[0], *bus_args(vcan_channel)).returncode == 0
+        lock = imu_objects().download_lock
+        done = threading.Event()
+
+        def hold_lock() -> None:
+            # Another tool mid-download renews its lease (5 s) as it writes.
+            with client(vcan_channel) as c:
+                while not done.is_set():
+                    c.write_uint(lock, 0x5EC0_0001, 4, "holding the lock as another tool")
+                    done.wait(1.5)
+                c.write_uint(lock, 0, 4, "releasing the lock")
+
+        holder = threading.Thread(target=hold_lock)
+        holder.start()
+        try:
+            time.sleep(0.5)
+            held = canical("push", *paths[1], *bus_args(vcan_channel))
+        finally:
+            done.set()
+            holder.join(30)
+        with client(vcan_channel) as c:
+            assert c.status().active_ids == ids(0)  # the refused push changed nothing
+        assert held.returncode == 2, held.stderr
+        assert len(held.stderr.strip().splitlines()) == 1 and "Traceback" not in held.stderr, held.stderr
+
+        procs = [subprocess.Popen([sys.executable, "-m", "canical", "push", *p, *bus_args(vcan_channel)],
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for p in paths[1:]]
+        results = [(p.wait(120), *p.communicate()) for p in procs]
+        with client(vcan_channel) as c:
+            running = c.status().active_ids
+    for code, _out, err in results:
+        assert code in (0, 2), err
+        if code:
+            assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert running in (ids(0), ids(1), ids(2))  # a whole set, never a mix
+    winners = [family for family, (code, _o, _e) in zip((1, 2), results, strict=True) if code == 0]
+    if len(winners) == 1:
+        assert running == ids(winners[0])
+    elif winners:
+        assert running in (ids(1), ids(2))  # they ran one after the other
+
+
+@pytest.mark.vcan
+def test_many_interrupted_downloads_zero_partial_activations(vcan_channel: str, tmp_path: Path) -> None:
+    """Kill the device at random moments of a three-axis push, power it up again, look at what
+    it runs: always all of the old set or all of the new one, every bank it runs valid."""
+    rng = random.Random(5)
+    families = {0: ids(0), 1: ids(1)}
+    # SDO only (no raw stream): 21 power-ups stay quick; the single-kill test above streams.
+    dev = Device(vcan_channel, tmp_path / "imu.json", "--rate", "0").start()
+    outcomes = {"old": 0, "new": 0, "partial": 0}
+    steps: dict[str, int] = {}
+    try:
+        with client(vcan_channel) as c:
+            t0 = time.monotonic()
+            push_sets(c, {a: (a, s) for a, s in imu_sets(0).items()})
+            full = time.monotonic() - t0
+        current = 0
+        for _ in range(20):
+            target = 1 - current
+            errors: list[Exception] = []
+
+            def push(target=target, errors=errors) -> None:
+                try:
+                    with client(vcan_channel) as c:
+                        push_sets(c, {a: (a, s) for a, s in imu_sets(target).items()})
+                except CanicalError as exc:
+                    errors.append(exc)
+
+            thread = threading.Thread(target=push)
+            thread.start()
+            time.sleep(rng.uniform(0.05, 0.9 * full))
+            dev.kill()
+            thread.join(60)
+            step = "completed" if not errors else str(errors[0]).split(" while ")[-1].split(" (")[0]
+            steps[step] = steps.get(step, 0) + 1
+            dev.start()
+            with client(vcan_channel) as c:
+                status = c.status()
+                valid = all(c.bank(a, status.active[a])[2] == 1 for a in AXES)  # type: ignore[arg-type]
+            if status.active_ids == families[current] and valid:
+                outcomes["old"] += 1
+            elif status.active_ids == families[target] and valid:
+                outcomes["new"] += 1
+                current = target
+            else:
+                outcomes["partial"] += 1
+        print(f"\n20 interrupted three-axis pushes (uninterrupted: {full:.2f} s): {outcomes}; "
+              f"where the tool was when the device died: {steps}")
+    finally:
+        dev.stop()
+    assert outcomes["partial"] == 0
+    mid_download = sum(n for s, n in steps.items() if s.startswith(("downloading", "writing the CRC")))
+    assert mid_download >= 5, steps  # most kills land inside a bank download
+
+
+@pytest.mark.vcan
+def test_whole_loop_on_vcan_device_corrects_like_apply(vcan_channel: str, tmp_path: Path) -> None:
+    """Session recorded from the device, calibrated, pushed; the device's corrected frames
+    equal `canical apply` on the same raw frames to the frame's resolution."""
+    from canical.commands.demo_bus import BusDemoOptions, run_bus_demo
+
+    rates = "-60:60:10"
+    options = BusDemoOptions(interface="socketcan", channel=vcan_channel, node_id=NODE, serial=SERIAL,
+                             sample_rate_hz=40.0, speed=2.0, dwell_s=2.0, field_samples=200, emulate=False,
+                             field_pass=None,
+                             table_rates=tuple(float(r) for r in range(-60, 61, 10)))
+    with device(vcan_channel, tmp_path, "--rate", "40", "--speed", "2", f"--table-rates={rates}",
+                "--dwell", "2", "--correct") as dev:
+        result = run_bus_demo(tmp_path / "loop", options, say=print)
+    assert result.max_device_vs_apply_dps <= 0.0051
+    # the device ran the firmware's C evaluator (firmware/canical_eval.c), not Python
+    assert "corrected on the device with the firmware evaluator (C)" in dev.log.read_text()
+    assert result.field_samples >= 200
+    assert result.push.status.active_ids["z"] == result.set_id
+
+
+@pytest.mark.vcan
+def test_daemon_takes_its_sets_from_the_device_and_falls_back_to_files(vcan_channel: str,
+                                                                        tmp_path: Path) -> None:
+    """config ``device``: the daemon's start (and SIGHUP) reads the IMU's active sets over SDO;
+    an axis the device cannot give, or a silent device, falls back to the configured file."""
+    from canical.bus import active_sets
+    from canical.bus.daemon_config import load_config
+
+    try:
+        from support.daemon_fixtures import write_config
+    except ImportError:  # pragma: no cover
+        from tests.daemon_fixtures import write_config  # type: ignore[no-redef]
+
+    files = tmp_path / "etc"
+    files.mkdir()
+    for axis, cset in imu_sets(1).items():
+        coefficient_file.save(files / f"imu-{axis}.yaml", cset)
+    config = load_config(write_config(files, vcan_channel, sensor=str(SERIAL),
+                                      device={"node": 0x10, "timeout_s": 0.5}))
+    node10 = Device(vcan_channel, tmp_path / "imu.json", "--rate", "0", node=0x10)  # as the DBC has it
+    try:
+        node10.start()
+        with client(vcan_channel, node=0x10) as c:
+            push_sets(c, {"x": ("x", imu_set("x", 0)), "z": ("z", imu_set("z", 0))})
+        sets, messages = active_sets.initial(config)
+        assert [(a.axis, a.source, a.set_id) for a in sets.axes] == [
+            ("x", active_sets.SOURCE_DEVICE, ids(0)["x"]),
+            ("y", active_sets.SOURCE_FILE, ids(1)["y"]),  # the device has no set for y
+            ("z", active_sets.SOURCE_DEVICE, ids(0)["z"]),
+        ]
+        with client(vcan_channel, node=0x10) as c:
+            push_sets(c, {"z": ("z", imu_set("z", 2))})
+        after_hup, messages = active_sets.from_device(config, sets)  # what SIGHUP does
+        assert after_hup.axes[2].set_id == ids(2)["z"]
+        assert after_hup.axes[0].corrector is sets.axes[0].corrector  # unchanged: kept, with its state
+        assert any("from device node 0x10 replaces" in m for m in messages)
+        node10.stop()
+        silent, messages = active_sets.initial(config)
+        assert [(a.source, a.set_id) for a in silent.axes] == [
+            (active_sets.SOURCE_FILE, ids(1)[a]) for a in AXES]
+        assert any("device node 0x10" in m and "no answer" in m and "using the coefficient files" in m
+                   for m in messages)
+    finally:
+        node10.stop()

@@ -1,0 +1,171 @@
+"""Coefficient sets of every model kind and every term kind, and sample streams to run them on.
+
+Shared by the firmware tests and ``tests/benchmarks/bench_firmware_eval.py``. The rate models
+are calibrated from simulated turntable sessions; the effect terms are attached with plausible
+sizes (a set is data: the evaluator must follow whatever a valid set says).
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import replace
+
+import numpy as np
+
+from canical.pipeline import CalibrateOptions, calibrate
+from canical.sets import coefficient_file
+from canical.sets.coefficients import CoefficientSet
+from canical.sets.terms import term_from_dict
+from canical.sim.imu_stream import default_gyros
+from canical.sim.sessions import paper_session
+
+SERIAL = 4711
+SENSOR = str(SERIAL)
+AXIS = "z"
+CHANNELS = ("temp_c", "supply_v")
+TEMP_STEP = 0.1  # degC: the Temperature signal of canical.dbc
+SUPPLY_STEP = 0.001  # V: SupplyVoltage
+
+MODELS = {
+    "segmented-inverse": CalibrateOptions(segments=3, order=3, extend=False),
+    "segmented-inverse-free-joins": CalibrateOptions(segments=3, order=3, smoothness=None, extend=False),
+    "segmented-inverse-order-6": CalibrateOptions(segments=5, order=6, extend=False),
+    "segmented-linear": CalibrateOptions(model="segmented-linear", extend=False),
+    "forward-poly": CalibrateOptions(model="forward-poly", order=3, extend=False),
+}
+
+#: One term of every kind and feature; bias and scale forms alternate.
+TERMS = {
+    "channel-gated": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "gated",
+        "form": "scale",
+        "coefficient": 3e-4,
+        "reference": 25.0,
+        "threshold_raw": 6000.0,
+    },
+    "channel-offset": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "offset",
+        "form": "bias",
+        "coefficient": 3.1,
+        "reference": 25.0,
+    },
+    "channel-square": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "square",
+        "form": "scale",
+        "coefficient": 2.5e-5,
+        "reference": 20.0,
+    },
+    "channel-offset-supply": {
+        "kind": "channel",
+        "channel": "supply_v",
+        "feature": "offset",
+        "form": "scale",
+        "coefficient": 1.5e-3,
+        "reference": 12.0,
+    },
+    "time-warmup": {
+        "kind": "time",
+        "feature": "warmup",
+        "form": "bias",
+        "coefficient": -42.0,
+        "tau_s": 300.0,
+    },
+    "time-linear": {"kind": "time", "feature": "linear", "form": "scale", "coefficient": 2e-7},
+    "direction-sign": {
+        "kind": "direction",
+        "feature": "sign",
+        "form": "bias",
+        "coefficient": 6.5,
+        "threshold_raw": 80.0,
+    },
+    "direction-slope": {
+        "kind": "direction",
+        "feature": "slope",
+        "form": "bias",
+        "coefficient": 2e-3,
+        "tau_s": 0.05,
+    },
+    "channel-lag": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "lag",
+        "form": "bias",
+        "coefficient": 2.8,
+        "reference": 25.0,
+        "tau_s": 120.0,
+    },
+    "channel-derivative": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "derivative",
+        "form": "scale",
+        "coefficient": 0.02,
+        "tau_s": 2.5,
+    },
+    "channel-direction": {  # threshold off the 1 mV grid of the IMU's supply frames: no ties
+        "kind": "channel",
+        "channel": "supply_v",
+        "feature": "direction",
+        "form": "bias",
+        "coefficient": 4.5,
+        "threshold_raw": 0.0375,
+    },
+}
+
+#: The stateful channel transforms in their other form (TERMS holds one form of each).
+OTHER_FORMS = {
+    "channel-lag-scale": dict(TERMS["channel-lag"], form="scale", coefficient=1e-4),
+    "channel-derivative-bias": dict(TERMS["channel-derivative"], form="bias", coefficient=150.0),
+    "channel-direction-scale": dict(TERMS["channel-direction"], form="scale", coefficient=3e-4),
+}
+ALL_TERMS = {**TERMS, **OTHER_FORMS}
+
+
+@functools.cache
+def model_set(name: str) -> CoefficientSet:
+    """A calibrated set of one model kind for the emulated IMU's z axis (serial 4711)."""
+    session = paper_session(default_gyros()[AXIS], seed=3, dwell_s=3.0, sensor=SENSOR, axis=AXIS)
+    return calibrate(session, MODELS[name], sensor_id=SENSOR, axis=AXIS).coefficients
+
+
+def with_terms(cset: CoefficientSet, names: tuple[str, ...]) -> CoefficientSet:
+    """The set with effect terms attached, validated through the file format."""
+    terms = tuple(term_from_dict(ALL_TERMS[n]).to_dict() for n in names)
+    out = replace(cset, terms=terms)
+    return coefficient_file.loads(coefficient_file.dumps(out))
+
+
+def term_set(names: tuple[str, ...]) -> CoefficientSet:
+    return with_terms(model_set("segmented-inverse"), names)
+
+
+def stream(cset: CoefficientSet, n: int, seed: int = 0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """n samples at 100 Hz: integer counts sweeping the span and 15% beyond it (so out-of-span
+    samples occur at both ends), with wiggles that reverse direction, temperature, supply, time.
+
+    Channels come at the resolution the IMU's frames carry them (as a device's ADC delivers
+    them), not as arbitrary doubles: the firmware gets float32 values, and a channel-direction
+    decision made within float32 rounding of its threshold can only agree with canical's double
+    one if the values sit on a grid the threshold is off."""
+    rng = np.random.default_rng(seed)
+    lo, hi = cset.span_raw
+    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo) * 1.15
+    k = np.arange(n)
+    sweep = np.sin(2 * np.pi * k / 60_000.0) * half
+    wiggle = 400.0 * np.sin(2 * np.pi * k / 700.0) + np.cumsum(rng.normal(0.0, 6.0, n)) % 300.0
+    raw = np.rint(mid + sweep + wiggle + rng.normal(0.0, 25.0, n))
+    time_s = k / 100.0
+    temp = 25.0 + 18.0 * np.sin(2 * np.pi * k / 250_000.0) + rng.normal(0.0, 0.05, n)
+    supply = 12.0 + 0.6 * np.sin(2 * np.pi * k / 90_000.0) + rng.normal(0.0, 0.01, n)
+    temp, supply = on_grid(temp, TEMP_STEP), on_grid(supply, SUPPLY_STEP)
+    return raw, {"time_s": time_s, "temp_c": temp, "supply_v": supply}
+
+
+def on_grid(values: np.ndarray, step: float) -> np.ndarray:
+    return np.round(values / step) * step

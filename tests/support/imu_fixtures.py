@@ -1,0 +1,37 @@
+"""Shared by the IMU (CANopen) tests and benchmarks: coefficient sets for the emulated device.
+
+Sets are calibrated from simulated turntable sessions of the emulated IMU's own axes
+(:func:`canical.sim.imu_stream.default_gyros`), with fixed model sizes and no effect
+search so they are quick to make; two families (seeds) give two distinct sets per axis.
+"""
+
+from __future__ import annotations
+
+import functools
+
+from canical.imu_dictionary import AXES
+from canical.pipeline import CalibrateOptions, calibrate
+from canical.sets.coefficients import CoefficientSet
+from canical.sim.imu_stream import default_gyros
+from canical.sim.sessions import paper_session
+
+SERIAL = 4711
+SENSOR = str(SERIAL)
+FAST = CalibrateOptions(segments=3, order=3, extend=False)
+
+
+def imu_set(axis: str, family: int = 0, sensor: str = SENSOR) -> CoefficientSet:
+    """A valid set for one axis of the emulated IMU (``family`` picks the noise seed); the same
+    arguments give the very same set (and CRC) for the whole test session."""
+    return _imu_set(axis, family, sensor)
+
+
+@functools.cache
+def _imu_set(axis: str, family: int, sensor: str) -> CoefficientSet:
+    session = paper_session(default_gyros()[axis], seed=10 * family + AXES.index(axis), dwell_s=3.0,
+                            sensor=sensor, axis=axis)
+    return calibrate(session, FAST, sensor_id=sensor, axis=axis).coefficients
+
+
+def imu_sets(family: int = 0, sensor: str = SENSOR) -> dict[str, CoefficientSet]:
+    return {a: imu_set(a, family, sensor) for a in AXES}

@@ -1,0 +1,107 @@
+"""The package's rings: every import of every canical module runs downward, never up.
+
+The rule is read from the import graph (all imports, including those inside functions and
+under TYPE_CHECKING), so it stays true as code is added: a module may import its own
+package and anything in a lower ring, never a sibling of its ring or anything above.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "canical"
+
+#: Bottom to top. A name is a package (``models``) or a module at the package root.
+RINGS: tuple[tuple[str, ...], ...] = (
+    ("errors", "progress"),
+    ("yaml_text", "output_plan", "imu_dictionary"),
+    ("atomic_file",),
+    ("models", "frames"),
+    ("calibrate", "sessions"),
+    ("sets",),
+    ("closed_loop", "sim"),
+    ("pipeline", "report"),
+    ("evaluation",),
+    ("device",),
+    ("bus",),
+    ("commands",),
+    ("trials",),
+    ("__main__",),
+)
+RANK = {name: level for level, names in enumerate(RINGS) for name in names}
+
+
+def unit_of(module: str) -> str:
+    """The ring member a dotted module belongs to: its first component below ``canical``."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""  # "" = the root package (__version__)
+
+
+def module_name(path: Path) -> str:
+    rel = path.relative_to(PACKAGE.parent).with_suffix("")
+    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+    return ".".join(parts)
+
+
+def imports_of(path: Path) -> list[tuple[int, str]]:
+    """(line, dotted target) of every canical import in the file, relative ones resolved."""
+    this = module_name(path)
+    package = this if path.name == "__init__.py" else this.rpartition(".")[0]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, a.name) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, *([base] if base else [])])
+            # "from canical import x": x may be a module of the root ring
+            found += [(node.lineno, f"{base}.{a.name}" if base == "canical" else base) for a in node.names]
+    return [(line, name) for line, name in found if name == "canical" or name.startswith("canical.")]
+
+
+def violations() -> list[str]:
+    out = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        src = unit_of(module_name(path))
+        for line, target in imports_of(path):
+            dst = unit_of(target)
+            if dst in ("", src) or dst == "__version__":
+                continue
+            if src not in RANK or dst not in RANK:
+                out.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {src or 'canical'} or {dst} "
+                           "is in no ring (add it to RINGS)")
+            elif RANK[dst] >= RANK[src]:
+                out.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {src} imports {target} "
+                           f"({'a sibling' if RANK[dst] == RANK[src] else 'a ring above'})")
+    return out
+
+
+def test_every_import_runs_downward() -> None:
+    assert violations() == []
+
+
+def test_every_module_is_in_a_ring() -> None:
+    units = {unit_of(module_name(p)) for p in PACKAGE.rglob("*.py")} - {""}
+    assert sorted(units - set(RANK)) == []
+
+
+@pytest.mark.parametrize("package", [n for n in RANK if (PACKAGE / n).is_dir()])
+def test_each_ring_package_says_what_it_is_for(package: str) -> None:
+    doc = ast.get_docstring(ast.parse((PACKAGE / package / "__init__.py").read_text()))
+    assert doc and len(doc.split()) >= 20, f"canical/{package}/__init__.py needs a docstring"
+
+
+def test_the_checker_sees_an_upward_import(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A models/ module importing calibrate/ is caught (the rule is not vacuous)."""
+    fake = tmp_path / "canical"
+    (fake / "models").mkdir(parents=True)
+    (fake / "calibrate").mkdir()
+    (fake / "models" / "bad.py").write_text("def f():\n    from canical.calibrate import plateaus\n")
+    (fake / "calibrate" / "ok.py").write_text("from canical.models import piecewise\n")
+    monkeypatch.setattr(__import__(__name__), "PACKAGE", fake)
+    assert violations() == ["canical/models/bad.py:2: models imports canical.calibrate (a ring above)"]
