@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Install what the tests need on a fresh machine, then lint and run the whole suite.
+# Install what the tests need on a fresh machine, then lint, type-check (mypy, configured in pyproject.toml) and run the whole suite.
 # Debian packages (user-mode Linux for the vcan tests; systemd and dbus for the unit checks
 # and the systemd guest tier; python3-venv for its install test) are installed with apt-get
 # when running as root and missing.
@@ -27,4 +27,5 @@ fi
 
 python3 -m pip install -q --disable-pip-version-check -e '.[test]'
 ruff check canical tests
+python3 -m mypy
 python3 -m pytest -q -p no:cacheprovider "$@"
