@@ -16,6 +16,7 @@ from canical.calibrate.cross_validation import prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.plateaus import detect_plateaus, plateau_means
 from canical.closed_loop.search import Scorer, Structure, plateau_folds, reselect_size
+from canical.models.piecewise import PiecewisePoly
 from canical.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet
@@ -47,7 +48,7 @@ class ModelScore:
 
 def held_out_points(session: Session, v0: float) -> FitPoints:
     """Plateau means of an evaluation session, with the training session's V0."""
-    plateaus = detect_plateaus(session.time_s, session.ref_dps)
+    plateaus = detect_plateaus(session.time_s, session.reference("score held-out plateaus"))
     return fit_points(session.raw, v0, plateaus)
 
 
@@ -79,7 +80,7 @@ def held_out_set_errors(cset: CoefficientSet, session: Session) -> np.ndarray:
     Raw values, time and auxiliary channels are averaged per plateau and corrected as samples, so
     a set without effect terms scores exactly what its model scored in the comparison.
     """
-    plateaus = detect_plateaus(session.time_s, session.ref_dps)
+    plateaus = detect_plateaus(session.time_s, session.reference("score held-out plateaus"))
     raw = plateau_means(session.raw, plateaus)
     inputs = {name: plateau_means(values, plateaus) for name, values in session.aux.items()}
     inputs[TIME_INPUT] = plateau_means(session.time_s, plateaus)
@@ -104,7 +105,7 @@ def validation_record(model, v0: float, record: Session, window: int = 100) -> V
     """Smooth the raw record, correct every sample, and compare with the table rate."""
     smoothed = sliding_mean(record.raw, window)
     rate, _ = model.evaluate(smoothed - v0)
-    true = float(np.median(record.ref_dps))
+    true = float(np.median(record.reference("validate")))
     return ValidationResult(true, float(np.mean(rate) - true), float(np.std(rate)))
 
 
@@ -132,6 +133,9 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     session = scenario.session(seed, dwell_s, table=table)
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM", axis="z")
     loop = result.loop
+    model = result.base.fitted.model
+    # Default options fit a segmented-inverse model and close the loop on it.
+    assert loop is not None and isinstance(model, PiecewisePoly)
     found = tuple(e["name"] for e in loop.effects)
     # Weaker alternatives (explain part of the same residual) are listed after the twins, marked ~.
     groups = tuple(
@@ -139,7 +143,6 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     )
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
-    model = result.base.fitted.model
     told = _oracle_terms(scenario, loop.blocks)
     # Told the effect, with the base size the loop ended with, or one chosen again for it.
     same_size = Structure(loop.structure.spec, loop.structure.knots, model.scale, model.span, told)

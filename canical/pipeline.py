@@ -28,6 +28,7 @@ from canical.closed_loop.search import LoopResult, predict, run_loop
 from canical.closed_loop.unexplained import account
 from canical.errors import CanicalError
 from canical.models.forward_poly import ForwardPoly
+from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
@@ -74,8 +75,7 @@ def _quiet(_: str) -> None:
 
 def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn = _quiet) -> BaseFit:
     """Plateaus, V0, points, and the fitted rate model (size chosen or given)."""
-    if session.ref_dps is None:
-        raise CanicalError("the session has no reference rate column: cannot calibrate")
+    session.reference()  # fail before any work when the table rate is missing
     progress("finding plateaus")
     plateaus = find_plateaus(session, options)
     if plateaus.count == 0:
@@ -107,7 +107,7 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
     """The session's plateaus with the user's thresholds (auto where not given)."""
     return detect_plateaus(
         session.time_s,
-        session.ref_dps,
+        session.reference(),
         rate_tol=options.rate_tol,
         min_duration_s=options.min_duration_s,
         settle_s=options.settle_s,
@@ -241,6 +241,9 @@ def extend_model(
 ) -> LoopResult:
     """Run the closed loop on the base fit: blocks, candidates, acceptance, joint refit."""
     model = base.fitted.model
+    # The loop extends a segmented model's knots; calibrate() calls it for segmented-inverse fits only.
+    if not isinstance(model, PiecewisePoly):
+        raise CanicalError(f"the closed loop needs a segmented model, not {base.fitted.spec.kind}")
     slope = abs(float(np.polyfit(base.points.rate, base.points.dv, 1)[0]))
     keep = ~saturated(session.raw, base.plateaus)
     blocks = make_blocks(

@@ -56,7 +56,8 @@ class AllanCurve:
     @property
     def rel_error(self) -> np.ndarray:
         """IEEE 952 annex C: relative 1σ error of σ(τ) from K independent clusters."""
-        return 1.0 / np.sqrt(2.0 * np.maximum(self.clusters - 1, 1))
+        rel: np.ndarray = 1.0 / np.sqrt(2.0 * np.maximum(self.clusters - 1, 1))
+        return rel
 
 
 @dataclass(frozen=True)
@@ -160,7 +161,9 @@ def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:
     of the flat line / 0.664, RRW = σ of the +1/2 line at τ = 3 s (σ² = K²τ/3).
     """
     a = fit_terms(curve)
-    total = sum(a[k] * curve.tau_s**p for k, p in POWERS.items())
+    total = np.zeros_like(curve.tau_s, dtype=float)
+    for k, p in POWERS.items():
+        total = total + a[k] * curve.tau_s**p
     hi = float(curve.tau_s[-1])
     lo = float(curve.tau_s[0])
     return {

@@ -44,7 +44,8 @@ def rate_folds(points: FitPoints, k: int = DEFAULT_FOLDS) -> list[np.ndarray]:
 
 def prediction_errors(model: RateModel, points: FitPoints) -> np.ndarray:
     """Model output minus table rate at each point."""
-    return model.evaluate(points.dv)[0] - points.rate
+    errors: np.ndarray = model.evaluate(points.dv)[0] - points.rate
+    return errors
 
 
 def cross_validate(

@@ -11,9 +11,9 @@ import numpy as np
 from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.segment_points import Extremum, choose_knots
 from canical.errors import CanicalError
-from canical.models import RateModel
-from canical.models.forward_poly import fit_forward_poly
-from canical.models.segmented_inverse import fit_segmented_inverse
+from canical.models.forward_poly import ForwardPoly, fit_forward_poly
+from canical.models.piecewise import PiecewisePoly
+from canical.models.segmented_inverse import SegmentedFit, fit_segmented_inverse
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS, fit_segmented_linear
 
 
@@ -40,7 +40,8 @@ class ModelSpec:
 class FittedModel:
     """A run-time model plus what the fit decided on the way."""
 
-    model: RateModel
+    # The two run-time forms a fit yields (each a RateModel); callers that need knots narrow to PiecewisePoly.
+    model: ForwardPoly | PiecewisePoly
     spec: ModelSpec
     extrema: list[Extremum] = field(default_factory=list)
 
@@ -79,10 +80,10 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
         model = replace(model, rate_span=(lo - max(margin_lo, 0.0), hi + max(margin_hi, 0.0)))
         return FittedModel(model, spec)
     if spec.kind == "segmented-linear":
-        model = fit_segmented_linear(
+        linear = fit_segmented_linear(
             points.dv, points.rate, points.weight, spec.breakpoints_dps, scale=scale, span=span
         )
-        return FittedModel(model, spec)
+        return FittedModel(linear, spec)
     if spec.kind != "segmented-inverse":
         raise CanicalError(f"unknown model kind {spec.kind!r}")
     n_rates = np.unique(points.by_rate().rate).size
@@ -91,7 +92,7 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
             f"{spec.describe()}: needs at least {spec.order + 1} plateau rates, the session has {n_rates}"
         )
 
-    def fit_with(knots: np.ndarray):
+    def fit_with(knots: np.ndarray) -> SegmentedFit:
         return fit_segmented_inverse(
             points.dv,
             points.rate,
@@ -107,7 +108,8 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
 
     def refit_residual(knots: np.ndarray) -> np.ndarray:
         fit = fit_with(knots)
-        return merged.rate - fit.poly.evaluate(merged.dv)[0]
+        residual: np.ndarray = merged.rate - fit.poly.evaluate(merged.dv)[0]
+        return residual
 
     knots, extrema = choose_knots(
         points, spec.n_segments, min_points=spec.order + 1, refit_residual=refit_residual

@@ -20,6 +20,7 @@ from canical.calibrate.cross_validation import HeldOutError, cross_validate
 from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.model_fit import ModelSpec, fit_model
 from canical.errors import CanicalError
+from canical.models import RateModel
 
 SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
 ORDER_CHOICES = (1, 2, 3)
@@ -35,7 +36,7 @@ class Candidate:
     monotone: bool
 
 
-def is_monotone(model, span: tuple[float, float], n: int = 2048) -> bool:
+def is_monotone(model: RateModel, span: tuple[float, float], n: int = 2048) -> bool:
     """Whether ω(ΔV) keeps one direction over the calibrated span."""
     rate = model.evaluate(np.linspace(span[0], span[1], n))[0]
     d = np.diff(rate)

@@ -63,13 +63,15 @@ def global_quadratic_residual(points: FitPoints) -> np.ndarray:
     x = np.vander(points.dv / scale, 3, increasing=True)
     sw = np.sqrt(points.weight)
     coef, *_ = np.linalg.lstsq(x * sw[:, None], points.rate * sw, rcond=None)
-    return points.rate - x @ coef
+    residual: np.ndarray = points.rate - x @ coef
+    return residual
 
 
 def rate_noise(points: FitPoints) -> np.ndarray:
     """Standard error of each point's mean, converted from ΔV to deg/s by the mean slope."""
     slope = np.polyfit(points.rate, points.dv, 1)[0] if len(points) > 1 else 1.0
-    return points.dv_sem / abs(slope)
+    noise: np.ndarray = points.dv_sem / abs(slope)
+    return noise
 
 
 def _segment_sizes_ok(dv_sorted: np.ndarray, knots: list[float], min_points: int) -> bool:

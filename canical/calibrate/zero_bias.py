@@ -30,4 +30,5 @@ def zero_rate(plateaus: Plateaus, *, zero_tol: float = ZERO_RATE_TOL_DPS) -> np.
     A measured reference reads a zero plateau as its jitter averages out, not exactly 0,
     so the tolerance grows with how uncertain each plateau's rate is.
     """
-    return np.abs(plateaus.rate_dps) <= np.maximum(zero_tol, 4.0 * plateaus.rate_uncertainty())
+    still: np.ndarray = np.abs(plateaus.rate_dps) <= np.maximum(zero_tol, 4.0 * plateaus.rate_uncertainty())
+    return still

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 import zlib
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -87,7 +88,9 @@ class ImuFrames:
         msg = self.messages[name]
         return self.ids[name], msg.encode(values, scaling=True, strict=False)
 
-    def raw(self, counts: tuple[int, int, int], temp_c: float, counter: int, fault: bool = False):
+    def raw(
+        self, counts: tuple[int, int, int], temp_c: float, counter: int, fault: bool = False
+    ) -> tuple[int, bytes]:
         x, y, z = (max(-32768, min(32767, int(c))) for c in counts)
         temp = max(-50.0, min(154.7, temp_c))
         return self.encode(
@@ -96,21 +99,28 @@ class ImuFrames:
              "Counter": counter & 0xF, "SensorFault": int(fault)},
         )
 
-    def aux(self, supply_v: float, uptime_s: float, counter: int):
+    def aux(self, supply_v: float, uptime_s: float, counter: int) -> tuple[int, bytes]:
         return self.encode(
             "IMU_AUX",
             {"SupplyVoltage": max(0.0, supply_v), "Uptime": max(0.0, uptime_s) % 4294967.0,
              "AuxCounter": counter & 0xF},
         )
 
-    def table(self, rate_dps: float, axis: str, settled: bool, counter: int):
+    def table(self, rate_dps: float, axis: str, settled: bool, counter: int) -> tuple[int, bytes]:
         return self.encode(
             TABLE_MESSAGE,
             {"TableRate": rate_dps, "TableAxis": AXES.index(axis), "TableSettled": int(settled),
              "TableCounter": counter & 0xF},
         )
 
-    def rate(self, rates, out_of_span, uncalibrated, tag: int, counter: int):
+    def rate(
+        self,
+        rates: Sequence[float],
+        out_of_span: Sequence[bool],
+        uncalibrated: Sequence[bool],
+        tag: int,
+        counter: int,
+    ) -> tuple[int, bytes]:
         values: dict[str, float | int] = {"SetTag": tag & 0xF, "Counter": counter & 0xF}
         for axis, r, o, u in zip(AXES, rates, out_of_span, uncalibrated, strict=True):
             a = axis.upper()
@@ -119,7 +129,7 @@ class ImuFrames:
             values[f"Uncalibrated{a}"] = int(u)
         return self.encode("IMU_RATE", values)
 
-    def decode(self, arbitration_id: int, data: bytes) -> Decoded | None:
+    def decode(self, arbitration_id: int, data: bytes | bytearray) -> Decoded | None:
         """The frame's message name and physical values, or None for a frame of no interest."""
         msg = self._by_id.get(arbitration_id)
         if msg is None or len(data) < msg.length:

@@ -21,7 +21,10 @@ MODEL_KINDS = ("segmented-inverse", "segmented-linear", "forward-poly")
 class RateModel(Protocol):
     """ΔV → ω, with a flag for values outside the calibrated span."""
 
-    span: tuple[float, float]
+    @property
+    def span(self) -> tuple[float, float]:
+        """The calibrated ΔV span (read-only: a field on some models, computed on others)."""
+        ...
 
     def evaluate(self, dv: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
 

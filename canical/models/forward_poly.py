@@ -43,7 +43,8 @@ class ForwardPoly:
         return (float(min(a, b)), float(max(a, b)))
 
     def forward(self, rate: np.ndarray) -> np.ndarray:
-        return np.polynomial.polynomial.polyval(np.asarray(rate) / self.rate_scale, self.coeffs)
+        dv: np.ndarray = np.polynomial.polynomial.polyval(np.asarray(rate) / self.rate_scale, self.coeffs)
+        return dv
 
     def _derivative(self, rate: np.ndarray) -> np.ndarray:
         d = np.polynomial.polynomial.polyder(self.coeffs)

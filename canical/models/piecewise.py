@@ -52,7 +52,7 @@ class PiecewisePoly:
 
     def _horner(self, seg: np.ndarray, u: np.ndarray) -> np.ndarray:
         c = self.coeffs[seg]
-        out = c[..., -1].copy()
+        out: np.ndarray = c[..., -1].copy()
         for k in range(self.order - 1, -1, -1):
             out = out * u + c[..., k]
         return out
@@ -63,7 +63,7 @@ class PiecewisePoly:
         m = self.order
         if m == 0:
             return np.zeros_like(u)
-        out = m * c[..., m]
+        out: np.ndarray = m * c[..., m]
         for k in range(m - 1, 0, -1):
             out = out * u + k * c[..., k]
         return out / self.scale
@@ -114,4 +114,5 @@ class PiecewisePoly:
             return np.zeros(0)
         u = self.knots / self.scale
         idx = np.arange(self.n_segments - 1)
-        return self._horner(idx + 1, u) - self._horner(idx, u)
+        jump: np.ndarray = self._horner(idx + 1, u) - self._horner(idx, u)
+        return jump

@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from canical.errors import CanicalError
+
 
 @dataclass(frozen=True)
 class Session:
@@ -38,6 +40,12 @@ class Session:
     def axis(self) -> str | None:
         """The recorded axis when the recording declares it."""
         return self.meta.get("axis")
+
+    def reference(self, purpose: str = "calibrate") -> np.ndarray:
+        """The table rate, for the steps that need one; a field recording has none to give."""
+        if self.ref_dps is None:
+            raise CanicalError(f"the session has no reference rate column: cannot {purpose}")
+        return self.ref_dps
 
     def take(self, index: np.ndarray) -> Session:
         """The samples selected by a boolean mask or index array."""

@@ -13,6 +13,7 @@ import itertools
 import json
 import os
 import zlib
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -135,14 +136,18 @@ def from_content(content: Any, source: str) -> CoefficientSet:
     )
 
 
-def _mapping(content: dict, key: str, fail) -> dict:
+# Builds the one-line error naming the file; each caller raises what it returns.
+FailFn = Callable[[str], CanicalError]
+
+
+def _mapping(content: dict[str, Any], key: str, fail: FailFn) -> dict[str, Any]:
     value = content.get(key)
     if not isinstance(value, dict):
         raise fail(f"{key} missing or not a mapping")
     return value
 
 
-def _numbers(model: dict, key: str, fail, *, length: int | None = None) -> list[float]:
+def _numbers(model: dict[str, Any], key: str, fail: FailFn, *, length: int | None = None) -> list[float]:
     values = model.get(key)
     if not isinstance(values, list) or not all(finite(v) for v in values):
         raise fail(f"model.{key} must be a list of finite numbers")
@@ -151,7 +156,7 @@ def _numbers(model: dict, key: str, fail, *, length: int | None = None) -> list[
     return values
 
 
-def _check_model(model: dict, fail) -> None:
+def _check_model(model: dict[str, Any], fail: FailFn) -> None:
     kind = model.get("kind")
     if kind not in MODEL_KINDS:
         raise fail(f"model.kind {kind!r} unknown (known: {', '.join(MODEL_KINDS)})")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -106,7 +106,7 @@ def forward_model_dict(model: ForwardPoly, v0: float) -> dict[str, Any]:
     }
 
 
-def finite(value: Any) -> bool:
+def finite(value: object) -> TypeGuard[int | float]:
     """A real, finite number (bools excluded)."""
     if not isinstance(value, int | float) or isinstance(value, bool):
         return False
