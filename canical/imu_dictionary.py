@@ -76,6 +76,25 @@ def object_dictionary(node_id: int) -> canopen.ObjectDictionary:
     return canopen.import_od(str(path), node_id)
 
 
+def member(
+    od: canopen.ObjectDictionary, key: int | str, sub: int | str
+) -> canopen.objectdictionary.ODVariable:
+    """Entry ``sub`` of record or array ``key``; the shipped EDS defines every key used here so."""
+    from canopen.objectdictionary import ODVariable
+
+    obj = od[key]
+    if isinstance(obj, ODVariable):
+        raise CanicalError(f"{eds_path()}: object {key!r} is a variable, not a record or array")
+    return obj[sub]
+
+
+def default_value(entry: canopen.objectdictionary.ODVariable) -> float:
+    """An entry's default value, which every entry read for one has in the shipped EDS."""
+    if entry.default is None:
+        raise CanicalError(f"{eds_path()}: object {entry.name!r} has no default value")
+    return entry.default
+
+
 @dataclass(frozen=True)
 class BankRef:
     """Where one bank lives: its record index and the sub-indexes of its entries."""
@@ -112,11 +131,19 @@ class ImuObjects:
         return self.banks[(axis, bank)]
 
 
-def _var(od: canopen.ObjectDictionary, name: str, member: str | None = None) -> tuple[int, int]:
-    obj = od[name]
-    if member is not None:
-        obj = obj[member]
+def _var(od: canopen.ObjectDictionary, name: str, entry: str | None = None) -> tuple[int, int]:
+    obj = _variable(od, name) if entry is None else member(od, name, entry)
     return obj.index, obj.subindex
+
+
+def _variable(od: canopen.ObjectDictionary, name: str) -> canopen.objectdictionary.ODVariable:
+    """Plain variable ``name``; the shipped EDS defines every name used here so."""
+    from canopen.objectdictionary import ODVariable
+
+    obj = od[name]
+    if not isinstance(obj, ODVariable):
+        raise CanicalError(f"{eds_path()}: object {name!r} is a record or array, not a variable")
+    return obj
 
 
 @functools.cache
@@ -126,15 +153,15 @@ def imu_objects() -> ImuObjects:
     banks = {}
     for axis in AXES:
         for bank in BANKS:
-            record = od[f"Coefficient bank {axis.upper()} {bank}"]
+            record = f"Coefficient bank {axis.upper()} {bank}"
             banks[(axis, bank)] = BankRef(
                 axis,
                 bank,
-                record.index,
-                record["Content"].subindex,
-                record["CRC32"].subindex,
-                record["Status"].subindex,
-                record["Size"].subindex,
+                od[record].index,
+                member(od, record, "Content").subindex,
+                member(od, record, "CRC32").subindex,
+                member(od, record, "Status").subindex,
+                member(od, record, "Size").subindex,
             )
     return ImuObjects(
         serial=_var(od, "Identity object", "Serial number"),
@@ -150,7 +177,8 @@ def imu_objects() -> ImuObjects:
         download_lock=_var(od, "Download lock"),
         correction_mode=_var(od, "Correction mode"),
         stored_state=_var(od, "Stored state"),
-        tpdo_cob_ids=tuple(od[0x1800 + i][1].default - 1 for i in range(3)),  # COB-ID base, node id 1
+        # COB-ID base, node id 1
+        tpdo_cob_ids=tuple(int(default_value(member(od, 0x1800 + i, 1))) - 1 for i in range(3)),
     )
 
 

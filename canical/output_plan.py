@@ -26,7 +26,7 @@ import os
 import stat
 import tempfile
 from collections.abc import Iterable, Iterator
-from contextvars import ContextVar
+from contextvars import ContextVar, Token
 from pathlib import Path
 from typing import IO
 
@@ -107,13 +107,14 @@ class OutputPlan:
         self._dirs = [d.resolve() for d in self._dirs]
         self._files = [f.resolve() for f in self._files]
         self._staged: dict[Path, Path] = {}  # target -> temporary beside it
-        self._token = None
+        self._token: Token[OutputPlan | None] | None = None
 
     def __enter__(self) -> OutputPlan:
         self._token = _CURRENT.set(self)
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        assert self._token is not None, "__enter__ sets the token"
         _CURRENT.reset(self._token)
         if exc_type is None:
             self.commit()
@@ -161,7 +162,7 @@ class OutputPlan:
 
     def commit(self) -> None:
         """Move every staged file into place (folders made first); on failure remove the rest."""
-        target = None
+        target: Path  # each step that can fail names its target first
         try:
             for target in self._staged:
                 target.parent.mkdir(parents=True, exist_ok=True)

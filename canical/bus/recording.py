@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import can
 import numpy as np
@@ -126,8 +127,11 @@ def record(
     return rec
 
 
-def open_recorder_bus(interface: str, channel: str, frames: ImuFrames, **options: object) -> can.BusABC:
-    """A python-can bus receiving only the IMU's frames and the table's (kernel filters where it can)."""
+def open_recorder_bus(interface: str, channel: str, frames: ImuFrames, **options: Any) -> can.BusABC:
+    """A python-can bus receiving only the IMU's frames and the table's (kernel filters where it can).
+
+    ``options`` are the interface's own settings, passed through as python-can types them (Any).
+    """
     filters = [{"can_id": fid, "can_mask": 0x7FF, "extended": False} for fid in frames.ids.values()]
     try:
         return can.Bus(interface=interface, channel=channel, can_filters=filters, **options)

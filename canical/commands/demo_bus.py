@@ -291,15 +291,24 @@ class FieldWindow:
                 return True
         return False
 
+    def _begun(self) -> int:
+        """The window's first sample; a recording that stopped before it began compares nothing."""
+        if self.start is None:
+            raise CanicalError("the comparison window never began: no frame corrected with the new set")
+        return self.start
+
     def selects(self, rec: Recording) -> np.ndarray:
+        start = self._begun()
         k = np.rint(rec.array("time_s") * self.fs)
-        return (k >= self.start) & (k < self.start + self.n)
+        inside: np.ndarray = (k >= start) & (k < start + self.n)
+        return inside
 
     def describe(self) -> str:
-        where = f"samples {self.start}..{self.start + self.n - 1} of the device"
+        start = self._begun()
+        where = f"samples {start}..{start + self.n - 1} of the device"
         if self.wanted_pass is None:
             return f"compared: {where}, from the first corrected with the new set"
-        used = self.start // self.pass_samples
+        used = start // self.pass_samples
         if used == self.wanted_pass:
             return f"compared: {where} (table pass {used}, chosen by sample index: the same every run)"
         return (f"compared: {where} (table pass {used}: pass {self.wanted_pass} had begun before the "

@@ -45,7 +45,14 @@ def export_dcf(args: argparse.Namespace) -> int:
     from canical.commands.push import load_sets
     from canical.device.dcf_export import bank_values, dcf_text
     from canical.errors import CanicalError
-    from canical.imu_dictionary import eds_path, imu_objects, object_dictionary, sensor_id_for_serial
+    from canical.imu_dictionary import (
+        default_value,
+        eds_path,
+        imu_objects,
+        member,
+        object_dictionary,
+        sensor_id_for_serial,
+    )
     from canical.sets.admission import DeviceLimits, admission_problem
     from canical.sets.coefficient_file import set_crc
 
@@ -61,7 +68,7 @@ def export_dcf(args: argparse.Namespace) -> int:
     od = object_dictionary(args.node)
     rated = {}
     for axis, (index, sub) in objects.rated_range.items():
-        rated[axis] = float(od[index][sub].default)
+        rated[axis] = float(default_value(member(od, index, sub)))
     limits = DeviceLimits(int(sensor), rated)
     for axis, (path, cset) in sets.items():
         problem = admission_problem(cset, axis, limits)

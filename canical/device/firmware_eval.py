@@ -204,7 +204,7 @@ def library() -> Library:
 def make_device(serial: int, axis: str, rated_range_dps: float, inputs: Sequence[str]) -> Device:
     names = (ctypes.c_char_p * max(1, len(inputs)))(*[n.encode() for n in inputs])
     device = Device(int(serial), axis.encode()[:1], float(rated_range_dps), names, len(inputs))
-    device._names = names  # type: ignore[attr-defined]  # keep the strings alive with the struct
+    device._names = names  # keep the strings alive with the struct
     return device
 
 

@@ -296,14 +296,14 @@ def push_sets(
         for p in plan.axes:
             if p.unchanged:
                 continue
-            content, crc, status = client.bank(p.axis, p.bank)
+            content, crc, bank_status = client.bank(p.axis, p.bank)
             name = f"bank {p.axis.upper()} {p.bank}"
             if content != p.content or crc != p.set_id:
                 raise CanicalError(f"node 0x{client.node_id:02x}: read-back of {name} differs from what was "
                                    f"written (another writer on the bus?); nothing activated")
-            if status != STATUS_VALID:
+            if bank_status != STATUS_VALID:
                 raise CanicalError(f"node 0x{client.node_id:02x}: device reports {name} "
-                                   f"{STATUS_TEXT.get(status, status)}; nothing activated")
+                                   f"{STATUS_TEXT.get(bank_status, bank_status)}; nothing activated")
         timings["verify"] = time.perf_counter() - t
         t = time.perf_counter()
         if plan.selector_after != plan.selector_before:

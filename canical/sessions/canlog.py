@@ -24,6 +24,7 @@ from pathlib import Path
 
 import can
 import numpy as np
+from cantools.database.can import Database, Message
 
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
@@ -114,7 +115,7 @@ def read_canlog(
         if ref == DEFAULT_REF and TABLE_SETTLED.split(".")[1] in table_signals:
             wanted.setdefault("\0settled", TABLE_SETTLED)  # the table's own flag goes with its rate
     # frame id -> (message, [(channel, signal)])
-    by_id: dict[tuple[int, bool], tuple[object, list[tuple[str, str]]]] = {}
+    by_id: dict[tuple[int, bool], tuple[Message, list[tuple[str, str]]]] = {}
     for channel, sref in wanted.items():
         msg_name, _, sig_name = sref.partition(".")
         msg = _message(db, msg_name, dbc)
@@ -140,26 +141,26 @@ def read_canlog(
     frames = skipped = dropped = 0
     try:
         reader = can.LogReader(name)
-        for msg in reader:
+        for frame in reader:
             frames += 1
-            if msg.is_error_frame or msg.is_remote_frame or msg.is_fd:
+            if frame.is_error_frame or frame.is_remote_frame or frame.is_fd:
                 dropped += 1
                 continue
-            key = (msg.arbitration_id, msg.is_extended_id)
+            key = (frame.arbitration_id, frame.is_extended_id)
             if key == raw_key:
-                if len(msg.data) != raw.length:
+                if len(frame.data) != raw.length:
                     dropped += 1
                     continue
-                values = raw.decode(bytes(msg.data), decode_choices=False)
+                values = _signals(raw, frame.data)
                 for channel, sig in raw_pairs:
-                    held[channel] = float(values[sig])
+                    held[channel] = _number(values, sig)
                 if any(c not in held for c in needed):
                     skipped += 1
                     continue
-                times.append(float(msg.timestamp))
+                times.append(float(frame.timestamp))
                 frame_no.append(frames)
                 settled.append(held.get("\0settled", 1.0))
-                raws.append(float(values[raw_sig]))
+                raws.append(_number(values, raw_sig))
                 rows.append([held[c] for c in channels])
                 if ref is not None:
                     refs.append(held["\0ref"])
@@ -168,12 +169,12 @@ def read_canlog(
             if entry is None:
                 continue
             msg_def, pairs = entry
-            if len(msg.data) != msg_def.length:  # type: ignore[attr-defined]
+            if len(frame.data) != msg_def.length:
                 dropped += 1
                 continue
-            values = msg_def.decode(bytes(msg.data), decode_choices=False)  # type: ignore[attr-defined]
+            values = _signals(msg_def, frame.data)
             for channel, sig in pairs:
-                held[channel] = float(values[sig])
+                held[channel] = _number(values, sig)
     except CanicalError:
         raise
     except Exception as exc:  # python-can's readers raise many types on a damaged file
@@ -207,7 +208,23 @@ def read_canlog(
     return CanlogSession(session, frames, skipped, dropped, table_axis)
 
 
-def _message(db, name: str, dbc) -> object:
+def _signals(message: Message, data: bytearray) -> Mapping[str, object]:
+    """A frame's signals by name, choices as their numbers (the log's own frame, unmultiplexed)."""
+    values = message.decode(bytes(data), decode_choices=False)
+    if not isinstance(values, Mapping):  # only container messages decode to a list of parts
+        raise CanicalError(f"message {message.name}: container messages are not supported")
+    return values
+
+
+def _number(values: Mapping[str, object], signal: str) -> float:
+    """One signal's value; without choices cantools decodes every signal to an int or a float."""
+    value = values[signal]
+    if not isinstance(value, int | float):
+        raise CanicalError(f"signal {signal} decodes to {value!r}, not a number")
+    return float(value)
+
+
+def _message(db: Database, name: str, dbc: str | os.PathLike[str]) -> Message:
     try:
         return db.get_message_by_name(name)
     except KeyError:

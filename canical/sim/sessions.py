@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from canical.sessions.session import Session
@@ -9,6 +11,9 @@ from canical.sim.gyro import GyroModel
 from canical.sim.paired_noise import plateau_paired_noise
 from canical.sim.rate_table import constant_profile, step_profile
 from canical.sim.table_recording import TableBehaviour, TableRecording, record_table
+
+# An auxiliary channel's generator: (time s, table rate deg/s, sensor rng) -> one value per sample.
+AuxSignal = Callable[[np.ndarray, np.ndarray, np.random.Generator], np.ndarray]
 
 
 def paper_rates(step: float = 3.0, limit: float = 60.0) -> np.ndarray:
@@ -26,7 +31,7 @@ def sweep_session(
     seed: int = 0,
     sensor: str = "SIM-0001",
     axis: str = "z",
-    aux: dict[str, object] | None = None,
+    aux: dict[str, AuxSignal] | None = None,
     table: TableBehaviour | None = None,
 ) -> Session:
     """A turntable session visiting ``rates_dps`` in order.
@@ -58,7 +63,7 @@ def recorded_sweep(
     seed: int = 0,
     sensor: str = "SIM-0001",
     axis: str = "z",
-    aux: dict[str, object] | None = None,
+    aux: dict[str, AuxSignal] | None = None,
 ) -> tuple[Session, TableRecording]:
     """A session recorded through ``table``, and the table's truth for the kept rows' ticks.
 
