@@ -184,7 +184,8 @@ def rate_gate(dv: np.ndarray, knee_raw: float) -> np.ndarray:
     at the knee, so the knee can be estimated by a smooth search.
     """
     a = np.abs(np.asarray(dv, dtype=float))
-    return np.maximum(a - knee_raw, 0.0) / np.maximum(a, knee_raw)
+    gate: np.ndarray = np.maximum(a - knee_raw, 0.0) / np.maximum(a, knee_raw)
+    return gate
 
 
 def gate_one(dv: float, knee_raw: float) -> float:
@@ -203,10 +204,11 @@ def feature_values(
     if term.feature == "gated":
         if dv is None:
             raise ValueError("a gated term needs ΔV = raw − V0")
-        x = np.asarray(inputs[term.channel], dtype=float) - term.reference
-        return x * rate_gate(dv, term.threshold_raw or 1.0)
+        x = _column(inputs, term.channel) - term.reference
+        gated: np.ndarray = x * rate_gate(dv, term.threshold_raw or 1.0)
+        return gated
     if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
-        values = np.asarray(inputs[term.channel], dtype=float)
+        values = _column(inputs, term.channel)
         if term.feature == "direction":
             return direction_state(values, term.threshold_raw or 1.0)
         tracker = ChannelTracker(term)
@@ -216,13 +218,22 @@ def feature_values(
         return direction_state(raw, term.threshold_raw or 1.0)
     if term.feature == "slope":
         return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0)
-    values = np.asarray(inputs[term.input_name], dtype=float)
+    values = _column(inputs, term.input_name)
     if term.kind == "channel":
         x = values - term.reference
         return x * x if term.feature == "square" else x
     if term.feature == "warmup":
-        return 1.0 - np.exp(-values / term.tau_s)
+        assert term.tau_s is not None  # term_from_dict requires τ of a warm-up term
+        warm: np.ndarray = 1.0 - np.exp(-values / term.tau_s)
+        return warm
     return values
+
+
+def _column(inputs: Mapping[str, np.ndarray], name: str | None) -> np.ndarray:
+    """An input as floats; every term that reads one names it (term_from_dict checks)."""
+    if name is None:
+        raise ValueError("the term reads no input")
+    return np.asarray(inputs[name], dtype=float)
 
 
 def direction_state(raw: np.ndarray, threshold: float, state: DirectionTracker | None = None) -> np.ndarray:
