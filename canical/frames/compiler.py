@@ -62,8 +62,8 @@ class CantoolsCodec:
         self._encode = message.encode
 
     def decode(self, data: bytes | bytearray) -> tuple[Any, ...]:
-        values = self._decode(data, decode_choices=False)
-        return tuple(values[n] for n in self.names)  # type: ignore[index]
+        values = self._decode(data, decode_choices=False)  # type: ignore[arg-type]  # cantools takes a bytearray too
+        return tuple(values[n] for n in self.names)  # type: ignore[call-overload]  # plain message: a mapping
 
     def encode(self, values: Sequence[Any]) -> bytes:
         return self._encode(dict(zip(self.names, values, strict=True)), strict=False)
