@@ -72,7 +72,7 @@ class RawDecoder:
 
     def decode(self, data: bytes | bytearray) -> dict[str, Any]:
         """Signal name → physical value; numeric, never a choice string."""
-        return self._decode(data, decode_choices=False)  # type: ignore[return-value]
+        return self._decode(data, decode_choices=False)  # type: ignore[arg-type, return-value]
 
 
 class RateEncoder:
