@@ -97,7 +97,7 @@ class Plateaus:
     def n_used(self) -> int:
         return int(np.sum(self.stop - self.start))
 
-    def describe(self) -> dict[str, float | int]:
+    def describe(self) -> dict[str, float | int | str | None]:
         """What plateau finding saw and set, for the report."""
         return {
             "reference_noise_dps": self.ref_noise_dps,
@@ -227,7 +227,7 @@ def detect_plateaus(
     per_update = row_s / update
     full = max(1.0, window / update)
 
-    def auto_tol(n_before, n_after):
+    def auto_tol(n_before: float | np.ndarray, n_after: float | np.ndarray) -> np.ndarray:
         eff_b = np.clip(n_before * per_update, 1.0, full)
         eff_a = np.clip(n_after * per_update, 1.0, full)
         return np.maximum(TOL_FLOOR_DPS, TOL_SIGMAS * 1.2533 * noise * np.sqrt(1 / eff_b + 1 / eff_a))
@@ -271,7 +271,8 @@ def detect_plateaus(
         settle_s = max(observed, SETTLE_FLOOR_S, 0.0 if noise == 0.0 else window / 2)
     else:
         source = "default"
-    rates, starts, stops, sems = [], [], [], []
+    rates: list[float] = []
+    starts, stops, sems = [], [], []
     in_stretch = n_short = 0
     for a, b in stretches:
         in_stretch += b - a
@@ -433,7 +434,8 @@ def plateau_means(values: np.ndarray, plateaus: Plateaus) -> np.ndarray:
     """Mean of a per-sample array over each plateau's used samples."""
     csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
     sums = csum[plateaus.stop] - csum[plateaus.start]
-    return sums / (plateaus.stop - plateaus.start)
+    means: np.ndarray = sums / (plateaus.stop - plateaus.start)
+    return means
 
 
 def plateau_stds(values: np.ndarray, plateaus: Plateaus) -> np.ndarray:
@@ -442,7 +444,8 @@ def plateau_stds(values: np.ndarray, plateaus: Plateaus) -> np.ndarray:
     sq = plateau_means(values * values, plateaus)
     n = plateaus.stop - plateaus.start
     var = np.maximum(sq - mean * mean, 0.0) * n / np.maximum(n - 1, 1)
-    return np.sqrt(var)
+    std: np.ndarray = np.sqrt(var)
+    return std
 
 
 def saturated(raw: np.ndarray, plateaus: Plateaus, *, min_fraction: float = 0.01) -> np.ndarray:
