@@ -132,7 +132,9 @@ class Blocks:
 
 
 def _block_bounds(plateaus: Plateaus, time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, ...]:
-    starts, stops, owner = [], [], []
+    starts: list[int] = []
+    stops: list[int] = []
+    owner = []
     for p, (a, b) in enumerate(zip(plateaus.start, plateaus.stop, strict=True)):
         duration = time_s[b - 1] - time_s[a]
         n = max(1, int(duration // block_s))
@@ -166,7 +168,7 @@ def make_blocks(
     raw = session.raw
     mean_raw = means(raw)
     sd = np.sqrt(np.maximum(means(raw * raw) - mean_raw**2, 0.0) * n / np.maximum(n - 1, 1))
-    rate = session.ref_dps
+    rate = session.reference()
     points = FitPoints(means(rate), mean_raw - v0, n, sd / np.sqrt(n))
     direction = direction_state(raw, direction_threshold_raw)
     return Blocks(
