@@ -75,6 +75,7 @@ def feature(term: Term, blocks: Blocks) -> np.ndarray:
     if term.kind == "time":
         t = blocks.time_s
         return 1.0 - np.exp(-t / term.tau_s) if term.feature == "warmup" else t
+    assert term.channel is not None  # every term left here is a channel level or square
     x = blocks.aux[term.channel] - term.reference
     return x * x if term.feature == "square" else x
 
@@ -269,8 +270,11 @@ def in_group(term: Term, group: tuple[str, str | None]) -> bool:
 def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] = ("warmup", None)
              ) -> tuple[Term, ...]:
     """The group's parameter set to ``tau``: a time constant, or a gated group's knee (raw units)."""
-    key = "threshold_raw" if group[0] == "gated" else "tau_s"
-    return tuple(replace(t, **{key: tau}) if in_group(t, group) else t for t in terms)
+    gated = group[0] == "gated"
+    return tuple(
+        (replace(t, threshold_raw=tau) if gated else replace(t, tau_s=tau)) if in_group(t, group) else t
+        for t in terms
+    )
 
 
 def uses_time(terms: tuple[Term, ...]) -> bool:
