@@ -328,6 +328,7 @@ def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float)
         return None
     if fitted.spec.n_segments != spec.n_segments:
         return None
+    assert isinstance(fitted.model, PiecewisePoly)  # the loop's base is segmented-inverse
     return replace(s, spec=spec, knots=fitted.model.knots)
 
 
@@ -512,15 +513,16 @@ def _confounded_with(
     useful = [c for c in hopeful if alone[c.name] < r_now * (1 - min_gain)] or [best]
     best = min(useful, key=lambda c: alone.get(c.name, r_now))
     r_best = alone.get(best.name, r_now)
-    twins, shadows = [], []
+    twins: list[Candidate] = []
+    shadows: list[Candidate] = []
     for other in useful:
         if other is best:
             continue
         r_other = alone[other.name]
         r_both = grown_rms(best.terms + other.terms)
         if r_both >= r_best * (1 - min_gain):
-            twin = r_other <= r_best * (1 + min_gain) and r_both >= r_other * (1 - min_gain)
-            (twins if twin else shadows).append(other)
+            is_twin = r_other <= r_best * (1 + min_gain) and r_both >= r_other * (1 - min_gain)
+            (twins if is_twin else shadows).append(other)
     # A channel's level is its lag with τ → 0: when the two tie, the data do not need
     # the lag's time constant, and the simpler one is the answer (not a confound).
     level = next((c for c in twins if _nests(best, c)), None)
