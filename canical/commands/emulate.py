@@ -14,12 +14,16 @@ import logging
 import signal
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
 from canical.device.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
 from canical.output_plan import check_dir, check_file
+
+if TYPE_CHECKING:
+    from canical.sim.gyro import Effect
 
 
 def _rates(text: str) -> tuple[float, ...]:
@@ -87,7 +91,7 @@ def undeclared_effects(args: argparse.Namespace) -> tuple:
     """The effects the options switch on, which the calibrator is not told about."""
     from canical.sim import effects as fx
 
-    out = []
+    out: list[Effect] = []
     if args.temp_bias or args.temp_scale:
         out.append(fx.TemperatureEffect(channel="temp_c", reference_c=25.0,
                                         bias_dps_per_c=args.temp_bias, scale_per_c=args.temp_scale))
@@ -156,6 +160,7 @@ def run(args: argparse.Namespace) -> int:
         table_ref=not args.no_table_ref,
         correction=args.correct,
     )
+    assert config.state_path is not None  # set just above
     check_dir(config.state_path.parent)  # the device's flash: refused now, not at its first store
     config.state_path.parent.mkdir(parents=True, exist_ok=True)
     check_file(config.state_path)
