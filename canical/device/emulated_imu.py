@@ -177,7 +177,7 @@ class EmulatedImu:
         deadline = None if duration_s is None else start + duration_s
         k = 0
         generation = -1
-        correctors: dict[str, Corrector] = {}
+        correctors: dict[str, FirmwareCorrector | Corrector] = {}
         tag = 0
         send = self.network.send_message
         frames = self.frames
@@ -247,8 +247,8 @@ class EmulatedImu:
 
     def _corrected(self, correctors, tag, raw_id, raw_data, aux_id, aux_data, k):
         """IMU_RATE for one sample, from the frames exactly as a receiver decodes them."""
-        rv = self.frames.decode(raw_id, raw_data).values  # type: ignore[union-attr]
-        av = self.frames.decode(aux_id, aux_data).values  # type: ignore[union-attr]
+        rv = self.frames.decode(raw_id, raw_data).values
+        av = self.frames.decode(aux_id, aux_data).values
         inputs = {CHANNELS[n]: float(v) for n, v in (*rv.items(), *av.items()) if n in CHANNELS}
         rates, oos, unc = [], [], []
         for a in AXES:
