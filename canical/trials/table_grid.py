@@ -11,17 +11,27 @@ steps, the commanded rate with every sample).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
 from canical.calibrate.plateaus import Plateaus
-from canical.pipeline import CalibrateOptions, calibrate
+from canical.pipeline import CalibrateOptions, CalibrationResult, calibrate
+from canical.sessions.session import Session
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, recorded_sweep
-from canical.sim.table_recording import Schedule, TableBehaviour
+from canical.sim.table_recording import Schedule, TableBehaviour, TableRecording
 
 IDEAL = TableBehaviour()
-MEASURED_02 = {"reference": "measured", "jitter_dps": 0.02, "encoder_lsb_dps": 0.001}
+class _MeasuredReference(TypedDict):
+    """A measured reference's settings, shared by the combined cells."""
+
+    reference: str
+    jitter_dps: float
+    encoder_lsb_dps: float
+
+
+MEASURED_02: _MeasuredReference = {"reference": "measured", "jitter_dps": 0.02, "encoder_lsb_dps": 0.001}
 
 GRID: tuple[tuple[str, TableBehaviour], ...] = (
     ("ideal steps", IDEAL),
@@ -89,7 +99,8 @@ def grid_rates() -> np.ndarray:
 
 def held_out_rms(behaviour: TableBehaviour, *, seed: int, dwell_s: float, fs_hz: float,
                  gyro: GyroModel | None = None,
-                 rates: np.ndarray | None = None) -> tuple[float, object, object]:
+                 rates: np.ndarray | None = None
+                 ) -> tuple[float, CalibrationResult, tuple[Session, TableRecording]]:
     """Calibrate one recording; (held-out rms, the calibration result, the table's truth)."""
     rates = grid_rates() if rates is None else rates
     session, rec = recorded_sweep(gyro or GyroModel(), rates, behaviour, dwell_s=dwell_s,
