@@ -97,6 +97,19 @@ class Stats:
     __slots__ = ("bad_length", "bus_restarts", "counter_gaps", "error_frames", "fd_frames",
                  "frames_in", "frames_out", "inputs_in", "remote_frames", "stale_frames",
                  "tx_dropped", "unknown_ids")
+    # Declared for the type checker; __init__ sets each slot to 0.
+    bad_length: int
+    bus_restarts: int
+    counter_gaps: int
+    error_frames: int
+    fd_frames: int
+    frames_in: int
+    frames_out: int
+    inputs_in: int
+    remote_frames: int
+    stale_frames: int
+    tx_dropped: int
+    unknown_ids: int
 
     def __init__(self) -> None:
         for name in self.__slots__:
