@@ -4,12 +4,15 @@ and the programme carries on when the bus is back.
 
 The bus is a python-can interface registered for the test with the failure mode of a down
 vcan (opening succeeds, every send and receive fails at once with "Network is down"), so the
-real command runs on the host: its own ``open_network``, its reopen, its logging.
+real command runs on the host: its own ``open_network``, its reopen, its logging. On a real
+vcan set down and up under the running command: the last test (marked vcan).
 """
 
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -118,3 +121,35 @@ def test_emulate_stops_promptly_while_the_bus_is_down(flaky: Link, tmp_path: Pat
     assert status == 0
     assert elapsed < 6.0, f"took {elapsed:.1f} s"
     assert "Traceback" not in capfd.readouterr().err
+
+
+@pytest.mark.vcan
+def test_vcan_emulate_survives_its_interface_going_down(vcan_channel: str, tmp_path: Path) -> None:
+    """ip link down for 2 s under a streaming ``canical emulate``: it keeps running, streams
+    again once the link is up, exits 0 on SIGTERM, and its stderr has the two outage lines
+    and no traceback."""
+    emulate = subprocess.Popen(
+        [sys.executable, "-m", "canical", "emulate", "--interface", "socketcan", "--channel", vcan_channel,
+         "--state", str(tmp_path / "state.json"), "--rate", "50", "--table", "still"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    filters = [{"can_id": 0x190, "can_mask": 0x7FF, "extended": False}]  # IMU_RAW of node 0x10
+    try:
+        assert emulate.stdout is not None
+        ready = emulate.stdout.readline()
+        assert ready.startswith("ready"), (ready, emulate.poll() is not None and emulate.communicate())
+        with can.Bus(interface="socketcan", channel=vcan_channel, can_filters=filters) as bus:
+            assert bus.recv(10) is not None, "no IMU frame before the outage"
+        subprocess.run(["ip", "link", "set", vcan_channel, "down"], check=True)
+        time.sleep(2.0)
+        subprocess.run(["ip", "link", "set", vcan_channel, "up"], check=True)
+        with can.Bus(interface="socketcan", channel=vcan_channel, can_filters=filters) as bus:
+            again = bus.recv(10)
+        alive = emulate.poll() is None
+    finally:
+        emulate.terminate()
+        _, err = emulate.communicate(timeout=30)
+    assert alive, err
+    assert again is not None, f"no IMU frame within 10 s of the link coming back: {err}"
+    assert emulate.returncode == 0, err
+    assert "Traceback" not in err, err
+    assert f"socketcan {vcan_channel} lost" in err and "back after" in err, err
