@@ -8,7 +8,7 @@ the same flow, for every cell.
 Shorter than the CSV grid, stated: 50 samples/s (the same 41 rates and 8 s plateaus). A
 *measured* reference is a draw of the table's jitter, and the held-out error is judged against
 that noisy reference: one seed's ratio scatters (0.8-2.0 measured, on the bus and off it alike:
-the same passes calibrated without the bus give the same held-out error to 1-2%,
+the same passes calibrated without the bus pool within 0.09 of the bus's ratios, either way,
 bench_table_grid_bus.py), so those cells are pooled over the CSV grid's five seeds, as there.
 A cell whose reference is the commanded rate is paired (1.00 on most seeds) and, for time, is
 judged on seed 0 alone: a weaker check where the fit's segment points still move one seed's
