@@ -47,6 +47,7 @@ from canical.bus import active_sets
 from canical.bus.active_sets import ActiveSets
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.sd_notify import Notifier
+from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.frames.codec import RateEncoder, RawDecoder, StatusEncoder, load_dbc
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, why_not
@@ -63,9 +64,6 @@ TX_FULL = {errno.ENOBUFS, errno.EAGAIN}
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
 RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
 BURST, BURST_SPAN_S = 32, 0.02  # frames handled between two reads of the clock, at most
-#: Pause before each reopen while the bus stays down: doubling from 50 ms, capped at 2 s.
-REOPEN_BACKOFF_S = (0.05, 0.1, 0.2, 0.4, 0.8, 1.6, 2.0)
-OUTAGE_LOG_EVERY_S = 60.0  # a lasting outage is logged again this often, not on every attempt
 WAIT_SLICE_S = 0.05  # sleeping in back-off: how often stop requests and the watchdog are served
 
 BusFactory = Callable[..., can.BusABC]
@@ -125,24 +123,6 @@ class Stats:
 
 class _BusLost(Exception):
     """The interface failed under us; reopen it."""
-
-
-class Outage:
-    """One bus outage: from the first failure until a status frame goes out again."""
-
-    __slots__ = ("attempts", "next_log", "reason", "since")
-
-    def __init__(self, since: float, reason: str) -> None:
-        self.since = since
-        self.reason = reason  # the latest failure
-        self.attempts = 0  # reopen attempts so far
-        self.next_log = since + OUTAGE_LOG_EVERY_S
-
-    def delay(self) -> float:
-        """Back-off before the next reopen attempt (and count the attempt)."""
-        delay = REOPEN_BACKOFF_S[min(self.attempts, len(REOPEN_BACKOFF_S) - 1)]
-        self.attempts += 1
-        return delay
 
 
 class Daemon:

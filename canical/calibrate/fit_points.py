@@ -3,7 +3,8 @@
 Averaging first makes a million-sample session cost what a forty-plateau one
 does, and it is what the paper fits (one point per table rate). Each point
 keeps its sample count (the weight) and the standard error of its mean, so
-segment-point selection can tell a real residual extremum from noise.
+segment-point selection can tell a real residual extremum from noise; and the standard
+error of its table rate, which a *measured* reference (encoder jitter) adds to that noise.
 """
 
 from __future__ import annotations
@@ -25,12 +26,20 @@ class FitPoints:
     dv: np.ndarray  # raw units, per plateau
     weight: np.ndarray  # samples per plateau
     dv_sem: np.ndarray  # standard error of the mean of ΔV, raw units
+    #: Standard error of each point's table rate, deg/s: a measured reference's jitter averaged
+    #: over the plateau (None: an exact, commanded reference).
+    rate_sem: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.rate.shape[0])
 
     def take(self, index: np.ndarray) -> FitPoints:
-        return FitPoints(self.rate[index], self.dv[index], self.weight[index], self.dv_sem[index])
+        rate_sem = None if self.rate_sem is None else self.rate_sem[index]
+        return FitPoints(self.rate[index], self.dv[index], self.weight[index], self.dv_sem[index], rate_sem)
+
+    def rate_uncertainty(self) -> np.ndarray:
+        """Per point: the standard error of its table rate (0 for an exact reference)."""
+        return np.zeros(len(self)) if self.rate_sem is None else self.rate_sem
 
     def rate_groups(self, tol: float = RATE_GROUP_TOL_DPS) -> np.ndarray:
         """Group index per point: plateaus at the same table rate (repeated sweeps) share one.
@@ -54,7 +63,10 @@ class FitPoints:
         dv = np.bincount(groups, self.dv * self.weight, n) / w
         # Combine standard errors as independent means weighted by sample count.
         var = np.bincount(groups, (self.dv_sem * self.weight) ** 2, n) / w**2
-        return FitPoints(rate, dv, w, np.sqrt(var))
+        rate_sem = None
+        if self.rate_sem is not None:
+            rate_sem = np.sqrt(np.bincount(groups, (self.rate_sem * self.weight) ** 2, n) / w**2)
+        return FitPoints(rate, dv, w, np.sqrt(var), rate_sem)
 
 
 def fit_points(raw: np.ndarray, v0: float, plateaus: Plateaus) -> FitPoints:
@@ -62,4 +74,5 @@ def fit_points(raw: np.ndarray, v0: float, plateaus: Plateaus) -> FitPoints:
     dv = plateau_means(raw, plateaus) - v0
     n = (plateaus.stop - plateaus.start).astype(float)
     sem = plateau_stds(raw, plateaus) / np.sqrt(n)
-    return FitPoints(plateaus.rate_dps.copy(), dv, n, sem)
+    ref_sem = plateaus.rate_uncertainty()
+    return FitPoints(plateaus.rate_dps.copy(), dv, n, sem, ref_sem.copy() if np.any(ref_sem > 0) else None)

@@ -68,9 +68,17 @@ def global_quadratic_residual(points: FitPoints) -> np.ndarray:
 
 
 def rate_noise(points: FitPoints) -> np.ndarray:
-    """Standard error of each point's mean, converted from ΔV to deg/s by the mean slope."""
+    """Standard error of each point in deg/s: its ΔV mean's (converted by the mean slope) and
+    its table rate's, independent, combined.
+
+    Why the rate's too: a residual is ω − q(ΔV), so a measured reference's error on a plateau's
+    rate is residual noise exactly as the sensor's is. Left out, the floor sits below what
+    noise alone produces, and a fluke extremum of the reference's jitter becomes a segment
+    point (seen: 0.05 deg/s jitter made cross-validation folds place points at -18 and -24
+    deg/s, prominence 0.023-0.028 against a sensor-only floor of 0.021).
+    """
     slope = np.polyfit(points.rate, points.dv, 1)[0] if len(points) > 1 else 1.0
-    noise: np.ndarray = points.dv_sem / abs(slope)
+    noise: np.ndarray = np.hypot(points.dv_sem / abs(slope), points.rate_uncertainty())
     return noise
 
 

@@ -13,11 +13,19 @@ import argparse
 import logging
 import signal
 import sys
+import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
-from canical.device.can_network import add_bus_arguments, bus_options, open_network, sdo_server_filters
+from canical.device.can_network import (
+    add_bus_arguments,
+    bus_options,
+    disconnect_quietly,
+    open_network,
+    reconnect_network,
+    sdo_server_filters,
+)
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES
 from canical.output_plan import check_dir, check_file
@@ -143,13 +151,15 @@ def stream_config(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical.device.emulated_imu import EmulatedImu, EmulatorConfig, state_path_default
+    from canical.device.emulated_imu import EmulatedImu, EmulatorConfig, ReceiveErrors, state_path_default
 
     if args.speed <= 0:
         raise CanicalError("--speed must be positive")
     logging.basicConfig(level=logging.INFO, format="emulate: %(message)s", stream=sys.stderr)
     for noisy in ("canopen", "can"):  # per-transfer chatter at INFO
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    # During a bus outage canopen logs every failed send; the device logs the outage itself.
+    logging.getLogger("canopen.network").setLevel(logging.CRITICAL)
     config = EmulatorConfig(
         node_id=args.node,
         serial=args.serial,
@@ -164,16 +174,23 @@ def run(args: argparse.Namespace) -> int:
     check_dir(config.state_path.parent)  # the device's flash: refused now, not at its first store
     config.state_path.parent.mkdir(parents=True, exist_ok=True)
     check_file(config.state_path)
-    network = open_network(args.interface, args.channel, can_filters=sdo_server_filters(args.node),
-                           **bus_options(args))
+    options = {"can_filters": sdo_server_filters(args.node), **bus_options(args)}
+    network = open_network(args.interface, args.channel, listeners=[ReceiveErrors()], **options)
     try:
-        device = EmulatedImu(config, network)
+        def reopen() -> None:
+            reconnect_network(network, args.interface, args.channel, **options)
+
+        device = EmulatedImu(config, network, reopen=reopen, bus_name=f"{args.interface} {args.channel}")
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, lambda *_: device.stop_event.set())
+        if args.duration is not None:  # from now, whatever the bus does meanwhile (it may be down)
+            stopper = threading.Timer(args.duration, device.stop_event.set)
+            stopper.daemon = True
+            stopper.start()
         device.boot_up()
         print(f"ready node 0x{args.node:02x} serial {args.serial} on {args.interface} {args.channel}",
               flush=True)
-        device.run(args.duration)
+        device.run()
     finally:
-        network.disconnect()
+        disconnect_quietly(network)
     return 0

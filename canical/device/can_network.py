@@ -32,17 +32,47 @@ def quiet_canopen_logging() -> None:
     logging.getLogger("can").addHandler(logging.NullHandler())
 
 
-def open_network(interface: str, channel: str, **options: Any) -> canopen.Network:
-    """A connected canopen network; :class:`CanicalError` if the interface cannot be opened."""
+def open_network(interface: str, channel: str, *, listeners: list[Any] | None = None,
+                 **options: Any) -> canopen.Network:
+    """A connected canopen network; :class:`CanicalError` if the interface cannot be opened.
+
+    ``listeners`` (python-can listeners) receive from the first frame (and error) on.
+    """
     import canopen  # here, not at the top: every command's --help imports this module
 
     network = canopen.Network()
+    network.listeners.extend(listeners or [])
     try:
         network.connect(interface=interface, channel=channel, **options)
     except Exception as exc:  # python-can raises OSError, CanError, ValueError, ImportError...
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CanicalError(f"cannot open CAN interface {interface} channel {channel}: {first}") from None
     return network
+
+
+def disconnect_quietly(network: canopen.Network) -> None:
+    """Disconnect, whatever state the bus is in.
+
+    canopen re-raises a failed receive thread's exception from ``disconnect``; after an outage
+    that is old news, not a reason for a traceback at shutdown.
+    """
+    with contextlib.suppress(Exception):  # python-can and canopen raise many types here
+        network.disconnect()
+    network.bus = None
+
+
+def reconnect_network(network: canopen.Network, interface: str, channel: str, **options: Any) -> None:
+    """Close ``network``'s bus and open it again (its nodes stay): after the interface went away.
+
+    :class:`CanicalError` (one line) when it cannot be opened yet.
+    """
+    disconnect_quietly(network)
+    try:
+        network.connect(interface=interface, channel=channel, **options)
+    except Exception as exc:  # as in open_network
+        network.bus = None
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CanicalError(f"cannot reopen CAN interface {interface} channel {channel}: {first}") from None
 
 
 @contextlib.contextmanager

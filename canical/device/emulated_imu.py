@@ -17,6 +17,12 @@ over with a log line.
 Correction inputs are taken from the device's own frames as a receiver decodes
 them (temperature in 0.1 degC, supply in mV, uptime in ms), so the device, the
 daemon and ``canical apply`` on a recording of the bus see the same numbers.
+
+The bus going away (vcan0 set down, bus-off, unplugged) is ridden out as the daemon
+rides it out (:class:`canical.bus_outage.Outage`: one line when it starts, once a minute while
+it lasts, one when it ends; capped back-off between attempts): a failed send or a failed
+receive reopens the bus after the back-off and the programme carries on from where the
+clock is, so a service manager never sees a traceback for what is not a bug.
 """
 
 from __future__ import annotations
@@ -29,10 +35,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import can
 import canopen
 from canopen.sdo import SdoAbortedError
 
+from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.device.coefficient_banks import BankRefusal, BankStore
+from canical.errors import CanicalError
 from canical.frames.imu_frames import CHANNELS, ImuFrames, set_tag
 from canical.imu_dictionary import (
     ABORT_VALUE_RANGE,
@@ -47,11 +56,15 @@ from canical.sets.admission import DeviceLimits
 from canical.sets.corrector import Corrector
 
 if TYPE_CHECKING:
+    from collections.abc import Callable
+
     from canical.device.firmware_eval import FirmwareCorrector
 
 log = logging.getLogger("canical.imu")
 
 MAX_LAG_S = 0.5  # behind schedule by more than this: skip ahead rather than burst
+RX_ERROR_PAUSE_S = 0.05  # a receive error is noted, then the receive thread pauses this long
+BUS_ERRORS = (can.CanError, OSError)  # what a send raises when the interface is gone
 
 
 @dataclass(frozen=True)
@@ -72,9 +85,16 @@ class EmulatorConfig:
 class EmulatedImu:
     """The device: object dictionary, bank store, and (optionally) its transmit loop."""
 
-    def __init__(self, config: EmulatorConfig, network: canopen.Network) -> None:
+    def __init__(self, config: EmulatorConfig, network: canopen.Network, *,
+                 reopen: Callable[[], None] | None = None, bus_name: str = "CAN bus") -> None:
+        """``reopen`` connects ``network`` afresh after an outage (raising
+        :class:`CanicalError` when it cannot); without it a lost bus is only retried."""
         self.config = config
         self.network = network
+        self.reopen = reopen
+        self.bus_name = bus_name
+        self.outage: Outage | None = None
+        self.rx_errors = receive_errors(network)
         self.objects = imu_objects()
         od = object_dictionary(config.node_id)
         o = self.objects
@@ -97,6 +117,55 @@ class EmulatedImu:
         self.stop_event = threading.Event()
         self.frames_sent = 0
         network.add_node(self.node)
+
+    # ---------------------------------------------------------------------------------------
+    # The bus going away
+    # ---------------------------------------------------------------------------------------
+
+    def send(self, can_id: int, data: bytes) -> bool:
+        """Send one frame, riding out a bus outage first; False when asked to stop meanwhile."""
+        while True:
+            try:
+                self.network.send_message(can_id, data)
+            except BUS_ERRORS as exc:
+                if not self.ride_out(f"send: {exc}"):
+                    return False
+                continue
+            if self.outage is not None:
+                self._end_outage()
+            return True
+
+    def ride_out(self, why: str) -> bool:
+        """The bus failed: log it (once per outage), wait the back-off, reopen the bus.
+
+        Returns False when a stop was asked for while waiting.
+        """
+        now = time.monotonic()
+        if self.outage is None:
+            self.outage = Outage(now, why)
+            log.warning("%s lost: %s; retrying with back-off up to %.0f s", self.bus_name, why,
+                        REOPEN_BACKOFF_S[-1])
+        else:
+            self.outage.reason = why
+            if now >= self.outage.next_log:
+                self.outage.next_log = now + OUTAGE_LOG_EVERY_S
+                log.warning("%s still down after %.0f s (%d attempts): %s", self.bus_name,
+                            now - self.outage.since, self.outage.attempts, why)
+        if self.stop_event.wait(self.outage.delay()):
+            return False
+        self.rx_errors.failed.clear()
+        if self.reopen is not None:
+            try:
+                self.reopen()
+            except CanicalError as exc:
+                self.outage.reason = str(exc)
+        return not self.stop_event.is_set()
+
+    def _end_outage(self) -> None:
+        outage, self.outage = self.outage, None
+        assert outage is not None
+        log.info("%s back after %.1f s down (%d attempts)", self.bus_name, time.monotonic() - outage.since,
+                 outage.attempts)
 
     # ---------------------------------------------------------------------------------------
     # SDO
@@ -156,7 +225,8 @@ class EmulatedImu:
 
     def boot_up(self) -> None:
         """The CANopen boot-up message, then the active sets in the log."""
-        self.network.send_message(0x700 + self.config.node_id, b"\x00")
+        if not self.send(0x700 + self.config.node_id, b"\x00"):
+            return
         active = unpack_active(self.store.active_value())
         log.info(
             "node 0x%02x serial %d up; active %s",
@@ -167,7 +237,7 @@ class EmulatedImu:
     def run(self, duration_s: float | None = None) -> None:
         """Transmit until :attr:`stop_event` is set (or ``duration_s`` wall seconds passed)."""
         if self.config.stream is None:
-            self.stop_event.wait(duration_s)
+            self._serve_sdo(duration_s)
             return
         from canical.sim.imu_stream import imu_blocks  # numpy/scipy only where streaming
 
@@ -179,7 +249,7 @@ class EmulatedImu:
         generation = -1
         correctors: dict[str, FirmwareCorrector | Corrector] = {}
         tag = 0
-        send = self.network.send_message
+        send = self.send
         frames = self.frames
         axis = stream.table.axis  # type: ignore[attr-defined]
         for block in imu_blocks(stream):  # type: ignore[arg-type]
@@ -205,20 +275,24 @@ class EmulatedImu:
                 elif now - target > MAX_LAG_S:
                     start = now - k * period  # fell far behind (slow host): carry on from here
                 k += 1
+                if self.rx_errors.failed.is_set() and not self.ride_out(self.rx_errors.reason):
+                    return
                 if table_frames is not None and self.config.table_ref:
                     ft, fw, fs = table_frames
                     while j < len(ft) and ft[j] <= t:
-                        send(*frames.table(fw[j], axis, fs[j], j))
+                        if not send(*frames.table(fw[j], axis, fs[j], j)):
+                            return
                         j += 1
                 if kept is not None and not kept[i]:
                     continue  # the sample's frames are lost (a logger or bus overload drops a burst)
                 counts = (raw["x"][i], raw["y"][i], raw["z"][i])
                 aux_id, aux_data = frames.aux(supply, t, k)
                 raw_id, raw_data = frames.raw(counts, temp, k)
-                send(aux_id, aux_data)
-                send(raw_id, raw_data)
-                if self.config.table_ref and table_frames is None:
-                    send(*frames.table(w, axis, settled, k))
+                if not (send(aux_id, aux_data) and send(raw_id, raw_data)):
+                    return
+                with_ref = self.config.table_ref and table_frames is None
+                if with_ref and not send(*frames.table(w, axis, settled, k)):
+                    return
                 self.frames_sent += 1
                 if not self.correction:
                     continue
@@ -226,7 +300,22 @@ class EmulatedImu:
                     generation = self.store.generation
                     correctors = self.device_correctors()
                     tag = set_tag({a: self.store.active_id(a) for a in AXES})
-                send(*self._corrected(correctors, tag, raw_id, raw_data, aux_id, aux_data, k))
+                if not send(*self._corrected(correctors, tag, raw_id, raw_data, aux_id, aux_data, k)):
+                    return
+
+    def _serve_sdo(self, duration_s: float | None) -> None:
+        """An SDO-only device: answer until stopped, reopening the bus when its receive fails."""
+        end = None if duration_s is None else time.monotonic() + duration_s
+        while not self.stop_event.is_set():
+            left = None if end is None else end - time.monotonic()
+            if left is not None and left <= 0:
+                return
+            if not self.rx_errors.failed.wait(0.5 if left is None else min(0.5, left)):
+                if self.outage is not None:
+                    self._end_outage()  # reopened and no receive error since
+                continue
+            if not self.ride_out(self.rx_errors.reason):
+                return
 
     def device_correctors(self) -> dict[str, FirmwareCorrector | Corrector]:
         """The active sets as the device runs them: in the firmware's C evaluator
@@ -263,6 +352,44 @@ class EmulatedImu:
             oos.append(o)
             unc.append(False)
         return self.frames.rate(rates, oos, unc, tag, k)
+
+
+class ReceiveErrors(can.Listener):
+    """A python-can listener that notes a failed receive (a down interface) and handles it.
+
+    Unhandled, the error ends python-can's receive thread with a traceback and no SDO is
+    answered again; noted here, the device rides the outage out and reopens the bus. Give it to
+    :func:`canical.device.can_network.open_network` (``listeners=``) so it is there before the first
+    receive: a bus that is down from the start fails at once.
+    """
+
+    def __init__(self) -> None:
+        self.failed = threading.Event()
+        self.reason = ""
+
+    def on_message_received(self, msg: can.Message) -> None:
+        """Frames are canopen's (its own listener); only errors are ours."""
+
+    def on_error(self, exc: Exception) -> None:
+        self.reason = f"receive: {exc}"
+        self.failed.set()
+        time.sleep(RX_ERROR_PAUSE_S)  # a dead bus fails at once: do not spin on it
+
+    def stop(self) -> None:
+        """Nothing to release."""
+
+
+def receive_errors(network: canopen.Network) -> ReceiveErrors:
+    """The network's :class:`ReceiveErrors`, added (to later connections too) if it has none."""
+    for existing in network.listeners:
+        if isinstance(existing, ReceiveErrors):
+            return existing
+    listener = ReceiveErrors()
+    # canopen types its list as its own MessageListener; the Notifier takes any can.Listener
+    network.listeners.append(listener)  # type: ignore[arg-type]
+    if network.notifier is not None:
+        network.notifier.add_listener(listener)
+    return listener
 
 
 def _entry(od: canopen.ObjectDictionary, key: tuple[int, int]):

@@ -29,8 +29,9 @@ import numpy as np
 from canical.commands.cli import main
 from canical.device.can_network import open_network, sdo_server_filters
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
-from canical.pipeline import CalibrateOptions, find_plateaus
+from canical.pipeline import CalibrateOptions, calibrate, find_plateaus
 from canical.sessions.canlog import read_canlog
+from canical.sessions.session import Session
 from canical.sim.imu_stream import StreamConfig, TableMotion, imu_blocks
 from canical.sim.table_recording import TableBehaviour, schedule
 from canical.trials.table_grid import IDEAL, rows_on_rate_changes
@@ -140,6 +141,30 @@ def bus_cell(name: str, behaviour: TableBehaviour, folder: Path, *, rates=BUS_RA
     return BusCellResult(name=name, seed=seed, scheduled=int(sched.rates.size), found=p.count,
                          rates_ok=rates_ok, ramp_samples_used=ramp_rows,
                          held_out_rms_dps=float(report["held_out"]["rms_dps"]), frames=n_frames)
+
+
+def stream_session(behaviour: TableBehaviour, *, rates=BUS_RATES, dwell_s: float = BUS_DWELL_S,
+                   fs_hz: float = BUS_FS_HZ, seed: int = 0) -> Session:
+    """The pass the emulator sends, as a session recorded without the bus.
+
+    The same samples, frame for frame: the kept rows, each with the reference the table sent
+    for it (held at the latest of its own frames when they come at their own rate) and its
+    settled flag. What the bus adds on top is only the frames' order, the DBC's scaling and
+    the recorder's join; calibrating both and comparing is the bus's own cost.
+    """
+    block = next(imu_blocks(_stream(behaviour, rates, dwell_s, fs_hz, seed)))
+    kept = block.kept if block.kept is not None else np.ones(len(block), dtype=bool)
+    ref = block.ref_dps if block.ref_dps is not None else block.table_rate_dps
+    return Session(time_s=block.time_s[kept], raw=block.raw["z"][kept], ref_dps=ref[kept],
+                   aux={"Temperature": block.temp_c[kept], "SupplyVoltage": block.supply_v[kept]},
+                   meta={"sensor": "IMU-NO-BUS", "axis": "z"}, settled=block.settled[kept])
+
+
+def stream_held_out_rms(behaviour: TableBehaviour, *, seed: int = 0, **kw) -> float:
+    """Held-out rms of :func:`stream_session` calibrated as ``canical calibrate`` does."""
+    result = calibrate(stream_session(behaviour, seed=seed, **kw), CalibrateOptions(extend=False),
+                       sensor_id="IMU-NO-BUS", axis="z")
+    return float(result.report["held_out"]["rms_dps"])
 
 
 def ideal_bus_cell(folder: Path, **kw) -> BusCellResult:

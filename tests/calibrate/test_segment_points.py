@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from canical.calibrate.segment_points import residual_extrema
+from canical.calibrate.fit_points import FitPoints
+from canical.calibrate.segment_points import choose_knots, rate_noise, residual_extrema
 from canical.pipeline import CalibrateOptions, fit_base
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_session
@@ -46,3 +47,39 @@ def test_linear_sensor_needs_one_segment():
     base = fit_base(paper_session(gyro), CalibrateOptions())
     assert base.fitted.spec.n_segments == 1
     assert base.fitted.spec.order == 1
+
+
+def _jittered_points(rng, rate_sem: float, sensor_sem: float, known: bool):
+    """A sensor with no residual feature (exactly quadratic) on a measured reference: each
+    plateau's rate is off by its reference's error, the plateau's ΔV mean by the sensor's."""
+    rate = np.linspace(-60.0, 60.0, 41)
+    dv = 400.0 * rate + 0.05 * rate**2 + 400.0 * sensor_sem * rng.standard_normal(rate.size)
+    measured = rate + rate_sem * rng.standard_normal(rate.size)
+    n = np.full(rate.size, 360.0)
+    return FitPoints(measured, dv, n, np.full(rate.size, 400.0 * sensor_sem),
+                     np.full(rate.size, rate_sem) if known else None)
+
+
+def test_rate_noise_adds_the_references_uncertainty():
+    points = _jittered_points(np.random.default_rng(0), 0.003, 0.004, known=True)
+    np.testing.assert_allclose(rate_noise(points), 0.005, rtol=1e-3)  # hypot(0.003, 0.004)
+    merged = FitPoints(np.r_[points.rate, points.rate], np.r_[points.dv, points.dv],
+                       np.r_[points.weight, points.weight], np.r_[points.dv_sem, points.dv_sem],
+                       np.r_[points.rate_sem, points.rate_sem]).by_rate()
+    np.testing.assert_allclose(merged.rate_sem, 0.003 / np.sqrt(2))  # two equal plateaus per rate
+
+
+def test_a_measured_references_jitter_makes_no_segment_points():
+    """With the reference's error in the noise, a featureless sensor gets no segment point from
+    its jitter (a 5-sigma floor, rarely crossed by a fluke); with the sensor's noise alone, the
+    reference's jitter (here 2.5x the sensor's) crosses it on nearly every session."""
+    def spurious(known: bool) -> int:
+        count = 0
+        for seed in range(40):
+            points = _jittered_points(np.random.default_rng(seed), 0.01, 0.004, known)
+            knots, _ = choose_knots(points, 3, min_points=3)
+            count += knots.size > 0
+        return count
+
+    assert spurious(known=True) <= 5  # 2 of 40 seen
+    assert spurious(known=False) >= 30  # 40 of 40 seen
