@@ -8,8 +8,11 @@ terms one line each, the segment found by ``bisect``, the polynomial in Horner f
 
 It must give exactly what ``correct_one`` gives (the tests compare bit for bit on random sets
 and inputs), so every floating-point operation is the reference's, in the reference's order.
-The direction and slope terms keep their state in the corrector's own tracker objects, so the
-compiled function and ``correct_one`` share one stream. A term kind or model this module does
+The stateful terms (direction and slope of the raw output; lag, derivative and direction of a
+channel) keep their state in the corrector's own tracker objects, called with the reference's
+arguments, so the compiled function and ``correct_one`` share one stream: either may take the
+next sample, and a function compiled again from the same corrector (a reload that keeps the
+set) carries on where the last left off. A term kind or model this module does
 not know is not compiled: :func:`compile_corrector` returns None and the caller keeps the
 reference path, which stays the definition.
 """
@@ -24,14 +27,19 @@ from typing import Any
 
 from canical.corrector import Corrector
 from canical.piecewise import PiecewisePoly
-from canical.terms import TIME_INPUT, DirectionTracker, SlopeTracker, Term
+from canical.terms import TIME_INPUT, ChannelTracker, DirectionTracker, SlopeTracker, Term
 
 #: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
 CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 
 #: The (kind, feature) pairs compiled here; anything else keeps the reference path.
-COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear"),
-                  ("direction", "sign"), ("direction", "slope")}
+COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("channel", "lag"),
+                  ("channel", "derivative"), ("channel", "direction"), ("channel", "gated"),
+                  ("time", "warmup"), ("time", "linear"), ("direction", "sign"), ("direction", "slope")}
+#: The tracker each stateful feature keeps its state in (as ``Corrector``'s ``_tracker`` makes them).
+TRACKERS = {("channel", "lag"): ChannelTracker, ("channel", "derivative"): ChannelTracker,
+            ("channel", "direction"): DirectionTracker, ("direction", "sign"): DirectionTracker,
+            ("direction", "slope"): SlopeTracker}
 
 
 def why_not(corrector: Corrector) -> str | None:
@@ -39,7 +47,7 @@ def why_not(corrector: Corrector) -> str | None:
     for term, tracker in zip(corrector.terms, corrector._trackers, strict=True):
         if (term.kind, term.feature) not in COMPILED_TERMS:
             return f"term {term.kind}/{term.feature} not compiled"
-        expected = {"sign": DirectionTracker, "slope": SlopeTracker}.get(term.feature, type(None))
+        expected = TRACKERS.get((term.kind, term.feature), type(None))
         if type(tracker) is not expected:
             return f"term {term.kind}/{term.feature} has state {type(tracker).__name__}"
     model = corrector.model
@@ -55,9 +63,20 @@ def _term_lines(j: int, term: Term, key: str | None) -> list[str]:
 
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
-    call is left out. Trackers get exactly the reference's arguments.
+    call is left out. Trackers get exactly the reference's arguments. The gate of a gated term
+    is :func:`~canical.terms.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``.
     """
-    if term.feature == "sign":
+    if term.kind == "channel" and term.feature in ("lag", "derivative"):
+        x = f"track{j}(float(inputs[{key!r}]), float(inputs[{TIME_INPUT!r}]))"
+    elif term.kind == "channel" and term.feature == "direction":
+        x = f"track{j}(float(inputs[{key!r}]))"
+    elif term.feature == "gated":
+        k = term.threshold_raw
+        lines = ["    a = abs(dv)", f"    g = a - {k!r}", "    g = 0.0 if 0.0 > g else g",
+                 f"    x = (inputs[{key!r}] - {term.reference!r}) * (g / ({k!r} if {k!r} > a else a))"]
+        share = "(x * dv)" if term.form == "scale" else "x"
+        return [*lines, f"    shift += {term.coefficient!r} * {share}"]
+    elif term.feature == "sign":
         x = f"track{j}(raw)"
     elif term.feature == "slope":
         x = f"track{j}(raw, float(inputs[{TIME_INPUT!r}]))"

@@ -27,6 +27,7 @@ import weakref
 from pathlib import Path
 
 import can
+import pytest
 from daemon_fixtures import ALL_TERMS, AXES, base_set, decode_stream, imu_stream, write_config
 
 from canical import coefficient_file
@@ -37,8 +38,8 @@ from canical.daemon import FRAME_HEAD, TIMEVAL, Daemon
 from canical.daemon_config import load_config
 from canical.frame_codec import load_dbc
 
-#: ALL_TERMS plus a channel lag term on x: a stateful kind the compiler leaves to the reference
-#: path, so compiled and reference correctors both run inside one daemon across the reloads.
+#: ALL_TERMS plus a channel lag term on x: a stateful channel kind (its state in the corrector's
+#: tracker, shared by the compiled function), kept or started fresh across the reloads.
 TERMS = {**ALL_TERMS, "x": (*ALL_TERMS["x"], {"kind": "channel", "channel": "temp_c", "feature": "lag",
                                               "form": "bias", "coefficient": 0.5, "reference": 25.0,
                                               "tau_s": 0.02})}
@@ -222,16 +223,17 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
 
 
 
-def test_replaced_correctors_are_released(tmp_path: Path) -> None:
-    """A replaced set's corrector, compiled or on the reference path (the x axis's lag term),
-    is freed once no generation uses it: a daemon reloaded for months does not grow."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_replaced_correctors_are_released(tmp_path: Path, compiled: bool) -> None:
+    """A replaced set's corrector, compiled or on the reference path (``compiled`` off), is
+    freed once no generation uses it: a daemon reloaded for months does not grow."""
     base = base_set("z")
     for v, folder in enumerate((tmp_path, tmp_path / "next")):
         folder.mkdir(exist_ok=True)
         for axis in AXES:
             cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * v)
             coefficient_file.save(folder / f"imu-{axis}.yaml", cset)
-    daemon = Daemon(load_config(write_config(tmp_path, "leak")))
+    daemon = Daemon(load_config(write_config(tmp_path, "leak")), compiled=compiled)
     daemon.load_sets()
     daemon._axes_plan(daemon.sets)
     old = [weakref.ref(ax.corrector) for ax in daemon.sets.axes]
