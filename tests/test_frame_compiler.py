@@ -44,13 +44,20 @@ def bits_of(order: str, start: int, length: int) -> set[tuple[int, int]]:
 @st.composite
 def layouts(draw) -> str:
     """DBC text of one message with non-overlapping signals of any order, sign, scale, offset."""
-    nbytes = draw(st.sampled_from((1, 2, 4, 6, 8, 8, 8, 12, 16, 64)))
+    nbytes = draw(st.sampled_from((1, 2, 4, 6, 7, 8, 8, 8, 12, 16, 64)))
     used: set[tuple[int, int]] = set()
     lines = []
+    # Little-endian frames (read through struct) as often as mixed ones, and signals that fill
+    # whole aligned bytes of a struct width (8, 16, 32, 64 bits) among the others.
+    orders = draw(st.sampled_from((("le", "be"), ("le",))))
     for i in range(draw(st.integers(1, 12))):
-        order = draw(st.sampled_from(("le", "be")))
-        length = draw(st.integers(1, min(64, 8 * nbytes)))
-        if order == "le":
+        order = draw(st.sampled_from(orders))
+        aligned = order == "le" and draw(st.booleans())
+        widths = [w for w in (8, 16, 32, 64) if w <= 8 * nbytes]
+        length = draw(st.sampled_from(widths)) if aligned else draw(st.integers(1, min(64, 8 * nbytes)))
+        if aligned:
+            start = 8 * draw(st.integers(0, nbytes - length // 8))
+        elif order == "le":
             start = draw(st.integers(0, 8 * nbytes - length))
         else:
             network = draw(st.integers(0, 8 * nbytes - length))

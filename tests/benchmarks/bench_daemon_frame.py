@@ -135,6 +135,8 @@ def main() -> None:
                 ax.corrector.reset()
             daemon._compiled_axes.clear()
             daemon._plan = (None, (), ())
+            if hasattr(daemon, "_fast"):  # the raw frame's generated handler holds the trackers too
+                daemon._fast = (None, None, daemon._on_raw)
             daemon._prev_counter, daemon._tx_counter = None, 0
             daemon.values.clear()
             daemon.times.clear()
