@@ -49,6 +49,7 @@ from canical.corrector import Corrector
 from canical.daemon_config import DaemonConfig
 from canical.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not
 from canical.frame_codec import RateEncoder, RawDecoder, StatusEncoder, load_dbc
+from canical.frame_compiler import NotCompilable, encode_lines
 from canical.sd_notify import Notifier
 
 log = logging.getLogger("canical.serve")
@@ -146,7 +147,8 @@ class Daemon:
         db = load_dbc(config.dbc_path)
         raw_msg = db.get_message_by_name(config.raw_message)
         self.raw = RawDecoder(raw_msg, compiled=compiled)
-        self.rate = RateEncoder(db.get_message_by_name(config.rate_message), compiled=compiled)
+        self._rate_message = db.get_message_by_name(config.rate_message)
+        self.rate = RateEncoder(self._rate_message, compiled=compiled)
         self.status = StatusEncoder(db.get_message_by_name(config.status_message))
         self.counter_signal = config.counter_signal
         # Inputs carried by the raw frame itself, and decoders for the other frames that carry some.
@@ -342,7 +344,9 @@ class Daemon:
         assert sock is not None
         recvmsg = sock.recvmsg
         frame, on_raw = self._frame, self._raw_handler(sock)
-        raw_key, raw_end = self._raw_key, 8 + self.raw.length
+        raw_end = 8 + self.raw.length
+        # A classic frame starts with can_id (flags included) and length: the raw frame's are these.
+        raw_head = struct.pack("=IB", self._raw_key, self.raw.length)
         head = FRAME_HEAD.unpack_from
         stamp_of = TIMEVAL.unpack_from
         monotonic = time.monotonic
@@ -369,12 +373,12 @@ class Daemon:
                     break
                 except OSError as exc:
                     raise _BusLost(f"receive failed: {exc}") from None
-                can_id, length, _, _ = head(cf)
                 sec, nsec = stamp_of(anc[0][2])
                 stamp = sec + nsec * 1e-9
-                if can_id == raw_key and length + 8 == raw_end and len(cf) == CAN_MTU:
+                if cf[:5] == raw_head and len(cf) == CAN_MTU:
                     on_raw(cf[8:raw_end], stamp)  # the raw frame as expected: straight to work
                 else:
+                    can_id, length, _, _ = head(cf)
                     frame(can_id, cf[8:8 + length], stamp, len(cf) == CANFD_MTU)
                 if first is None:
                     first = stamp
@@ -506,6 +510,11 @@ class Daemon:
                       f"    gap = prev is not None and s{self._counter_at} != ((prev + 1) & 0xF)",
                       "    if gap:", "        stats.counter_gaps += 1",
                       f"    self._prev_counter = s{self._counter_at}"]
+        # Each input the sets read, once: the raw frame's own from its fields, the others held.
+        held = {name: f"s{at}" for name, at in self._raw_inputs_at}
+        for i, (name, _) in enumerate(awaited):
+            lines.append(f"    i{i} = values[{name!r}]")
+            held[name] = f"i{i}"
         # The raw frame's own inputs are as old as this frame: never stale (max_age_s > 0).
         stale = " or ".join(f"stamp - t{i} > {age!r}" for i, (_, age) in enumerate(awaited)) or "False"
         lines.append(f"    stale = {stale}")
@@ -515,7 +524,8 @@ class Daemon:
                 lines.append(f"    r{k}, o{k} = 0.0, False")
                 flags.append("True")
                 continue
-            body, names = corrector_lines(ax.corrector, f"s{at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_")
+            body, names = corrector_lines(ax.corrector, f"s{at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
+                                          held=held)
             lines += body
             ns.update(names)
             flags.append("False")
@@ -527,10 +537,17 @@ class Daemon:
             lines.append(f"    {r} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
                          f" if {r} - {r} == 0.0 else {zero!r}")
             rates.append(r)
-        outs = [f"o{k}" for k in range(3)]
-        lines += [f"    payload = encode(({', '.join(rates)}, {', '.join(outs)}, {', '.join(flags)}, "
-                  f"stale, gap, {sets.tag!r}, counter))",
-                  "    self._tx_counter = (counter + 1) & 0xF", "    try:"]
+        # The rate frame's signals in encode_xyz's order; all but the rates are bools, the tag
+        # (0-15) and the counter (0-15): packed as they are where the signal holds them.
+        values = [*rates, "o0", "o1", "o2", *flags, "stale", "gap", repr(sets.tag), "counter"]
+        bounds = [None, None, None, *[1] * 8, sets.tag, 0xF]
+        try:
+            body, names, payload = encode_lines(self._rate_message, values, bounds)
+            lines += body
+            ns.update(names)
+        except NotCompilable:  # cantools encodes this frame (logged at start)
+            payload = f"encode(({', '.join(values)}))"
+        lines += [f"    payload = {payload}", "    self._tx_counter = (counter + 1) & 0xF", "    try:"]
         pad = f" + {self._rate_pad!r}" if self._rate_pad else ""
         lines += [f"        send(FRAME + payload{pad}, MSG_DONTWAIT)", "    except OSError as exc:",
                   "        send_failed(exc)  # counted as dropped, or the bus is lost",

@@ -58,7 +58,7 @@ def why_not(corrector: Corrector) -> str | None:
     return None
 
 
-def _term_lines(j: int, term: Term, raw: str, inputs: str, tag: str) -> list[str]:
+def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag: str) -> list[str]:
     """The reference's feature x and its share of the shift, for term ``j``.
 
     The reference converts an input with ``float()`` first; every use below combines it with
@@ -66,11 +66,10 @@ def _term_lines(j: int, term: Term, raw: str, inputs: str, tag: str) -> list[str
     call is left out. Trackers get exactly the reference's arguments. The gate of a gated term
     is :func:`~canical.terms.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``.
     """
-    key = term.input_name
-    value = f"{inputs}[{key!r}]"
+    value = inputs(term.input_name)  # type: ignore[arg-type]
     track = f"{tag}track{j}"
     if term.kind == "channel" and term.feature in ("lag", "derivative"):
-        x = f"{track}(float({value}), float({inputs}[{TIME_INPUT!r}]))"
+        x = f"{track}(float({value}), float({inputs(TIME_INPUT)}))"
     elif term.kind == "channel" and term.feature == "direction":
         x = f"{track}(float({value}))"
     elif term.feature == "gated":
@@ -82,7 +81,7 @@ def _term_lines(j: int, term: Term, raw: str, inputs: str, tag: str) -> list[str
     elif term.feature == "sign":
         x = f"{track}({raw})"
     elif term.feature == "slope":
-        x = f"{track}({raw}, float({inputs}[{TIME_INPUT!r}]))"
+        x = f"{track}({raw}, float({inputs(TIME_INPUT)}))"
     elif term.kind == "channel" and term.feature == "square":
         x = f"({value} - {term.reference!r})"
         return [f"    x = {x}", f"    shift += {term.coefficient!r} * "
@@ -119,18 +118,24 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
 
 
 def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out: str,
-                    tag: str = "") -> tuple[list[str], dict[str, Any]]:
+                    tag: str = "", held: Mapping[str, str] | None = None) -> tuple[list[str], dict[str, Any]]:
     """``rate, out = corrector.correct_one(raw, inputs)`` as straight-line statements (one level
     of indentation), and the names they need; for a corrector :func:`why_not` passes.
 
     ``raw`` and ``inputs`` are the expressions of the raw value (a local name) and the inputs'
     mapping; ``tag`` prefixes this corrector's constants, so several can share one function
-    (the daemon writes a whole frame's three axes as one). Temporaries (``dv``, ``x``, ``u``,
-    …) are overwritten. The statements share the corrector's tracker objects: build them after
+    (the daemon writes a whole frame's three axes as one); ``held`` names local variables
+    that already hold inputs (read once per frame, not once per term). Temporaries (``dv``,
+    ``x``, ``u``, …) are overwritten. The statements share the corrector's tracker objects: build them after
     its last ``reset()``.
     """
     terms = corrector.terms
     lines = []
+    held = held or {}
+
+    def value_of(name: str) -> str:
+        return held.get(name, f"{inputs}[{name!r}]")
+
     if any(t.feature in ("sign", "slope") for t in terms):
         lines.append(f"    rawf = float({raw})")
         raw = "rawf"
@@ -141,7 +146,7 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
         for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
             if tracker is not None:
                 namespace[f"{tag}track{j}"] = tracker.update
-            lines += _term_lines(j, term, raw, inputs, tag)
+            lines += _term_lines(j, term, raw, value_of, tag)
         lines.append("    d = dv - shift")
         dv = "d"
     else:

@@ -161,18 +161,7 @@ def compile_codec(message: Message) -> CompiledCodec:
         else:
             outs.append(f"r{i} * {conv.scale!r} + {conv.offset!r}")
         # encode: cantools' numeric_scaled_to_raw (round, exact integer path), range, field
-        lines = []
-        off = f" - {conv.offset!r}" if not isinstance(conv, IdentityConversion) and conv.offset != 0 else ""
-        if isinstance(conv, IdentityConversion):
-            lines.append(f"    r{i} = round(v{i})")
-        elif isinstance(conv, LinearIntegerConversion) and conv.scale != 1:
-            lines.append(f"    x = v{i}{off}")
-            lines.append(f"    q, rem = divmod(x, {conv.scale!r})")
-            lines.append(f"    r{i} = round(q if rem == 0 else x / {conv.scale!r})")
-        elif isinstance(conv, LinearIntegerConversion):
-            lines.append(f"    r{i} = round(v{i}{off})")
-        else:
-            lines.append(f"    r{i} = round((v{i}{off}) / {conv.scale!r})")
+        lines = _to_raw(conv, f"v{i}", f"r{i}")
         # in range ⇔ no bit above the field's (a signed range moved to 0…2ⁿ−1 first)
         bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
         check = f"    if (r{i}{bias}) >> {n}: overflow({sig.name!r}, r{i})"
@@ -196,12 +185,7 @@ def compile_codec(message: Message) -> CompiledCodec:
     dec.append(f"    return ({', '.join(outs)},)")
 
     def packed(parts: dict[str, list[str]]) -> str:
-        le = " | ".join(parts["little_endian"])
-        be = " | ".join(parts["big_endian"])
-        if le and be:
-            return (f"(({le}) | from_bytes(({be}).to_bytes({nbytes}, 'big'), 'little'))"
-                    f".to_bytes({nbytes}, 'little')")
-        return f"({be}).to_bytes({nbytes}, 'big')" if be else f"({le}).to_bytes({nbytes}, 'little')"
+        return _pack_word(parts, nbytes)
 
     if layout is None:
         pack_exact, pack_fast = packed(fields), packed(fast_fields)
@@ -231,6 +215,76 @@ def compile_codec(message: Message) -> CompiledCodec:
         namespace["pack"] = layout.struct.pack
     exec(compile(source, f"<codec {message.name}>", "exec"), namespace)
     return CompiledCodec(names, source, namespace)
+
+
+def _to_raw(conv: BaseConversion, v: str, r: str, tmp: str = "") -> list[str]:
+    """Statements setting ``r`` to cantools' raw integer of the value ``v`` (its
+    ``numeric_scaled_to_raw``: ``round``, the exact integer path for integer scales)."""
+    off = f" - {conv.offset!r}" if not isinstance(conv, IdentityConversion) and conv.offset != 0 else ""
+    if isinstance(conv, IdentityConversion):
+        return [f"    {r} = round({v})"]
+    if isinstance(conv, LinearIntegerConversion) and conv.scale != 1:
+        return [f"    {tmp}x = {v}{off}", f"    {tmp}q, {tmp}rem = divmod({tmp}x, {conv.scale!r})",
+                f"    {r} = round({tmp}q if {tmp}rem == 0 else {tmp}x / {conv.scale!r})"]
+    if isinstance(conv, LinearIntegerConversion):
+        return [f"    {r} = round({v}{off})"]
+    return [f"    {r} = round(({v}{off}) / {conv.scale!r})"]
+
+
+def _pack_word(parts: dict[str, list[str]], nbytes: int) -> str:
+    """The payload from the OR of shifted fields, per byte order (the integer form)."""
+    le = " | ".join(parts["little_endian"]) or "0"
+    be = " | ".join(parts["big_endian"])
+    if parts["little_endian"] and be:
+        return (f"(({le}) | from_bytes(({be}).to_bytes({nbytes}, 'big'), 'little'))"
+                f".to_bytes({nbytes}, 'little')")
+    return f"({be}).to_bytes({nbytes}, 'big')" if be else f"({le}).to_bytes({nbytes}, 'little')"
+
+
+def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int | None],
+                 tag: str = "enc_") -> tuple[list[str], dict[str, Any], str]:
+    """Encoding ``message`` written into a caller's generated function: statements (one level
+    of indentation), the names they need, and the payload's expression.
+
+    ``values`` are the signals' value expressions in signal order. ``bounds[i]``, where not
+    None, is the caller's promise that value ``i`` is an int (or bool) from 0 to that bound:
+    an unscaled signal that holds it is packed as it is, with no rounding and no check (the
+    flags, counters and tags of a frame the caller builds). Every other value goes the exact
+    way of ``encode`` (round, range check, ``OverflowError`` as cantools). A value ``False``
+    or ``0`` adds nothing and is left out. :class:`NotCompilable` as :func:`compile_codec`.
+    """
+    reason = _why_not(message)
+    if reason is not None:
+        raise NotCompilable(reason)
+    nbytes = message.length
+    orders = {s.byte_order for s in message.signals}
+    layout = _struct_layout(message) if orders == {"little_endian"} else None
+    lines: list[str] = []
+    checks: list[str] = []
+    raws: list[str] = []
+    fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}
+    for i, sig in enumerate(message.signals):
+        n, order, conv = sig.length, sig.byte_order, _numeric(sig.conversion)
+        top = 1 << (n - 1) if sig.is_signed else 1 << n
+        bound = bounds[i]
+        if isinstance(conv, IdentityConversion) and bound is not None and 0 <= bound < top:
+            r = values[i]
+        else:
+            r = f"{tag}r{i}"
+            lines += _to_raw(conv, f"({values[i]})", r, tmp=tag)
+            bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
+            checks.append(f"    if ({r}{bias}) >> {n}: {tag}overflow({sig.name!r}, {r})")
+        raws.append(r)
+        if r in ("False", "0"):
+            continue
+        shift = sig.start if order == "little_endian" else 8 * nbytes - (_network_bit(sig.start) + n)
+        part = f"({r} & {(1 << n) - 1:#x})" if sig.is_signed else r
+        fields[order].append(f"({part} << {shift})" if shift else part)
+    namespace: dict[str, Any] = {f"{tag}overflow": _overflow, "from_bytes": int.from_bytes}
+    if layout is None:
+        return [*lines, *checks], namespace, _pack_word(fields, nbytes)
+    namespace[f"{tag}pack"] = layout.struct.pack
+    return [*lines, *checks], namespace, _pack_struct(layout, message, raws, pack=f"{tag}pack")
 
 
 #: struct codes of byte-aligned little-endian integers, by width in bits: (unsigned, signed).
@@ -308,7 +362,7 @@ def _unpack_struct(layout: StructLayout, message: Message, outs: list[str]) -> l
     return lines
 
 
-def _pack_struct(layout: StructLayout, message: Message, values: list[str]) -> str:
+def _pack_struct(layout: StructLayout, message: Message, values: list[str], pack: str = "pack") -> str:
     """The ``pack`` call for raw integers ``values`` (in range: checked before) on the layout."""
     args = []
     for k, (j, first, n) in enumerate(layout.fields):
@@ -317,14 +371,14 @@ def _pack_struct(layout: StructLayout, message: Message, values: list[str]) -> s
             continue
         parts = []
         for i, sig in enumerate(message.signals):
-            if layout.owner[i] != k:
+            if layout.owner[i] != k or values[i] in ("False", "0"):
                 continue
             part = f"({values[i]} & {(1 << sig.length) - 1:#x})" if sig.is_signed else values[i]
             shift = sig.start - 8 * first
             parts.append(f"({part} << {shift})" if shift else part)
         word = " | ".join(parts) or "0"
         args.append(word if 8 * n in STRUCT_CODES else f"({word}).to_bytes({n}, 'little')")
-    return f"pack({', '.join(args)})"
+    return f"{pack}({', '.join(args)})"
 
 
 def _overflow(name: str, raw: int) -> None:

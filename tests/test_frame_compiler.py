@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canical.frame_compiler import CantoolsCodec, CompiledCodec, codec_for, compile_codec
+from canical.frame_compiler import CantoolsCodec, CompiledCodec, codec_for, compile_codec, encode_lines
 
 DBC = Path(__file__).resolve().parents[1] / "dbc" / "canical.dbc"
 SCALES = (1, 2, 3, 10, -1, 0.1, 0.01, 0.001, 0.5, 0.25, 0.125, -0.5, 1e-4, 0.03125, 7.5)
@@ -120,6 +120,32 @@ def test_random_layouts_decode_and_encode_as_cantools(text: str, data) -> None:
     assert all(same(g, w) for g, w in zip(got, want, strict=True)), (compiled.source, got, want)
     encode_both(compiled, reference, list(want))  # decoded values encode back as cantools does
     encode_both(compiled, reference, values_for(data.draw, message))
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=layouts(), data=st.data())
+def test_inlined_encode_as_cantools(text: str, data) -> None:
+    """encode_lines, written into a function of the caller's, encodes as cantools: values
+    promised to be small non-negative ints are packed as they are where their signal holds
+    them, the rest rounded and checked; a literal False is left out."""
+    message = message_of(text)
+    values = values_for(data.draw, message)
+    exprs, bounds = [], []
+    for i, v in enumerate(values):
+        promise = isinstance(v, int) and v >= 0 and data.draw(st.booleans())
+        bounds.append(v + data.draw(st.sampled_from((0, 1, 1 << 20))) if promise else None)
+        exprs.append("False" if v is False and data.draw(st.booleans()) else f"v{i}")
+    lines, namespace, payload = encode_lines(message, exprs, bounds)
+    args = ", ".join(f"v{i}" for i in range(len(values)))
+    source = "\n".join([f"def encode({args}):", *lines, f"    return {payload}"]) + "\n"
+    exec(compile(source, "<inlined encode>", "exec"), namespace)
+    try:
+        expected = CantoolsCodec(message).encode(values)
+    except (OverflowError, ValueError) as exc:
+        with pytest.raises(type(exc)):
+            namespace["encode"](*values)
+        return
+    assert namespace["encode"](*values) == expected, source
 
 
 @pytest.mark.parametrize("name", ["IMU_RAW", "IMU_AUX", "IMU_RATE", "CANICAL_RATE", "TABLE_REF"])
