@@ -63,9 +63,30 @@ while True:
 
 
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process so far (the kernel's accounting, as getrusage)."""
+    """User + system CPU time of a process so far (the kernel's accounting, as getrusage).
+
+    In the UML guest this is tick-sampled (``CONFIG_TICK_CPU_ACCOUNTING``, ``HZ=100``): each
+    10 ms tick charges the whole tick to whichever task it interrupts. A task that wakes for a
+    frame and sleeps again within a tick is charged by chance: over a few seconds at 1 %
+    of a core that is a handful of ticks, and the paced sender, waking on the same timer,
+    shifts which task the tick finds. :func:`run_seconds` is the measured form.
+    """
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def run_seconds(pid: int) -> float:
+    """Time the scheduler measured the process's threads on the CPU (``/proc/PID/task/*/schedstat``,
+    first field, ns: ``CONFIG_SCHED_INFO``'s clock, read at every switch, not sampled).
+
+    In the UML guest the scheduler's clock is the host's: a task's run time includes the time
+    the host took the whole guest away while that task was current (on a loaded host, more).
+    """
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with open(task / "schedstat") as f:  # a thread that ended meanwhile: counted up to then
+            total += int(f.read().split()[0])
+    return total * 1e-9
 
 
 def memory_kb(pid: int, key: str) -> int:
@@ -123,18 +144,21 @@ def send_all(frames: list[bytes], rate_hz: float | None) -> tuple[float, float]:
 
 def measure(frames: list[bytes], rate_hz: float | None, pid: int) -> dict[str, float]:
     rx = receiver()
-    cpu0, wall0 = cpu_seconds(pid), time.monotonic()
+    cpu0, run0, wall0 = cpu_seconds(pid), run_seconds(pid), time.monotonic()
     sent_rate, _ = send_all(frames, rate_hz)
     got = drain(rx, quiet_s=0.3)
     rx.settimeout(1.2)
     got += drain(rx)
-    cpu1, wall1 = cpu_seconds(pid), time.monotonic() - 1.5  # the quiet tail is not the subject's work
+    # the quiet tail is not the subject's work (it sleeps in recvmsg: no run time, no ticks)
+    cpu1, run1, wall1 = cpu_seconds(pid), run_seconds(pid), time.monotonic() - 1.5
     rx.close()
     raws = [t for i, t in got if i == RAW_ID]
     outs = [t for i, t in got if i == OUT_ID]
     result = {"offered_fps": sent_rate, "sent": len(raws), "out": len(outs),
               "loss": 1.0 - len(outs) / max(len(raws), 1),
-              "cpu": (cpu1 - cpu0) / max(wall1 - wall0, 1e-3)}
+              "cpu": (cpu1 - cpu0) / max(wall1 - wall0, 1e-3),
+              "run": (run1 - run0) / max(wall1 - wall0, 1e-3),
+              "ticks": round((cpu1 - cpu0) * TICK), "run_s": run1 - run0}
     if len(outs) > 1:
         result["throughput_fps"] = len(outs) / (outs[-1] - raws[0])
     if len(outs) == len(raws):  # no loss: the i-th output answers the i-th raw frame
@@ -236,13 +260,16 @@ def run(args: argparse.Namespace) -> None:
             text = (f"median {span([p['lat_median_us'] for p in lat], '.0f')}  "
                     f"p99 {span([p['lat_p99_us'] for p in lat], '.0f')}" if lat else "latency n/a (loss)")
             print(f"    {rate:6.0f}/s {name:13s}: loss {span([100 * p['loss'] for p in ps], '.1f')} %, "
-                  f"{text}, CPU {span([100 * p['cpu'] for p in ps], '.1f')} %  ({ps[0]['sent']} frames)")
+                  f"{text}, CPU {span([100 * p['run'] for p in ps], '.2f')} % run time, "
+                  f"{span([100 * p['cpu'] for p in ps], '.1f')} % ticks  ({ps[0]['sent']} frames)")
     print(f"  saturated: {args.frames} raw frames as fast as a raw socket sends them")
     for name in names:
         bs = [r["blast"] for r in runs[name]]
         fps = span([b.get("throughput_fps", 0) for b in bs], ",.0f")
         loss, cpu = span([100 * b["loss"] for b in bs], ".1f"), span([100 * b["cpu"] for b in bs], ".0f")
-        print(f"    {name:13s}: throughput {fps} frames/s, loss {loss} %, CPU {cpu} %")
+        run_ = span([100 * b["run"] for b in bs], ".0f")
+        print(f"    {name:13s}: throughput {fps} frames/s, loss {loss} %, "
+              f"CPU {run_} % run time, {cpu} % ticks")
     for name in names[1:]:
         rs = runs[name]
         rss, hwm = [r["rss_kb"] / 1024 for r in rs], [r["hwm_kb"] / 1024 for r in rs]
@@ -276,6 +303,61 @@ def run(args: argparse.Namespace) -> None:
         print(f"  {name} / forwarder: saturated throughput {span(ratios, '.2f')}; highest lossless rate "
               f"{span(lossless_d, '.0f')} vs {span(lossless_f, '.0f')} frames/s; p99 latency ratio where "
               f"both lossless {span(p99, '.2f') if p99 else 'n/a'}")
+    table(runs, names, rates, args.rounds, lossless)
+
+
+def table(runs: dict[str, list[dict]], names: list[str], rates: list[float], rounds: int, lossless) -> None:
+    """The figures above as one Markdown table, subjects as columns (ranges over rounds)."""
+
+    def span(values: list[float], fmt: str) -> str:
+        if not values:
+            return "n/a"
+        lo, hi = min(values), max(values)
+        return format(lo, fmt) if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}–{hi:{fmt}}"
+
+    heads = {"forwarder": "forwarder", "daemon": "after (this tree)", "daemon-before": "before (baseline)"}
+    order = [n for n in ("forwarder", "daemon-before", "daemon") if n in names]
+    rows: list[tuple[str, dict[str, str]]] = []
+
+    def row(label: str, cell) -> None:
+        rows.append((label, {n: cell(n) for n in order}))
+
+    row("saturated throughput, frames/s",
+        lambda n: span([r["blast"].get("throughput_fps", 0) for r in runs[n]], ",.0f"))
+    row("— ratio to the forwarder's", lambda n: "" if n == "forwarder" else span(
+        [d["blast"].get("throughput_fps", 0) / max(f["blast"].get("throughput_fps", 0), 1.0)
+         for d, f in zip(runs[n], runs["forwarder"], strict=True)], ".2f"))
+    row("highest lossless paced rate, /s", lambda n: span([lossless(n, k) for k in range(rounds)], ".0f"))
+    for rate in rates:
+        row(f"loss at {rate:.0f} /s, %",
+            lambda n, rate=rate: span([100 * r["paced"][rate]["loss"] for r in runs[n]], ".1f"))
+    for rate in rates:
+        row(f"latency p99 at {rate:.0f} /s, µs", lambda n, rate=rate: span(
+            [r["paced"][rate]["lat_p99_us"] for r in runs[n] if "lat_p99_us" in r["paced"][rate]], ".0f"))
+    for rate in (*[r for r in rates if r in (200.0, 1000.0)], None):
+        where = "saturated" if rate is None else f"{rate:.0f} /s"
+
+        def phase(r: dict, rate=rate) -> dict:
+            return r["blast"] if rate is None else r["paced"][rate]
+
+        row(f"CPU per wall second, {where}: run time (schedstat), %",
+            lambda n, phase=phase: span([100 * phase(r)["run"] for r in runs[n]], ".2f"))
+        row(f"CPU per wall second, {where}: utime+stime (ticks), %",
+            lambda n, phase=phase: span([100 * phase(r)["cpu"] for r in runs[n]], ".1f"))
+    row("run time per raw frame, saturated, µs",
+        lambda n: span([1e6 * r["blast"]["run_s"] / max(r["blast"]["sent"], 1) for r in runs[n]], ".0f"))
+
+    def daemon_only(n: str, key: str, fmt: str, scale: float = 1.0) -> str:
+        return "" if n == "forwarder" else span([r[key] * scale for r in runs[n]], fmt)
+
+    row("exec -> READY=1, s", lambda n: daemon_only(n, "ready_s", ".2f"))
+    row("resident after start, MB", lambda n: daemon_only(n, "rss_kb", ".1f", 1 / 1024))
+    row("resident peak, MB", lambda n: daemon_only(n, "hwm_kb", ".1f", 1 / 1024))
+    print()
+    print("| figure | " + " | ".join(heads[n] for n in order) + " |")
+    print("|---|" + "---|" * len(order))
+    for label, cells in rows:
+        print(f"| {label} | " + " | ".join(cells[n] for n in order) + " |")
 
 
 def main() -> int:
