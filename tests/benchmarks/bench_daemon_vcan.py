@@ -2,7 +2,9 @@
 
 Subjects run one at a time as separate processes on vcan0, in turn, for ``--rounds`` rounds
 (so all of them see the same machine): the forwarder receives the raw frame (same kernel
-filter) and sends its payload unchanged as the corrected frame's id; the daemon decodes,
+filter) with python-can and sends its payload unchanged as the corrected frame's id; the raw
+forwarder does the same with one ``recvmsg`` and one ``send`` on a raw socket and nothing else
+(the floor of any frame path here: what the guest's system calls cost); the daemon decodes,
 corrects (effect terms on all three axes) and encodes; with ``--baseline DIR`` also the daemon
 of another source tree (e.g. ``git archive`` of an older commit), for a before/after table.
 For each subject this script
@@ -12,6 +14,8 @@ For each subject this script
   subject's CPU time per wall second over the phase, from the kernel's accounting of the
   process, ``/proc/PID/stat`` utime + stime, what ``getrusage`` reports for a process), and
 * offers N raw frames as fast as one raw-socket sender can (saturated throughput, loss, CPU);
+  CPU is also the scheduler's run time (``/proc/PID/task/*/schedstat``), which in this kernel
+  is what utime + stime add up to (they are that total split in the ticks' proportions);
 * for the daemons: exec to READY=1 and resident memory after start (VmRSS) and at the end
   (VmHWM).
 
@@ -59,6 +63,25 @@ while True:
     m = bus.recv()
     if m is not None:
         bus.send(can.Message(arbitration_id={OUT_ID}, data=m.data, is_extended_id=False))
+"""
+
+#: The floor: one recvmsg and one send per frame on a raw socket, nothing else (what the
+#: daemon's frame path does around its Python work), to tell the guest's system-call cost apart.
+RAW_FORWARDER = f"""
+import socket, struct
+s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+only_raw = struct.pack("=II", {RAW_ID}, 0x7FF | socket.CAN_EFF_FLAG)
+s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, only_raw)
+s.setsockopt(socket.SOL_SOCKET, 35, 1)  # kernel timestamps, as the daemon asks for
+s.bind(("{CHANNEL}",))
+out = struct.pack("=IB3x", {OUT_ID}, 8)
+print("ready", flush=True)
+while True:
+    cf, anc, _, _ = s.recvmsg(72, 64)
+    try:
+        s.send(out + cf[8:16], socket.MSG_DONTWAIT)
+    except OSError:
+        pass
 """
 
 
@@ -177,9 +200,9 @@ class Subject:
         self.start: dict[str, float] = {}
 
     def __enter__(self) -> Subject:
-        if self.name == "forwarder":
-            self.proc = subprocess.Popen([sys.executable, "-c", FORWARDER], stdout=subprocess.PIPE,
-                                         text=True)
+        if self.name in ("forwarder", "raw-forwarder"):
+            script = FORWARDER if self.name == "forwarder" else RAW_FORWARDER
+            self.proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
             assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "ready"
             self.pid = self.proc.pid
             return self
@@ -232,7 +255,7 @@ def run(args: argparse.Namespace) -> None:
     per_rate = {r: max(args.paced_frames, int(r * args.paced_seconds)) for r in rates}
     stream = imu_stream(max(args.frames, *per_rate.values()), rate_limit_dps=50.0)
     raw = [FRAME.pack(fid, len(d), d) for fid, d in stream.frames if fid == RAW_ID]
-    names = ["forwarder", "daemon"] + (["daemon-before"] if args.baseline else [])
+    names = ["forwarder", "daemon"] + (["daemon-before"] if args.baseline else []) + ["raw-forwarder"]
     runs: dict[str, list[dict]] = {n: [] for n in names}
     for _ in range(args.rounds):
         for name in names:
@@ -270,7 +293,8 @@ def run(args: argparse.Namespace) -> None:
         run_ = span([100 * b["run"] for b in bs], ".0f")
         print(f"    {name:13s}: throughput {fps} frames/s, loss {loss} %, "
               f"CPU {run_} % run time, {cpu} % ticks")
-    for name in names[1:]:
+    daemons = [n for n in names if n.startswith("daemon")]
+    for name in daemons:
         rs = runs[name]
         rss, hwm = [r["rss_kb"] / 1024 for r in rs], [r["hwm_kb"] / 1024 for r in rs]
         print(f"  {name}: exec -> READY=1 {span([r['ready_s'] for r in rs], '.2f')} s, resident after start "
@@ -289,7 +313,7 @@ def run(args: argparse.Namespace) -> None:
         ok = [r for r in rates if runs[name][k]["paced"][r]["loss"] <= 0.001]
         return max(ok) if ok else 0.0
 
-    for name in names[1:]:
+    for name in daemons:
         ratios, p99 = [], []
         for k in range(args.rounds):
             f, d = runs["forwarder"][k], runs[name][k]
@@ -315,8 +339,9 @@ def table(runs: dict[str, list[dict]], names: list[str], rates: list[float], rou
         lo, hi = min(values), max(values)
         return format(lo, fmt) if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}–{hi:{fmt}}"
 
-    heads = {"forwarder": "forwarder", "daemon": "after (this tree)", "daemon-before": "before (baseline)"}
-    order = [n for n in ("forwarder", "daemon-before", "daemon") if n in names]
+    heads = {"forwarder": "python-can forwarder", "daemon": "after (this tree)",
+             "daemon-before": "before (baseline)", "raw-forwarder": "raw recvmsg+send (floor)"}
+    order = [n for n in ("forwarder", "daemon-before", "daemon", "raw-forwarder") if n in names]
     rows: list[tuple[str, dict[str, str]]] = []
 
     def row(label: str, cell) -> None:
@@ -324,7 +349,7 @@ def table(runs: dict[str, list[dict]], names: list[str], rates: list[float], rou
 
     row("saturated throughput, frames/s",
         lambda n: span([r["blast"].get("throughput_fps", 0) for r in runs[n]], ",.0f"))
-    row("— ratio to the forwarder's", lambda n: "" if n == "forwarder" else span(
+    row("— ratio to the python-can forwarder's", lambda n: "" if n == "forwarder" else span(
         [d["blast"].get("throughput_fps", 0) / max(f["blast"].get("throughput_fps", 0), 1.0)
          for d, f in zip(runs[n], runs["forwarder"], strict=True)], ".2f"))
     row("highest lossless paced rate, /s", lambda n: span([lossless(n, k) for k in range(rounds)], ".0f"))
@@ -348,7 +373,7 @@ def table(runs: dict[str, list[dict]], names: list[str], rates: list[float], rou
         lambda n: span([1e6 * r["blast"]["run_s"] / max(r["blast"]["sent"], 1) for r in runs[n]], ".0f"))
 
     def daemon_only(n: str, key: str, fmt: str, scale: float = 1.0) -> str:
-        return "" if n == "forwarder" else span([r[key] * scale for r in runs[n]], fmt)
+        return "" if "forwarder" in n else span([r[key] * scale for r in runs[n]], fmt)
 
     row("exec -> READY=1, s", lambda n: daemon_only(n, "ready_s", ".2f"))
     row("resident after start, MB", lambda n: daemon_only(n, "rss_kb", ".1f", 1 / 1024))
