@@ -9,7 +9,8 @@ One thread does everything, in this order, so nothing needs a lock:
   an input frame updates the held value and time of its signals; a raw frame is decoded,
   corrected on its three axes with the sets read from ``self.sets`` **once**, encoded and sent
   (codecs generated from the DBC and correctors generated from the sets, at load:
-  :mod:`canical.frame_compiler`, :mod:`canical.fast_corrector`);
+  :mod:`canical.frame_compiler`, :mod:`canical.fast_corrector`; on the raw socket all of
+  it as one function generated per generation of sets, :meth:`Daemon._raw_handler`);
 * between frames, at deadlines: watchdog ping, status frames and systemd STATUS, file checks
   and SIGHUP reloads. Signal handlers only set flags; the loop acts on them.
 
