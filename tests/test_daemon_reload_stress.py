@@ -38,11 +38,19 @@ from canical.daemon import FRAME_HEAD, TIMEVAL, Daemon
 from canical.daemon_config import load_config
 from canical.frame_codec import load_dbc
 
-#: ALL_TERMS plus a channel lag term on x: a stateful channel kind (its state in the corrector's
-#: tracker, shared by the compiled function), kept or started fresh across the reloads.
-TERMS = {**ALL_TERMS, "x": (*ALL_TERMS["x"], {"kind": "channel", "channel": "temp_c", "feature": "lag",
-                                              "form": "bias", "coefficient": 0.5, "reference": 25.0,
-                                              "tau_s": 0.02})}
+#: ALL_TERMS plus the stateful channel kinds (lag on x, direction on y, derivative on z: state
+#: in the corrector's trackers, shared by the generated code) and the rate gate on z, each kept
+#: or started fresh across the reloads.
+TERMS = {
+    "x": (*ALL_TERMS["x"], {"kind": "channel", "channel": "temp_c", "feature": "lag", "form": "bias",
+                            "coefficient": 0.5, "reference": 25.0, "tau_s": 0.02}),
+    "y": (*ALL_TERMS["y"], {"kind": "channel", "channel": "temp_c", "feature": "direction", "form": "bias",
+                            "coefficient": 0.3, "threshold_raw": 0.5}),
+    "z": (*ALL_TERMS["z"], {"kind": "channel", "channel": "temp_c", "feature": "derivative", "form": "scale",
+                            "coefficient": 0.01, "tau_s": 0.05},
+          {"kind": "channel", "channel": "supply_v", "feature": "gated", "form": "scale",
+           "coefficient": 0.002, "reference": 4.0, "threshold_raw": 300.0}),
+}
 GENERATIONS = 14
 SPACING = 300  # raw frames between two reload requests, at least
 FRAME_GAP_S = 1e-4  # the stand-in bus's pace: frames keep coming while a reload is built
