@@ -9,7 +9,8 @@ One thread does everything, in this order, so nothing needs a lock:
   an input frame updates the held value and time of its signals; a raw frame is decoded,
   corrected on its three axes with the sets read from ``self.sets`` **once**, encoded and sent
   (codecs generated from the DBC and correctors generated from the sets, at load:
-  :mod:`canical.frames.compiler`, :mod:`canical.sets.fast_corrector`);
+  :mod:`canical.frames.compiler`, :mod:`canical.sets.fast_corrector`; on the raw socket all of
+  it as one function generated per generation of sets, :meth:`Daemon._raw_handler`);
 * between frames, at deadlines: watchdog ping, status frames and systemd STATUS, file checks
   and SIGHUP reloads. Signal handlers only set flags; the loop acts on them.
 
@@ -49,8 +50,9 @@ from canical.bus.daemon_config import DaemonConfig
 from canical.bus.sd_notify import Notifier
 from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.frames.codec import RateEncoder, RawDecoder, StatusEncoder, load_dbc
+from canical.frames.compiler import NotCompilable, encode_lines
 from canical.sets.corrector import Corrector
-from canical.sets.fast_corrector import CorrectOne, compile_corrector, why_not
+from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not
 
 log = logging.getLogger("canical.serve")
 
@@ -139,7 +141,8 @@ class Daemon:
         db = load_dbc(config.dbc_path)
         raw_msg = db.get_message_by_name(config.raw_message)
         self.raw = RawDecoder(raw_msg, compiled=compiled)
-        self.rate = RateEncoder(db.get_message_by_name(config.rate_message), compiled=compiled)
+        self._rate_message = db.get_message_by_name(config.rate_message)
+        self.rate = RateEncoder(self._rate_message, compiled=compiled)
         self.status = StatusEncoder(db.get_message_by_name(config.status_message))
         self.counter_signal = config.counter_signal
         # Inputs carried by the raw frame itself, and decoders for the other frames that carry some.
@@ -170,6 +173,9 @@ class Daemon:
         self._compiled_axes: weakref.WeakKeyDictionary[Corrector, CorrectOne | None] = (
             weakref.WeakKeyDictionary())
         self._plan: Plan = (None, (), ())
+        #: The raw frame's generated handler: (sets, socket, function) of the last one built.
+        self._fast: tuple[ActiveSets | None, socket.socket | None, Callable[[bytes, float], None]] = (
+            None, None, self._on_raw)
         self._sock: socket.socket | None = None  # the raw socket under ``_sock_of``, when usable
         self._sock_of: can.BusABC | None = None
         self._rcv_timeout = -1.0
@@ -331,8 +337,10 @@ class Daemon:
         sock = self._sock
         assert sock is not None
         recvmsg = sock.recvmsg
-        frame, on_raw = self._frame, self._on_raw
-        raw_key, raw_end = self._raw_key, 8 + self.raw.length
+        frame, on_raw = self._frame, self._raw_handler(sock)
+        raw_end = 8 + self.raw.length
+        # A classic frame starts with can_id (flags included) and length: the raw frame's are these.
+        raw_head = struct.pack("=IB", self._raw_key, self.raw.length)
         head = FRAME_HEAD.unpack_from
         stamp_of = TIMEVAL.unpack_from
         monotonic = time.monotonic
@@ -359,12 +367,12 @@ class Daemon:
                     break
                 except OSError as exc:
                     raise _BusLost(f"receive failed: {exc}") from None
-                can_id, length, _, _ = head(cf)
                 sec, nsec = stamp_of(anc[0][2])
                 stamp = sec + nsec * 1e-9
-                if can_id == raw_key and length + 8 == raw_end and len(cf) == CAN_MTU:
+                if cf[:5] == raw_head and len(cf) == CAN_MTU:
                     on_raw(cf[8:raw_end], stamp)  # the raw frame as expected: straight to work
                 else:
+                    can_id, length, _, _ = head(cf)
                     frame(can_id, cf[8:8 + length], stamp, len(cf) == CANFD_MTU)
                 if first is None:
                     first = stamp
@@ -442,6 +450,107 @@ class Daemon:
         ages = tuple((name, self.max_age[name]) for name in sets.inputs)
         self._plan = (sets, ages, tuple(axes))
         return self._plan
+
+    def _raw_handler(self, sock: socket.socket) -> Callable[[bytes, float], None]:
+        """The raw frame's handler on ``sock`` for the current sets: generated code where it can be.
+
+        :meth:`_on_raw` walks a plan, calls a function per axis, per codec and per check; at a
+        few µs per frame those calls and lookups cost as much as the work. So, per generation of
+        sets (and socket), :meth:`_on_raw` is written out for exactly these sets as one function:
+        the decode's fields as locals, the three axes' corrections inline
+        (:func:`~canical.sets.fast_corrector.corrector_lines`, the same statements as the compiled
+        correctors), the staleness checks and constants written in, one ``send``. It hands a
+        frame to :meth:`_on_raw` when the sets are not its own or an input the sets need has
+        not arrived yet; with an axis on the reference path, or a rate frame whose signals
+        :class:`~canical.frames.codec.RateEncoder` must reorder, :meth:`_on_raw` is the handler.
+        """
+        sets = self.sets
+        fast = self._fast
+        if fast[0] is sets and fast[1] is sock:
+            return fast[2]
+        plan = self._plan if self._plan[0] is sets else self._axes_plan(sets)
+        handler = self._generate_raw_handler(sets, plan, sock)
+        self._fast = (sets, sock, handler)
+        return handler
+
+    def _generate_raw_handler(self, sets: ActiveSets, plan: Plan,
+                              sock: socket.socket) -> Callable[[bytes, float], None]:
+        """:meth:`_on_raw` for these sets on ``sock`` as one generated function (or itself)."""
+        encode = self._encode_rate
+        compiled = self._compiled_axes
+        if not self.compiled or encode is None or len(sets.axes) != 3 or any(
+                ax.corrector is not None and compiled.get(ax.corrector) is None for ax in sets.axes):
+            return self._on_raw
+        carried = {name for name, _ in self._raw_inputs_at}
+        awaited = [(name, age) for name, age in plan[1] if name not in carried]
+        ns: dict[str, Any] = {"self": self, "SETS": sets, "general": self._on_raw, "decode": self._raw_values,
+                              "stats": self.stats, "values": self.values, "times": self.times,
+                              "encode": encode, "send": sock.send, "send_failed": self._send_failed,
+                              "MSG_DONTWAIT": MSG_DONTWAIT, "FRAME": self._rate_head}
+        fields = ", ".join(f"s{i}" for i in range(len(self.raw.index)))
+        lines = ["def on_raw(data, stamp):", "    if self.sets is not SETS:",
+                 "        return general(data, stamp)"]
+        if awaited:
+            lines += ["    try:", *(f"        t{i} = times[{name!r}]" for i, (name, _) in enumerate(awaited)),
+                      "    except KeyError:  # an input the sets need has not come yet",
+                      "        return general(data, stamp)"]
+        lines += [f"    {fields}, = decode(data)", "    stats.frames_in += 1"]
+        for name, at in self._raw_inputs_at:
+            lines += [f"    values[{name!r}] = s{at}", f"    times[{name!r}] = stamp"]
+        if self._counter_at is None:
+            lines.append("    gap = False")
+        else:
+            lines += ["    prev = self._prev_counter",
+                      f"    gap = prev is not None and s{self._counter_at} != ((prev + 1) & 0xF)",
+                      "    if gap:", "        stats.counter_gaps += 1",
+                      f"    self._prev_counter = s{self._counter_at}"]
+        # Each input the sets read, once: the raw frame's own from its fields, the others held.
+        held = {name: f"s{at}" for name, at in self._raw_inputs_at}
+        for i, (name, _) in enumerate(awaited):
+            lines.append(f"    i{i} = values[{name!r}]")
+            held[name] = f"i{i}"
+        # The raw frame's own inputs are as old as this frame: never stale (max_age_s > 0).
+        stale = " or ".join(f"stamp - t{i} > {age!r}" for i, (_, age) in enumerate(awaited)) or "False"
+        lines.append(f"    stale = {stale}")
+        flags = []  # the rate frame's axes in the sets' order, as _on_raw: rK, oK, flags[K]
+        for k, (ax, (at, _, _)) in enumerate(zip(sets.axes, plan[2], strict=True)):
+            if ax.corrector is None:  # uncalibrated: rate 0
+                lines.append(f"    r{k}, o{k} = 0.0, False")
+                flags.append("True")
+                continue
+            body, names = corrector_lines(ax.corrector, f"s{at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
+                                          held=held)
+            lines += body
+            ns.update(names)
+            flags.append("False")
+        lines += ["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"]
+        rates = []
+        for k, (lo, hi) in enumerate(self.rate.limits):
+            r = f"r{k}"
+            zero = lo if lo > 0.0 else hi if hi < 0.0 else 0.0  # a non-finite rate is sent as 0
+            lines.append(f"    {r} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
+                         f" if {r} - {r} == 0.0 else {zero!r}")
+            rates.append(r)
+        # The rate frame's signals in encode_xyz's order; all but the rates are bools, the tag
+        # (0-15) and the counter (0-15): packed as they are where the signal holds them.
+        values = [*rates, "o0", "o1", "o2", *flags, "stale", "gap", repr(sets.tag), "counter"]
+        bounds = [None, None, None, *[1] * 8, sets.tag, 0xF]
+        try:
+            body, names, payload = encode_lines(self._rate_message, values, bounds)
+            lines += body
+            ns.update(names)
+        except NotCompilable:  # cantools encodes this frame (logged at start)
+            payload = f"encode(({', '.join(values)}))"
+        lines += [f"    payload = {payload}", "    self._tx_counter = (counter + 1) & 0xF", "    try:"]
+        pad = f" + {self._rate_pad!r}" if self._rate_pad else ""
+        lines += [f"        send(FRAME + payload{pad}, MSG_DONTWAIT)", "    except OSError as exc:",
+                  "        send_failed(exc)  # counted as dropped, or the bus is lost",
+                  "    stats.frames_out += 1"]
+        source = "\n".join(lines) + "\n"
+        exec(compile(source, f"<raw frame, sets {sets.combined_id:08x}>", "exec"), ns)
+        handler = ns["on_raw"]
+        handler.source = source
+        return handler
 
     def _on_raw(self, data: bytes | bytearray, stamp: float) -> None:
         """Decode, correct three axes, encode, send: once per raw frame."""

@@ -22,7 +22,9 @@ over cantools, and :func:`codec_for` logs which and why.
 from __future__ import annotations
 
 import logging
+import struct
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from cantools.database.can import Message
@@ -123,11 +125,13 @@ def compile_codec(message: Message) -> CompiledCodec:
     names = tuple(s.name for s in message.signals)
     orders = {s.byte_order for s in message.signals}
     unpack = f"    ({', '.join(f'v{i}' for i in range(len(names)))},) = values"
-    dec = ["def decode(data):"]
+    outs: list[str]
+    dec = ["def decode_word(data):"]
     if "little_endian" in orders:
         dec.append("    le = from_bytes(data, 'little')")
     if "big_endian" in orders:
         dec.append("    be = from_bytes(data, 'big')")
+    layout = _struct_layout(message) if orders == {"little_endian"} else None
     exact: list[str] = []  # cantools' semantics for any number
     ranges: list[str] = []  # checked after every value is converted, as cantools does
     rounded: list[str] = []  # the signals that need round() even for an integer (scaled ones)
@@ -137,6 +141,8 @@ def compile_codec(message: Message) -> CompiledCodec:
     fast_fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}  # integers as they are
     fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}
     outs = []
+    exact_values: list[str] = []  # per signal, its raw integer as encode_exact has it (struct layout)
+    fast_values: list[str] = []  # and as the fast encode has it
     for i, sig in enumerate(message.signals):
         n, order = sig.length, sig.byte_order
         mask = (1 << n) - 1
@@ -155,23 +161,14 @@ def compile_codec(message: Message) -> CompiledCodec:
         else:
             outs.append(f"r{i} * {conv.scale!r} + {conv.offset!r}")
         # encode: cantools' numeric_scaled_to_raw (round, exact integer path), range, field
-        lines = []
-        off = f" - {conv.offset!r}" if not isinstance(conv, IdentityConversion) and conv.offset != 0 else ""
-        if isinstance(conv, IdentityConversion):
-            lines.append(f"    r{i} = round(v{i})")
-        elif isinstance(conv, LinearIntegerConversion) and conv.scale != 1:
-            lines.append(f"    x = v{i}{off}")
-            lines.append(f"    q, rem = divmod(x, {conv.scale!r})")
-            lines.append(f"    r{i} = round(q if rem == 0 else x / {conv.scale!r})")
-        elif isinstance(conv, LinearIntegerConversion):
-            lines.append(f"    r{i} = round(v{i}{off})")
-        else:
-            lines.append(f"    r{i} = round((v{i}{off}) / {conv.scale!r})")
+        lines = _to_raw(conv, f"v{i}", f"r{i}")
         # in range ⇔ no bit above the field's (a signed range moved to 0…2ⁿ−1 first)
         bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
         check = f"    if (r{i}{bias}) >> {n}: overflow({sig.name!r}, r{i})"
         exact += lines
         ranges.append(check)
+        exact_values.append(f"r{i}")
+        fast_values.append(f"v{i}" if isinstance(conv, IdentityConversion) else f"r{i}")
         part = f"(r{i} & {mask:#x})" if sig.is_signed else f"r{i}"
         fields[order].append(f"({part} << {shift})" if shift else part)
         if isinstance(conv, IdentityConversion):  # an int needs no rounding: skip round() per flag
@@ -188,14 +185,17 @@ def compile_codec(message: Message) -> CompiledCodec:
     dec.append(f"    return ({', '.join(outs)},)")
 
     def packed(parts: dict[str, list[str]]) -> str:
-        le = " | ".join(parts["little_endian"])
-        be = " | ".join(parts["big_endian"])
-        if le and be:
-            return (f"(({le}) | from_bytes(({be}).to_bytes({nbytes}, 'big'), 'little'))"
-                    f".to_bytes({nbytes}, 'little')")
-        return f"({be}).to_bytes({nbytes}, 'big')" if be else f"({le}).to_bytes({nbytes}, 'little')"
+        return _pack_word(parts, nbytes)
 
-    exact = ["def encode_exact(values):", unpack, *exact, *ranges, f"    return {packed(fields)}"]
+    if layout is None:
+        pack_exact, pack_fast = packed(fields), packed(fast_fields)
+        dec[0] = "def decode(data):"
+    else:
+        pack_exact = _pack_struct(layout, message, exact_values)
+        pack_fast = _pack_struct(layout, message, fast_values)
+        dec = [*_unpack_struct(layout, message, outs), "", "", *dec]
+
+    exact = ["def encode_exact(values):", unpack, *exact, *ranges, f"    return {pack_exact}"]
     enc = ["def encode(values):"]
     checks += [f"(({' | '.join(names_)}) >> {n})" for n, names_ in unsigned.items()]
     if checks:
@@ -204,13 +204,181 @@ def compile_codec(message: Message) -> CompiledCodec:
         slow = "return encode_exact(values)"
         enc += [unpack, "    try:", f"        if {' | '.join(checks)}:", f"            {slow}",
                 "    except TypeError:", f"        {slow}"]
-        enc += [*rounded, *rounded_ranges, f"    return {packed(fast_fields)}"]
+        enc += [*rounded, *rounded_ranges, f"    return {pack_fast}"]
     else:
         enc = ["encode = encode_exact"]
     source = "\n".join(dec) + "\n\n\n" + "\n".join(exact) + "\n\n\n" + "\n".join(enc) + "\n"
-    namespace: dict[str, Any] = {"from_bytes": int.from_bytes, "overflow": _overflow}
+    namespace: dict[str, Any] = {"from_bytes": int.from_bytes, "overflow": _overflow,
+                                 "struct_error": struct.error}
+    if layout is not None:
+        namespace["unpack_from"] = layout.struct.unpack_from
+        namespace["pack"] = layout.struct.pack
     exec(compile(source, f"<codec {message.name}>", "exec"), namespace)
     return CompiledCodec(names, source, namespace)
+
+
+def _to_raw(conv: BaseConversion, v: str, r: str, tmp: str = "") -> list[str]:
+    """Statements setting ``r`` to cantools' raw integer of the value ``v`` (its
+    ``numeric_scaled_to_raw``: ``round``, the exact integer path for integer scales)."""
+    off = f" - {conv.offset!r}" if not isinstance(conv, IdentityConversion) and conv.offset != 0 else ""
+    if isinstance(conv, IdentityConversion):
+        return [f"    {r} = round({v})"]
+    if isinstance(conv, LinearIntegerConversion) and conv.scale != 1:
+        return [f"    {tmp}x = {v}{off}", f"    {tmp}q, {tmp}rem = divmod({tmp}x, {conv.scale!r})",
+                f"    {r} = round({tmp}q if {tmp}rem == 0 else {tmp}x / {conv.scale!r})"]
+    if isinstance(conv, LinearIntegerConversion):
+        return [f"    {r} = round({v}{off})"]
+    return [f"    {r} = round(({v}{off}) / {conv.scale!r})"]
+
+
+def _pack_word(parts: dict[str, list[str]], nbytes: int) -> str:
+    """The payload from the OR of shifted fields, per byte order (the integer form)."""
+    le = " | ".join(parts["little_endian"]) or "0"
+    be = " | ".join(parts["big_endian"])
+    if parts["little_endian"] and be:
+        return (f"(({le}) | from_bytes(({be}).to_bytes({nbytes}, 'big'), 'little'))"
+                f".to_bytes({nbytes}, 'little')")
+    return f"({be}).to_bytes({nbytes}, 'big')" if be else f"({le}).to_bytes({nbytes}, 'little')"
+
+
+def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int | None],
+                 tag: str = "enc_") -> tuple[list[str], dict[str, Any], str]:
+    """Encoding ``message`` written into a caller's generated function: statements (one level
+    of indentation), the names they need, and the payload's expression.
+
+    ``values`` are the signals' value expressions in signal order. ``bounds[i]``, where not
+    None, is the caller's promise that value ``i`` is an int (or bool) from 0 to that bound:
+    an unscaled signal that holds it is packed as it is, with no rounding and no check (the
+    flags, counters and tags of a frame the caller builds). Every other value goes the exact
+    way of ``encode`` (round, range check, ``OverflowError`` as cantools). A value ``False``
+    or ``0`` adds nothing and is left out. :class:`NotCompilable` as :func:`compile_codec`.
+    """
+    reason = _why_not(message)
+    if reason is not None:
+        raise NotCompilable(reason)
+    nbytes = message.length
+    orders = {s.byte_order for s in message.signals}
+    layout = _struct_layout(message) if orders == {"little_endian"} else None
+    lines: list[str] = []
+    checks: list[str] = []
+    raws: list[str] = []
+    fields: dict[str, list[str]] = {"little_endian": [], "big_endian": []}
+    for i, sig in enumerate(message.signals):
+        n, order, conv = sig.length, sig.byte_order, _numeric(sig.conversion)
+        top = 1 << (n - 1) if sig.is_signed else 1 << n
+        bound = bounds[i]
+        if isinstance(conv, IdentityConversion) and bound is not None and 0 <= bound < top:
+            r = values[i]
+        else:
+            r = f"{tag}r{i}"
+            lines += _to_raw(conv, f"({values[i]})", r, tmp=tag)
+            bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
+            checks.append(f"    if ({r}{bias}) >> {n}: {tag}overflow({sig.name!r}, {r})")
+        raws.append(r)
+        if r in ("False", "0"):
+            continue
+        shift = sig.start if order == "little_endian" else 8 * nbytes - (_network_bit(sig.start) + n)
+        part = f"({r} & {(1 << n) - 1:#x})" if sig.is_signed else r
+        fields[order].append(f"({part} << {shift})" if shift else part)
+    namespace: dict[str, Any] = {f"{tag}overflow": _overflow, "from_bytes": int.from_bytes}
+    if layout is None:
+        return [*lines, *checks], namespace, _pack_word(fields, nbytes)
+    namespace[f"{tag}pack"] = layout.struct.pack
+    return [*lines, *checks], namespace, _pack_struct(layout, message, raws, pack=f"{tag}pack")
+
+
+#: struct codes of byte-aligned little-endian integers, by width in bits: (unsigned, signed).
+STRUCT_CODES = {8: ("B", "b"), 16: ("H", "h"), 32: ("I", "i"), 64: ("Q", "q")}
+
+
+@dataclass(frozen=True)
+class StructLayout:
+    """A little-endian frame as ``struct`` fields: whole signals that fill aligned bytes of a
+    standard width, and runs of the other bytes, each one unsigned integer whose bits hold the
+    signals inside it (a run of a width struct lacks is read as bytes, then ``int.from_bytes``)."""
+
+    struct: struct.Struct
+    #: per field: (the signal that fills it, or -1 for a run; first byte; length in bytes)
+    fields: tuple[tuple[int, int, int], ...]
+    owner: tuple[int, ...]  # per signal: its field
+
+
+def _struct_layout(message: Message) -> StructLayout | None:
+    """The frame as ``struct`` fields (see :class:`StructLayout`), for little-endian signals."""
+    nbytes = message.length
+    covers = [(s.start // 8, (s.start + s.length - 1) // 8) for s in message.signals]
+    whole = []
+    for i, sig in enumerate(message.signals):
+        first, last = covers[i]
+        aligned = sig.start % 8 == 0 and sig.length in STRUCT_CODES
+        alone = all(j == i or b < first or a > last for j, (a, b) in enumerate(covers))
+        if aligned and alone:
+            whole.append(i)
+    if not whole:
+        return None
+    starts = {covers[i][0]: i for i in whole}
+    fields: list[tuple[int, int, int]] = []
+    fmt = "<"
+    byte = 0
+    while byte < nbytes:
+        if byte in starts:
+            i = starts[byte]
+            width = message.signals[i].length // 8
+            fields.append((i, byte, width))
+            fmt += STRUCT_CODES[8 * width][message.signals[i].is_signed]
+            byte += width
+            continue
+        end = byte
+        while end < nbytes and end not in starts:
+            end += 1
+        fields.append((-1, byte, end - byte))
+        fmt += STRUCT_CODES[8 * (end - byte)][0] if 8 * (end - byte) in STRUCT_CODES else f"{end - byte}s"
+        byte = end
+    owner = tuple(next(k for k, (j, a, n) in enumerate(fields)
+                       if j == i or (j < 0 and a <= lo and hi < a + n)) for i, (lo, hi) in enumerate(covers))
+    return StructLayout(struct.Struct(fmt), tuple(fields), owner)
+
+
+def _unpack_struct(layout: StructLayout, message: Message, outs: list[str]) -> list[str]:
+    """``decode`` on the struct layout: one ``unpack_from``, each signal from its field; a
+    payload shorter than the frame goes to ``decode_word`` (the integer form, as cantools)."""
+    names = [f"f{k}" for k in range(len(layout.fields))]
+    lines = ["def decode(data):", "    try:", f"        {', '.join(names)}, = unpack_from(data)",
+             "    except struct_error:", "        return decode_word(data)"]
+    for k, (j, _, n) in enumerate(layout.fields):
+        if j < 0 and 8 * n not in STRUCT_CODES:
+            lines.append(f"    f{k} = from_bytes(f{k}, 'little')")
+    for i, sig in enumerate(message.signals):
+        k = layout.owner[i]
+        j, first, _ = layout.fields[k]
+        if j == i:
+            lines.append(f"    r{i} = f{k}")
+            continue
+        shift, mask = sig.start - 8 * first, (1 << sig.length) - 1
+        lines.append(f"    r{i} = {f'(f{k} >> {shift})' if shift else f'f{k}'} & {mask:#x}")
+        if sig.is_signed:
+            lines.append(f"    if r{i} & {1 << (sig.length - 1):#x}: r{i} -= {1 << sig.length:#x}")
+    lines.append(f"    return ({', '.join(outs)},)")
+    return lines
+
+
+def _pack_struct(layout: StructLayout, message: Message, values: list[str], pack: str = "pack") -> str:
+    """The ``pack`` call for raw integers ``values`` (in range: checked before) on the layout."""
+    args = []
+    for k, (j, first, n) in enumerate(layout.fields):
+        if j >= 0:
+            args.append(values[j])
+            continue
+        parts = []
+        for i, sig in enumerate(message.signals):
+            if layout.owner[i] != k or values[i] in ("False", "0"):
+                continue
+            part = f"({values[i]} & {(1 << sig.length) - 1:#x})" if sig.is_signed else values[i]
+            shift = sig.start - 8 * first
+            parts.append(f"({part} << {shift})" if shift else part)
+        word = " | ".join(parts) or "0"
+        args.append(word if 8 * n in STRUCT_CODES else f"({word}).to_bytes({n}, 'little')")
+    return f"{pack}({', '.join(args)})"
 
 
 def _overflow(name: str, raw: int) -> None:

@@ -8,8 +8,11 @@ terms one line each, the segment found by ``bisect``, the polynomial in Horner f
 
 It must give exactly what ``correct_one`` gives (the tests compare bit for bit on random sets
 and inputs), so every floating-point operation is the reference's, in the reference's order.
-The direction and slope terms keep their state in the corrector's own tracker objects, so the
-compiled function and ``correct_one`` share one stream. A term kind or model this module does
+The stateful terms (direction and slope of the raw output; lag, derivative and direction of a
+channel) keep their state in the corrector's own tracker objects, called with the reference's
+arguments, so the compiled function and ``correct_one`` share one stream: either may take the
+next sample, and a function compiled again from the same corrector (a reload that keeps the
+set) carries on where the last left off. A term kind or model this module does
 not know is not compiled: :func:`compile_corrector` returns None and the caller keeps the
 reference path, which stays the definition.
 """
@@ -24,14 +27,19 @@ from typing import Any
 
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.corrector import Corrector
-from canical.sets.terms import TIME_INPUT, DirectionTracker, SlopeTracker, Term
+from canical.sets.terms import TIME_INPUT, ChannelTracker, DirectionTracker, SlopeTracker, Term
 
 #: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
 CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 
 #: The (kind, feature) pairs compiled here; anything else keeps the reference path.
-COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear"),
-                  ("direction", "sign"), ("direction", "slope")}
+COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("channel", "lag"),
+                  ("channel", "derivative"), ("channel", "direction"), ("channel", "gated"),
+                  ("time", "warmup"), ("time", "linear"), ("direction", "sign"), ("direction", "slope")}
+#: The tracker each stateful feature keeps its state in (as ``Corrector``'s ``_tracker`` makes them).
+TRACKERS = {("channel", "lag"): ChannelTracker, ("channel", "derivative"): ChannelTracker,
+            ("channel", "direction"): DirectionTracker, ("direction", "sign"): DirectionTracker,
+            ("direction", "slope"): SlopeTracker}
 
 
 def why_not(corrector: Corrector) -> str | None:
@@ -39,7 +47,7 @@ def why_not(corrector: Corrector) -> str | None:
     for term, tracker in zip(corrector.terms, corrector._trackers, strict=True):
         if (term.kind, term.feature) not in COMPILED_TERMS:
             return f"term {term.kind}/{term.feature} not compiled"
-        expected = {"sign": DirectionTracker, "slope": SlopeTracker}.get(term.feature, type(None))
+        expected = TRACKERS.get((term.kind, term.feature), type(None))
         if type(tracker) is not expected:
             return f"term {term.kind}/{term.feature} has state {type(tracker).__name__}"
     model = corrector.model
@@ -50,48 +58,108 @@ def why_not(corrector: Corrector) -> str | None:
     return None
 
 
-def _term_lines(j: int, term: Term, key: str | None) -> list[str]:
+def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag: str) -> list[str]:
     """The reference's feature x and its share of the shift, for term ``j``.
 
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
-    call is left out. Trackers get exactly the reference's arguments.
+    call is left out. Trackers get exactly the reference's arguments. The gate of a gated term
+    is :func:`~canical.sets.terms.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``.
     """
-    if term.feature == "sign":
-        x = f"track{j}(raw)"
+    value = inputs(term.input_name)  # type: ignore[arg-type]
+    track = f"{tag}track{j}"
+    if term.kind == "channel" and term.feature in ("lag", "derivative"):
+        x = f"{track}(float({value}), float({inputs(TIME_INPUT)}))"
+    elif term.kind == "channel" and term.feature == "direction":
+        x = f"{track}(float({value}))"
+    elif term.feature == "gated":
+        k = term.threshold_raw
+        lines = ["    a = abs(dv)", f"    g = a - {k!r}", "    g = 0.0 if 0.0 > g else g",
+                 f"    x = ({value} - {term.reference!r}) * (g / ({k!r} if {k!r} > a else a))"]
+        share = "(x * dv)" if term.form == "scale" else "x"
+        return [*lines, f"    shift += {term.coefficient!r} * {share}"]
+    elif term.feature == "sign":
+        x = f"{track}({raw})"
     elif term.feature == "slope":
-        x = f"track{j}(raw, float(inputs[{TIME_INPUT!r}]))"
+        x = f"{track}({raw}, float({inputs(TIME_INPUT)}))"
     elif term.kind == "channel" and term.feature == "square":
-        x = f"(inputs[{key!r}] - {term.reference!r})"
+        x = f"({value} - {term.reference!r})"
         return [f"    x = {x}", f"    shift += {term.coefficient!r} * "
                 + ("(x * x * dv)" if term.form == "scale" else "(x * x)")]
     elif term.kind == "channel":
-        x = f"(inputs[{key!r}] - {term.reference!r})"
+        x = f"({value} - {term.reference!r})"
     elif term.feature == "warmup":
-        x = f"(1.0 - exp(-inputs[{key!r}] / {term.tau_s!r}))"
+        x = f"(1.0 - exp(-{value} / {term.tau_s!r}))"
     else:
-        x = f"inputs[{key!r}]"
+        x = value
     return [f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")]
 
 
-def _model_lines(model: PiecewisePoly, dv: str) -> list[str]:
-    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order."""
+def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -> list[str]:
+    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order, into ``rate, out``."""
     lo, hi = model.span
     m = len(model._coeffs_list[0]) - 1
-    horner = f"c[{m}]"
+    horner = f"c{m}"
     for k in range(m - 1, -1, -1):
-        horner = f"({horner}) * u + c[{k}]"
-    slope = ["    slope = 0.0"] + [f"    slope = slope * u + {k} * c[{k}]" for k in range(m, 0, -1)]
+        horner = f"({horner}) * u + c{k}"
+    slope = ["        slope = 0.0"] + [f"        slope = slope * u + {k} * c{k}" for k in range(m, 0, -1)]
+    row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model._knots_list else f"{tag}COEFFS[0]"
     return [
         f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
-        "    c = COEFFS[bisect_right(KNOTS, x)]" if model._knots_list else "    c = COEFFS[0]",
+        f"    {''.join(f'c{k}, ' for k in range(m + 1))}= {row}",
         f"    u = x / {model.scale!r}",
         f"    acc = {horner}",
         f"    if x == {dv}:",
-        "        return acc, False",
+        f"        {rate}, {out} = acc, False",
+        "    else:",
         *slope,
-        f"    return acc + slope / {model.scale!r} * ({dv} - x), True",
+        f"        {rate}, {out} = acc + slope / {model.scale!r} * ({dv} - x), True",
     ]
+
+
+def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out: str,
+                    tag: str = "", held: Mapping[str, str] | None = None) -> tuple[list[str], dict[str, Any]]:
+    """``rate, out = corrector.correct_one(raw, inputs)`` as straight-line statements (one level
+    of indentation), and the names they need; for a corrector :func:`why_not` passes.
+
+    ``raw`` and ``inputs`` are the expressions of the raw value (a local name) and the inputs'
+    mapping; ``tag`` prefixes this corrector's constants, so several can share one function
+    (the daemon writes a whole frame's three axes as one); ``held`` names local variables
+    that already hold inputs (read once per frame, not once per term). Temporaries (``dv``,
+    ``x``, ``u``, …) are overwritten. The statements share the corrector's tracker objects: build them after
+    its last ``reset()``.
+    """
+    terms = corrector.terms
+    lines = []
+    held = held or {}
+
+    def value_of(name: str) -> str:
+        return held.get(name, f"{inputs}[{name!r}]")
+
+    if any(t.feature in ("sign", "slope") for t in terms):
+        lines.append(f"    rawf = float({raw})")
+        raw = "rawf"
+    lines.append(f"    dv = {raw} - {corrector.v0!r}")
+    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right}
+    if terms:
+        lines.append("    shift = 0.0")
+        for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
+            if tracker is not None:
+                namespace[f"{tag}track{j}"] = tracker.update
+            lines += _term_lines(j, term, raw, value_of, tag)
+        lines.append("    d = dv - shift")
+        dv = "d"
+    else:
+        dv = "dv"
+    model = corrector.model
+    if isinstance(model, PiecewisePoly):
+        namespace[f"{tag}KNOTS"] = tuple(model._knots_list)
+        namespace[f"{tag}COEFFS"] = tuple(tuple(row) for row in model._coeffs_list)
+        lines += _model_lines(model, dv, tag, rate, out)
+    else:  # a forward polynomial: Newton's method stays the model's own
+        namespace[f"{tag}model_one"] = model.evaluate_one
+        lines.append(f"    {rate}, {out} = {tag}model_one({dv})")
+    return lines, namespace
 
 
 def compile_corrector(corrector: Corrector) -> CorrectOne | None:
@@ -101,31 +169,8 @@ def compile_corrector(corrector: Corrector) -> CorrectOne | None:
     """
     if why_not(corrector) is not None:
         return None
-    terms = corrector.terms
-    lines = ["def correct_one(raw, inputs):"]
-    if any(t.feature in ("sign", "slope") for t in terms):
-        lines.append("    raw = float(raw)")
-    lines.append(f"    dv = raw - {corrector.v0!r}")
-    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right}
-    if terms:
-        lines.append("    shift = 0.0")
-        for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
-            if tracker is not None:
-                namespace[f"track{j}"] = tracker.update
-            lines += _term_lines(j, term, term.input_name)
-        lines.append("    d = dv - shift")
-        dv = "d"
-    else:
-        dv = "dv"
-    model = corrector.model
-    if isinstance(model, PiecewisePoly):
-        namespace["KNOTS"] = tuple(model._knots_list)
-        namespace["COEFFS"] = tuple(tuple(row) for row in model._coeffs_list)
-        lines += _model_lines(model, dv)
-    else:  # a forward polynomial: Newton's method stays the model's own
-        namespace["model_one"] = model.evaluate_one
-        lines.append(f"    return model_one({dv})")
-    source = "\n".join(lines) + "\n"
+    body, namespace = corrector_lines(corrector, "raw", "inputs", "rate", "out")
+    source = "\n".join(["def correct_one(raw, inputs):", *body, "    return rate, out"]) + "\n"
     exec(compile(source, f"<corrector {corrector.set_id:08x}>", "exec"), namespace)
     function = namespace["correct_one"]
     function.source = source

@@ -2,7 +2,9 @@
 
 Subjects run one at a time as separate processes on vcan0, in turn, for ``--rounds`` rounds
 (so all of them see the same machine): the forwarder receives the raw frame (same kernel
-filter) and sends its payload unchanged as the corrected frame's id; the daemon decodes,
+filter) with python-can and sends its payload unchanged as the corrected frame's id; the raw
+forwarder does the same with one ``recvmsg`` and one ``send`` on a raw socket and nothing else
+(the floor of any frame path here: what the guest's system calls cost); the daemon decodes,
 corrects (effect terms on all three axes) and encodes; with ``--baseline DIR`` also the daemon
 of another source tree (e.g. ``git archive`` of an older commit), for a before/after table.
 For each subject this script
@@ -12,6 +14,8 @@ For each subject this script
   subject's CPU time per wall second over the phase, from the kernel's accounting of the
   process, ``/proc/PID/stat`` utime + stime, what ``getrusage`` reports for a process), and
 * offers N raw frames as fast as one raw-socket sender can (saturated throughput, loss, CPU);
+  CPU is also the scheduler's run time (``/proc/PID/task/*/schedstat``), which in this kernel
+  is what utime + stime add up to (they are that total split in the ticks' proportions);
 * for the daemons: exec to READY=1 and resident memory after start (VmRSS) and at the end
   (VmHWM).
 
@@ -61,11 +65,51 @@ while True:
         bus.send(can.Message(arbitration_id={OUT_ID}, data=m.data, is_extended_id=False))
 """
 
+#: The floor: one recvmsg and one send per frame on a raw socket, nothing else (what the
+#: daemon's frame path does around its Python work), to tell the guest's system-call cost apart.
+RAW_FORWARDER = f"""
+import socket, struct
+s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+only_raw = struct.pack("=II", {RAW_ID}, 0x7FF | socket.CAN_EFF_FLAG)
+s.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, only_raw)
+s.setsockopt(socket.SOL_SOCKET, 35, 1)  # kernel timestamps, as the daemon asks for
+s.bind(("{CHANNEL}",))
+out = struct.pack("=IB3x", {OUT_ID}, 8)
+print("ready", flush=True)
+while True:
+    cf, anc, _, _ = s.recvmsg(72, 64)
+    try:
+        s.send(out + cf[8:16], socket.MSG_DONTWAIT)
+    except OSError:
+        pass
+"""
+
 
 def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process so far (the kernel's accounting, as getrusage)."""
+    """User + system CPU time of a process so far (the kernel's accounting, as getrusage).
+
+    In the UML guest this is tick-sampled (``CONFIG_TICK_CPU_ACCOUNTING``, ``HZ=100``): each
+    10 ms tick charges the whole tick to whichever task it interrupts. A task that wakes for a
+    frame and sleeps again within a tick is charged by chance: over a few seconds at 1 %
+    of a core that is a handful of ticks, and the paced sender, waking on the same timer,
+    shifts which task the tick finds. :func:`run_seconds` is the measured form.
+    """
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / TICK
+
+
+def run_seconds(pid: int) -> float:
+    """Time the scheduler measured the process's threads on the CPU (``/proc/PID/task/*/schedstat``,
+    first field, ns: ``CONFIG_SCHED_INFO``'s clock, read at every switch, not sampled).
+
+    In the UML guest the scheduler's clock is the host's: a task's run time includes the time
+    the host took the whole guest away while that task was current (on a loaded host, more).
+    """
+    total = 0
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with open(task / "schedstat") as f:  # a thread that ended meanwhile: counted up to then
+            total += int(f.read().split()[0])
+    return total * 1e-9
 
 
 def memory_kb(pid: int, key: str) -> int:
@@ -123,18 +167,21 @@ def send_all(frames: list[bytes], rate_hz: float | None) -> tuple[float, float]:
 
 def measure(frames: list[bytes], rate_hz: float | None, pid: int) -> dict[str, float]:
     rx = receiver()
-    cpu0, wall0 = cpu_seconds(pid), time.monotonic()
+    cpu0, run0, wall0 = cpu_seconds(pid), run_seconds(pid), time.monotonic()
     sent_rate, _ = send_all(frames, rate_hz)
     got = drain(rx, quiet_s=0.3)
     rx.settimeout(1.2)
     got += drain(rx)
-    cpu1, wall1 = cpu_seconds(pid), time.monotonic() - 1.5  # the quiet tail is not the subject's work
+    # the quiet tail is not the subject's work (it sleeps in recvmsg: no run time, no ticks)
+    cpu1, run1, wall1 = cpu_seconds(pid), run_seconds(pid), time.monotonic() - 1.5
     rx.close()
     raws = [t for i, t in got if i == RAW_ID]
     outs = [t for i, t in got if i == OUT_ID]
     result = {"offered_fps": sent_rate, "sent": len(raws), "out": len(outs),
               "loss": 1.0 - len(outs) / max(len(raws), 1),
-              "cpu": (cpu1 - cpu0) / max(wall1 - wall0, 1e-3)}
+              "cpu": (cpu1 - cpu0) / max(wall1 - wall0, 1e-3),
+              "run": (run1 - run0) / max(wall1 - wall0, 1e-3),
+              "ticks": round((cpu1 - cpu0) * TICK), "run_s": run1 - run0}
     if len(outs) > 1:
         result["throughput_fps"] = len(outs) / (outs[-1] - raws[0])
     if len(outs) == len(raws):  # no loss: the i-th output answers the i-th raw frame
@@ -153,9 +200,9 @@ class Subject:
         self.start: dict[str, float] = {}
 
     def __enter__(self) -> Subject:
-        if self.name == "forwarder":
-            self.proc = subprocess.Popen([sys.executable, "-c", FORWARDER], stdout=subprocess.PIPE,
-                                         text=True)
+        if self.name in ("forwarder", "raw-forwarder"):
+            script = FORWARDER if self.name == "forwarder" else RAW_FORWARDER
+            self.proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
             assert self.proc.stdout is not None and self.proc.stdout.readline().strip() == "ready"
             self.pid = self.proc.pid
             return self
@@ -208,7 +255,7 @@ def run(args: argparse.Namespace) -> None:
     per_rate = {r: max(args.paced_frames, int(r * args.paced_seconds)) for r in rates}
     stream = imu_stream(max(args.frames, *per_rate.values()), rate_limit_dps=50.0)
     raw = [FRAME.pack(fid, len(d), d) for fid, d in stream.frames if fid == RAW_ID]
-    names = ["forwarder", "daemon"] + (["daemon-before"] if args.baseline else [])
+    names = ["forwarder", "daemon"] + (["daemon-before"] if args.baseline else []) + ["raw-forwarder"]
     runs: dict[str, list[dict]] = {n: [] for n in names}
     for _ in range(args.rounds):
         for name in names:
@@ -236,14 +283,18 @@ def run(args: argparse.Namespace) -> None:
             text = (f"median {span([p['lat_median_us'] for p in lat], '.0f')}  "
                     f"p99 {span([p['lat_p99_us'] for p in lat], '.0f')}" if lat else "latency n/a (loss)")
             print(f"    {rate:6.0f}/s {name:13s}: loss {span([100 * p['loss'] for p in ps], '.1f')} %, "
-                  f"{text}, CPU {span([100 * p['cpu'] for p in ps], '.1f')} %  ({ps[0]['sent']} frames)")
+                  f"{text}, CPU {span([100 * p['run'] for p in ps], '.2f')} % run time, "
+                  f"{span([100 * p['cpu'] for p in ps], '.1f')} % ticks  ({ps[0]['sent']} frames)")
     print(f"  saturated: {args.frames} raw frames as fast as a raw socket sends them")
     for name in names:
         bs = [r["blast"] for r in runs[name]]
         fps = span([b.get("throughput_fps", 0) for b in bs], ",.0f")
         loss, cpu = span([100 * b["loss"] for b in bs], ".1f"), span([100 * b["cpu"] for b in bs], ".0f")
-        print(f"    {name:13s}: throughput {fps} frames/s, loss {loss} %, CPU {cpu} %")
-    for name in names[1:]:
+        run_ = span([100 * b["run"] for b in bs], ".0f")
+        print(f"    {name:13s}: throughput {fps} frames/s, loss {loss} %, "
+              f"CPU {run_} % run time, {cpu} % ticks")
+    daemons = [n for n in names if n.startswith("daemon")]
+    for name in daemons:
         rs = runs[name]
         rss, hwm = [r["rss_kb"] / 1024 for r in rs], [r["hwm_kb"] / 1024 for r in rs]
         print(f"  {name}: exec -> READY=1 {span([r['ready_s'] for r in rs], '.2f')} s, resident after start "
@@ -262,7 +313,7 @@ def run(args: argparse.Namespace) -> None:
         ok = [r for r in rates if runs[name][k]["paced"][r]["loss"] <= 0.001]
         return max(ok) if ok else 0.0
 
-    for name in names[1:]:
+    for name in daemons:
         ratios, p99 = [], []
         for k in range(args.rounds):
             f, d = runs["forwarder"][k], runs[name][k]
@@ -276,6 +327,62 @@ def run(args: argparse.Namespace) -> None:
         print(f"  {name} / forwarder: saturated throughput {span(ratios, '.2f')}; highest lossless rate "
               f"{span(lossless_d, '.0f')} vs {span(lossless_f, '.0f')} frames/s; p99 latency ratio where "
               f"both lossless {span(p99, '.2f') if p99 else 'n/a'}")
+    table(runs, names, rates, args.rounds, lossless)
+
+
+def table(runs: dict[str, list[dict]], names: list[str], rates: list[float], rounds: int, lossless) -> None:
+    """The figures above as one Markdown table, subjects as columns (ranges over rounds)."""
+
+    def span(values: list[float], fmt: str) -> str:
+        if not values:
+            return "n/a"
+        lo, hi = min(values), max(values)
+        return format(lo, fmt) if f"{lo:{fmt}}" == f"{hi:{fmt}}" else f"{lo:{fmt}}–{hi:{fmt}}"
+
+    heads = {"forwarder": "python-can forwarder", "daemon": "after (this tree)",
+             "daemon-before": "before (baseline)", "raw-forwarder": "raw recvmsg+send (floor)"}
+    order = [n for n in ("forwarder", "daemon-before", "daemon", "raw-forwarder") if n in names]
+    rows: list[tuple[str, dict[str, str]]] = []
+
+    def row(label: str, cell) -> None:
+        rows.append((label, {n: cell(n) for n in order}))
+
+    row("saturated throughput, frames/s",
+        lambda n: span([r["blast"].get("throughput_fps", 0) for r in runs[n]], ",.0f"))
+    row("— ratio to the python-can forwarder's", lambda n: "" if n == "forwarder" else span(
+        [d["blast"].get("throughput_fps", 0) / max(f["blast"].get("throughput_fps", 0), 1.0)
+         for d, f in zip(runs[n], runs["forwarder"], strict=True)], ".2f"))
+    row("highest lossless paced rate, /s", lambda n: span([lossless(n, k) for k in range(rounds)], ".0f"))
+    for rate in rates:
+        row(f"loss at {rate:.0f} /s, %",
+            lambda n, rate=rate: span([100 * r["paced"][rate]["loss"] for r in runs[n]], ".1f"))
+    for rate in rates:
+        row(f"latency p99 at {rate:.0f} /s, µs", lambda n, rate=rate: span(
+            [r["paced"][rate]["lat_p99_us"] for r in runs[n] if "lat_p99_us" in r["paced"][rate]], ".0f"))
+    for rate in (*[r for r in rates if r in (200.0, 1000.0)], None):
+        where = "saturated" if rate is None else f"{rate:.0f} /s"
+
+        def phase(r: dict, rate=rate) -> dict:
+            return r["blast"] if rate is None else r["paced"][rate]
+
+        row(f"CPU per wall second, {where}: run time (schedstat), %",
+            lambda n, phase=phase: span([100 * phase(r)["run"] for r in runs[n]], ".2f"))
+        row(f"CPU per wall second, {where}: utime+stime (ticks), %",
+            lambda n, phase=phase: span([100 * phase(r)["cpu"] for r in runs[n]], ".1f"))
+    row("run time per raw frame, saturated, µs",
+        lambda n: span([1e6 * r["blast"]["run_s"] / max(r["blast"]["sent"], 1) for r in runs[n]], ".0f"))
+
+    def daemon_only(n: str, key: str, fmt: str, scale: float = 1.0) -> str:
+        return "" if "forwarder" in n else span([r[key] * scale for r in runs[n]], fmt)
+
+    row("exec -> READY=1, s", lambda n: daemon_only(n, "ready_s", ".2f"))
+    row("resident after start, MB", lambda n: daemon_only(n, "rss_kb", ".1f", 1 / 1024))
+    row("resident peak, MB", lambda n: daemon_only(n, "hwm_kb", ".1f", 1 / 1024))
+    print()
+    print("| figure | " + " | ".join(heads[n] for n in order) + " |")
+    print("|---|" + "---|" * len(order))
+    for label, cells in rows:
+        print(f"| {label} | " + " | ".join(cells[n] for n in order) + " |")
 
 
 def main() -> int:

@@ -27,6 +27,7 @@ import weakref
 from pathlib import Path
 
 import can
+import pytest
 from support.daemon_fixtures import ALL_TERMS, AXES, base_set, decode_stream, imu_stream, write_config
 
 from canical.atomic_file import write_text_atomic
@@ -37,11 +38,19 @@ from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
 
-#: ALL_TERMS plus a channel lag term on x: a stateful kind the compiler leaves to the reference
-#: path, so compiled and reference correctors both run inside one daemon across the reloads.
-TERMS = {**ALL_TERMS, "x": (*ALL_TERMS["x"], {"kind": "channel", "channel": "temp_c", "feature": "lag",
-                                              "form": "bias", "coefficient": 0.5, "reference": 25.0,
-                                              "tau_s": 0.02})}
+#: ALL_TERMS plus the stateful channel kinds (lag on x, direction on y, derivative on z: state
+#: in the corrector's trackers, shared by the generated code) and the rate gate on z, each kept
+#: or started fresh across the reloads.
+TERMS = {
+    "x": (*ALL_TERMS["x"], {"kind": "channel", "channel": "temp_c", "feature": "lag", "form": "bias",
+                            "coefficient": 0.5, "reference": 25.0, "tau_s": 0.02}),
+    "y": (*ALL_TERMS["y"], {"kind": "channel", "channel": "temp_c", "feature": "direction", "form": "bias",
+                            "coefficient": 0.3, "threshold_raw": 0.5}),
+    "z": (*ALL_TERMS["z"], {"kind": "channel", "channel": "temp_c", "feature": "derivative", "form": "scale",
+                            "coefficient": 0.01, "tau_s": 0.05},
+          {"kind": "channel", "channel": "supply_v", "feature": "gated", "form": "scale",
+           "coefficient": 0.002, "reference": 4.0, "threshold_raw": 300.0}),
+}
 GENERATIONS = 14
 SPACING = 300  # raw frames between two reload requests, at least
 FRAME_GAP_S = 1e-4  # the stand-in bus's pace: frames keep coming while a reload is built
@@ -222,16 +231,17 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
 
 
 
-def test_replaced_correctors_are_released(tmp_path: Path) -> None:
-    """A replaced set's corrector, compiled or on the reference path (the x axis's lag term),
-    is freed once no generation uses it: a daemon reloaded for months does not grow."""
+@pytest.mark.parametrize("compiled", [True, False])
+def test_replaced_correctors_are_released(tmp_path: Path, compiled: bool) -> None:
+    """A replaced set's corrector, compiled or on the reference path (``compiled`` off), is
+    freed once no generation uses it: a daemon reloaded for months does not grow."""
     base = base_set("z")
     for v, folder in enumerate((tmp_path, tmp_path / "next")):
         folder.mkdir(exist_ok=True)
         for axis in AXES:
             cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * v)
             coefficient_file.save(folder / f"imu-{axis}.yaml", cset)
-    daemon = Daemon(load_config(write_config(tmp_path, "leak")))
+    daemon = Daemon(load_config(write_config(tmp_path, "leak")), compiled=compiled)
     daemon.load_sets()
     daemon._axes_plan(daemon.sets)
     old = [weakref.ref(ax.corrector) for ax in daemon.sets.axes]

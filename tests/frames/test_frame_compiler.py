@@ -17,7 +17,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canical.frames.compiler import CantoolsCodec, CompiledCodec, codec_for, compile_codec
+from canical.frames.compiler import CantoolsCodec, CompiledCodec, codec_for, compile_codec, encode_lines
 
 DBC = Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc"
 SCALES = (1, 2, 3, 10, -1, 0.1, 0.01, 0.001, 0.5, 0.25, 0.125, -0.5, 1e-4, 0.03125, 7.5)
@@ -44,13 +44,20 @@ def bits_of(order: str, start: int, length: int) -> set[tuple[int, int]]:
 @st.composite
 def layouts(draw) -> str:
     """DBC text of one message with non-overlapping signals of any order, sign, scale, offset."""
-    nbytes = draw(st.sampled_from((1, 2, 4, 6, 8, 8, 8, 12, 16, 64)))
+    nbytes = draw(st.sampled_from((1, 2, 4, 6, 7, 8, 8, 8, 12, 16, 64)))
     used: set[tuple[int, int]] = set()
     lines = []
+    # Little-endian frames (read through struct) as often as mixed ones, and signals that fill
+    # whole aligned bytes of a struct width (8, 16, 32, 64 bits) among the others.
+    orders = draw(st.sampled_from((("le", "be"), ("le",))))
     for i in range(draw(st.integers(1, 12))):
-        order = draw(st.sampled_from(("le", "be")))
-        length = draw(st.integers(1, min(64, 8 * nbytes)))
-        if order == "le":
+        order = draw(st.sampled_from(orders))
+        aligned = order == "le" and draw(st.booleans())
+        widths = [w for w in (8, 16, 32, 64) if w <= 8 * nbytes]
+        length = draw(st.sampled_from(widths)) if aligned else draw(st.integers(1, min(64, 8 * nbytes)))
+        if aligned:
+            start = 8 * draw(st.integers(0, nbytes - length // 8))
+        elif order == "le":
             start = draw(st.integers(0, 8 * nbytes - length))
         else:
             network = draw(st.integers(0, 8 * nbytes - length))
@@ -113,6 +120,32 @@ def test_random_layouts_decode_and_encode_as_cantools(text: str, data) -> None:
     assert all(same(g, w) for g, w in zip(got, want, strict=True)), (compiled.source, got, want)
     encode_both(compiled, reference, list(want))  # decoded values encode back as cantools does
     encode_both(compiled, reference, values_for(data.draw, message))
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=layouts(), data=st.data())
+def test_inlined_encode_as_cantools(text: str, data) -> None:
+    """encode_lines, written into a function of the caller's, encodes as cantools: values
+    promised to be small non-negative ints are packed as they are where their signal holds
+    them, the rest rounded and checked; a literal False is left out."""
+    message = message_of(text)
+    values = values_for(data.draw, message)
+    exprs, bounds = [], []
+    for i, v in enumerate(values):
+        promise = isinstance(v, int) and v >= 0 and data.draw(st.booleans())
+        bounds.append(v + data.draw(st.sampled_from((0, 1, 1 << 20))) if promise else None)
+        exprs.append("False" if v is False and data.draw(st.booleans()) else f"v{i}")
+    lines, namespace, payload = encode_lines(message, exprs, bounds)
+    args = ", ".join(f"v{i}" for i in range(len(values)))
+    source = "\n".join([f"def encode({args}):", *lines, f"    return {payload}"]) + "\n"
+    exec(compile(source, "<inlined encode>", "exec"), namespace)
+    try:
+        expected = CantoolsCodec(message).encode(values)
+    except (OverflowError, ValueError) as exc:
+        with pytest.raises(type(exc)):
+            namespace["encode"](*values)
+        return
+    assert namespace["encode"](*values) == expected, source
 
 
 @pytest.mark.parametrize("name", ["IMU_RAW", "IMU_AUX", "IMU_RATE", "CANICAL_RATE", "TABLE_REF"])

@@ -1,7 +1,10 @@
 """The compiled per-axis correction against the reference, on random sets, terms and streams.
 
 Bit for bit against ``Corrector.correct_one`` (same operations in the same order), every
-term kind the compiler handles included, stateful ones over whole streams; against the block
+term kind included, stateful ones (direction, slope; a channel's lag, derivative, direction)
+over whole streams, also when the stream passes between the compiled function, a function
+compiled again from the same corrector (a reload that keeps the set) and ``correct_one``;
+against the block
 path ``Corrector.correct`` exactly where no warm-up term is involved and within 1e-12
 relative where one is (``numpy.exp`` and ``math.exp`` may differ in the last bit).
 """
@@ -38,10 +41,12 @@ def terms(draw) -> dict:
     if kind == "channel":
         term["channel"] = draw(st.sampled_from(INPUTS))
         term["reference"] = draw(finite)
-    if feature in ("warmup", "slope"):
+    if feature in ("warmup", "slope", "lag", "derivative"):
         term["tau_s"] = draw(st.floats(0.01, 500.0))
-    if feature == "sign":
+    if feature in ("sign", "gated"):
         term["threshold_raw"] = draw(st.floats(0.5, 500.0))
+    if kind == "channel" and feature == "direction":
+        term["threshold_raw"] = draw(st.floats(0.01, 50.0))  # in the channel's own units
     return term
 
 
@@ -87,6 +92,24 @@ def test_compiled_equals_reference_bit_for_bit(cset: CoefficientSet, stream) -> 
         assert got[1] == want[1]
         assert bits(got[0]) == bits(want[0]) or (math.isnan(got[0]) and math.isnan(want[0])), (
             compiled.source, raw, inputs, got, want)  # type: ignore[attr-defined]
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cset=piecewise_sets(), stream=streams(), data=st.data())
+def test_state_carries_across_functions_and_reloads(cset: CoefficientSet, stream, data) -> None:
+    """One stream, each sample taken by the compiled function, by one compiled again from the
+    same corrector (a reload that keeps the set) or by ``correct_one``: the state is the
+    corrector's, so the rates are those of one reference corrector fed the whole stream."""
+    reference, shared = Corrector(cset), Corrector(cset)
+    functions = [compile_corrector(shared)]
+    for raw, inputs in stream:
+        how = data.draw(st.sampled_from(("compiled", "recompiled", "reference")))
+        if how == "recompiled":
+            functions.append(compile_corrector(shared))
+        correct = shared.correct_one if how == "reference" else functions[-1]
+        want, got = reference.correct_one(raw, inputs), correct(raw, inputs)  # type: ignore[misc]
+        assert got[1] == want[1]
+        assert bits(got[0]) == bits(want[0]) or (math.isnan(got[0]) and math.isnan(want[0])), (how, raw)
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -144,17 +167,23 @@ def test_unsorted_segment_points_are_left_to_the_reference() -> None:
     assert compile_corrector(corrector) is None
 
 
-@pytest.mark.parametrize("feature", STATEFUL_CHANNEL)
-def test_stateful_channel_terms_are_left_to_the_reference(feature: str) -> None:
-    """Lag, derivative and direction of a channel (state kept per stream) stay on correct_one,
-    beside a term that would compile: the daemon then corrects that axis with the reference."""
+@pytest.mark.parametrize("feature", [*STATEFUL_CHANNEL, "gated"])
+def test_channel_terms_with_state_or_gate_are_compiled(feature: str) -> None:
+    """Lag, derivative and direction of a channel (state kept per stream) and the rate gate are
+    compiled, beside a stateless term: the daemon no longer falls back to correct_one for them."""
     model = {"kind": "segmented-linear", "knots_raw": [0.0], "segment_points_dps": [0.0], "scale": 1000.0,
              "coefficients": [[0.0, 100.0], [0.0, 110.0]], "smoothness": 0, "span_raw": [-900.0, 900.0],
              "out_of_span": "linear-extrapolation"}
-    stateful = {"kind": "channel", "channel": "temp_c", "feature": feature, "form": "bias",
-                "coefficient": 0.5, "reference": 25.0, "tau_s": 2.0, "threshold_raw": 0.5}
+    term = {"kind": "channel", "channel": "temp_c", "feature": feature, "form": "scale",
+            "coefficient": 0.01, "reference": 25.0, "tau_s": 2.0, "threshold_raw": 0.5}
     offset = {"kind": "channel", "channel": "temp_c", "feature": "offset", "form": "bias", "coefficient": 0.1,
               "reference": 25.0}
-    corrector = Corrector(CoefficientSet("s", "x", 0.0, model, (offset, stateful)))
-    assert why_not(corrector) == f"term channel/{feature} not compiled"
-    assert compile_corrector(corrector) is None
+    cset = CoefficientSet("s", "x", 0.0, model, (offset, term))
+    reference, corrector = Corrector(cset), Corrector(cset)
+    assert why_not(corrector) is None
+    compiled = compile_corrector(corrector)
+    assert compiled is not None
+    for i in range(200):  # heating then cooling, rates through the knee
+        inputs = {"temp_c": 25.0 + 5.0 * math.sin(i / 30.0), "time_s": 0.1 * i}
+        raw = 800.0 * math.sin(i / 7.0)
+        assert compiled(raw, inputs) == reference.correct_one(raw, inputs)
