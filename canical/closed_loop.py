@@ -475,7 +475,9 @@ def run_loop(
                     "paired_alpha": CONFOUND_ALPHA,
                     "held_out_rms_before_dps": current[0],
                     "resolved_by_user": chosen.name if chosen else None,
-                    "recommendation": recommend(best, twins[0]),
+                    # the pair across families first: separating those needs a different session
+                    "recommendation": recommend(best, next((c for c in twins if c.kind != best.kind),
+                                                           twins[0])),
                 }
             )
             # Shadows explain a part of the same residual: accepting one later would be a guess too.
