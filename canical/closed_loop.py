@@ -62,6 +62,8 @@ FOLDS = 5
 PRUNE_TOLERANCE = 0.02
 # One-sided level at which one explanation predicts the held-out plateaus better than another.
 CONFOUND_ALPHA = 0.01
+# At most this many choices of segment points for a new size, each on blocks corrected at the last.
+KNOT_PASSES = 4
 
 
 @dataclass(frozen=True)
@@ -366,15 +368,12 @@ def reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
     return resized
 
 
-KNOT_PASSES = 4
-
-
 def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float) -> Structure | None:
     """Re-choose segment points for a new base size, on blocks corrected by the terms.
 
     The terms' coefficients were fitted with the old size: when that was too small
     they carry some of its misfit, and segment points chosen on blocks corrected by
-    them can be far off (seen: held-out error 80× the noise). So the points are
+    them can be far off (seen: held-out error 80× a model told the effect's). So the points are
     chosen again on blocks corrected by the fit at the new size, until they settle.
     """
     current = s
