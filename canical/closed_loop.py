@@ -626,7 +626,13 @@ def _confounded_with(
         twins.remove(level)
         shadows.append(best)
         best = level
-    for twin in [c for c in twins if _nests(c, best)]:
+        loss_level = scorer.plateau_loss(alone[level.name])  # the twins judged against the one now first
+        for c in list(twins):
+            evidence[c.name]["p_best_better"] = better_p(loss_level, scorer.plateau_loss(alone[c.name]))
+            if evidence[c.name]["p_best_better"] < CONFOUND_ALPHA:
+                twins.remove(c)
+                shadows.append(c)
+    for twin in [c for c in twins if _nests(c, best) or any(_nests(c, o) for o in twins)]:
         twins.remove(twin)
         shadows.append(twin)
     return best, twins, shadows, evidence

@@ -113,6 +113,13 @@ def test_prefer_resolves_a_confounded_pair():
     assert [e["name"] for e in result.report["effects"]] == ["channel:temp_c"]
     assert result.report["confounded"][0]["resolved_by_user"] == "channel:temp_c"
     assert "random order" in result.report["confounded"][0]["recommendation"]
+    # The report says on what evidence: the paired test's p for each twin, all above its level.
+    from canical.report_markdown import render
+
+    group = result.report["confounded"][0]
+    assert set(group["paired_p"]) == set(group["candidates"][1:])
+    assert min(group["paired_p"].values()) >= group["paired_alpha"]
+    assert "paired test, one-sided, level 0.01" in render(result.report, [])
 
 
 def effect_session():
