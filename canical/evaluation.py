@@ -122,6 +122,8 @@ class EffectScore:
     correct: bool
     unexplained_ratio: float = 0.0  # held-out rms after the loop / the session's noise floor
     unexplained: bool = False
+    # Per reported confound: the paired test's p that its first candidate predicts better than each twin.
+    paired_p: tuple[dict[str, float], ...] = ()
 
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -> EffectScore:
@@ -158,7 +160,7 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     )
     left = result.report["unexplained"]
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
-                       left["ratio"], left["unexplained"])
+                       left["ratio"], left["unexplained"], tuple(c["paired_p"] for c in loop.confounded))
 
 
 def _oracle_terms(scenario, blocks):

@@ -46,6 +46,16 @@ class ChannelSamples:
     cache: dict[Any, np.ndarray] = field(default_factory=dict, compare=False)
     dv: np.ndarray | None = None  # raw − V0 per sample, for rate-gated transforms
 
+    def _make_room(self) -> None:
+        """τ and knee searches visit many values: keep memory bounded by dropping theirs only.
+
+        Clearing everything also dropped the direction states, which are computed sample by
+        sample in Python and cost far more to redo than a lag or a gate.
+        """
+        if len(self.cache) > 512:
+            for key in [k for k in self.cache if k[0] in ("lag", "gated")]:
+                del self.cache[key]
+
     def means(self, values: np.ndarray) -> np.ndarray:
         csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
         return (csum[self.stops] - csum[self.starts]) / (self.stops - self.starts)
@@ -54,8 +64,7 @@ class ChannelSamples:
         """Block means of the channel's lag y with time constant τ (all blocks)."""
         key = ("lag", channel, float(tau_s))
         if key not in self.cache:
-            if len(self.cache) > 512:  # τ searches visit many values; keep memory bounded
-                self.cache.clear()
+            self._make_room()
             self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
         return self.cache[key]
 
@@ -65,8 +74,7 @@ class ChannelSamples:
             raise ValueError("these samples were kept without their raw output")
         key = ("gated", channel, float(reference), float(knee_raw))
         if key not in self.cache:
-            if len(self.cache) > 512:
-                self.cache.clear()
+            self._make_room()
             self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
         return self.cache[key]
 

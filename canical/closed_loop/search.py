@@ -15,10 +15,16 @@ candidate, so more transforms make each one harder to accept. A candidate is acc
 The winner's terms are pruned (a column stays only if leaving it out costs held-
 out error), added, and the model is refitted jointly; rounds repeat until
 nothing passes. When another candidate explains the same residual — it passes
-alone, yet neither adds anything once the other is in — the two are reported as
+alone, neither adds anything once the other is in, and the held-out plateaus
+cannot tell which of the two predicts better — the two are reported as
 *confounded*, with the session that would separate them, and neither is added
 unless the user names one with ``prefer``: a guess would be wrong in the field.
-A channel's lag that ties with its level is the level (τ → 0), not a confound.
+"Cannot tell" is a paired test over the held-out plateaus (Diebold–Mariano on
+squared errors, plateaus in time order), at ``CONFOUND_ALPHA``; all candidates
+are compared with every base size any of them needed, so that none loses to
+another only because its own size search stopped short.
+A channel's lag that ties with its level is the level (τ → 0), not a confound;
+a warm-up that ties with a linear drift is the drift (τ → ∞).
 What the loop leaves unexplained is judged afterwards (:mod:`canical.closed_loop.unexplained`).
 """
 
@@ -54,6 +60,10 @@ MIN_GAIN = 0.10
 ALPHA = 1e-3
 FOLDS = 5
 PRUNE_TOLERANCE = 0.02
+# One-sided level at which one explanation predicts the held-out plateaus better than another.
+CONFOUND_ALPHA = 0.01
+# At most this many choices of segment points for a new size, each on blocks corrected at the last.
+KNOT_PASSES = 4
 
 
 @dataclass(frozen=True)
@@ -199,6 +209,7 @@ class Scorer:
     folds: list[np.ndarray]
     duration_s: float
     cache: dict[Any, tuple[float, float, int]] = field(default_factory=dict)
+    losses: dict[Any, np.ndarray] = field(default_factory=dict)
 
     def score(self, s: Structure) -> tuple[float, float, int]:
         """(held-out rms, training RSS of plateau-mean residuals, number of coefficients)."""
@@ -209,11 +220,49 @@ class Scorer:
             resid = self.blocks.points.rate - predict(fit, self.blocks)
             n_par = (len(s.knots) + 1) * (s.spec.order + 1) + len(s.terms)
             self.cache[key] = (rms(err), plateau_rss(self.blocks, resid), n_par)
+            self.losses[key] = plateau_losses(self.blocks, self.folds, err)
         return self.cache[key]
+
+    def plateau_loss(self, s: Structure) -> np.ndarray:
+        """Sum of squared held-out block errors of each held-out plateau, in time order."""
+        self.score(s)
+        return self.losses[(s.spec, tuple(s.knots), s.terms)]
 
     @property
     def n_plateaus(self) -> int:
         return int(np.unique(self.blocks.plateau).size)
+
+
+def plateau_losses(blocks: Blocks, folds: list[np.ndarray], err: np.ndarray) -> np.ndarray:
+    """Per held-out plateau, the sum of its blocks' squared held-out errors (plateau order = time).
+
+    Their total over plateaus is what the held-out rms is made of, so a paired test
+    on them compares exactly what the loop ranks candidates by.
+    """
+    held = np.any(folds, axis=0)
+    _, idx = np.unique(blocks.plateau[held], return_inverse=True)
+    return np.bincount(idx, err[held] ** 2)
+
+
+def better_p(a: np.ndarray, b: np.ndarray) -> float:
+    """One-sided p-value that losses ``a`` are smaller than ``b`` on average (paired by plateau).
+
+    Diebold–Mariano: the mean loss difference over its standard error, the variance
+    taken with a Bartlett (Newey–West) window over neighbouring plateaus, because a
+    slow effect leaves errors of plateaus close in time alike.
+    """
+    d = np.asarray(b, dtype=float) - np.asarray(a, dtype=float)
+    n = d.size
+    if n < 3:
+        return 1.0
+    c = d - d.mean()
+    lags = int(np.floor(n ** (1.0 / 3.0)))
+    var = float(c @ c) / n
+    for k in range(1, lags + 1):
+        var += 2.0 * (1.0 - k / (lags + 1)) * float(c[k:] @ c[:-k]) / n
+    if var <= 0.0:
+        return 0.0 if d.mean() > 0 else 1.0
+    return float(stats.t.sf(d.mean() / np.sqrt(var / n), n - 1))
 
 
 def plateau_rss(blocks: Blocks, resid: np.ndarray) -> float:
@@ -320,16 +369,28 @@ def reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
 
 
 def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float) -> Structure | None:
-    """Re-choose segment points for a new base size, on blocks corrected by the current terms."""
-    corrected = corrected_points(blocks, fit_structure(blocks, s, duration_s))
-    try:
-        fitted = fit_model(corrected, spec)
-    except (CanicalError, np.linalg.LinAlgError):  # a size the data cannot support: no candidate
-        return None
-    if fitted.spec.n_segments != spec.n_segments:
-        return None
-    assert isinstance(fitted.model, PiecewisePoly)  # the loop's base is segmented-inverse
-    return replace(s, spec=spec, knots=fitted.model.knots)
+    """Re-choose segment points for a new base size, on blocks corrected by the terms.
+
+    The terms' coefficients were fitted with the old size: when that was too small
+    they carry some of its misfit, and segment points chosen on blocks corrected by
+    them can be far off (seen: held-out error 80× a model told the effect's). So the points are
+    chosen again on blocks corrected by the fit at the new size, until they settle.
+    """
+    current = s
+    for _ in range(KNOT_PASSES if s.terms else 1):
+        corrected = corrected_points(blocks, fit_structure(blocks, current, duration_s))
+        try:
+            fitted = fit_model(corrected, spec)
+        except (CanicalError, np.linalg.LinAlgError):  # a size the data cannot support: no candidate
+            return None if current is s else current
+        if fitted.spec.n_segments != spec.n_segments:
+            return None if current is s else current
+        assert isinstance(fitted.model, PiecewisePoly)  # the loop's base is segmented-inverse
+        knots = np.asarray(fitted.model.knots, dtype=float)
+        if current is not s and np.array_equal(knots, current.knots):
+            break
+        current = replace(s, spec=spec, knots=knots)
+    return current
 
 
 def run_loop(
@@ -399,7 +460,7 @@ def run_loop(
             continue
         # Every candidate, not only those that passed at the current base size: with its
         # own best base size a candidate may turn out to explain the same residual.
-        best, twins, shadows = _confounded_with(scorer, s, best, pool, min_gain)
+        best, twins, shadows, evidence = _confounded_with(scorer, s, best, pool, min_gain)
         if twins:
             chosen = next((c for c in (best, *twins) if c.name in prefer), None)
             group = [best, *twins]
@@ -407,12 +468,16 @@ def run_loop(
                 {
                     "candidates": [c.name for c in group],
                     "weaker_alternatives": [c.name for c in shadows],
-                    "held_out_rms_dps": {
-                        c.name: scorer.score(replace(s, terms=s.terms + c.terms))[0] for c in group
-                    },
+                    # each with the base size it deserves, as compared
+                    "held_out_rms_dps": {c.name: evidence[c.name]["held_out_rms_dps"] for c in group},
+                    # one-sided paired p that the first predicts held-out plateaus better than each
+                    "paired_p": {c.name: evidence[c.name]["p_best_better"] for c in twins},
+                    "paired_alpha": CONFOUND_ALPHA,
                     "held_out_rms_before_dps": current[0],
                     "resolved_by_user": chosen.name if chosen else None,
-                    "recommendation": recommend(best, twins[0]),
+                    # the pair across families first: separating those needs a different session
+                    "recommendation": recommend(best, next((c for c in twins if c.kind != best.kind),
+                                                           twins[0])),
                 }
             )
             # Shadows explain a part of the same residual: accepting one later would be a guess too.
@@ -489,56 +554,97 @@ def run_loop(
 
 def _confounded_with(
     scorer: Scorer, s: Structure, best: Candidate, pool: list[Candidate], min_gain: float
-) -> tuple[Candidate, list[Candidate], list[Candidate]]:
-    """The best explanation and the candidates that explain the same residual: (best, twins, shadows).
+) -> tuple[Candidate, list[Candidate], list[Candidate], dict[str, dict[str, float]]]:
+    """The best explanation and the candidates that explain the same residual:
+    (best, twins, shadows, evidence per candidate).
 
     Each explanation is scored with the base size it deserves (an under-sized base
-    leaves misfit that would blur the comparison), and the best is chosen again on
-    that footing. Another candidate explains the same residual when adding it on
-    top of the best gains less than ``min_gain``. It is a *twin* when, on its own,
-    it is as good as the best within ``min_gain`` and the best adds no such gain on
-    top of it either — the data cannot tell them apart — and a *shadow* otherwise.
+    leaves misfit that would blur the comparison): its own size chosen again with it
+    in, or any size another explanation needed, whichever predicts held-out plateaus
+    better — otherwise one candidate can lose only because its coefficient, fitted
+    with a base model too small, hid the misfit that the size search needed to see.
+    The best is chosen again on that footing. Another candidate explains the same
+    residual when adding it on top of the best does not gain both ``min_gain`` and
+    a significant paired improvement (the loop's own bar for a second effect). It is
+    a *twin* — the data cannot tell them apart — when the best neither predicts the
+    held-out plateaus significantly better than it alone nor adds significantly on
+    top of it; a *shadow* otherwise. Significance is :func:`better_p` at
+    ``CONFOUND_ALPHA``: no fixed ratio of errors, so a pair is called confounded
+    exactly when the plateau-to-plateau scatter of held-out errors allows either.
     """
+    duration = scorer.duration_s
 
-    def grown_rms(terms: tuple[Term, ...]) -> float:
-        grown = reselect_size(scorer, replace(s, terms=s.terms + terms), scorer.duration_s)
-        return scorer.score(grown)[0]
+    def with_terms(terms: tuple[Term, ...]) -> Structure:
+        return replace(s, terms=s.terms + terms)
 
-    r_now = scorer.score(s)[0]
+    def held_rms(st: Structure) -> float:
+        return scorer.score(st)[0]
+
+    r_now = held_rms(s)
     # A candidate that gains nothing at the current size is not re-scored with its own
     # size (that costs a model selection each); one that gains a little might still tie.
-    hopeful = [c for c in pool if c is best
-               or scorer.score(replace(s, terms=s.terms + c.terms))[0] < r_now * (1 - min_gain / 2)]
-    alone = {c.name: grown_rms(c.terms) for c in hopeful}
-    useful = [c for c in hopeful if alone[c.name] < r_now * (1 - min_gain)] or [best]
-    best = min(useful, key=lambda c: alone.get(c.name, r_now))
-    r_best = alone.get(best.name, r_now)
+    hopeful = [c for c in pool if c is best or held_rms(with_terms(c.terms)) < r_now * (1 - min_gain / 2)]
+    own = {c.name: reselect_size(scorer, with_terms(c.terms), duration) for c in hopeful}
+    sizes = list(dict.fromkeys(st.spec for st in own.values()))
+
+    def footing(terms: tuple[Term, ...], first: Structure | None = None) -> Structure:
+        """The terms on the best of their own size and every size a hopeful candidate needed."""
+        options = [first or reselect_size(scorer, with_terms(terms), duration)]
+        for spec in sizes:
+            if spec != options[0].spec:
+                other = _with_spec(scorer.blocks, with_terms(terms), spec, duration)
+                options += [other] if other is not None else []
+        return min(options, key=held_rms)
+
+    alone = {c.name: footing(c.terms, own[c.name]) for c in hopeful}
+    useful = [c for c in hopeful if held_rms(alone[c.name]) < r_now * (1 - min_gain)] or [best]
+    best = min(useful, key=lambda c: held_rms(alone[c.name]) if c.name in alone else r_now)
+    best_s = alone.get(best.name, with_terms(best.terms))
+    loss_best = scorer.plateau_loss(best_s)
+    evidence = {best.name: {"held_out_rms_dps": held_rms(best_s), "p_best_better": 0.5}}
+
+    def adds(both: Structure, base: Structure) -> bool:
+        """Does the pair predict clearly and significantly better than ``base`` alone?"""
+        return (held_rms(both) < held_rms(base) * (1 - min_gain)
+                and better_p(scorer.plateau_loss(both), scorer.plateau_loss(base)) < CONFOUND_ALPHA)
+
     twins: list[Candidate] = []
     shadows: list[Candidate] = []
     for other in useful:
         if other is best:
             continue
-        r_other = alone[other.name]
-        r_both = grown_rms(best.terms + other.terms)
-        if r_both >= r_best * (1 - min_gain):
-            is_twin = r_other <= r_best * (1 + min_gain) and r_both >= r_other * (1 - min_gain)
-            (twins if is_twin else shadows).append(other)
-    # A channel's level is its lag with τ → 0: when the two tie, the data do not need
-    # the lag's time constant, and the simpler one is the answer (not a confound).
+        other_s = alone[other.name]
+        both = footing(best.terms + other.terms)
+        if adds(both, best_s):  # it explains something more: a later round judges it on its own
+            continue
+        p_best = better_p(loss_best, scorer.plateau_loss(other_s))
+        evidence[other.name] = {"held_out_rms_dps": held_rms(other_s), "p_best_better": p_best}
+        twin = p_best >= CONFOUND_ALPHA and not adds(both, other_s)
+        (twins if twin else shadows).append(other)
+    # A channel's level is its lag with τ → 0 (a drift is a warm-up with τ → ∞): when the two
+    # tie, the data do not need the time constant, and the simpler one is the answer.
     level = next((c for c in twins if _nests(best, c)), None)
     if level is not None:
         twins.remove(level)
         shadows.append(best)
         best = level
-    for twin in [c for c in twins if _nests(c, best)]:
-        twins.remove(twin)
-        shadows.append(twin)
-    return best, twins, shadows
+        loss_level = scorer.plateau_loss(alone[level.name])  # the twins judged against the one now first
+        for c in list(twins):
+            evidence[c.name]["p_best_better"] = better_p(loss_level, scorer.plateau_loss(alone[c.name]))
+            if evidence[c.name]["p_best_better"] < CONFOUND_ALPHA:
+                twins.remove(c)
+                shadows.append(c)
+    for nested in [c for c in twins if _nests(c, best) or any(_nests(c, o) for o in twins)]:
+        twins.remove(nested)
+        shadows.append(nested)
+    return best, twins, shadows, evidence
 
 
 def _nests(general: Candidate, simple: Candidate) -> bool:
     """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
-    and its rate-gated form at knee → 0)."""
+    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞)."""
+    if general.name == "time:warm-up" and simple.name == "time:linear-drift":
+        return True
     generalises = general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
     return (general.kind == simple.kind == "channel" and general.channel == simple.channel
             and generalises and simple.name.startswith("channel:"))

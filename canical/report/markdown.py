@@ -110,6 +110,7 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
             lines += [
                 f"**Confounded:** {' and '.join(c['candidates'])} explain the same residual "
                 f"(held-out rms {c['held_out_rms_before_dps']:.4f} deg/s without either). "
+                + _paired(c)
                 + (
                     "Neither was added. "
                     if not c["resolved_by_user"]
@@ -135,6 +136,16 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
     if plots:
         lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     return "\n".join(lines)
+
+
+def _paired(c: dict) -> str:
+    """The paired test that found the held-out plateaus cannot tell the pair apart."""
+    ps = c.get("paired_p") or {}
+    if not ps:
+        return ""
+    ps_text = ", ".join(f"{name} p = {p:.2g}" for name, p in ps.items())
+    return (f"The held-out plateaus cannot tell {c['candidates'][0]} apart from the others "
+            f"(paired test, one-sided, level {c.get('paired_alpha', 0.01):g}: {ps_text}). ")
 
 
 def _unexplained(left: dict[str, Any] | None) -> list[str]:

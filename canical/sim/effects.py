@@ -43,6 +43,16 @@ class WarmupEffect:
 
 
 @dataclass(frozen=True)
+class DriftEffect:
+    """Bias growing linearly with time since power-on (ageing of a bias over one session)."""
+
+    dps_per_hour: float = 0.3
+
+    def errors(self, time_s, rate_dps, aux):
+        return self.dps_per_hour * np.asarray(time_s, dtype=float) / 3600.0, 0.0
+
+
+@dataclass(frozen=True)
 class SupplyEffect:
     """Bias and scale sensitivity to the supply voltage."""
 

@@ -66,6 +66,7 @@ V_BIAS = _t("channel", "offset", "bias", channel="supply_v", reference=5.0)
 V_SCALE = _t("channel", "offset", "scale", channel="supply_v", reference=5.0)
 WARM = _t("time", "warmup", "bias", tau_s=200.0)
 WARM_SCALE = _t("time", "warmup", "scale", tau_s=200.0)
+DRIFT = _t("time", "linear", "bias")
 DIR = _t("direction", "sign", "bias", threshold_raw=400.0)
 # Environments for effects in forms nobody listed.
 # A transient follows the true temperature's rate of change, not its readout noise:
@@ -133,6 +134,10 @@ SCENARIOS: tuple[Scenario, ...] = (
     Scenario("self-heating temperature = warm-up law (confounded)",
              (fx.TemperatureEffect(bias_dps_per_c=0.02),), {"temp_c": env.temperature_warmup()},
              confounded=("channel:temp_c", "time:warm-up"), oracle_terms=(T_BIAS,)),
+    # The ramp's separable neighbour: the same drift with temperature stepping in random order.
+    Scenario("linear drift 1 dps/h, chamber steps",
+             (fx.DriftEffect(1.0),), TEMP_STEPS,
+             expect=("time:linear-drift",), oracle_terms=(DRIFT,)),
     Scenario("monotonic temperature ramp (confounded with drift)",
              (fx.TemperatureEffect(bias_dps_per_c=0.01),), {"temp_c": env.temperature_ramp()},
              # the temperature side may be its level or its lag (on a ramp they differ only at
