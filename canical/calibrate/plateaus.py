@@ -368,8 +368,8 @@ def window_medians(
     n = t.size
     lo = np.minimum(lo, np.maximum(mid - min_rows, 0))
     hi = np.maximum(hi, np.minimum(mid + min_rows, n))
-    before = np.array([np.median(ref[a:b]) if b > a else np.nan for a, b in zip(lo, mid, strict=True)])
-    after = np.array([np.median(ref[a:b]) if b > a else np.nan for a, b in zip(mid, hi, strict=True)])
+    before = ranged_medians(ref, lo, mid)
+    after = ranged_medians(ref, mid, hi)
     # At the session's ends one side is empty: nothing is seen changing there.
     before = np.where(np.isnan(before), after, before)
     after = np.where(np.isnan(after), before, after)
@@ -377,6 +377,29 @@ def window_medians(
     rows_before = np.where(n_before > 0, n_before, n_after)
     rows_after = np.where(n_after > 0, n_after, n_before)
     return before, after, grid_t, rows_before, rows_after
+
+
+#: Elements per block of windows taken at once: bounds the memory of the vectorised medians.
+MEDIAN_BLOCK = 1 << 22
+
+
+def ranged_medians(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
+    """``np.median(x[a:b])`` for every pair, NaN where the range is empty.
+
+    The same values as one median per range, without a Python call per range: ranges of equal
+    length are medians along the rows of a strided view, in blocks of ``MEDIAN_BLOCK`` elements.
+    A long session has hundreds of thousands of windows but only a few distinct lengths.
+    """
+    out = np.full(starts.shape, np.nan)
+    lengths = stops - starts
+    for length in np.unique(lengths[lengths > 0]):
+        at = np.flatnonzero(lengths == length)
+        rows = np.lib.stride_tricks.sliding_window_view(x, int(length))
+        per_block = max(1, MEDIAN_BLOCK // int(length))
+        for k in range(0, at.size, per_block):
+            chunk = at[k:k + per_block]
+            out[chunk] = np.median(rows[starts[chunk]], axis=1)
+    return out
 
 
 def _exact_edges(ref: np.ndarray, stretches: list[tuple[int, int]]) -> list[tuple[int, int]]:

@@ -5,7 +5,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canical.calibrate.plateaus import detect_plateaus, plateau_means
+from canical.calibrate.plateaus import detect_plateaus, plateau_means, ranged_medians
 from canical.errors import CanicalError
 from canical.sim.rate_table import step_profile
 from canical.sim.table_recording import TableBehaviour, record_table
@@ -179,3 +179,15 @@ behaviours = st.builds(
 @given(behaviours, st.integers(0, 10_000))
 def test_every_plateau_found_and_no_ramp_row_used_on_any_table(behaviour, seed):
     _check_all_found(behaviour, seed=seed, latency_s=behaviour.ref_latency_s)
+
+
+@given(st.data())
+@settings(max_examples=200, deadline=None)
+def test_ranged_medians_equal_one_median_per_range(data) -> None:
+    """The vectorised window medians are exactly np.median of each range (NaN when empty)."""
+    n = data.draw(st.integers(1, 300))
+    x = np.asarray(data.draw(st.lists(st.floats(-1e3, 1e3, allow_nan=False), min_size=n, max_size=n)))
+    starts = np.asarray(data.draw(st.lists(st.integers(0, n), min_size=1, max_size=40)))
+    stops = np.asarray([data.draw(st.integers(0, n)) for _ in starts])
+    want = np.array([np.median(x[a:b]) if b > a else np.nan for a, b in zip(starts, stops, strict=True)])
+    assert np.array_equal(ranged_medians(x, starts, stops), want, equal_nan=True)
