@@ -95,8 +95,43 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
     return [f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")]
 
 
+#: Most segments whose lookup is written out as a tree of comparisons (more: ``bisect``).
+MAX_TREE_SEGMENTS = 16
+
+
+def _foldable(model: PiecewisePoly) -> bool:
+    """Whether the coefficients and segment points can be written into the source as literals (finite floats:
+    ``repr`` gives them back exactly; ``inf``/``nan`` have no literal)."""
+    return (len(model._coeffs_list) <= MAX_TREE_SEGMENTS
+            and all(type(c) is float and math.isfinite(c) for row in model._coeffs_list for c in row)
+            and all(type(k) is float and math.isfinite(k) for k in model._knots_list))
+
+
+def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, depth: int) -> list[str]:
+    """Segments ``a..b-1`` as nested comparisons, each leaf the Horner line with its segment's
+    coefficients as constants. Segment ``i`` is ``knots[i-1] <= x < knots[i]``: the reference's
+    segment (the first knot ``x`` is below), for sorted knots the same as ``bisect_right``."""
+    pad = "    " * depth
+    if b - a == 1:
+        c = [f"({v!r})" for v in rows[a]]
+        horner = c[-1]
+        for k in range(len(c) - 2, -1, -1):
+            horner = f"({horner}) * u + {c[k]}"
+        return [f"{pad}acc = {horner}"]
+    mid = (a + b) // 2
+    return [f"{pad}if x < {knots[mid - 1]!r}:", *_segment_tree(knots, rows, a, mid, depth + 1),
+            f"{pad}else:", *_segment_tree(knots, rows, mid, b, depth + 1)]
+
+
 def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -> list[str]:
-    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order, into ``rate, out``."""
+    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order, into ``rate, out``.
+
+    Where the coefficients fold (:func:`_foldable`), the segment is found by a tree of
+    comparisons with the segment points as constants and each segment's Horner line has its
+    coefficients written in: no ``bisect`` call, no tuple to index and unpack. The same
+    operations in the same order, so the same bits. Only outside the span (rare: the
+    extrapolation needs the slope) does the code look the row up as before.
+    """
     lo, hi = model.span
     m = len(model._coeffs_list[0]) - 1
     horner = f"c{m}"
@@ -104,10 +139,19 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
         horner = f"({horner}) * u + c{k}"
     slope = ["        slope = 0.0"] + [f"        slope = slope * u + {k} * c{k}" for k in range(m, 0, -1)]
     row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model._knots_list else f"{tag}COEFFS[0]"
+    unpack = f"{''.join(f'c{k}, ' for k in range(m + 1))}= {row}"
+    head = [f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
+            f"    u = x / {model.scale!r}"]
+    if _foldable(model):
+        rows = model._coeffs_list
+        return [*head, *_segment_tree(model._knots_list, rows, 0, len(rows), 1),
+                f"    if x == {dv}:", f"        {rate}, {out} = acc, False", "    else:",
+                f"        {unpack}", *slope,
+                f"        {rate}, {out} = acc + slope / {model.scale!r} * ({dv} - x), True"]
     return [
-        f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
-        f"    {''.join(f'c{k}, ' for k in range(m + 1))}= {row}",
-        f"    u = x / {model.scale!r}",
+        head[0],
+        f"    {unpack}",
+        head[1],
         f"    acc = {horner}",
         f"    if x == {dv}:",
         f"        {rate}, {out} = acc, False",
