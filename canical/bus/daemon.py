@@ -536,7 +536,9 @@ class Daemon:
         values = [*rates, "o0", "o1", "o2", *flags, "stale", "gap", repr(sets.tag), "counter"]
         bounds = [None, None, None, *[1] * 8, sets.tag, 0xF]
         try:
-            body, names, payload = encode_lines(self._rate_message, values, bounds)
+            # The rates are saturated to their signals' ranges above: no range check needed.
+            body, names, payload = encode_lines(self._rate_message, values, bounds,
+                                                spans=[*self.rate.limits, *[None] * 10])
             lines += body
             ns.update(names)
         except NotCompilable:  # cantools encodes this frame (logged at start)

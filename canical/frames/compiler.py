@@ -22,6 +22,7 @@ over cantools, and :func:`codec_for` logs which and why.
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -231,6 +232,18 @@ def _to_raw(conv: BaseConversion, v: str, r: str, tmp: str = "") -> list[str]:
     return [f"    {r} = round(({v}{off}) / {conv.scale!r})"]
 
 
+def _fits(conv: BaseConversion, span: tuple[float, float], bias: int, n: int) -> bool:
+    """Whether every value in ``span`` gives a raw integer the signal's ``n`` bits hold: the
+    statements of :func:`_to_raw`, run on both ends (rounding is monotonic in the value)."""
+    namespace: dict[str, Any] = {}
+    source = "\n".join(["def raw(v):", *_to_raw(conv, "(v)", "r"), "    return r"]) + "\n"
+    exec(compile(source, "<raw of an end>", "exec"), namespace)
+    try:
+        return all(math.isfinite(end) and not (namespace["raw"](end) + bias) >> n for end in span)
+    except (OverflowError, ValueError):  # an end whose raw value is not even an integer
+        return False
+
+
 def _pack_word(parts: dict[str, list[str]], nbytes: int) -> str:
     """The payload from the OR of shifted fields, per byte order (the integer form)."""
     le = " | ".join(parts["little_endian"]) or "0"
@@ -242,7 +255,8 @@ def _pack_word(parts: dict[str, list[str]], nbytes: int) -> str:
 
 
 def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int | None],
-                 tag: str = "enc_") -> tuple[list[str], dict[str, Any], str]:
+                 tag: str = "enc_", spans: Sequence[tuple[float, float] | None] | None = None,
+                 ) -> tuple[list[str], dict[str, Any], str]:
     """Encoding ``message`` written into a caller's generated function: statements (one level
     of indentation), the names they need, and the payload's expression.
 
@@ -251,7 +265,11 @@ def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int |
     an unscaled signal that holds it is packed as it is, with no rounding and no check (the
     flags, counters and tags of a frame the caller builds). Every other value goes the exact
     way of ``encode`` (round, range check, ``OverflowError`` as cantools). A value ``False``
-    or ``0`` adds nothing and is left out. :class:`NotCompilable` as :func:`compile_codec`.
+    or ``0`` adds nothing and is left out. ``spans[i]``, where given, is the caller's promise
+    that value ``i`` is a finite number from ``lo`` to ``hi`` (a rate it has saturated): it is
+    rounded as always, and its range check is left out when both ends' raw values fit, since
+    the rounding is monotonic in the value and so every value between fits too.
+    :class:`NotCompilable` as :func:`compile_codec`.
     """
     reason = _why_not(message)
     if reason is not None:
@@ -272,8 +290,11 @@ def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int |
         else:
             r = f"{tag}r{i}"
             lines += _to_raw(conv, f"({values[i]})", r, tmp=tag)
-            bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
-            checks.append(f"    if ({r}{bias}) >> {n}: {tag}overflow({sig.name!r}, {r})")
+            bias = 1 << (n - 1) if sig.is_signed else 0
+            span = spans[i] if spans is not None else None
+            if span is None or not _fits(conv, span, bias, n):
+                checks.append(f"    if ({r} + {bias:#x}) >> {n}: {tag}overflow({sig.name!r}, {r})" if bias
+                              else f"    if {r} >> {n}: {tag}overflow({sig.name!r}, {r})")
         raws.append(r)
         if r in ("False", "0"):
             continue

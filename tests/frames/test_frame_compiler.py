@@ -148,6 +148,51 @@ def test_inlined_encode_as_cantools(text: str, data) -> None:
     assert namespace["encode"](*values) == expected, source
 
 
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=layouts(), data=st.data())
+def test_inlined_encode_with_spans_as_cantools(text: str, data) -> None:
+    """A value promised to lie in a span (as the daemon's saturated rates) encodes as cantools:
+    the range check is left out only where the span's ends fit the signal's bits, so a value in
+    the span never overflows silently, and a span that does not fit keeps cantools' error."""
+    message = message_of(text)
+    values = [v if isinstance(v, float) else float(v) for v in values_for(data.draw, message)]
+    spans: list[tuple[float, float] | None] = []
+    inside = []
+    for v in values:
+        if not math.isfinite(v) or not data.draw(st.booleans()):
+            spans.append(None)
+            inside.append(v)
+            continue
+        lo = data.draw(st.floats(min(-1e6, v), v, allow_nan=False))
+        hi = data.draw(st.floats(v, max(1e6, v), allow_nan=False))
+        spans.append((lo, hi))
+        inside.append(data.draw(st.sampled_from((lo, v, hi))))
+    lines, namespace, payload = encode_lines(message, [f"v{i}" for i in range(len(values))],
+                                             [None] * len(values), spans=spans)
+    args = ", ".join(f"v{i}" for i in range(len(values)))
+    source = "\n".join([f"def encode({args}):", *lines, f"    return {payload}"]) + "\n"
+    exec(compile(source, "<inlined encode>", "exec"), namespace)
+    try:
+        expected = CantoolsCodec(message).encode(inside)
+    except (OverflowError, ValueError) as exc:
+        with pytest.raises(type(exc)):
+            namespace["encode"](*inside)
+        return
+    assert namespace["encode"](*inside) == expected, source
+
+
+def test_a_span_inside_the_rate_signal_drops_its_check() -> None:
+    """The daemon's case: CANICAL_RATE's rates saturated to their range need no range check,
+    and a span one step wider keeps it."""
+    message = cantools.database.load_file(str(DBC)).get_message_by_name("CANICAL_RATE")
+    n = len(message.signals)
+    exprs = [f"v{i}" for i in range(n)]
+    fits = encode_lines(message, exprs, [None] * n, spans=[(-327.68, 327.67)] * 3 + [None] * (n - 3))[0]
+    wide = encode_lines(message, exprs, [None] * n, spans=[(-327.69, 327.67)] * 3 + [None] * (n - 3))[0]
+    assert sum("overflow" in line for line in fits) == n - 3
+    assert sum("overflow" in line for line in wide) == n
+
+
 @pytest.mark.parametrize("name", ["IMU_RAW", "IMU_AUX", "IMU_RATE", "CANICAL_RATE", "TABLE_REF"])
 @settings(max_examples=300, deadline=None)
 @given(data=st.data())
