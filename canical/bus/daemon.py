@@ -50,7 +50,7 @@ from canical.bus.daemon_config import DaemonConfig
 from canical.bus.sd_notify import Notifier
 from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.frames.codec import RateEncoder, RawDecoder, StatusEncoder, load_dbc
-from canical.frames.compiler import NotCompilable, encode_lines
+from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not
 
@@ -141,6 +141,7 @@ class Daemon:
         db = load_dbc(config.dbc_path)
         raw_msg = db.get_message_by_name(config.raw_message)
         self.raw = RawDecoder(raw_msg, compiled=compiled)
+        self._raw_message = raw_msg
         self._rate_message = db.get_message_by_name(config.rate_message)
         self.rate = RateEncoder(self._rate_message, compiled=compiled)
         self.status = StatusEncoder(db.get_message_by_name(config.status_message))
@@ -494,7 +495,15 @@ class Daemon:
             lines += ["    try:", *(f"        t{i} = times[{name!r}]" for i, (name, _) in enumerate(awaited)),
                       "    except KeyError:  # an input the sets need has not come yet",
                       "        return general(data, stamp)"]
-        lines += [f"    {fields}, = decode(data)", "    stats.frames_in += 1"]
+        try:  # the frame's length is the raw message's (the receive loop checked it)
+            used = {at for at, _, _ in plan[2]} | {at for _, at in self._raw_inputs_at} | {self._counter_at}
+            body, names = decode_lines(self._raw_message, "data",
+                                       [f"s{i}" if i in used else None for i in range(len(self.raw.index))])
+            lines += body
+            ns.update(names)
+        except NotCompilable:  # cantools decodes this frame (logged at start)
+            lines.append(f"    {fields}, = decode(data)")
+        lines.append("    stats.frames_in += 1")
         for name, at in self._raw_inputs_at:
             lines += [f"    values[{name!r}] = s{at}", f"    times[{name!r}] = stamp"]
         if self._counter_at is None:

@@ -17,7 +17,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canical.frames.compiler import CantoolsCodec, CompiledCodec, codec_for, compile_codec, encode_lines
+from canical.frames.compiler import (
+    CantoolsCodec,
+    CompiledCodec,
+    codec_for,
+    compile_codec,
+    decode_lines,
+    encode_lines,
+)
 
 DBC = Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc"
 SCALES = (1, 2, 3, 10, -1, 0.1, 0.01, 0.001, 0.5, 0.25, 0.125, -0.5, 1e-4, 0.03125, 7.5)
@@ -146,6 +153,24 @@ def test_inlined_encode_as_cantools(text: str, data) -> None:
             namespace["encode"](*values)
         return
     assert namespace["encode"](*values) == expected, source
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=layouts(), data=st.data())
+def test_inlined_decode_as_cantools(text: str, data) -> None:
+    """decode_lines, written into a function of the caller's, gives cantools' values with
+    cantools' types and signs of zero, for a payload of the frame's length; a signal the
+    caller does not want (None) is left out, the others are as before."""
+    message = message_of(text)
+    payload = data.draw(st.binary(min_size=message.length, max_size=message.length))
+    outs = [f"s{i}" if data.draw(st.booleans()) else None for i in range(len(message.signals))]
+    wanted = [o for o in outs if o is not None]
+    lines, namespace = decode_lines(message, "data", outs)
+    source = "\n".join(["def decode(data):", *lines, f"    return ({''.join(o + ', ' for o in wanted)})"]) + "\n"
+    exec(compile(source, "<inlined decode>", "exec"), namespace)
+    got = namespace["decode"](payload)
+    want = [w for o, w in zip(outs, CantoolsCodec(message).decode(payload), strict=True) if o is not None]
+    assert len(got) == len(want) and all(same(g, w) for g, w in zip(got, want, strict=True)), source
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
