@@ -243,7 +243,8 @@ def decode_lines(message: Message, data: str, outs: Sequence[str | None],
     convs = [_numeric(sig.conversion) for sig in message.signals]
     if layout is not None:
         # A whole field that is an unscaled signal is unpacked straight into its output.
-        targets = [outs[j] or f"{tag}f{k}" if j >= 0 and isinstance(convs[j], IdentityConversion) else f"{tag}f{k}"
+        targets = [(outs[j] or f"{tag}f{k}") if j >= 0 and isinstance(convs[j], IdentityConversion)
+                   else f"{tag}f{k}"
                    for k, (j, _, _) in enumerate(layout.fields)]
         namespace[f"{tag}unpack"] = layout.struct.unpack
         lines.append(f"    {', '.join(targets)}, = {tag}unpack({data})")
@@ -272,7 +273,8 @@ def decode_lines(message: Message, data: str, outs: Sequence[str | None],
             if outs[i] is None:
                 continue
             n = sig.length
-            shift = sig.start if sig.byte_order == "little_endian" else 8 * nbytes - (_network_bit(sig.start) + n)
+            shift = (sig.start if sig.byte_order == "little_endian"
+                     else 8 * nbytes - (_network_bit(sig.start) + n))
             word = f"{tag}le" if sig.byte_order == "little_endian" else f"{tag}be"
             lines.append(f"    {r} = {f'({word} >> {shift})' if shift else word} & {(1 << n) - 1:#x}")
             if sig.is_signed:

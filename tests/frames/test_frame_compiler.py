@@ -166,7 +166,8 @@ def test_inlined_decode_as_cantools(text: str, data) -> None:
     outs = [f"s{i}" if data.draw(st.booleans()) else None for i in range(len(message.signals))]
     wanted = [o for o in outs if o is not None]
     lines, namespace = decode_lines(message, "data", outs)
-    source = "\n".join(["def decode(data):", *lines, f"    return ({''.join(o + ', ' for o in wanted)})"]) + "\n"
+    back = f"    return ({''.join(o + ', ' for o in wanted)})"
+    source = "\n".join(["def decode(data):", *lines, back]) + "\n"
     exec(compile(source, "<inlined decode>", "exec"), namespace)
     got = namespace["decode"](payload)
     want = [w for o, w in zip(outs, CantoolsCodec(message).decode(payload), strict=True) if o is not None]
