@@ -52,7 +52,7 @@ from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.frames.codec import RateEncoder, RawDecoder, StatusEncoder, load_dbc
 from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
 from canical.sets.corrector import Corrector
-from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not
+from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
 
 log = logging.getLogger("canical.serve")
 
@@ -519,6 +519,8 @@ class Daemon:
             lines.append(f"    i{i} = values[{name!r}]")
             held[name] = f"i{i}"
         # The raw frame's own inputs are as old as this frame: never stale (max_age_s > 0).
+        # Inputs of other frames change only when those arrive: terms of them alone are kept.
+        slow, state = frozenset(f"i{i}" for i in range(len(awaited))), []
         stale = " or ".join(f"stamp - t{i} > {age!r}" for i, (_, age) in enumerate(awaited)) or "False"
         lines.append(f"    stale = {stale}")
         flags = []  # the rate frame's axes in the sets' order, as _on_raw: rK, oK, flags[K]
@@ -528,7 +530,7 @@ class Daemon:
                 flags.append("True")
                 continue
             body, names = corrector_lines(ax.corrector, f"s{at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
-                                          held=held)
+                                          held=held, cached=slow, state=state)
             lines += body
             ns.update(names)
             flags.append("False")
@@ -557,9 +559,9 @@ class Daemon:
         lines += [f"        send(FRAME + payload{pad}, MSG_DONTWAIT)", "    except OSError as exc:",
                   "        send_failed(exc)  # counted as dropped, or the bus is lost",
                   "    stats.frames_out += 1"]
-        source = "\n".join(lines) + "\n"
+        source = "\n".join(with_state(lines[0], lines[1:], state, "on_raw")) + "\n"
         exec(compile(source, f"<raw frame, sets {sets.combined_id:08x}>", "exec"), ns)
-        handler = ns["on_raw"]
+        handler = ns["make"]()
         handler.source = source
         return handler
 

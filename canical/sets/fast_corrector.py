@@ -58,16 +58,39 @@ def why_not(corrector: Corrector) -> str | None:
     return None
 
 
-def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag: str) -> list[str]:
+def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag: str,
+                cached: frozenset[str] = frozenset(), state: list[str] | None = None) -> list[str]:
     """The reference's feature x and its share of the shift, for term ``j``.
 
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
     call is left out. Trackers get exactly the reference's arguments. The gate of a gated term
     is :func:`~canical.sets.terms.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``.
+
+    A stateless term whose input is a name in ``cached`` (an input that changes only when
+    its own frame arrives, not every raw frame) keeps the part that depends on the input
+    alone between calls: recomputed, by the same expression, only when the input is another
+    object than last time (:func:`_cache_lines`); ``state`` collects the names that keep it.
     """
     value = inputs(term.input_name)  # type: ignore[arg-type]
     track = f"{tag}track{j}"
+    scale = term.form == "scale"
+    slow = state is not None and value in cached
+    if slow and term.kind in ("channel", "time") and term.feature in ("offset", "square", "warmup", "linear"):
+        if term.feature == "warmup":
+            x = f"(1.0 - exp(-{value} / {term.tau_s!r}))"
+        elif term.feature == "linear":
+            x = value
+        else:
+            x = f"({value} - {term.reference!r})"
+        if term.feature == "square":
+            x = f"({x} * {x})"  # the reference's x * x, x computed twice the same way
+        if scale and term.feature == "linear":  # nothing but the input itself: nothing to keep
+            return [f"    shift += {term.coefficient!r} * ({value} * dv)"]
+        kept = x if scale else f"{term.coefficient!r} * {x}"
+        lines, name = _cache_lines(value, kept, f"{tag}t{j}_", state)
+        share = f"{term.coefficient!r} * ({name} * dv)" if scale else name
+        return [*lines, f"    shift += {share}"]
     if term.kind == "channel" and term.feature in ("lag", "derivative"):
         x = f"{track}(float({value}), float({inputs(TIME_INPUT)}))"
     elif term.kind == "channel" and term.feature == "direction":
@@ -93,6 +116,25 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
     else:
         x = value
     return [f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")]
+
+
+def _cache_lines(value: str, expr: str, prefix: str, state: list[str]) -> tuple[list[str], str]:
+    """``expr`` (of the input ``value`` alone) kept in ``prefix + "v"``, recomputed only when
+    ``value`` is not the object it was computed from. The key is set after the value, so an
+    exception (as the reference would raise, at the same point) leaves nothing half kept."""
+    key, kept = f"{prefix}k", f"{prefix}v"
+    state += [key, kept]
+    return [f"    if {value} is not {key}:", f"        {kept} = {expr}", f"        {key} = {value}"], kept
+
+
+def with_state(header: str, body: list[str], state: list[str], name: str) -> list[str]:
+    """Source of a factory ``make()`` returning the function ``header`` + ``body``, whose kept
+    values (``state``, from :func:`corrector_lines`) live in the factory's closure: read and
+    written as fast as locals, fresh (a key no input is) for each function made."""
+    if not state:
+        return ["def make():", *(f"    {line}" for line in [header, *body]), f"    return {name}"]
+    return ["def make():", f"    {' = '.join(state)} = NOTHING", f"    {header}",
+            f"        nonlocal {', '.join(state)}", *(f"    {line}" for line in body), f"    return {name}"]
 
 
 #: Most segments whose lookup is written out as a tree of comparisons (more: ``bisect``).
@@ -162,7 +204,9 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
 
 
 def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out: str,
-                    tag: str = "", held: Mapping[str, str] | None = None) -> tuple[list[str], dict[str, Any]]:
+                    tag: str = "", held: Mapping[str, str] | None = None,
+                    cached: frozenset[str] = frozenset(), state: list[str] | None = None,
+                    ) -> tuple[list[str], dict[str, Any]]:
     """``rate, out = corrector.correct_one(raw, inputs)`` as straight-line statements (one level
     of indentation), and the names they need; for a corrector :func:`why_not` passes.
 
@@ -171,7 +215,9 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
     (the daemon writes a whole frame's three axes as one); ``held`` names local variables
     that already hold inputs (read once per frame, not once per term). Temporaries (``dv``,
     ``x``, ``u``, …) are overwritten. The statements share the corrector's tracker objects: build them after
-    its last ``reset()``.
+    its last ``reset()``. With ``state`` (a list the names are added to), the terms whose
+    input is one of the ``cached`` held names keep their input's part between frames: the
+    statements must then go into a function made by :func:`with_state`.
     """
     terms = corrector.terms
     lines = []
@@ -184,13 +230,13 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
         lines.append(f"    rawf = float({raw})")
         raw = "rawf"
     lines.append(f"    dv = {raw} - {corrector.v0!r}")
-    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right}
+    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right, "NOTHING": object()}
     if terms:
         lines.append("    shift = 0.0")
         for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
             if tracker is not None:
                 namespace[f"{tag}track{j}"] = tracker.update
-            lines += _term_lines(j, term, raw, value_of, tag)
+            lines += _term_lines(j, term, raw, value_of, tag, cached, state)
         lines.append("    d = dv - shift")
         dv = "d"
     else:
