@@ -520,7 +520,7 @@ class Daemon:
             held[name] = f"i{i}"
         # The raw frame's own inputs are as old as this frame: never stale (max_age_s > 0).
         # Inputs of other frames change only when those arrive: terms of them alone are kept.
-        slow, state = frozenset(f"i{i}" for i in range(len(awaited))), []
+        slow, state = frozenset(f"i{i}" for i in range(len(awaited))), list[str]()
         stale = " or ".join(f"stamp - t{i} > {age!r}" for i, (_, age) in enumerate(awaited)) or "False"
         lines.append(f"    stale = {stale}")
         flags = []  # the rate frame's axes in the sets' order, as _on_raw: rK, oK, flags[K]

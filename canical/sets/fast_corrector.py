@@ -36,6 +36,8 @@ CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("channel", "lag"),
                   ("channel", "derivative"), ("channel", "direction"), ("channel", "gated"),
                   ("time", "warmup"), ("time", "linear"), ("direction", "sign"), ("direction", "slope")}
+#: The stateless terms whose input's part can be kept between frames (:func:`_cache_lines`).
+KEPT_TERMS = {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear")}
 #: The tracker each stateful feature keeps its state in (as ``Corrector``'s ``_tracker`` makes them).
 TRACKERS = {("channel", "lag"): ChannelTracker, ("channel", "derivative"): ChannelTracker,
             ("channel", "direction"): DirectionTracker, ("direction", "sign"): DirectionTracker,
@@ -75,8 +77,7 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
     value = inputs(term.input_name)  # type: ignore[arg-type]
     track = f"{tag}track{j}"
     scale = term.form == "scale"
-    slow = state is not None and value in cached
-    if slow and term.kind in ("channel", "time") and term.feature in ("offset", "square", "warmup", "linear"):
+    if state is not None and value in cached and (term.kind, term.feature) in KEPT_TERMS:
         if term.feature == "warmup":
             x = f"(1.0 - exp(-{value} / {term.tau_s!r}))"
         elif term.feature == "linear":
