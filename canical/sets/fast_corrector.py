@@ -150,7 +150,8 @@ def _foldable(model: PiecewisePoly) -> bool:
             and all(type(k) is float and math.isfinite(k) for k in model._knots_list))
 
 
-def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, depth: int) -> list[str]:
+def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, depth: int,
+                  x: str = "x") -> list[str]:
     """Segments ``a..b-1`` as nested comparisons, each leaf the Horner line with its segment's
     coefficients as constants. Segment ``i`` is ``knots[i-1] <= x < knots[i]``: the reference's
     segment (the first knot ``x`` is below), for sorted knots the same as ``bisect_right``."""
@@ -162,8 +163,8 @@ def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, d
             horner = f"({horner}) * u + {c[k]}"
         return [f"{pad}acc = {horner}"]
     mid = (a + b) // 2
-    return [f"{pad}if x < {knots[mid - 1]!r}:", *_segment_tree(knots, rows, a, mid, depth + 1),
-            f"{pad}else:", *_segment_tree(knots, rows, mid, b, depth + 1)]
+    return [f"{pad}if {x} < {knots[mid - 1]!r}:", *_segment_tree(knots, rows, a, mid, depth + 1, x),
+            f"{pad}else:", *_segment_tree(knots, rows, mid, b, depth + 1, x)]
 
 
 def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -> list[str]:
@@ -171,30 +172,58 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
 
     Where the coefficients fold (:func:`_foldable`), the segment is found by a tree of
     comparisons with the segment points as constants and each segment's Horner line has its
-    coefficients written in: no ``bisect`` call, no tuple to index and unpack. The same
-    operations in the same order, so the same bits. Only outside the span (rare: the
-    extrapolation needs the slope) does the code look the row up as before.
+    coefficients written in: no ``bisect`` call, no tuple to index and unpack. Beyond the span
+    the reference evaluates at the span's end and extrapolates by the slope there: both ends'
+    value and slope over scale are the same every time, so they are computed once, here, by
+    the very statements the general form runs, and written in as constants. The same
+    operations in the same order, so the same bits (a NaN stays a NaN, out of span).
     """
     lo, hi = model.span
+    if not _foldable(model):
+        return _general_model_lines(model, dv, tag, rate, out)
+    unpack, horner, slope = _model_parts(model, tag)
+    namespace: dict[str, Any] = {"bisect_right": bisect_right, f"{tag}KNOTS": tuple(model._knots_list),
+                                 f"{tag}COEFFS": tuple(tuple(row) for row in model._coeffs_list)}
+    # The general statements on x, the span's end (where the reference clips to), as they run
+    # beyond the span: the row, u, Horner, the slope, the slope over the scale.
+    source = "\n".join(["def edge(x):", f"    {unpack}", f"    u = x / {model.scale!r}",
+                        f"    acc = {horner}", *(line[4:] for line in slope),
+                        f"    return acc, slope / {model.scale!r}"]) + "\n"
+    exec(compile(source, "<span end>", "exec"), namespace)
+    (acc_lo, k_lo), (acc_hi, k_hi) = ends = namespace["edge"](lo), namespace["edge"](hi)
+    if not all(type(v) is float and math.isfinite(v) for pair in ends for v in pair):
+        return _general_model_lines(model, dv, tag, rate, out)
+    rows = model._coeffs_list
+    return [f"    if {dv} < {lo!r}:",
+            f"        {rate}, {out} = {acc_lo!r} + ({k_lo!r}) * ({dv} - {lo!r}), True",
+            f"    elif {dv} > {hi!r}:",
+            f"        {rate}, {out} = {acc_hi!r} + ({k_hi!r}) * ({dv} - {hi!r}), True",
+            "    else:  # inside the span (or NaN: then NaN, out of span)",
+            f"        u = {dv} / {model.scale!r}",
+            *(f"    {line}" for line in _segment_tree(model._knots_list, rows, 0, len(rows), 1, dv)),
+            f"        {rate}, {out} = acc, {dv} != {dv}"]
+
+
+def _model_parts(model: PiecewisePoly, tag: str) -> tuple[str, str, list[str]]:
+    """The general form's row lookup (into ``c0, c1, …``), Horner in ``u`` and slope lines."""
     m = len(model._coeffs_list[0]) - 1
     horner = f"c{m}"
     for k in range(m - 1, -1, -1):
         horner = f"({horner}) * u + c{k}"
     slope = ["        slope = 0.0"] + [f"        slope = slope * u + {k} * c{k}" for k in range(m, 0, -1)]
     row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model._knots_list else f"{tag}COEFFS[0]"
-    unpack = f"{''.join(f'c{k}, ' for k in range(m + 1))}= {row}"
-    head = [f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
-            f"    u = x / {model.scale!r}"]
-    if _foldable(model):
-        rows = model._coeffs_list
-        return [*head, *_segment_tree(model._knots_list, rows, 0, len(rows), 1),
-                f"    if x == {dv}:", f"        {rate}, {out} = acc, False", "    else:",
-                f"        {unpack}", *slope,
-                f"        {rate}, {out} = acc + slope / {model.scale!r} * ({dv} - x), True"]
+    return f"{''.join(f'c{k}, ' for k in range(m + 1))}= {row}", horner, slope
+
+
+def _general_model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -> list[str]:
+    """:meth:`PiecewisePoly.evaluate_one` for any coefficients: the row by ``bisect``, Horner
+    and (beyond the span) the slope from it."""
+    lo, hi = model.span
+    unpack, horner, slope = _model_parts(model, tag)
     return [
-        head[0],
+        f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
         f"    {unpack}",
-        head[1],
+        f"    u = x / {model.scale!r}",
         f"    acc = {horner}",
         f"    if x == {dv}:",
         f"        {rate}, {out} = acc, False",
