@@ -176,7 +176,7 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
     the reference evaluates at the span's end and extrapolates by the slope there: both ends'
     value and slope over scale are the same every time, so they are computed once, here, by
     the very statements the general form runs, and written in as constants. The same
-    operations in the same order, so the same bits (a NaN stays a NaN, out of span).
+    operations in the same order, so the same bits; a NaN goes the general way.
     """
     lo, hi = model.span
     if not _foldable(model):
@@ -198,10 +198,12 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
             f"        {rate}, {out} = {acc_lo!r} + ({k_lo!r}) * ({dv} - {lo!r}), True",
             f"    elif {dv} > {hi!r}:",
             f"        {rate}, {out} = {acc_hi!r} + ({k_hi!r}) * ({dv} - {hi!r}), True",
-            "    else:  # inside the span (or NaN: then NaN, out of span)",
+            f"    elif {dv} == {dv}:  # inside the span",
             f"        u = {dv} / {model.scale!r}",
             *(f"    {line}" for line in _segment_tree(model._knots_list, rows, 0, len(rows), 1, dv)),
-            f"        {rate}, {out} = acc, {dv} != {dv}"]
+            f"        {rate}, {out} = acc, False",
+            "    else:  # NaN: the general statements, whatever they make of it",
+            *(f"    {line}" for line in _general_model_lines(model, dv, tag, rate, out))]
 
 
 def _model_parts(model: PiecewisePoly, tag: str) -> tuple[str, str, list[str]]:

@@ -100,6 +100,29 @@ def test_compiled_equals_reference_bit_for_bit(cset: CoefficientSet, stream) -> 
             compiled.source, raw, inputs, got, want)  # type: ignore[attr-defined]
 
 
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cset=piecewise_sets())
+def test_segment_points_and_span_ends_exactly(cset: CoefficientSet) -> None:
+    """On each segment point and span end, one step either side of it, far beyond, and NaN:
+    the comparison tree picks the reference's segment and the written-in ends extrapolate as
+    the reference does (no terms, so the corrected value is exactly the point)."""
+    import dataclasses
+
+    model = dict(cset.model)
+    v0 = cset.v0
+    model["knots_raw"] = [k - v0 for k in model["knots_raw"]]
+    model["span_raw"] = [e - v0 for e in model["span_raw"]]
+    bare = dataclasses.replace(cset, v0=0.0, model=model, terms=())
+    reference, compiled = Corrector(bare), compile_corrector(Corrector(bare))
+    assert compiled is not None
+    edges = [*reference.model._knots_list, *reference.model.span]
+    points = [p for e in edges for p in (math.nextafter(e, -math.inf), e, math.nextafter(e, math.inf))]
+    for raw in [*points, -1e9, 1e9, math.nan]:
+        want, got = reference.correct_one(raw, {}), compiled(raw, {})
+        assert got[1] == want[1], raw
+        assert bits(got[0]) == bits(want[0]) or (math.isnan(got[0]) and math.isnan(want[0])), (raw, got, want)
+
+
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(cset=piecewise_sets(), stream=streams(), data=st.data())
 def test_state_carries_across_functions_and_reloads(cset: CoefficientSet, stream, data) -> None:
