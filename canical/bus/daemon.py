@@ -50,9 +50,9 @@ from canical.bus.daemon_config import DaemonConfig
 from canical.bus.sd_notify import Notifier
 from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.frames.codec import RateEncoder, RawDecoder, StatusEncoder, load_dbc
-from canical.frames.compiler import NotCompilable, encode_lines
+from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
 from canical.sets.corrector import Corrector
-from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not
+from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
 
 log = logging.getLogger("canical.serve")
 
@@ -141,6 +141,7 @@ class Daemon:
         db = load_dbc(config.dbc_path)
         raw_msg = db.get_message_by_name(config.raw_message)
         self.raw = RawDecoder(raw_msg, compiled=compiled)
+        self._raw_message = raw_msg
         self._rate_message = db.get_message_by_name(config.rate_message)
         self.rate = RateEncoder(self._rate_message, compiled=compiled)
         self.status = StatusEncoder(db.get_message_by_name(config.status_message))
@@ -494,7 +495,15 @@ class Daemon:
             lines += ["    try:", *(f"        t{i} = times[{name!r}]" for i, (name, _) in enumerate(awaited)),
                       "    except KeyError:  # an input the sets need has not come yet",
                       "        return general(data, stamp)"]
-        lines += [f"    {fields}, = decode(data)", "    stats.frames_in += 1"]
+        try:  # the frame's length is the raw message's (the receive loop checked it)
+            used = {at for at, _, _ in plan[2]} | {at for _, at in self._raw_inputs_at} | {self._counter_at}
+            body, names = decode_lines(self._raw_message, "data",
+                                       [f"s{i}" if i in used else None for i in range(len(self.raw.index))])
+            lines += body
+            ns.update(names)
+        except NotCompilable:  # cantools decodes this frame (logged at start)
+            lines.append(f"    {fields}, = decode(data)")
+        lines.append("    stats.frames_in += 1")
         for name, at in self._raw_inputs_at:
             lines += [f"    values[{name!r}] = s{at}", f"    times[{name!r}] = stamp"]
         if self._counter_at is None:
@@ -510,6 +519,8 @@ class Daemon:
             lines.append(f"    i{i} = values[{name!r}]")
             held[name] = f"i{i}"
         # The raw frame's own inputs are as old as this frame: never stale (max_age_s > 0).
+        # Inputs of other frames change only when those arrive: terms of them alone are kept.
+        slow, state = frozenset(f"i{i}" for i in range(len(awaited))), list[str]()
         stale = " or ".join(f"stamp - t{i} > {age!r}" for i, (_, age) in enumerate(awaited)) or "False"
         lines.append(f"    stale = {stale}")
         flags = []  # the rate frame's axes in the sets' order, as _on_raw: rK, oK, flags[K]
@@ -519,7 +530,7 @@ class Daemon:
                 flags.append("True")
                 continue
             body, names = corrector_lines(ax.corrector, f"s{at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
-                                          held=held)
+                                          held=held, cached=slow, state=state)
             lines += body
             ns.update(names)
             flags.append("False")
@@ -536,7 +547,9 @@ class Daemon:
         values = [*rates, "o0", "o1", "o2", *flags, "stale", "gap", repr(sets.tag), "counter"]
         bounds = [None, None, None, *[1] * 8, sets.tag, 0xF]
         try:
-            body, names, payload = encode_lines(self._rate_message, values, bounds)
+            # The rates are saturated to their signals' ranges above: no range check needed.
+            body, names, payload = encode_lines(self._rate_message, values, bounds,
+                                                spans=[*self.rate.limits, *[None] * 10])
             lines += body
             ns.update(names)
         except NotCompilable:  # cantools encodes this frame (logged at start)
@@ -546,9 +559,9 @@ class Daemon:
         lines += [f"        send(FRAME + payload{pad}, MSG_DONTWAIT)", "    except OSError as exc:",
                   "        send_failed(exc)  # counted as dropped, or the bus is lost",
                   "    stats.frames_out += 1"]
-        source = "\n".join(lines) + "\n"
+        source = "\n".join(with_state(lines[0], lines[1:], state, "on_raw")) + "\n"
         exec(compile(source, f"<raw frame, sets {sets.combined_id:08x}>", "exec"), ns)
-        handler = ns["on_raw"]
+        handler = ns["make"]()
         handler.source = source
         return handler
 

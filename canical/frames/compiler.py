@@ -22,6 +22,7 @@ over cantools, and :func:`codec_for` logs which and why.
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -154,12 +155,7 @@ def compile_codec(message: Message) -> CompiledCodec:
         dec.append(f"    r{i} = {bits} & {mask:#x}")
         if sig.is_signed:
             dec.append(f"    if r{i} & {1 << (n - 1):#x}: r{i} -= {1 << n:#x}")
-        if isinstance(conv, IdentityConversion):
-            outs.append(f"r{i}")
-        elif conv.offset == 0 and conv.scale > 0:  # + 0 changes nothing (r * scale is never -0.0)
-            outs.append(f"r{i} * {conv.scale!r}")
-        else:
-            outs.append(f"r{i} * {conv.scale!r} + {conv.offset!r}")
+        outs.append(_physical(conv, f"r{i}"))
         # encode: cantools' numeric_scaled_to_raw (round, exact integer path), range, field
         lines = _to_raw(conv, f"v{i}", f"r{i}")
         # in range ⇔ no bit above the field's (a signed range moved to 0…2ⁿ−1 first)
@@ -217,6 +213,83 @@ def compile_codec(message: Message) -> CompiledCodec:
     return CompiledCodec(names, source, namespace)
 
 
+def _physical(conv: BaseConversion, r: str) -> str:
+    """cantools' physical value of the raw integer ``r``: ``r * scale + offset``, as it types it."""
+    if isinstance(conv, IdentityConversion):
+        return r
+    if conv.offset == 0 and conv.scale > 0:  # + 0 changes nothing (r * scale is never -0.0)
+        return f"{r} * {conv.scale!r}"
+    return f"{r} * {conv.scale!r} + {conv.offset!r}"
+
+
+def decode_lines(message: Message, data: str, outs: Sequence[str | None],
+                 tag: str = "dec_") -> tuple[list[str], dict[str, Any]]:
+    """Decoding ``message`` written into a caller's generated function: statements (one level
+    of indentation) setting the local names ``outs`` (signal order) to what ``decode`` returns,
+    and the names they need; a signal whose name is None is not decoded (the caller does not
+    use it). ``data`` is the payload's expression; the caller promises it is
+    exactly the message's length (the short-payload path of ``decode`` is not written).
+    Temporaries start with ``tag``. :class:`NotCompilable` as :func:`compile_codec`.
+    """
+    reason = _why_not(message)
+    if reason is not None:
+        raise NotCompilable(reason)
+    nbytes = message.length
+    orders = {s.byte_order for s in message.signals}
+    layout = _struct_layout(message) if orders == {"little_endian"} else None
+    namespace: dict[str, Any] = {"from_bytes": int.from_bytes}
+    lines: list[str] = []
+    raws: list[str] = []
+    convs = [_numeric(sig.conversion) for sig in message.signals]
+    if layout is not None:
+        # A whole field that is an unscaled signal is unpacked straight into its output.
+        targets = [(outs[j] or f"{tag}f{k}") if j >= 0 and isinstance(convs[j], IdentityConversion)
+                   else f"{tag}f{k}"
+                   for k, (j, _, _) in enumerate(layout.fields)]
+        namespace[f"{tag}unpack"] = layout.struct.unpack
+        lines.append(f"    {', '.join(targets)}, = {tag}unpack({data})")
+        for k, (j, _, n) in enumerate(layout.fields):
+            if j < 0 and 8 * n not in STRUCT_CODES:
+                lines.append(f"    {targets[k]} = from_bytes({targets[k]}, 'little')")
+        for i, sig in enumerate(message.signals):
+            k = layout.owner[i]
+            j, first, _ = layout.fields[k]
+            if j == i or outs[i] is None:
+                raws.append(targets[k])
+                continue
+            r = _raw_name(convs[i], outs[i], f"{tag}r{i}")
+            shift, mask = sig.start - 8 * first, (1 << sig.length) - 1
+            lines.append(f"    {r} = {f'({targets[k]} >> {shift})' if shift else targets[k]} & {mask:#x}")
+            if sig.is_signed:
+                lines.append(f"    if {r} & {1 << (sig.length - 1):#x}: {r} -= {1 << sig.length:#x}")
+            raws.append(r)
+    else:
+        for order, word in (("little_endian", "le"), ("big_endian", "be")):
+            if order in orders:
+                lines.append(f"    {tag}{word} = from_bytes({data}, '{order.split('_')[0]}')")
+        for i, sig in enumerate(message.signals):
+            r = _raw_name(convs[i], outs[i], f"{tag}r{i}")
+            raws.append(r)
+            if outs[i] is None:
+                continue
+            n = sig.length
+            shift = (sig.start if sig.byte_order == "little_endian"
+                     else 8 * nbytes - (_network_bit(sig.start) + n))
+            word = f"{tag}le" if sig.byte_order == "little_endian" else f"{tag}be"
+            lines.append(f"    {r} = {f'({word} >> {shift})' if shift else word} & {(1 << n) - 1:#x}")
+            if sig.is_signed:
+                lines.append(f"    if {r} & {1 << (n - 1):#x}: {r} -= {1 << n:#x}")
+    for out, raw, conv in zip(outs, raws, convs, strict=True):
+        if out is not None and out != raw:
+            lines.append(f"    {out} = {_physical(conv, raw)}")
+    return lines, namespace
+
+
+def _raw_name(conv: BaseConversion, out: str | None, temporary: str) -> str:
+    """Where a decoded field's integer goes: straight into its output when unscaled."""
+    return out if out is not None and isinstance(conv, IdentityConversion) else temporary
+
+
 def _to_raw(conv: BaseConversion, v: str, r: str, tmp: str = "") -> list[str]:
     """Statements setting ``r`` to cantools' raw integer of the value ``v`` (its
     ``numeric_scaled_to_raw``: ``round``, the exact integer path for integer scales)."""
@@ -231,6 +304,18 @@ def _to_raw(conv: BaseConversion, v: str, r: str, tmp: str = "") -> list[str]:
     return [f"    {r} = round(({v}{off}) / {conv.scale!r})"]
 
 
+def _fits(conv: BaseConversion, span: tuple[float, float], bias: int, n: int) -> bool:
+    """Whether every value in ``span`` gives a raw integer the signal's ``n`` bits hold: the
+    statements of :func:`_to_raw`, run on both ends (rounding is monotonic in the value)."""
+    namespace: dict[str, Any] = {}
+    source = "\n".join(["def raw(v):", *_to_raw(conv, "(v)", "r"), "    return r"]) + "\n"
+    exec(compile(source, "<raw of an end>", "exec"), namespace)
+    try:
+        return all(math.isfinite(end) and not (namespace["raw"](end) + bias) >> n for end in span)
+    except (OverflowError, ValueError):  # an end whose raw value is not even an integer
+        return False
+
+
 def _pack_word(parts: dict[str, list[str]], nbytes: int) -> str:
     """The payload from the OR of shifted fields, per byte order (the integer form)."""
     le = " | ".join(parts["little_endian"]) or "0"
@@ -242,7 +327,8 @@ def _pack_word(parts: dict[str, list[str]], nbytes: int) -> str:
 
 
 def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int | None],
-                 tag: str = "enc_") -> tuple[list[str], dict[str, Any], str]:
+                 tag: str = "enc_", spans: Sequence[tuple[float, float] | None] | None = None,
+                 ) -> tuple[list[str], dict[str, Any], str]:
     """Encoding ``message`` written into a caller's generated function: statements (one level
     of indentation), the names they need, and the payload's expression.
 
@@ -251,7 +337,11 @@ def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int |
     an unscaled signal that holds it is packed as it is, with no rounding and no check (the
     flags, counters and tags of a frame the caller builds). Every other value goes the exact
     way of ``encode`` (round, range check, ``OverflowError`` as cantools). A value ``False``
-    or ``0`` adds nothing and is left out. :class:`NotCompilable` as :func:`compile_codec`.
+    or ``0`` adds nothing and is left out. ``spans[i]``, where given, is the caller's promise
+    that value ``i`` is a finite number from ``lo`` to ``hi`` (a rate it has saturated): it is
+    rounded as always, and its range check is left out when both ends' raw values fit, since
+    the rounding is monotonic in the value and so every value between fits too.
+    :class:`NotCompilable` as :func:`compile_codec`.
     """
     reason = _why_not(message)
     if reason is not None:
@@ -272,8 +362,11 @@ def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int |
         else:
             r = f"{tag}r{i}"
             lines += _to_raw(conv, f"({values[i]})", r, tmp=tag)
-            bias = f" + {1 << (n - 1):#x}" if sig.is_signed else ""
-            checks.append(f"    if ({r}{bias}) >> {n}: {tag}overflow({sig.name!r}, {r})")
+            bias = 1 << (n - 1) if sig.is_signed else 0
+            span = spans[i] if spans is not None else None
+            if span is None or not _fits(conv, span, bias, n):
+                checks.append(f"    if ({r} + {bias:#x}) >> {n}: {tag}overflow({sig.name!r}, {r})" if bias
+                              else f"    if {r} >> {n}: {tag}overflow({sig.name!r}, {r})")
         raws.append(r)
         if r in ("False", "0"):
             continue

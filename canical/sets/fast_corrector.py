@@ -36,6 +36,8 @@ CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("channel", "lag"),
                   ("channel", "derivative"), ("channel", "direction"), ("channel", "gated"),
                   ("time", "warmup"), ("time", "linear"), ("direction", "sign"), ("direction", "slope")}
+#: The stateless terms whose input's part can be kept between frames (:func:`_cache_lines`).
+KEPT_TERMS = {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear")}
 #: The tracker each stateful feature keeps its state in (as ``Corrector``'s ``_tracker`` makes them).
 TRACKERS = {("channel", "lag"): ChannelTracker, ("channel", "derivative"): ChannelTracker,
             ("channel", "direction"): DirectionTracker, ("direction", "sign"): DirectionTracker,
@@ -58,16 +60,38 @@ def why_not(corrector: Corrector) -> str | None:
     return None
 
 
-def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag: str) -> list[str]:
+def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag: str,
+                cached: frozenset[str] = frozenset(), state: list[str] | None = None) -> list[str]:
     """The reference's feature x and its share of the shift, for term ``j``.
 
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
     call is left out. Trackers get exactly the reference's arguments. The gate of a gated term
     is :func:`~canical.sets.terms.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``.
+
+    A stateless term whose input is a name in ``cached`` (an input that changes only when
+    its own frame arrives, not every raw frame) keeps the part that depends on the input
+    alone between calls: recomputed, by the same expression, only when the input is another
+    object than last time (:func:`_cache_lines`); ``state`` collects the names that keep it.
     """
     value = inputs(term.input_name)  # type: ignore[arg-type]
     track = f"{tag}track{j}"
+    scale = term.form == "scale"
+    if state is not None and value in cached and (term.kind, term.feature) in KEPT_TERMS:
+        if term.feature == "warmup":
+            x = f"(1.0 - exp(-{value} / {term.tau_s!r}))"
+        elif term.feature == "linear":
+            x = value
+        else:
+            x = f"({value} - {term.reference!r})"
+        if term.feature == "square":
+            x = f"({x} * {x})"  # the reference's x * x, x computed twice the same way
+        if scale and term.feature == "linear":  # nothing but the input itself: nothing to keep
+            return [f"    shift += {term.coefficient!r} * ({value} * dv)"]
+        kept = x if scale else f"{term.coefficient!r} * {x}"
+        lines, name = _cache_lines(value, kept, f"{tag}t{j}_", state)
+        share = f"{term.coefficient!r} * ({name} * dv)" if scale else name
+        return [*lines, f"    shift += {share}"]
     if term.kind == "channel" and term.feature in ("lag", "derivative"):
         x = f"{track}(float({value}), float({inputs(TIME_INPUT)}))"
     elif term.kind == "channel" and term.feature == "direction":
@@ -95,18 +119,112 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
     return [f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")]
 
 
+def _cache_lines(value: str, expr: str, prefix: str, state: list[str]) -> tuple[list[str], str]:
+    """``expr`` (of the input ``value`` alone) kept in ``prefix + "v"``, recomputed only when
+    ``value`` is not the object it was computed from. The key is set after the value, so an
+    exception (as the reference would raise, at the same point) leaves nothing half kept."""
+    key, kept = f"{prefix}k", f"{prefix}v"
+    state += [key, kept]
+    return [f"    if {value} is not {key}:", f"        {kept} = {expr}", f"        {key} = {value}"], kept
+
+
+def with_state(header: str, body: list[str], state: list[str], name: str) -> list[str]:
+    """Source of a factory ``make()`` returning the function ``header`` + ``body``, whose kept
+    values (``state``, from :func:`corrector_lines`) live in the factory's closure: read and
+    written as fast as locals, fresh (a key no input is) for each function made."""
+    if not state:
+        return ["def make():", *(f"    {line}" for line in [header, *body]), f"    return {name}"]
+    return ["def make():", f"    {' = '.join(state)} = NOTHING", f"    {header}",
+            f"        nonlocal {', '.join(state)}", *(f"    {line}" for line in body), f"    return {name}"]
+
+
+#: Most segments whose lookup is written out as a tree of comparisons (more: ``bisect``).
+MAX_TREE_SEGMENTS = 16
+
+
+def _foldable(model: PiecewisePoly) -> bool:
+    """Whether the coefficients and segment points can be written into the source as literals (finite floats:
+    ``repr`` gives them back exactly; ``inf``/``nan`` have no literal)."""
+    return (len(model._coeffs_list) <= MAX_TREE_SEGMENTS
+            and all(type(c) is float and math.isfinite(c) for row in model._coeffs_list for c in row)
+            and all(type(k) is float and math.isfinite(k) for k in model._knots_list))
+
+
+def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, depth: int,
+                  x: str = "x") -> list[str]:
+    """Segments ``a..b-1`` as nested comparisons, each leaf the Horner line with its segment's
+    coefficients as constants. Segment ``i`` is ``knots[i-1] <= x < knots[i]``: the reference's
+    segment (the first knot ``x`` is below), for sorted knots the same as ``bisect_right``."""
+    pad = "    " * depth
+    if b - a == 1:
+        c = [f"({v!r})" for v in rows[a]]
+        horner = c[-1]
+        for k in range(len(c) - 2, -1, -1):
+            horner = f"({horner}) * u + {c[k]}"
+        return [f"{pad}acc = {horner}"]
+    mid = (a + b) // 2
+    return [f"{pad}if {x} < {knots[mid - 1]!r}:", *_segment_tree(knots, rows, a, mid, depth + 1, x),
+            f"{pad}else:", *_segment_tree(knots, rows, mid, b, depth + 1, x)]
+
+
 def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -> list[str]:
-    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order, into ``rate, out``."""
+    """:meth:`PiecewisePoly.evaluate_one`, unrolled for this set's order, into ``rate, out``.
+
+    Where the coefficients fold (:func:`_foldable`), the segment is found by a tree of
+    comparisons with the segment points as constants and each segment's Horner line has its
+    coefficients written in: no ``bisect`` call, no tuple to index and unpack. Beyond the span
+    the reference evaluates at the span's end and extrapolates by the slope there: both ends'
+    value and slope over scale are the same every time, so they are computed once, here, by
+    the very statements the general form runs, and written in as constants. The same
+    operations in the same order, so the same bits; a NaN goes the general way.
+    """
     lo, hi = model.span
+    if not _foldable(model):
+        return _general_model_lines(model, dv, tag, rate, out)
+    unpack, horner, slope = _model_parts(model, tag)
+    namespace: dict[str, Any] = {"bisect_right": bisect_right, f"{tag}KNOTS": tuple(model._knots_list),
+                                 f"{tag}COEFFS": tuple(tuple(row) for row in model._coeffs_list)}
+    # The general statements on x, the span's end (where the reference clips to), as they run
+    # beyond the span: the row, u, Horner, the slope, the slope over the scale.
+    source = "\n".join(["def edge(x):", f"    {unpack}", f"    u = x / {model.scale!r}",
+                        f"    acc = {horner}", *(line[4:] for line in slope),
+                        f"    return acc, slope / {model.scale!r}"]) + "\n"
+    exec(compile(source, "<span end>", "exec"), namespace)
+    (acc_lo, k_lo), (acc_hi, k_hi) = ends = namespace["edge"](lo), namespace["edge"](hi)
+    if not all(type(v) is float and math.isfinite(v) for pair in ends for v in pair):
+        return _general_model_lines(model, dv, tag, rate, out)
+    rows = model._coeffs_list
+    return [f"    if {dv} < {lo!r}:",
+            f"        {rate}, {out} = {acc_lo!r} + ({k_lo!r}) * ({dv} - {lo!r}), True",
+            f"    elif {dv} > {hi!r}:",
+            f"        {rate}, {out} = {acc_hi!r} + ({k_hi!r}) * ({dv} - {hi!r}), True",
+            f"    elif {dv} == {dv}:  # inside the span",
+            f"        u = {dv} / {model.scale!r}",
+            *(f"    {line}" for line in _segment_tree(model._knots_list, rows, 0, len(rows), 1, dv)),
+            f"        {rate}, {out} = acc, False",
+            "    else:  # NaN: the general statements, whatever they make of it",
+            *(f"    {line}" for line in _general_model_lines(model, dv, tag, rate, out))]
+
+
+def _model_parts(model: PiecewisePoly, tag: str) -> tuple[str, str, list[str]]:
+    """The general form's row lookup (into ``c0, c1, …``), Horner in ``u`` and slope lines."""
     m = len(model._coeffs_list[0]) - 1
     horner = f"c{m}"
     for k in range(m - 1, -1, -1):
         horner = f"({horner}) * u + c{k}"
     slope = ["        slope = 0.0"] + [f"        slope = slope * u + {k} * c{k}" for k in range(m, 0, -1)]
     row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model._knots_list else f"{tag}COEFFS[0]"
+    return f"{''.join(f'c{k}, ' for k in range(m + 1))}= {row}", horner, slope
+
+
+def _general_model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -> list[str]:
+    """:meth:`PiecewisePoly.evaluate_one` for any coefficients: the row by ``bisect``, Horner
+    and (beyond the span) the slope from it."""
+    lo, hi = model.span
+    unpack, horner, slope = _model_parts(model, tag)
     return [
         f"    x = {lo!r} if {dv} < {lo!r} else {hi!r} if {dv} > {hi!r} else {dv}",
-        f"    {''.join(f'c{k}, ' for k in range(m + 1))}= {row}",
+        f"    {unpack}",
         f"    u = x / {model.scale!r}",
         f"    acc = {horner}",
         f"    if x == {dv}:",
@@ -118,7 +236,9 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
 
 
 def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out: str,
-                    tag: str = "", held: Mapping[str, str] | None = None) -> tuple[list[str], dict[str, Any]]:
+                    tag: str = "", held: Mapping[str, str] | None = None,
+                    cached: frozenset[str] = frozenset(), state: list[str] | None = None,
+                    ) -> tuple[list[str], dict[str, Any]]:
     """``rate, out = corrector.correct_one(raw, inputs)`` as straight-line statements (one level
     of indentation), and the names they need; for a corrector :func:`why_not` passes.
 
@@ -127,7 +247,9 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
     (the daemon writes a whole frame's three axes as one); ``held`` names local variables
     that already hold inputs (read once per frame, not once per term). Temporaries (``dv``,
     ``x``, ``u``, …) are overwritten. The statements share the corrector's tracker objects: build them after
-    its last ``reset()``.
+    its last ``reset()``. With ``state`` (a list the names are added to), the terms whose
+    input is one of the ``cached`` held names keep their input's part between frames: the
+    statements must then go into a function made by :func:`with_state`.
     """
     terms = corrector.terms
     lines = []
@@ -140,13 +262,13 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
         lines.append(f"    rawf = float({raw})")
         raw = "rawf"
     lines.append(f"    dv = {raw} - {corrector.v0!r}")
-    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right}
+    namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right, "NOTHING": object()}
     if terms:
         lines.append("    shift = 0.0")
         for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
             if tracker is not None:
                 namespace[f"{tag}track{j}"] = tracker.update
-            lines += _term_lines(j, term, raw, value_of, tag)
+            lines += _term_lines(j, term, raw, value_of, tag, cached, state)
         lines.append("    d = dv - shift")
         dv = "d"
     else:

@@ -17,7 +17,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canical.frames.compiler import CantoolsCodec, CompiledCodec, codec_for, compile_codec, encode_lines
+from canical.frames.compiler import (
+    CantoolsCodec,
+    CompiledCodec,
+    codec_for,
+    compile_codec,
+    decode_lines,
+    encode_lines,
+)
 
 DBC = Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc"
 SCALES = (1, 2, 3, 10, -1, 0.1, 0.01, 0.001, 0.5, 0.25, 0.125, -0.5, 1e-4, 0.03125, 7.5)
@@ -146,6 +153,70 @@ def test_inlined_encode_as_cantools(text: str, data) -> None:
             namespace["encode"](*values)
         return
     assert namespace["encode"](*values) == expected, source
+
+
+@settings(max_examples=400, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=layouts(), data=st.data())
+def test_inlined_decode_as_cantools(text: str, data) -> None:
+    """decode_lines, written into a function of the caller's, gives cantools' values with
+    cantools' types and signs of zero, for a payload of the frame's length; a signal the
+    caller does not want (None) is left out, the others are as before."""
+    message = message_of(text)
+    payload = data.draw(st.binary(min_size=message.length, max_size=message.length))
+    outs = [f"s{i}" if data.draw(st.booleans()) else None for i in range(len(message.signals))]
+    wanted = [o for o in outs if o is not None]
+    lines, namespace = decode_lines(message, "data", outs)
+    back = f"    return ({''.join(o + ', ' for o in wanted)})"
+    source = "\n".join(["def decode(data):", *lines, back]) + "\n"
+    exec(compile(source, "<inlined decode>", "exec"), namespace)
+    got = namespace["decode"](payload)
+    want = [w for o, w in zip(outs, CantoolsCodec(message).decode(payload), strict=True) if o is not None]
+    assert len(got) == len(want) and all(same(g, w) for g, w in zip(got, want, strict=True)), source
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(text=layouts(), data=st.data())
+def test_inlined_encode_with_spans_as_cantools(text: str, data) -> None:
+    """A value promised to lie in a span (as the daemon's saturated rates) encodes as cantools:
+    the range check is left out only where the span's ends fit the signal's bits, so a value in
+    the span never overflows silently, and a span that does not fit keeps cantools' error."""
+    message = message_of(text)
+    values = [v if isinstance(v, float) else float(v) for v in values_for(data.draw, message)]
+    spans: list[tuple[float, float] | None] = []
+    inside = []
+    for v in values:
+        if not math.isfinite(v) or not data.draw(st.booleans()):
+            spans.append(None)
+            inside.append(v)
+            continue
+        lo = data.draw(st.floats(min(-1e6, v), v, allow_nan=False))
+        hi = data.draw(st.floats(v, max(1e6, v), allow_nan=False))
+        spans.append((lo, hi))
+        inside.append(data.draw(st.sampled_from((lo, v, hi))))
+    lines, namespace, payload = encode_lines(message, [f"v{i}" for i in range(len(values))],
+                                             [None] * len(values), spans=spans)
+    args = ", ".join(f"v{i}" for i in range(len(values)))
+    source = "\n".join([f"def encode({args}):", *lines, f"    return {payload}"]) + "\n"
+    exec(compile(source, "<inlined encode>", "exec"), namespace)
+    try:
+        expected = CantoolsCodec(message).encode(inside)
+    except (OverflowError, ValueError) as exc:
+        with pytest.raises(type(exc)):
+            namespace["encode"](*inside)
+        return
+    assert namespace["encode"](*inside) == expected, source
+
+
+def test_a_span_inside_the_rate_signal_drops_its_check() -> None:
+    """The daemon's case: CANICAL_RATE's rates saturated to their range need no range check,
+    and a span one step wider keeps it."""
+    message = cantools.database.load_file(str(DBC)).get_message_by_name("CANICAL_RATE")
+    n = len(message.signals)
+    exprs = [f"v{i}" for i in range(n)]
+    fits = encode_lines(message, exprs, [None] * n, spans=[(-327.68, 327.67)] * 3 + [None] * (n - 3))[0]
+    wide = encode_lines(message, exprs, [None] * n, spans=[(-327.69, 327.67)] * 3 + [None] * (n - 3))[0]
+    assert sum("overflow" in line for line in fits) == n - 3
+    assert sum("overflow" in line for line in wide) == n
 
 
 @pytest.mark.parametrize("name", ["IMU_RAW", "IMU_AUX", "IMU_RATE", "CANICAL_RATE", "TABLE_REF"])

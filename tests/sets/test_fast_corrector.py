@@ -21,7 +21,13 @@ from hypothesis import strategies as st
 
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
-from canical.sets.fast_corrector import COMPILED_TERMS, compile_corrector, why_not
+from canical.sets.fast_corrector import (
+    COMPILED_TERMS,
+    compile_corrector,
+    corrector_lines,
+    why_not,
+    with_state,
+)
 from canical.sets.terms import STATEFUL_CHANNEL, Term
 
 INPUTS = ("temp_c", "supply_v")
@@ -94,6 +100,29 @@ def test_compiled_equals_reference_bit_for_bit(cset: CoefficientSet, stream) -> 
             compiled.source, raw, inputs, got, want)  # type: ignore[attr-defined]
 
 
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cset=piecewise_sets())
+def test_segment_points_and_span_ends_exactly(cset: CoefficientSet) -> None:
+    """On each segment point and span end, one step either side of it, far beyond, and NaN:
+    the comparison tree picks the reference's segment and the written-in ends extrapolate as
+    the reference does (no terms, so the corrected value is exactly the point)."""
+    import dataclasses
+
+    model = dict(cset.model)
+    v0 = cset.v0
+    model["knots_raw"] = [k - v0 for k in model["knots_raw"]]
+    model["span_raw"] = [e - v0 for e in model["span_raw"]]
+    bare = dataclasses.replace(cset, v0=0.0, model=model, terms=())
+    reference, compiled = Corrector(bare), compile_corrector(Corrector(bare))
+    assert compiled is not None
+    edges = [*reference.model._knots_list, *reference.model.span]
+    points = [p for e in edges for p in (math.nextafter(e, -math.inf), e, math.nextafter(e, math.inf))]
+    for raw in [*points, -1e9, 1e9, math.nan]:
+        want, got = reference.correct_one(raw, {}), compiled(raw, {})
+        assert got[1] == want[1], raw
+        assert bits(got[0]) == bits(want[0]) or (math.isnan(got[0]) and math.isnan(want[0])), (raw, got, want)
+
+
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(cset=piecewise_sets(), stream=streams(), data=st.data())
 def test_state_carries_across_functions_and_reloads(cset: CoefficientSet, stream, data) -> None:
@@ -110,6 +139,40 @@ def test_state_carries_across_functions_and_reloads(cset: CoefficientSet, stream
         want, got = reference.correct_one(raw, inputs), correct(raw, inputs)  # type: ignore[misc]
         assert got[1] == want[1]
         assert bits(got[0]) == bits(want[0]) or (math.isnan(got[0]) and math.isnan(want[0])), (how, raw)
+
+
+def kept_inputs_function(corrector: Corrector):
+    """The corrector as the daemon writes it: every input read once into a local, and all of
+    them other frames' (kept between calls while the same object)."""
+    names = (*INPUTS, "time_s")
+    held = {name: f"h{i}" for i, name in enumerate(names)}
+    state: list[str] = []
+    body, namespace = corrector_lines(corrector, "raw", "inputs", "rate", "out", held=held,
+                                      cached=frozenset(held.values()), state=state)
+    reads = [f"    {held[name]} = inputs[{name!r}]" for name in names]
+    lines = with_state("def correct(raw, inputs):", [*reads, *body, "    return rate, out"], state, "correct")
+    exec(compile("\n".join(lines) + "\n", "<kept>", "exec"), namespace)
+    return namespace["make"](), state
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(cset=piecewise_sets(), stream=streams(), data=st.data())
+def test_kept_input_terms_equal_reference_bit_for_bit(cset: CoefficientSet, stream, data) -> None:
+    """Terms of inputs that change only when their frame arrives, kept between frames: bit for
+    bit the reference's, when the inputs stay the same objects for several frames (the kept
+    value used) and when they change (recomputed), ints and floats alike."""
+    reference, other = Corrector(cset), Corrector(cset)
+    correct, state = kept_inputs_function(other)
+    if any(t.feature in ("offset", "square", "warmup") for t in other.terms):
+        assert state  # something is kept
+    last: dict = {}
+    for raw, fresh in stream:
+        inputs = {name: last[name] if name in last and data.draw(st.booleans()) else value
+                  for name, value in fresh.items()}
+        last = inputs
+        want, got = reference.correct_one(raw, inputs), correct(raw, inputs)
+        assert got[1] == want[1]
+        assert bits(got[0]) == bits(want[0]) or (math.isnan(got[0]) and math.isnan(want[0])), (raw, inputs)
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
