@@ -231,12 +231,7 @@ def decode_lines(message: Message, data: str, outs: Sequence[str | None],
     exactly the message's length (the short-payload path of ``decode`` is not written).
     Temporaries start with ``tag``. :class:`NotCompilable` as :func:`compile_codec`.
     """
-    reason = _why_not(message)
-    if reason is not None:
-        raise NotCompilable(reason)
-    nbytes = message.length
-    orders = {s.byte_order for s in message.signals}
-    layout = _struct_layout(message) if orders == {"little_endian"} else None
+    nbytes, layout = _compilable_layout(message)
     namespace: dict[str, Any] = {"from_bytes": int.from_bytes}
     lines: list[str] = []
     raws: list[str] = []
@@ -265,7 +260,7 @@ def decode_lines(message: Message, data: str, outs: Sequence[str | None],
             raws.append(r)
     else:
         for order, word in (("little_endian", "le"), ("big_endian", "be")):
-            if order in orders:
+            if any(s.byte_order == order for s in message.signals):
                 lines.append(f"    {tag}{word} = from_bytes({data}, '{order.split('_')[0]}')")
         for i, sig in enumerate(message.signals):
             r = _raw_name(convs[i], outs[i], f"{tag}r{i}")
@@ -343,12 +338,7 @@ def encode_lines(message: Message, values: Sequence[str], bounds: Sequence[int |
     the rounding is monotonic in the value and so every value between fits too.
     :class:`NotCompilable` as :func:`compile_codec`.
     """
-    reason = _why_not(message)
-    if reason is not None:
-        raise NotCompilable(reason)
-    nbytes = message.length
-    orders = {s.byte_order for s in message.signals}
-    layout = _struct_layout(message) if orders == {"little_endian"} else None
+    nbytes, layout = _compilable_layout(message)
     lines: list[str] = []
     checks: list[str] = []
     raws: list[str] = []
@@ -394,6 +384,18 @@ class StructLayout:
     #: per field: (the signal that fills it, or -1 for a run; first byte; length in bytes)
     fields: tuple[tuple[int, int, int], ...]
     owner: tuple[int, ...]  # per signal: its field
+
+
+def _compilable_layout(message: Message) -> tuple[int, StructLayout | None]:
+    """The frame's length and, for an all little-endian frame, its ``struct`` layout.
+
+    :class:`NotCompilable` when the compiler does not handle the message at all.
+    """
+    reason = _why_not(message)
+    if reason is not None:
+        raise NotCompilable(reason)
+    orders = {s.byte_order for s in message.signals}
+    return message.length, _struct_layout(message) if orders == {"little_endian"} else None
 
 
 def _struct_layout(message: Message) -> StructLayout | None:
