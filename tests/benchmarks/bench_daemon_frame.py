@@ -122,6 +122,9 @@ def main() -> None:
     parser.add_argument("--baseline", type=Path, help="worktree of the commit to compare with")
     parser.add_argument("--rounds", type=int, default=5, help="with --baseline: runs of each tree")
     parser.add_argument("--json", action="store_true", help="print the figures as JSON (for --baseline)")
+    parser.add_argument("--rate-limit", type=float, default=75.0, metavar="DPS",
+                        help="peak table rate of the stream; the sets span about +-60 deg/s, so 75 puts "
+                             "part of every axis beyond the span and 50 keeps it all inside")
     args = parser.parse_args()
     if args.baseline is not None:
         compare(args)
@@ -129,7 +132,7 @@ def main() -> None:
     folder = Path(tempfile.mkdtemp(prefix="canical-bench-"))
     write_sets(folder, terms=ALL_TERMS)
     config = load_config(write_config(folder, "bench"))
-    stream = imu_stream(args.frames)
+    stream = imu_stream(args.frames, rate_limit_dps=args.rate_limit)
     msgs = [can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=i * 0.0005)
             for i, (fid, data) in enumerate(stream.frames)]
     kernel = [(FRAME_HEAD.pack(m.arbitration_id, len(m.data), 0, 0) + bytes(m.data),
@@ -226,7 +229,8 @@ def compare(args: argparse.Namespace) -> None:
         for name, tree in trees.items():
             env = {**os.environ, "PYTHONPATH": str(tree)}
             out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--json", "--frames",
-                                  str(args.frames), "--repeats", str(args.repeats)],
+                                  str(args.frames), "--repeats", str(args.repeats),
+                                  "--rate-limit", str(args.rate_limit)],
                                  env=env, cwd=tree, check=True, capture_output=True, text=True).stdout
             figures[name].append(json.loads(out.splitlines()[-1]))
     print(f"per-frame path in-process, CPU µs per raw frame: median of {args.rounds} alternating runs "
