@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Install what the tests need on a fresh machine, then lint, type-check (mypy, configured in pyproject.toml) and run the whole suite.
+# Install what the tests need on a fresh machine, then lint, type-check (mypy, configured in pyproject.toml),
+# build the documentation site (warnings are errors) and run the whole suite.
 # Debian packages (user-mode Linux for the vcan tests; systemd and dbus for the unit checks
 # and the systemd guest tier; python3-venv for its install test) are installed with apt-get
 # when running as root and missing.
@@ -25,7 +26,8 @@ if [ "${#need[@]}" -gt 0 ]; then
   fi
 fi
 
-python3 -m pip install -q --disable-pip-version-check -e '.[test]'
-ruff check canical tests
+python3 -m pip install -q --disable-pip-version-check -e '.[test,docs]'
+ruff check canical tests docs
 python3 -m mypy
+python3 -m mkdocs build --strict --quiet
 python3 -m pytest -q -p no:cacheprovider "$@"

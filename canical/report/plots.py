@@ -37,40 +37,82 @@ def _save(fig, path: Path) -> None:
     write_bytes_atomic(path, buf.getvalue())
 
 
+#: Units of auxiliary channels by the suffix of their name (a set names channels, not units).
+SUFFIX_UNITS = {"c": "°C", "degc": "°C", "k": "K", "v": "V", "mv": "mV", "a": "A", "ma": "mA", "g": "g",
+                "dps": "deg/s", "s": "s", "hz": "Hz", "pa": "Pa", "pct": "%"}
+#: Held out in every plot of the loop: what its errors are measured on.
+HELD_OUT = "held out: whole plateaus (2 s blocks), each predicted by a fit without it"
+
+
+def channel_unit(channel: str) -> str:
+    """A channel's unit from its name's suffix (``temp_c`` °C, ``supply_v`` V, ``accel_g`` g);
+    ``raw...`` channels are the sensor's raw units; unknown: ``units of <channel>``."""
+    if channel.startswith("raw"):
+        return "raw units"
+    suffix = channel.rsplit("_", 1)[-1].lower() if "_" in channel else ""
+    return SUFFIX_UNITS.get(suffix, f"units of {channel}")
+
+
+def variable_label(name: str) -> str:
+    """An axis label with its unit for a candidate's variable (``d/dt temp_c`` -> °C/s)."""
+    if name == "time since power-on":
+        return "time since power-on (s)"
+    if name.startswith("sign d/dt "):
+        return f"{name} (−1 falling, +1 rising)"
+    if name.startswith("d/dt "):
+        return f"{name} ({channel_unit(name[5:])}/s)"
+    lag = re.match(r"lag\(([^,)]+)", name)
+    if lag:
+        return f"{name} ({channel_unit(lag.group(1))})"
+    gated = re.match(r"(\S+) × \(\|rate\|", name)
+    if gated:
+        return f"{name} ({channel_unit(gated.group(1))})"
+    if name.startswith("channel:"):
+        channel = name.split(":", 1)[1]
+        return f"{channel} ({channel_unit(channel)})"
+    if name.startswith("time:warm-up"):
+        return f"{name}: 1 − exp(−t/τ) (no unit)"
+    if name.startswith("time"):
+        return f"{name}: time since power-on (s)"
+    if name == "rate-of-change":
+        return "rate of change of raw (raw units/s)"
+    if name == "direction":
+        return "direction state (−1 falling, +1 rising)"
+    return name
+
+
 def variable_of(name: str, blocks: Blocks, loop: LoopResult | None = None) -> tuple[np.ndarray, str]:
     """The x-axis for a candidate: its channel (or its transform), time since power-on, or direction."""
     cand = next((c for c in (loop.candidates if loop else []) if c.name == name), None)
     if cand is not None and not name.startswith(("channel:", "time", "direction", "rate-of-change")):
-        return candidate_variables([cand], blocks)[name], name
+        return candidate_variables([cand], blocks)[name], variable_label(name)
     if name.startswith("channel:"):
         ch = name.split(":", 1)[1]
-        return blocks.aux[ch], ch
+        return blocks.aux[ch], variable_label(name)
     if name.startswith("time"):
         return blocks.time_s, "time since power-on (s)"
     if name == "rate-of-change":
-        return blocks.slope, "rate of change of raw (counts/s)"
-    return blocks.direction, "direction state (−1 falling, +1 rising)"
+        return blocks.slope, variable_label(name)
+    return blocks.direction, variable_label("direction")
 
 
 def residual_vs_rate(loop: LoopResult, path: Path) -> None:
+    """Before and after, each on its own scale: the error after is often a hundredth of before's."""
     rate = loop.blocks.points.rate
-    fig, ax = plt.subplots(figsize=(8, 4.2))
-    ax.plot(
-        rate,
-        loop.errors_before,
-        ".",
-        ms=3,
-        alpha=0.6,
-        label=f"rate model only: rms {loop.rms_before:.4f} deg/s",
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6.2), sharex=True)
+    panels = (
+        (axes[0], loop.errors_before, loop.rms_before, "rate model alone", "C0"),
+        (axes[1], loop.errors_after, loop.rms_after, "written set (rate model and effect terms)", "C1"),
     )
-    ax.plot(
-        rate, loop.errors_after, ".", ms=3, alpha=0.8, label=f"with effects: rms {loop.rms_after:.4f} deg/s"
-    )
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xlabel("table rate (deg/s)")
-    ax.set_ylabel("held-out error (deg/s)")
-    ax.set_title("Error on held-out plateaus, before and after closing the loop")
-    ax.legend(loc="best", fontsize=8)
+    for ax, errors, rms, what, colour in panels:
+        ax.plot(rate, errors, ".", ms=3, alpha=0.7, color=colour)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylabel("error (deg/s)")
+        ax.set_title(f"{what}: held-out rms {rms:.4f} deg/s", fontsize=10)
+        ax.grid(True, alpha=0.3)
+    axes[1].set_xlabel("table rate (deg/s)")
+    fig.suptitle(f"Error on held-out plateaus, before and after closing the loop\n({HELD_OUT})", fontsize=10)
+    fig.tight_layout()
     _save(fig, path)
 
 
@@ -89,7 +131,8 @@ def effect_plot(loop: LoopResult, effect: dict, path: Path) -> None:
     ax.set_ylabel("rate error (deg/s)")
     ax.set_title(
         f"Effect {effect['name']}: when added, held-out rms {effect['rms_before_dps']:.4f} -> "
-        f"{effect['rms_after_dps']:.4f} deg/s"
+        f"{effect['rms_after_dps']:.4f} deg/s\n(points: every block, final fit; rms: {HELD_OUT})",
+        fontsize=10,
     )
     ax.legend(loc="best", fontsize=8)
     _save(fig, path)
@@ -106,7 +149,8 @@ def confounded_plot(loop: LoopResult, group: dict, path: Path) -> None:
         ax.set_xlabel(label)
         ax.set_ylabel("residual of the rate model (deg/s)")
         ax.set_title(name, fontsize=9)
-    fig.suptitle("Confounded: both explain the same residual", fontsize=10)
+    fig.suptitle("Confounded: both explain the same residual of the rate model (all blocks, in-sample)",
+                 fontsize=10)
     _save(fig, path)
 
 
@@ -125,6 +169,8 @@ def unexplained_plot(loop: LoopResult, path: Path) -> None:
         ax.plot(variables[name], resid, ".", ms=2, alpha=0.6)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(f"{name}  |r| {r_of[name]:.2f}", fontsize=8)
+        ax.set_xlabel(variable_label(name), fontsize=7)
+        ax.set_ylabel("residual (deg/s)", fontsize=7)
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(order):]:
         ax.axis("off")
@@ -132,7 +178,7 @@ def unexplained_plot(loop: LoopResult, path: Path) -> None:
     verdict = "UNEXPLAINED" if left["unexplained"] else "explained"
     fig.suptitle(
         f"Held-out residual after the loop: {left['held_out_robust_rms_dps']:.4f} deg/s rms (robust), "
-        f"{left['ratio']:.1f}x the noise floor {left['noise_floor_dps']:.4f} ({verdict})",
+        f"{left['ratio']:.1f}x the noise floor {left['noise_floor_dps']:.4f} deg/s ({verdict})\n({HELD_OUT})",
         fontsize=10,
     )
     fig.tight_layout()
