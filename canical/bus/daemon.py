@@ -40,7 +40,7 @@ from socket import MSG_DONTWAIT
 from typing import Any
 
 import can
-from can.interfaces.socketcan.constants import CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU
+from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU
 
 from canical.bus import active_sets
 from canical.bus.active_sets import ActiveSets
@@ -60,7 +60,6 @@ from canical.bus.sd_notify import Notifier
 from canical.bus.socketcan import (
     TX_FULL,
     BusLost,
-    kernel_can_id,
     raw_socket_of,
     receive_filters,
     send_message,
@@ -272,6 +271,7 @@ class Daemon:
         head = FRAME_HEAD.unpack_from
         stamp_of = TIMEVAL.unpack_from
         monotonic = time.monotonic
+        anc_size = STAMP_BUFFER_SIZE
 
         while self._running:
             wait = self._next_periodic - monotonic()
@@ -283,7 +283,7 @@ class Daemon:
             first = None
             for _ in range(BURST):
                 try:
-                    cf, anc, _, _ = recvmsg(CANFD_MTU, STAMP_BUFFER_SIZE)
+                    cf, anc, _, _ = recvmsg(CANFD_MTU, anc_size)
                 except BlockingIOError:  # the receive timeout: nothing came
                     break
                 except OSError as exc:
@@ -301,8 +301,15 @@ class Daemon:
                     break  # (a signal asked for the periodic step: SIGHUP, SIGTERM)
 
     def _dispatch(self, msg: can.Message) -> None:
-        """A python-can message into :meth:`_frame`."""
-        self._frame(kernel_can_id(msg), msg.data, msg.timestamp, msg.is_fd)
+        """A python-can message into :meth:`_frame`, its id with the flags the raw socket would set."""
+        can_id = msg.arbitration_id
+        if msg.is_extended_id:
+            can_id |= CAN_EFF_FLAG
+        if msg.is_remote_frame:
+            can_id |= CAN_RTR_FLAG
+        if msg.is_error_frame:
+            can_id |= CAN_ERR_FLAG
+        self._frame(can_id, msg.data, msg.timestamp, msg.is_fd)
 
     def _frame(self, can_id: int, data: bytes | bytearray, stamp: float, fd: bool) -> None:
         """One received frame, ``can_id`` with SocketCAN's flag bits: count, drop, or act on it."""

@@ -31,8 +31,8 @@ from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
 
-__all__ = ["NO_PLAN", "AxisPlan", "FrameLayout", "InputFrame", "Plan", "RawHandler", "frame_layout",
-           "generate_raw_handler", "plan_for"]
+__all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "Plan", "RawHandler",
+           "frame_layout", "generate_raw_handler", "plan_for"]
 
 log = logging.getLogger("canical.serve")
 

@@ -18,15 +18,13 @@ from typing import Any
 import can
 from can.interfaces.socketcan.constants import (
     CAN_EFF_FLAG,
-    CAN_ERR_FLAG,
-    CAN_RTR_FLAG,
     EXT_ACCEPTANCE_MASK_ALL_BITS,
     STD_ACCEPTANCE_MASK_ALL_BITS,
 )
 
 from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
 
-__all__ = ["TX_FULL", "BusLost", "frame_key", "kernel_can_id", "raw_socket_of", "receive_filters",
+__all__ = ["TX_FULL", "BusLost", "frame_key", "raw_socket_of", "receive_filters",
            "send_message", "set_receive_timeout", "socket_frame"]
 
 #: errno values that mean "not a problem of this frame": the transmit queue is full.
@@ -45,18 +43,6 @@ def frame_key(frame_id: int, extended: bool) -> int:
 def socket_frame(frame_id: int, extended: bool, payload: bytes) -> bytes:
     """A classic frame as the kernel takes it on a raw CAN socket."""
     return FRAME_HEAD.pack(frame_key(frame_id, extended), len(payload), 0, 0) + payload.ljust(8, b"\0")
-
-
-def kernel_can_id(msg: can.Message) -> int:
-    """A python-can message's id with SocketCAN's flag bits, as the raw socket would show it."""
-    can_id = msg.arbitration_id
-    if msg.is_extended_id:
-        can_id |= CAN_EFF_FLAG
-    if msg.is_remote_frame:
-        can_id |= CAN_RTR_FLAG
-    if msg.is_error_frame:
-        can_id |= CAN_ERR_FLAG
-    return can_id
 
 
 def receive_filters(keys: Iterable[tuple[int, bool]]) -> list[dict[str, Any]]:

@@ -227,8 +227,11 @@ def compare(args: argparse.Namespace) -> None:
     here = Path(__file__).resolve().parents[2]
     trees = {"baseline": args.baseline.resolve(), "this": here}
     figures: dict[str, list[dict[str, list[float]]]] = {name: [] for name in trees}
-    for _ in range(args.rounds):
-        for name, tree in trees.items():
+    for round_ in range(args.rounds):
+        # Which tree runs first alternates: on a loaded machine the second of two back-to-back
+        # runs was seen 10-15 % slower, whichever tree it was.
+        for name in (["baseline", "this"] if round_ % 2 == 0 else ["this", "baseline"]):
+            tree = trees[name]
             env = {**os.environ, "PYTHONPATH": str(tree)}
             script = tree / "tests" / "benchmarks" / Path(__file__).name
             out = subprocess.run([sys.executable, str(script), "--json", "--frames",
