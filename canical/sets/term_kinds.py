@@ -17,7 +17,9 @@ one object that knows
   the compiled corrector may keep the part of x that depends on its input alone between
   frames (``kept``, :meth:`TermKind.kept_x`);
 * its description in reports (:meth:`TermKind.describe`) and a channel transform's name as a
-  candidate (:meth:`ChannelKind.label`).
+  candidate (:meth:`ChannelKind.label`);
+* how large x can get for bounded inputs (:meth:`TermKind.reach`), so that loading a set can
+  prove its outputs finite.
 
 Adding a kind is one new class here (and one row plus one ``case`` in the C evaluator); the
 tests fail while any of these is missing. Like cantools' conversions: one class per kind
@@ -146,6 +148,11 @@ class TermKind:
         """A readable name for reports."""
         raise NotImplementedError
 
+    def reach(self, term: Term, inputs: float) -> float:
+        """The largest |x| while every input (and the raw output's rate of change) stays within
+        ±``inputs``: what bounds the term's share (see :mod:`canical.sets.finite_outputs`)."""
+        return 1.0  # a direction, a warm-up: within ±1 whatever the inputs
+
 
 class ChannelKind(TermKind):
     """A transform of an auxiliary channel v (minus its reference value)."""
@@ -161,6 +168,9 @@ class ChannelKind(TermKind):
 
     def describe(self, term: Term) -> str:
         return self.label(term.channel or "?", term.tau_s)
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return inputs + abs(term.reference)  # a level, a lag of it, a gated level: |v − ref|
 
 
 class ChannelOffset(ChannelKind):
@@ -214,6 +224,9 @@ class ChannelSquare(ChannelKind):
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"({channel})²"
 
+    def reach(self, term: Term, inputs: float) -> float:
+        return (inputs + abs(term.reference)) ** 2
+
 
 class ChannelLagged(ChannelKind):
     """The channel seen through a first-order lag y (:class:`ChannelTracker`); reads time too."""
@@ -262,6 +275,9 @@ class ChannelDerivative(ChannelLagged):
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"d/dt {channel}"
 
+    def reach(self, term: Term, inputs: float) -> float:
+        return 2.0 * inputs / (term.tau_s or 1.0)  # |v − y| / τ, y a mean of past v
+
 
 class ChannelDirection(ChannelKind):
     """x = ±1: the sign of the channel's last change larger than ``threshold_raw`` (its units)."""
@@ -286,6 +302,9 @@ class ChannelDirection(ChannelKind):
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"sign d/dt {channel}"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return 1.0
 
 
 class ChannelGated(ChannelKind):
@@ -380,6 +399,9 @@ class TimeLinear(TimeKind):
     def describe(self, term: Term) -> str:
         return "linear drift"
 
+    def reach(self, term: Term, inputs: float) -> float:
+        return inputs
+
 
 class DirectionSign(TermKind):
     """x = ±1 (0 before either): the direction of the raw output's last significant change."""
@@ -436,6 +458,9 @@ class DirectionSlope(TermKind):
 
     def describe(self, term: Term) -> str:
         return "rate of change of raw"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return inputs
 
 
 CHANNEL_OFFSET = ChannelOffset()

@@ -138,10 +138,10 @@ class Term:
 def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     """Validate a term dict; raises ValueError with a message naming the field."""
     kind = d.get("kind")
-    if kind not in FEATURES:
+    if not isinstance(kind, str) or kind not in FEATURES:
         raise ValueError(f"{where}: kind {kind!r} not supported by this canical version")
     feature = d.get("feature")
-    spec = lookup(kind, feature)
+    spec = lookup(kind, feature) if isinstance(feature, str) else None
     if spec is None:
         raise ValueError(
             f"{where}: feature {feature!r} not valid for kind {kind} ({', '.join(FEATURES[kind])})"
