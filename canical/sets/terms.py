@@ -53,7 +53,6 @@ from canical.sets.term_kinds import (
     CHANNEL,
     FEATURES,
     TIME_INPUT,
-    ChannelKind,
     TermKind,
     gated_name,
     lookup,
@@ -71,7 +70,7 @@ from canical.sets.trackers import (
 
 __all__ = [
     "FEATURES", "FORMS", "STATEFUL_CHANNEL", "TERM_FIELDS", "TIME_INPUT", "ChannelTracker",
-    "DirectionTracker", "SlopeTracker", "Term", "channel_feature_name", "direction_state",
+    "DirectionTracker", "SlopeTracker", "Term", "direction_state",
     "feature_values", "gate_one", "gated_name", "lag_filter", "rate_gate", "raw_shift",
     "slope_state", "term_from_dict",
 ]
@@ -175,13 +174,6 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
         tau_s=tau,
         threshold_raw=threshold,
     )
-
-
-def channel_feature_name(spec: TermKind, channel: str, tau_s: float | None = None) -> str:
-    """How a report names a channel transform (a gated one: see :func:`gated_name`)."""
-    if not isinstance(spec, ChannelKind):
-        raise ValueError(f"{spec!r} is not a channel transform")
-    return spec.label(channel, tau_s)
 
 
 def feature_values(
