@@ -21,7 +21,7 @@ from canical.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
-from canical.sets.terms import TIME_INPUT
+from canical.sets.term_kinds import CHANNEL, CHANNEL_GATED, DIRECTION_SIGN, TIME_INPUT
 
 # The models the paper discusses, and ours: (label, options).
 PAPER_MODELS: tuple[tuple[str, CalibrateOptions], ...] = (
@@ -167,10 +167,10 @@ def _oracle_terms(scenario, blocks):
     """The scenario's true term forms, with references the run time would use."""
     terms = []
     for t in scenario.oracle_terms:
-        if t.kind == "channel" and t.feature != "gated":
+        if t.kind == CHANNEL and t.spec is not CHANNEL_GATED:
             t = replace(t, reference=float(np.mean(blocks.aux[t.channel])))
         # A gated level is told where it vanishes: a wrong reference would leave a hinge of the rate.
-        if t.feature == "sign":
+        if t.spec is DIRECTION_SIGN:
             t = replace(t, threshold_raw=blocks.direction_threshold_raw)
         terms.append(t)
     return tuple(terms)

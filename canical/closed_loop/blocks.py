@@ -25,6 +25,7 @@ import numpy as np
 from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.plateaus import Plateaus
 from canical.sessions.session import Session
+from canical.sets.term_kinds import CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_LAG
 from canical.sets.terms import Term, direction_state, lag_filter, rate_gate, slope_state
 
 BLOCK_S = 2.0
@@ -53,7 +54,7 @@ class ChannelSamples:
         sample in Python and cost far more to redo than a lag or a gate.
         """
         if len(self.cache) > 512:
-            for key in [k for k in self.cache if k[0] in ("lag", "gated")]:
+            for key in [k for k in self.cache if k[0] in (CHANNEL_LAG, CHANNEL_GATED)]:
                 del self.cache[key]
 
     def means(self, values: np.ndarray) -> np.ndarray:
@@ -62,7 +63,7 @@ class ChannelSamples:
 
     def lag_means(self, channel: str, tau_s: float) -> np.ndarray:
         """Block means of the channel's lag y with time constant τ (all blocks)."""
-        key = ("lag", channel, float(tau_s))
+        key = (CHANNEL_LAG, channel, float(tau_s))
         if key not in self.cache:
             self._make_room()
             self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
@@ -72,7 +73,7 @@ class ChannelSamples:
         """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks)."""
         if self.dv is None:
             raise ValueError("these samples were kept without their raw output")
-        key = ("gated", channel, float(reference), float(knee_raw))
+        key = (CHANNEL_GATED, channel, float(reference), float(knee_raw))
         if key not in self.cache:
             self._make_room()
             self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
@@ -86,7 +87,7 @@ class ChannelSamples:
 
     def direction_means(self, channel: str, threshold: float) -> np.ndarray:
         """Block means of the sign of the channel's last change larger than ``threshold``."""
-        key = ("direction", channel, float(threshold))
+        key = (CHANNEL_DIRECTION, channel, float(threshold))
         if key not in self.cache:
             self.cache[key] = self.means(direction_state(self.values[channel], threshold))
         return self.cache[key]
@@ -129,12 +130,13 @@ class Blocks:
             raise ValueError("these blocks were built without their samples")
         rows = slice(None) if self.rows is None else self.rows
         ch = term.channel or ""
-        if term.feature == "gated":
+        spec = term.spec
+        if spec is CHANNEL_GATED:
             return self.samples.gated_means(ch, term.reference, term.threshold_raw or 1.0)[rows]
-        if term.feature == "direction":
+        if spec is CHANNEL_DIRECTION:
             return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
         y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
-        if term.feature == "lag":
+        if spec is CHANNEL_LAG:
             return y - term.reference
         return (self.aux[ch] - y) / (term.tau_s or 1.0)
 

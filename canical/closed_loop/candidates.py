@@ -24,12 +24,30 @@ do not earn their keep are pruned after acceptance.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from canical.closed_loop.blocks import SLOPE_TAU_S, Blocks
-from canical.sets.terms import STATEFUL_CHANNEL, TIME_INPUT, Term, channel_feature_name
+from canical.sets.term_kinds import (
+    CHANNEL,
+    CHANNEL_DERIVATIVE,
+    CHANNEL_DIRECTION,
+    CHANNEL_GATED,
+    CHANNEL_LAG,
+    CHANNEL_OFFSET,
+    CHANNEL_SQUARE,
+    DIRECTION,
+    DIRECTION_SIGN,
+    DIRECTION_SLOPE,
+    TIME,
+    TIME_INPUT,
+    TIME_LINEAR,
+    TIME_WARMUP,
+    TermKind,
+)
+from canical.sets.terms import Term
 
 TAU_GRID_POINTS = 24
 LAG_GRID_POINTS = 12
@@ -46,6 +64,15 @@ DERIVATIVE_WINDOWS_S = (2.0, 4.0, 8.0, 15.0, 30.0, 60.0)
 # too few plateaus lie beyond it to fit anything).
 KNEE_GRID_POINTS = 10
 KNEE_SHARES = (0.03, 0.8)
+# The names of the candidates that are not a channel's.
+WARMUP_NAME = f"{TIME}:warm-up"
+DRIFT_NAME = f"{TIME}:linear-drift"
+DIRECTION_NAME = DIRECTION
+SLOPE_NAME = "rate-of-change"
+# The nonlinear parameter a fit estimates for each kind that has one (see :func:`tau_groups`):
+# a time constant, shared by all warm-up terms and by a channel's lag terms, or a gated channel's knee.
+WARMUP_GROUP: tuple[str, str | None] = (TIME_WARMUP.feature, None)
+GROUPED = (TIME_WARMUP, CHANNEL_LAG, CHANNEL_GATED)
 
 
 @dataclass(frozen=True)
@@ -53,7 +80,7 @@ class Candidate:
     """A named group of term templates (coefficients still to be fitted)."""
 
     name: str
-    kind: str  # channel | time | direction
+    kind: str  # a term kind: CHANNEL | TIME | DIRECTION
     channel: str | None
     terms: tuple[Term, ...]
 
@@ -64,20 +91,40 @@ class Candidate:
         return replace(self, terms=terms)
 
 
+def _level(term: Term, blocks: Blocks) -> np.ndarray:
+    assert term.channel is not None  # a channel term names its channel (validation checks)
+    x: np.ndarray = blocks.aux[term.channel] - term.reference
+    return x
+
+
+def _square(term: Term, blocks: Blocks) -> np.ndarray:
+    x = _level(term, blocks)
+    return x * x
+
+
+def _warmup(term: Term, blocks: Blocks) -> np.ndarray:
+    x: np.ndarray = 1.0 - np.exp(-blocks.time_s / term.tau_s)
+    return x
+
+
+#: Each term kind's feature at block level; a test checks that every kind of the registry is here.
+BLOCK_FEATURES: dict[TermKind, Callable[[Term, Blocks], np.ndarray]] = {
+    CHANNEL_OFFSET: _level,
+    CHANNEL_SQUARE: _square,
+    CHANNEL_LAG: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_DERIVATIVE: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_DIRECTION: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_GATED: lambda term, blocks: blocks.channel_feature(term),
+    TIME_WARMUP: _warmup,
+    TIME_LINEAR: lambda term, blocks: blocks.time_s,
+    DIRECTION_SIGN: lambda term, blocks: blocks.direction,
+    DIRECTION_SLOPE: lambda term, blocks: blocks.slope,
+}
+
+
 def feature(term: Term, blocks: Blocks) -> np.ndarray:
     """The term's feature x at each block (block means of the run-time inputs)."""
-    if term.feature == "sign":
-        return blocks.direction
-    if term.feature == "slope":
-        return blocks.slope
-    if term.kind == "channel" and (term.feature in STATEFUL_CHANNEL or term.feature == "gated"):
-        return blocks.channel_feature(term)
-    if term.kind == "time":
-        t = blocks.time_s
-        return 1.0 - np.exp(-t / term.tau_s) if term.feature == "warmup" else t
-    assert term.channel is not None  # every term left here is a channel level or square
-    x = blocks.aux[term.channel] - term.reference
-    return x * x if term.feature == "square" else x
+    return BLOCK_FEATURES[term.spec](term, blocks)
 
 
 def shift_columns(terms: tuple[Term, ...], blocks: Blocks) -> np.ndarray:
@@ -88,10 +135,8 @@ def shift_columns(terms: tuple[Term, ...], blocks: Blocks) -> np.ndarray:
     return np.column_stack([feature(t, blocks) * (dv if t.form == "scale" else 1.0) for t in terms])
 
 
-def _pair(kind: str, feature_name: str, **kw) -> tuple[Term, ...]:
-    return tuple(
-        Term(kind=kind, feature=feature_name, form=form, coefficient=0.0, **kw) for form in ("bias", "scale")
-    )
+def _pair(spec: TermKind, **kw) -> tuple[Term, ...]:
+    return tuple(Term.of(spec, form, 0.0, **kw) for form in ("bias", "scale"))
 
 
 TIED_R2 = 0.98
@@ -133,29 +178,29 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
             continue
         ref = float(np.mean(values))
         terms = (
-            *_pair("channel", "offset", channel=name, reference=ref),
-            Term(kind="channel", feature="square", form="bias", coefficient=0.0, channel=name, reference=ref),
+            *_pair(CHANNEL_OFFSET, channel=name, reference=ref),
+            Term.of(CHANNEL_SQUARE, "bias", 0.0, channel=name, reference=ref),
         )
-        out.append(Candidate(f"channel:{name}", "channel", name, terms))
+        out.append(Candidate(CHANNEL_OFFSET.label(name), CHANNEL, name, terms))
         out.extend(_transform_candidates(blocks, name, ref, session_duration_s))
     if np.ptp(blocks.time_s) > 0:
         tau = float(session_duration_s) / 3.0
-        out.append(Candidate("time:warm-up", "time", None, _pair("time", "warmup", tau_s=tau)))
-        out.append(Candidate("time:linear-drift", "time", None, _pair("time", "linear")))
+        out.append(Candidate(WARMUP_NAME, TIME, None, _pair(TIME_WARMUP, tau_s=tau)))
+        out.append(Candidate(DRIFT_NAME, TIME, None, _pair(TIME_LINEAR)))
     if np.ptp(blocks.direction) > 0:
         out.append(
             Candidate(
-                "direction",
-                "direction",
+                DIRECTION_NAME,
+                DIRECTION,
                 None,
-                _pair("direction", "sign", threshold_raw=blocks.direction_threshold_raw),
+                _pair(DIRECTION_SIGN, threshold_raw=blocks.direction_threshold_raw),
             )
         )
     # On settled plateaus the rate of change is near zero; it is a candidate all the same,
     # so that a sensor still moving in its plateaus would show it.
     if np.ptp(blocks.slope) > 0:
         out.append(
-            Candidate("rate-of-change", "direction", None, _pair("direction", "slope", tau_s=SLOPE_TAU_S))
+            Candidate(SLOPE_NAME, DIRECTION, None, _pair(DIRECTION_SLOPE, tau_s=SLOPE_TAU_S))
         )
     return out
 
@@ -180,7 +225,7 @@ def derivative_window(blocks: Blocks, channel: str) -> float:
     sigma = sample_noise(samples.values[channel])
     per_block = float(np.median(samples.stops - samples.starts))
     for tau in DERIVATIVE_WINDOWS_S:
-        d = feature(Term("channel", "derivative", "bias", 0.0, channel=channel, tau_s=tau), blocks)
+        d = feature(Term.of(CHANNEL_DERIVATIVE, "bias", 0.0, channel=channel, tau_s=tau), blocks)
         if sigma / (tau * np.sqrt(per_block)) <= DERIVATIVE_NOISE_SHARE * float(np.std(d)):
             return tau
     return DERIVATIVE_WINDOWS_S[-1]
@@ -198,19 +243,19 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
         return []
     values = blocks.samples.values[name]
     knees = knee_grid(blocks)
-    gated = [Candidate(channel_feature_name("gated", name), "channel", name,
+    gated = [Candidate(CHANNEL_GATED.label(name), CHANNEL, name,
                        _gated_terms(name, ref, float(np.ptp(values)), float(np.sqrt(knees[0] * knees[-1]))))
              ] if knees.size else []
     tau_d = derivative_window(blocks, name)
     tau_lag = float(np.sqrt(lag_grid(duration_s)[0] * lag_grid(duration_s)[-1]))
     thr = direction_threshold(values)
     return [
-        Candidate(channel_feature_name("derivative", name), "channel", name,
-                  _pair("channel", "derivative", channel=name, tau_s=tau_d)),
-        Candidate(channel_feature_name("lag", name), "channel", name,
-                  _pair("channel", "lag", channel=name, reference=ref, tau_s=tau_lag)),
-        Candidate(channel_feature_name("direction", name), "channel", name,
-                  _pair("channel", "direction", channel=name, threshold_raw=thr)),
+        Candidate(CHANNEL_DERIVATIVE.label(name), CHANNEL, name,
+                  _pair(CHANNEL_DERIVATIVE, channel=name, tau_s=tau_d)),
+        Candidate(CHANNEL_LAG.label(name), CHANNEL, name,
+                  _pair(CHANNEL_LAG, channel=name, reference=ref, tau_s=tau_lag)),
+        Candidate(CHANNEL_DIRECTION.label(name), CHANNEL, name,
+                  _pair(CHANNEL_DIRECTION, channel=name, threshold_raw=thr)),
         *gated,
     ]
 
@@ -223,9 +268,9 @@ def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple
     model cannot absorb. Two references span c·(v − r) for every r: the bias multiplied by
     the hinge, in terms the set already carries.
     """
-    return (*_pair("channel", "gated", channel=name, reference=ref, threshold_raw=knee_raw),
-            Term(kind="channel", feature="gated", form="scale", coefficient=0.0, channel=name,
-                 reference=ref - (spread or 1.0), threshold_raw=knee_raw))
+    return (*_pair(CHANNEL_GATED, channel=name, reference=ref, threshold_raw=knee_raw),
+            Term.of(CHANNEL_GATED, "scale", 0.0, channel=name, reference=ref - (spread or 1.0),
+                    threshold_raw=knee_raw))
 
 
 def knee_grid(blocks: Blocks) -> np.ndarray:
@@ -257,20 +302,20 @@ def tau_groups(terms: tuple[Term, ...]) -> list[tuple[str, str | None]]:
     each rate-gated channel's knee."""
     groups: list[tuple[str, str | None]] = []
     for t in terms:
-        key = ("warmup", None) if t.feature == "warmup" else (t.feature, t.channel)
-        if t.feature in ("warmup", "lag", "gated") and key not in groups:
+        key = WARMUP_GROUP if t.spec is TIME_WARMUP else (t.feature, t.channel)
+        if t.spec in GROUPED and key not in groups:
             groups.append(key)
     return groups
 
 
 def in_group(term: Term, group: tuple[str, str | None]) -> bool:
-    return term.feature == group[0] and (group[0] == "warmup" or term.channel == group[1])
+    return term.feature == group[0] and (group[0] == TIME_WARMUP.feature or term.channel == group[1])
 
 
-def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] = ("warmup", None)
+def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] = WARMUP_GROUP
              ) -> tuple[Term, ...]:
     """The group's parameter set to ``tau``: a time constant, or a gated group's knee (raw units)."""
-    gated = group[0] == "gated"
+    gated = group[0] == CHANNEL_GATED.feature
     return tuple(
         (replace(t, threshold_raw=tau) if gated else replace(t, tau_s=tau)) if in_group(t, group) else t
         for t in terms

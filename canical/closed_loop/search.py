@@ -41,6 +41,9 @@ from canical.calibrate.model_fit import ModelSpec, fit_model
 from canical.calibrate.model_selection import select_model
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import (
+    DRIFT_NAME,
+    WARMUP_GROUP,
+    WARMUP_NAME,
     Candidate,
     build_candidates,
     knee_grid,
@@ -54,6 +57,16 @@ from canical.closed_loop.candidates import (
 from canical.errors import CanicalError
 from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_inverse import fit_segmented_inverse
+from canical.sets.term_kinds import (
+    CHANNEL,
+    CHANNEL_DERIVATIVE,
+    CHANNEL_DIRECTION,
+    CHANNEL_GATED,
+    CHANNEL_LAG,
+    DIRECTION,
+    TIME,
+    TIME_WARMUP,
+)
 from canical.sets.terms import Term, gated_name
 
 MIN_GAIN = 0.10
@@ -141,7 +154,7 @@ def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
 
 
 def _best_tau(
-    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None] = ("warmup", None)
+    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None] = WARMUP_GROUP
 ) -> float:
     """τ of one group of terms (the warm-up, or one channel's lag), or a gated channel's knee:
     the best of a log grid, refined between its neighbours.
@@ -150,8 +163,8 @@ def _best_tau(
     term would then "explain" (for a lag: a derivative term); refining removes
     that false second effect.
     """
-    warmup = group[0] == "warmup"
-    if group[0] == "gated":  # a knee in raw units, searched on the same footing as a lag's τ
+    warmup = group[0] == TIME_WARMUP.feature
+    if group[0] == CHANNEL_GATED.feature:  # a knee in raw units, searched on the same footing as a lag's τ
         grid = knee_grid(blocks)
     else:
         grid = tau_grid(duration_s) if warmup else lag_grid(duration_s)
@@ -293,24 +306,25 @@ def recommend(a: Candidate, b: Candidate) -> str:
     """The session that would tell two confounded explanations apart."""
     kinds = {a.kind, b.kind}
     names = {c.kind: c for c in (a, b)}
-    if kinds == {"channel", "time"} and names["channel"].name.startswith(("d/dt", "lag(", "sign")):
-        ch = names["channel"].channel
+    if kinds == {CHANNEL, TIME} and names[CHANNEL].terms[0].spec in (CHANNEL_DERIVATIVE, CHANNEL_LAG,
+                                                                    CHANNEL_DIRECTION):
+        ch = names[CHANNEL].channel
         return (
             f"record a session that cycles {ch} up and down after the sensor is warm (powered on long "
             f"before the first plateau), so that changes of {ch} no longer follow time since power-on"
         )
-    if kinds == {"channel", "time"}:
-        ch = names["channel"].channel
+    if kinds == {CHANNEL, TIME}:
+        ch = names[CHANNEL].channel
         return (
             f"record a session in which {ch} does not follow time since power-on: soak the sensor "
             f"before powering it on, then step {ch} up and down in random order"
         )
-    if kinds == {"channel"} and a.channel == b.channel:
+    if kinds == {CHANNEL} and a.channel == b.channel:
         return (f"record a session in which {a.channel} changes at several speeds and holds between "
                 "changes, so its level, its rate of change and its direction of change separate")
-    if kinds == {"channel"}:
+    if kinds == {CHANNEL}:
         return f"record a session in which {a.channel} and {b.channel} are varied independently"
-    if "direction" in kinds:
+    if DIRECTION in kinds:
         return "record a session that approaches each rate from above and below, in random order"
     return "record a longer session with several power cycles, so warm-up and drift separate"
 
@@ -526,8 +540,8 @@ def run_loop(
     # Effect terms in the report carry the final joint coefficients of the terms that stayed.
     final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
     for eff in effects:  # a readable name with the final time constant: lag(temp_c, τ=140 s)
-        lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "lag"]
-        gated = [t for t in final_fit.terms if t.channel == eff["channel"] and t.feature == "gated"]
+        lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.spec is CHANNEL_LAG]
+        gated = [t for t in final_fit.terms if t.channel == eff["channel"] and t.spec is CHANNEL_GATED]
         is_lag = lagged and eff["name"].startswith("lag(")
         eff["description"] = lagged[0].describe() if is_lag else eff["name"]
         if gated and eff["name"] == gated_name(eff["channel"]):  # temp_c × (|rate| > 30 dps)
@@ -649,10 +663,10 @@ def _confounded_with(
 def _nests(general: Candidate, simple: Candidate) -> bool:
     """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
     and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞)."""
-    if general.name == "time:warm-up" and simple.name == "time:linear-drift":
+    if general.name == WARMUP_NAME and simple.name == DRIFT_NAME:
         return True
     generalises = general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
-    return (general.kind == simple.kind == "channel" and general.channel == simple.channel
+    return (general.kind == simple.kind == CHANNEL and general.channel == simple.channel
             and generalises and simple.name.startswith("channel:"))
 
 

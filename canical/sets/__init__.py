@@ -1,7 +1,9 @@
 """A coefficient set: what calibration writes and everything else reads.
 
 :mod:`.coefficients` is the set as plain data (rate model pieces plus effect terms),
-:mod:`.coefficient_file` its YAML file with CRC, :mod:`.terms` the effect term kinds,
+:mod:`.coefficient_file` its YAML file with CRC (and :mod:`.finite_outputs` the proof at load that
+its outputs are finite), :mod:`.term_kinds` the registry of effect term kinds (one object per
+kind), :mod:`.terms` the validated term record, :mod:`.trackers` the terms' state,
 :mod:`.corrector` applies a set to samples (block and per-sample paths),
 :mod:`.fast_corrector` compiles it into straight-line code for the daemon, and
 :mod:`.admission` decides which sets a device may take. Imports only :mod:`canical.models`

@@ -15,26 +15,16 @@ agree sample for sample.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
 from canical.errors import CanicalError
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
-from canical.sets.terms import (
-    STATEFUL_CHANNEL,
-    TIME_INPUT,
-    ChannelTracker,
-    DirectionTracker,
-    SlopeTracker,
-    Term,
-    feature_values,
-    gate_one,
-    raw_shift,
-    term_from_dict,
-)
+from canical.sets.term_kinds import TermKind
+from canical.sets.terms import Term, feature_values, raw_shift, term_from_dict
 
 
 class Corrector:
@@ -46,13 +36,14 @@ class Corrector:
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
         self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
+        self.kinds: tuple[TermKind, ...] = tuple(t.spec for t in self.terms)
         names = [n for t in self.terms for n in t.input_names]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
         self.reset()
 
     def reset(self) -> None:
         """Forget the direction, slope, lag and derivative state (a new stream of samples begins)."""
-        self._trackers = [_tracker(t) for t in self.terms]
+        self._trackers = [t.spec.tracker(t) for t in self.terms]
 
     def correct(
         self, raw: np.ndarray, inputs: Mapping[str, np.ndarray] | None = None
@@ -74,37 +65,8 @@ class Corrector:
         raw = float(raw)
         dv = raw - self.v0
         shift = 0.0
-        for term, tracker in zip(self.terms, self._trackers, strict=True):
-            if isinstance(tracker, ChannelTracker):
-                x = tracker.update(float(inputs[term.channel]), float(inputs[TIME_INPUT]))  # type: ignore[index]
-            elif isinstance(tracker, DirectionTracker):
-                source = float(inputs[term.channel]) if term.kind == "channel" else raw  # type: ignore[index]
-                x = tracker.update(source)
-            elif tracker is not None:
-                x = tracker.update(raw, float(inputs[TIME_INPUT]))  # type: ignore[index]
-            else:
-                value = float(inputs[term.input_name])  # type: ignore[index]
-                if term.feature == "gated":
-                    x = (value - term.reference) * gate_one(dv, term.threshold_raw)  # type: ignore[arg-type]
-                elif term.kind == "channel":
-                    x = value - term.reference
-                    if term.feature == "square":
-                        x = x * x
-                elif term.feature == "warmup":
-                    x = 1.0 - math.exp(-value / term.tau_s)  # type: ignore[operator]
-                else:
-                    x = value
+        values: Any = inputs
+        for term, spec, tracker in zip(self.terms, self.kinds, self._trackers, strict=True):
+            x = spec.one(term, tracker, raw, dv, values)
             shift += term.coefficient * (x * dv if term.form == "scale" else x)
         return self.model.evaluate_one(dv - shift)
-
-
-def _tracker(term: Term) -> ChannelTracker | DirectionTracker | SlopeTracker | None:
-    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
-        if term.feature == "direction":
-            return DirectionTracker(term.threshold_raw or 1.0)
-        return ChannelTracker(term)
-    if term.feature == "sign":
-        return DirectionTracker(term.threshold_raw or 1.0)
-    if term.feature == "slope":
-        return SlopeTracker(term.tau_s or 1.0)
-    return None

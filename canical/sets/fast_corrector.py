@@ -27,29 +27,25 @@ from typing import Any
 
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.corrector import Corrector
-from canical.sets.terms import TIME_INPUT, ChannelTracker, DirectionTracker, SlopeTracker, Term
+from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, lookup
+from canical.sets.terms import Term
 
 #: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
 CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 
-#: The (kind, feature) pairs compiled here; anything else keeps the reference path.
-COMPILED_TERMS = {("channel", "offset"), ("channel", "square"), ("channel", "lag"),
-                  ("channel", "derivative"), ("channel", "direction"), ("channel", "gated"),
-                  ("time", "warmup"), ("time", "linear"), ("direction", "sign"), ("direction", "slope")}
+#: The (kind, feature) pairs compiled here: every kind of the registry writes its own statements.
+COMPILED_TERMS = {k.key for k in ALL}
 #: The stateless terms whose input's part can be kept between frames (:func:`_cache_lines`).
-KEPT_TERMS = {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear")}
-#: The tracker each stateful feature keeps its state in (as ``Corrector``'s ``_tracker`` makes them).
-TRACKERS = {("channel", "lag"): ChannelTracker, ("channel", "derivative"): ChannelTracker,
-            ("channel", "direction"): DirectionTracker, ("direction", "sign"): DirectionTracker,
-            ("direction", "slope"): SlopeTracker}
+KEPT_TERMS = {k.key for k in ALL if k.kept}
 
 
 def why_not(corrector: Corrector) -> str | None:
     """Why this corrector is not compiled (None: it is)."""
     for term, tracker in zip(corrector.terms, corrector._trackers, strict=True):
-        if (term.kind, term.feature) not in COMPILED_TERMS:
+        spec = lookup(term.kind, term.feature)
+        if spec is None or spec.key not in COMPILED_TERMS:
             return f"term {term.kind}/{term.feature} not compiled"
-        expected = TRACKERS.get((term.kind, term.feature), type(None))
+        expected = spec.tracker_type or type(None)
         if type(tracker) is not expected:
             return f"term {term.kind}/{term.feature} has state {type(tracker).__name__}"
     model = corrector.model
@@ -66,57 +62,27 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
 
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
-    call is left out. Trackers get exactly the reference's arguments. The gate of a gated term
-    is :func:`~canical.sets.terms.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``.
+    call is left out. Trackers get exactly the reference's arguments. Each kind writes its own
+    statements (:meth:`~canical.sets.term_kinds.TermKind.code`).
 
     A stateless term whose input is a name in ``cached`` (an input that changes only when
     its own frame arrives, not every raw frame) keeps the part that depends on the input
     alone between calls: recomputed, by the same expression, only when the input is another
     object than last time (:func:`_cache_lines`); ``state`` collects the names that keep it.
     """
-    value = inputs(term.input_name)  # type: ignore[arg-type]
-    track = f"{tag}track{j}"
+    spec = term.spec
+    first = term.input_name
+    value = inputs(first) if first is not None else ""
     scale = term.form == "scale"
-    if state is not None and value in cached and (term.kind, term.feature) in KEPT_TERMS:
-        if term.feature == "warmup":
-            x = f"(1.0 - exp(-{value} / {term.tau_s!r}))"
-        elif term.feature == "linear":
-            x = value
-        else:
-            x = f"({value} - {term.reference!r})"
-        if term.feature == "square":
-            x = f"({x} * {x})"  # the reference's x * x, x computed twice the same way
-        if scale and term.feature == "linear":  # nothing but the input itself: nothing to keep
+    if state is not None and value in cached and spec.kept:
+        x = spec.kept_x(term, value)
+        if scale and x == value:  # nothing but the input itself: nothing to keep
             return [f"    shift += {term.coefficient!r} * ({value} * dv)"]
         kept = x if scale else f"{term.coefficient!r} * {x}"
         lines, name = _cache_lines(value, kept, f"{tag}t{j}_", state)
         share = f"{term.coefficient!r} * ({name} * dv)" if scale else name
         return [*lines, f"    shift += {share}"]
-    if term.kind == "channel" and term.feature in ("lag", "derivative"):
-        x = f"{track}(float({value}), float({inputs(TIME_INPUT)}))"
-    elif term.kind == "channel" and term.feature == "direction":
-        x = f"{track}(float({value}))"
-    elif term.feature == "gated":
-        k = term.threshold_raw
-        lines = ["    a = abs(dv)", f"    g = a - {k!r}", "    g = 0.0 if 0.0 > g else g",
-                 f"    x = ({value} - {term.reference!r}) * (g / ({k!r} if {k!r} > a else a))"]
-        share = "(x * dv)" if term.form == "scale" else "x"
-        return [*lines, f"    shift += {term.coefficient!r} * {share}"]
-    elif term.feature == "sign":
-        x = f"{track}({raw})"
-    elif term.feature == "slope":
-        x = f"{track}({raw}, float({inputs(TIME_INPUT)}))"
-    elif term.kind == "channel" and term.feature == "square":
-        x = f"({value} - {term.reference!r})"
-        return [f"    x = {x}", f"    shift += {term.coefficient!r} * "
-                + ("(x * x * dv)" if term.form == "scale" else "(x * x)")]
-    elif term.kind == "channel":
-        x = f"({value} - {term.reference!r})"
-    elif term.feature == "warmup":
-        x = f"(1.0 - exp(-{value} / {term.tau_s!r}))"
-    else:
-        x = value
-    return [f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")]
+    return spec.code(term, CodeNames(value, inputs(TIME_INPUT), raw, f"{tag}track{j}"))
 
 
 def _cache_lines(value: str, expr: str, prefix: str, state: list[str]) -> tuple[list[str], str]:
@@ -258,7 +224,7 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
     def value_of(name: str) -> str:
         return held.get(name, f"{inputs}[{name!r}]")
 
-    if any(t.feature in ("sign", "slope") for t in terms):
+    if any(t.spec.reads_raw for t in terms):
         lines.append(f"    rawf = float({raw})")
         raw = "rawf"
     lines.append(f"    dv = {raw} - {corrector.v0!r}")

@@ -34,8 +34,9 @@ coefficient means the output rises with temperature. Features:
   constant τ; input ``time_s``). Both have state, so samples must come in time order.
 
 Terms are plain dicts in the coefficient file (see :data:`TERM_FIELDS`); this
-module validates them and evaluates their features, vectorised or one sample at
-a time.
+module validates them into :class:`Term` records and evaluates their features for a
+block of samples. What each kind is, reads and computes lives in one object per kind
+in :mod:`canical.sets.term_kinds`; the trackers are :mod:`canical.sets.trackers`.
 """
 
 from __future__ import annotations
@@ -47,14 +48,36 @@ from typing import Any
 
 import numpy as np
 
-TIME_INPUT = "time_s"
-FEATURES = {
-    "channel": ("offset", "square", "lag", "derivative", "direction", "gated"),
-    "time": ("warmup", "linear"),
-    "direction": ("sign", "slope"),
-}
+from canical.sets.term_kinds import (
+    ALL,
+    CHANNEL,
+    FEATURES,
+    TIME_INPUT,
+    TermKind,
+    gated_name,
+    lookup,
+)
+from canical.sets.trackers import (
+    ChannelTracker,
+    DirectionTracker,
+    SlopeTracker,
+    direction_state,
+    gate_one,
+    lag_filter,
+    rate_gate,
+    slope_state,
+)
+
+__all__ = [
+    "FEATURES", "FORMS", "STATEFUL_CHANNEL", "TERM_FIELDS", "TIME_INPUT", "ChannelTracker",
+    "DirectionTracker", "SlopeTracker", "Term", "direction_state",
+    "feature_values", "gate_one", "gated_name", "lag_filter", "rate_gate", "raw_shift",
+    "slope_state", "term_from_dict",
+]
+
 FORMS = ("bias", "scale")
-STATEFUL_CHANNEL = ("lag", "derivative", "direction")
+#: The channel features with state (a lag, a derivative, a direction).
+STATEFUL_CHANNEL = tuple(k.feature for k in ALL if k.kind == CHANNEL and k.tracker_type is not None)
 TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw")
 
 
@@ -71,34 +94,32 @@ class Term:
     tau_s: float | None = None
     threshold_raw: float | None = None
 
+    @classmethod
+    def of(cls, spec: TermKind, form: str, coefficient: float, **fields: Any) -> Term:
+        """A term of the registry's kind ``spec``."""
+        return cls(spec.kind, spec.feature, form, coefficient, **fields)
+
+    @property
+    def spec(self) -> TermKind:
+        """This term's kind in the registry."""
+        spec = lookup(self.kind, self.feature)
+        if spec is None:
+            raise ValueError(f"term kind {self.kind}/{self.feature} not supported by this canical version")
+        return spec
+
     @property
     def input_name(self) -> str | None:
         """The run-time input this term reads first (None: derived from raw alone)."""
-        if self.kind == "channel":
-            return self.channel
-        if self.kind == "time" or self.feature == "slope":
-            return TIME_INPUT
-        return None
+        return self.spec.input_name(self)
 
     @property
     def input_names(self) -> tuple[str, ...]:
         """Every run-time input this term reads: a lag or derivative needs time as well."""
-        first = self.input_name
-        if first is None:
-            return ()
-        if self.kind == "channel" and self.feature in ("lag", "derivative"):
-            return (first, TIME_INPUT)
-        return (first,)
+        return self.spec.input_names(self)
 
     def describe(self) -> str:
         """A readable name for reports: ``d/dt temp_c``, ``lag(temp_c, τ=140 s)``."""
-        if self.kind == "channel" and self.feature == "gated":
-            return f"{self.channel} × (|ΔV| > {self.threshold_raw:.0f} counts)"
-        if self.kind == "channel":
-            return channel_feature_name(self.feature, self.channel or "?", self.tau_s)
-        if self.kind == "time":
-            return f"warm-up (τ={self.tau_s:.0f} s)" if self.feature == "warmup" else "linear drift"
-        return "direction of approach" if self.feature == "sign" else "rate of change of raw"
+        return self.spec.describe(self)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -116,10 +137,11 @@ class Term:
 def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     """Validate a term dict; raises ValueError with a message naming the field."""
     kind = d.get("kind")
-    if kind not in FEATURES:
+    if not isinstance(kind, str) or kind not in FEATURES:
         raise ValueError(f"{where}: kind {kind!r} not supported by this canical version")
     feature = d.get("feature")
-    if feature not in FEATURES[kind]:
+    spec = lookup(kind, feature) if isinstance(feature, str) else None
+    if spec is None:
         raise ValueError(
             f"{where}: feature {feature!r} not valid for kind {kind} ({', '.join(FEATURES[kind])})"
         )
@@ -138,60 +160,20 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
         return float(v)
 
     channel = d.get("channel")
-    if kind == "channel" and (not isinstance(channel, str) or not channel):
+    if spec.needs_channel and (not isinstance(channel, str) or not channel):
         raise ValueError(f"{where}: channel must name an input")
-    stateful = kind == "channel" and feature in STATEFUL_CHANNEL
-    tau = number("tau_s", required=feature in ("warmup", "slope", "lag", "derivative"), positive=True)
-    threshold = number("threshold_raw", required=feature in ("sign", "gated")
-                       or (stateful and feature == "direction"), positive=True)
+    tau = number("tau_s", required=spec.needs_tau, positive=True)
+    threshold = number("threshold_raw", required=spec.needs_threshold, positive=True)
     return Term(
-        kind=kind,
-        feature=feature,
+        kind=spec.kind,
+        feature=spec.feature,
         form=form,
         coefficient=number("coefficient", required=True),  # type: ignore[arg-type]
-        channel=channel if kind == "channel" else None,
+        channel=channel if spec.needs_channel else None,
         reference=number("reference") or 0.0,
         tau_s=tau,
         threshold_raw=threshold,
     )
-
-
-def channel_feature_name(feature: str, channel: str, tau_s: float | None = None) -> str:
-    """How a report names a channel transform (a gated one: see :func:`gated_name`)."""
-    if feature == "gated":
-        return gated_name(channel)
-    if feature == "offset":
-        return f"channel:{channel}"
-    if feature == "square":
-        return f"({channel})²"
-    if feature == "derivative":
-        return f"d/dt {channel}"
-    if feature == "direction":
-        return f"sign d/dt {channel}"
-    return f"lag({channel}, τ={tau_s:.0f} s)" if tau_s else f"lag({channel})"
-
-
-def gated_name(channel: str, knee_dps: float | None = None) -> str:
-    """``temp_c × (|rate| > 30 dps)``; without a knee, the candidate's name (knee to be estimated)."""
-    knee = "knee" if knee_dps is None else f"{knee_dps:.0f} dps"
-    return f"{channel} × (|rate| > {knee})"
-
-
-def rate_gate(dv: np.ndarray, knee_raw: float) -> np.ndarray:
-    """g = max(|ΔV| − k, 0)/|ΔV|: 0 up to the knee, rising towards 1 beyond it.
-
-    Times ΔV (the scale form) this is a hinge, sign(ΔV)·max(|ΔV| − k, 0): continuous
-    at the knee, so the knee can be estimated by a smooth search.
-    """
-    a = np.abs(np.asarray(dv, dtype=float))
-    gate: np.ndarray = np.maximum(a - knee_raw, 0.0) / np.maximum(a, knee_raw)
-    return gate
-
-
-def gate_one(dv: float, knee_raw: float) -> float:
-    """:func:`rate_gate` for one sample, with the same operations in the same order."""
-    a = abs(dv)
-    return max(a - knee_raw, 0.0) / max(a, knee_raw)
 
 
 def feature_values(
@@ -201,160 +183,7 @@ def feature_values(
 
     ``dv`` (raw − V0) is needed by a gated term only.
     """
-    if term.feature == "gated":
-        if dv is None:
-            raise ValueError("a gated term needs ΔV = raw − V0")
-        x = _column(inputs, term.channel) - term.reference
-        gated: np.ndarray = x * rate_gate(dv, term.threshold_raw or 1.0)
-        return gated
-    if term.kind == "channel" and term.feature in STATEFUL_CHANNEL:
-        values = _column(inputs, term.channel)
-        if term.feature == "direction":
-            return direction_state(values, term.threshold_raw or 1.0)
-        tracker = ChannelTracker(term)
-        time_s = np.asarray(inputs[TIME_INPUT], dtype=float)
-        return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
-    if term.feature == "sign":
-        return direction_state(raw, term.threshold_raw or 1.0)
-    if term.feature == "slope":
-        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0)
-    values = _column(inputs, term.input_name)
-    if term.kind == "channel":
-        x = values - term.reference
-        return x * x if term.feature == "square" else x
-    if term.feature == "warmup":
-        assert term.tau_s is not None  # term_from_dict requires τ of a warm-up term
-        warm: np.ndarray = 1.0 - np.exp(-values / term.tau_s)
-        return warm
-    return values
-
-
-def _column(inputs: Mapping[str, np.ndarray], name: str | None) -> np.ndarray:
-    """An input as floats; every term that reads one names it (term_from_dict checks)."""
-    if name is None:
-        raise ValueError("the term reads no input")
-    return np.asarray(inputs[name], dtype=float)
-
-
-def direction_state(raw: np.ndarray, threshold: float, state: DirectionTracker | None = None) -> np.ndarray:
-    """+1/−1/0 per sample: the direction of the last change of ``raw`` larger than ``threshold``."""
-    tracker = state or DirectionTracker(threshold)
-    out = np.empty(len(raw))
-    for i, v in enumerate(np.asarray(raw, dtype=float).tolist()):
-        out[i] = tracker.update(v)
-    return out
-
-
-class DirectionTracker:
-    """Hysteresis on the raw signal: flips only after a move of ``threshold`` from the last extreme."""
-
-    __slots__ = ("high", "low", "state", "threshold")
-
-    def __init__(self, threshold: float) -> None:
-        self.threshold = float(threshold)
-        self.state = 0.0
-        self.low = math.inf
-        self.high = -math.inf
-
-    def update(self, value: float) -> float:
-        if value > self.high:
-            self.high = value
-        if value < self.low:
-            self.low = value
-        if self.state <= 0.0 and value - self.low > self.threshold:
-            self.state = 1.0
-            self.high = value
-        elif self.state >= 0.0 and self.high - value > self.threshold:
-            self.state = -1.0
-            self.low = value
-        return self.state
-
-
-def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Smoothed d(raw)/dt per sample, as :class:`SlopeTracker` computes it one sample at a time."""
-    tracker = SlopeTracker(tau_s)
-    return np.array([tracker.update(r, t) for r, t in zip(raw.tolist(), time_s.tolist(), strict=True)])
-
-
-class SlopeTracker:
-    """Rate of change of the raw output, first-order smoothed with time constant ``tau_s``."""
-
-    __slots__ = ("last_raw", "last_t", "tau", "value")
-
-    def __init__(self, tau_s: float) -> None:
-        self.tau = float(tau_s)
-        self.value = 0.0
-        self.last_raw: float | None = None
-        self.last_t = 0.0
-
-    def update(self, raw: float, t: float) -> float:
-        if self.last_raw is not None and t > self.last_t:
-            dt = t - self.last_t
-            alpha = 1.0 - math.exp(-dt / self.tau)
-            self.value += alpha * ((raw - self.last_raw) / dt - self.value)
-        self.last_raw, self.last_t = raw, t
-        return self.value
-
-
-class ChannelTracker:
-    """First-order lag y of a channel (time constant τ, exact for any sample spacing).
-
-    Feature ``lag``: y − reference; feature ``derivative``: (v − y)/τ, which is dy/dt,
-    the channel's rate of change smoothed over τ. For the first τ of a stream, y is
-    the plain mean of the samples seen so far: starting from the first sample alone
-    would carry that one sample's noise for τ, an exponential decay that looks like a
-    warm-up. Block and per-sample paths start alike.
-    """
-
-    __slots__ = ("count", "derivative", "last_t", "reference", "start_t", "tau", "y")
-
-    def __init__(self, term: Term) -> None:
-        self.tau = float(term.tau_s or 1.0)
-        self.reference = float(term.reference)
-        self.derivative = term.feature == "derivative"
-        self.y: float | None = None
-        self.start_t = 0.0
-        self.last_t = 0.0
-        self.count = 0
-
-    def update(self, value: float, t: float) -> float:
-        if self.y is None:
-            self.y, self.start_t, self.count = value, t, 1
-        elif t - self.start_t < self.tau:
-            self.count += 1
-            self.y += (value - self.y) / self.count
-        elif t > self.last_t:
-            self.y += (1.0 - math.exp(-(t - self.last_t) / self.tau)) * (value - self.y)
-        self.last_t = t
-        return (value - self.y) / self.tau if self.derivative else self.y - self.reference
-
-
-def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """The lag y :class:`ChannelTracker` computes, for a whole record (a mean, then a lag).
-
-    Vectorised when the samples after the first τ are evenly spaced (the usual
-    case); sample by sample otherwise.
-    """
-    values = np.asarray(values, dtype=float)
-    time_s = np.asarray(time_s, dtype=float)
-    if values.size < 2:
-        return values.copy()
-    k = int(np.searchsorted(time_s - time_s[0], tau_s, side="left"))  # samples in the mean
-    k = max(k, 1)
-    out = np.empty_like(values)
-    out[:k] = np.cumsum(values[:k]) / np.arange(1, k + 1)
-    if k == values.size:
-        return out
-    dt = np.diff(time_s[k - 1 :])
-    step = float(np.median(dt))
-    if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
-        from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
-
-        a = 1.0 - np.exp(-step / tau_s)
-        out[k:] = lfilter([a], [1.0, a - 1.0], values[k:], zi=[(1.0 - a) * out[k - 1]])[0]
-        return out
-    tracker = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="_", tau_s=tau_s))
-    return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
+    return term.spec.values(term, inputs, raw, dv)
 
 
 def raw_shift(terms: tuple[Term, ...], features: np.ndarray, dv: np.ndarray) -> np.ndarray:

@@ -15,6 +15,19 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from canical.sessions.session import Session
+from canical.sets.term_kinds import (
+    CHANNEL_DERIVATIVE,
+    CHANNEL_DIRECTION,
+    CHANNEL_GATED,
+    CHANNEL_LAG,
+    CHANNEL_OFFSET,
+    CHANNEL_SQUARE,
+    DIRECTION,
+    DIRECTION_SIGN,
+    TIME_LINEAR,
+    TIME_WARMUP,
+    TermKind,
+)
 from canical.sets.terms import Term
 from canical.sim import effects as fx
 from canical.sim import environment as env
@@ -51,23 +64,23 @@ class Scenario:
         return sweep_session(gyro, self.rates(seed), dwell_s=dwell_s, seed=seed, aux=self.aux, table=table)
 
 
-def _t(kind: str, feature: str, form: str, **kw) -> Term:
-    return Term(kind=kind, feature=feature, form=form, coefficient=0.0, **kw)
+def _t(spec: TermKind, form: str, **kw) -> Term:
+    return Term.of(spec, form, 0.0, **kw)
 
 
 DISTRACTORS = {"noise_ch": env.white_noise(3.0, 1.0), "wander": env.random_walk(0.02)}
 TEMP_STEPS = {"temp_c": env.temperature_steps(), **DISTRACTORS}
 SUPPLY_STEPS = {"supply_v": env.supply_steps(), "temp_c": env.temperature_steps((24.0, 25.0, 26.0)),
                 **DISTRACTORS}
-T_BIAS = _t("channel", "offset", "bias", channel="temp_c", reference=25.0)
-T_SCALE = _t("channel", "offset", "scale", channel="temp_c", reference=25.0)
-T_SQUARE = _t("channel", "square", "bias", channel="temp_c", reference=25.0)
-V_BIAS = _t("channel", "offset", "bias", channel="supply_v", reference=5.0)
-V_SCALE = _t("channel", "offset", "scale", channel="supply_v", reference=5.0)
-WARM = _t("time", "warmup", "bias", tau_s=200.0)
-WARM_SCALE = _t("time", "warmup", "scale", tau_s=200.0)
-DRIFT = _t("time", "linear", "bias")
-DIR = _t("direction", "sign", "bias", threshold_raw=400.0)
+T_BIAS = _t(CHANNEL_OFFSET, "bias", channel="temp_c", reference=25.0)
+T_SCALE = _t(CHANNEL_OFFSET, "scale", channel="temp_c", reference=25.0)
+T_SQUARE = _t(CHANNEL_SQUARE, "bias", channel="temp_c", reference=25.0)
+V_BIAS = _t(CHANNEL_OFFSET, "bias", channel="supply_v", reference=5.0)
+V_SCALE = _t(CHANNEL_OFFSET, "scale", channel="supply_v", reference=5.0)
+WARM = _t(TIME_WARMUP, "bias", tau_s=200.0)
+WARM_SCALE = _t(TIME_WARMUP, "scale", tau_s=200.0)
+DRIFT = _t(TIME_LINEAR, "bias")
+DIR = _t(DIRECTION_SIGN, "bias", threshold_raw=400.0)
 # Environments for effects in forms nobody listed.
 # A transient follows the true temperature's rate of change, not its readout noise:
 # these temperature readouts are averaged (as on-die sensors are), noise 0.002 C.
@@ -81,14 +94,14 @@ TWO_AXIS = {"raw_x": env.other_axis_raw(), **DISTRACTORS}
 FIVE_DISTRACTORS = {"noise_a": env.white_noise(3.0, 1.0), "noise_b": env.white_noise(0.0, 0.2),
                     "wander_a": env.random_walk(0.02), "wander_b": env.random_walk(0.005, 10.0),
                     "room_c": env.temperature_cycle(22.0, 2.0, (2400.0, 1300.0), 0.02)}
-T_RATE = _t("channel", "derivative", "bias", channel="temp_c", tau_s=3.0)
-T_LAG = _t("channel", "lag", "bias", channel="temp_c", tau_s=120.0)
-T_LAG60 = _t("channel", "lag", "bias", channel="temp_c", tau_s=60.0)
-T_LAG60_SCALE = _t("channel", "lag", "scale", channel="temp_c", tau_s=60.0)
-T_HYST = _t("channel", "direction", "bias", channel="temp_c", threshold_raw=1.0)
-X_LEAK = _t("channel", "offset", "bias", channel="raw_x")
+T_RATE = _t(CHANNEL_DERIVATIVE, "bias", channel="temp_c", tau_s=3.0)
+T_LAG = _t(CHANNEL_LAG, "bias", channel="temp_c", tau_s=120.0)
+T_LAG60 = _t(CHANNEL_LAG, "bias", channel="temp_c", tau_s=60.0)
+T_LAG60_SCALE = _t(CHANNEL_LAG, "scale", channel="temp_c", tau_s=60.0)
+T_HYST = _t(CHANNEL_DIRECTION, "bias", channel="temp_c", threshold_raw=1.0)
+X_LEAK = _t(CHANNEL_OFFSET, "bias", channel="raw_x")
 # Knee 30 dps at the simulated 400 counts per deg/s (the loop estimates it, told or not).
-T_GATED = _t("channel", "gated", "scale", channel="temp_c", reference=25.0, threshold_raw=12_000.0)
+T_GATED = _t(CHANNEL_GATED, "scale", channel="temp_c", reference=25.0, threshold_raw=12_000.0)
 COLOURED = GyroModel(bias_instability_dps=0.003, rate_random_walk_dps_rt_s=1e-4)
 
 SCENARIOS: tuple[Scenario, ...] = (
@@ -121,13 +134,13 @@ SCENARIOS: tuple[Scenario, ...] = (
              expect=("channel:supply_v",), oracle_terms=(V_BIAS, V_SCALE)),
     Scenario("direction offset 0.05 dps, up-down sweeps",
              (fx.DirectionEffect(0.05),), DISTRACTORS, profile="up-down",
-             expect=("direction",), oracle_terms=(DIR,)),
+             expect=(DIRECTION,), oracle_terms=(DIR,)),
     Scenario("direction offset 0.02 dps, shuffled rates",
              (fx.DirectionEffect(0.02),), DISTRACTORS,
-             expect=("direction",), oracle_terms=(DIR,)),
+             expect=(DIRECTION,), oracle_terms=(DIR,)),
     Scenario("temperature steps + direction",
              (fx.TemperatureEffect(bias_dps_per_c=0.01), fx.DirectionEffect(0.04)), TEMP_STEPS,
-             expect=("channel:temp_c", "direction"), oracle_terms=(T_BIAS, DIR)),
+             expect=("channel:temp_c", DIRECTION), oracle_terms=(T_BIAS, DIR)),
     Scenario("clean, shuffled rates, distractors", (), {**TEMP_STEPS}),
     Scenario("clean, up-down sweeps, distractors", (), DISTRACTORS, profile="up-down"),
     Scenario("clean, ascending sweeps", (), {"noise_ch": env.white_noise()}, profile="ascending"),

@@ -3,11 +3,12 @@
 Per case: relative error of each estimate (median and 90th percentile of |error|, worst),
 how often the term was resolved, how often its stated interval held the true value, and how
 often a term the noise does not have was claimed.
-Run: python tests/benchmarks/bench_allan.py [seeds]
+Run: python tests/benchmarks/bench_allan.py [seeds] [--quick]
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -56,7 +57,11 @@ CASES = {
 
 
 def main() -> None:
-    seeds = int(sys.argv[1]) if len(sys.argv) > 1 else 40
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("seeds", nargs="?", type=int, default=40)
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    args = parser.parse_args()
+    seeds = 1 if args.quick else args.seeds
     t0 = time.perf_counter()
     print(f"{'case':32s} {'term':17s} {'resolved':>8s} {'|err| med':>9s} {'p90':>6s} {'max':>6s} "
           f"{'in interval':>11s}")

@@ -18,7 +18,7 @@ processes, and prints the median of each figure side by side: on a machine other
 share, only a comparison made at the same time means anything. Each tree runs its own copy of
 this script (it resets the daemon's internals between runs, and those differ between commits).
 
-    python tests/benchmarks/bench_daemon_frame.py [--frames N] [--repeats N]
+    python tests/benchmarks/bench_daemon_frame.py [--frames N] [--repeats N] [--quick]
     python tests/benchmarks/bench_daemon_frame.py --baseline /tmp/base [--rounds 5]
 """
 
@@ -128,7 +128,10 @@ def main() -> None:
     parser.add_argument("--rate-limit", type=float, default=75.0, metavar="DPS",
                         help="peak table rate of the stream; the sets span about +-60 deg/s, so 75 puts "
                              "part of every axis beyond the span and 50 keeps it all inside")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
+    if args.quick:
+        args.frames, args.repeats, args.rounds = min(args.frames, 500), 1, 1
     if args.baseline is not None:
         compare(args)
         return

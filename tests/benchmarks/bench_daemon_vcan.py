@@ -24,7 +24,7 @@ it re-runs itself inside a User-mode Linux guest (one CPU, slow system calls: ab
 there are the guest's, the ratios are the point).
 
     python tests/benchmarks/bench_daemon_vcan.py [--frames N] [--rates 200,1000,...] [--rounds N]
-        [--baseline DIR]
+        [--baseline DIR] [--quick]
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ from pathlib import Path
 TESTS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS))
 
-import vcan_harness  # noqa: E402
+from support import vcan_harness  # noqa: E402
 
 CHANNEL = "vcan0"
 RAW_ID, OUT_ID, AUX_ID = 0x190, 0x110, 0x290
@@ -395,7 +395,11 @@ def main() -> int:
     parser.add_argument("--baseline", help="source tree of a daemon to compare (before/after)")
     parser.add_argument("--strace-rate", type=float, default=1000.0,
                         help="paced rate at which system calls are counted (0: not)")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
+    if args.quick:
+        args.frames, args.paced_frames, args.paced_seconds = 300, 100, 0.1
+        args.rates, args.rounds, args.strace_rate = "1000", 1, 0.0
     status = vcan_harness.run_script_on_vcan(timeout=3000.0)
     if status is not None:
         return status

@@ -9,7 +9,7 @@ With several seeds, a seed × scenario table of the verdicts follows (``yes``: a
 expected; otherwise what was found, ``C`` for a reported confound), and for every
 reported confound the paired p-values that decided it.
 
-Run: python tests/benchmarks/bench_effects.py [SEED ...] [--only TEXT] [--dwell S]
+Run: python tests/benchmarks/bench_effects.py [SEED ...] [--only TEXT] [--dwell S] [--quick]
 (``--only`` keeps scenarios whose name contains TEXT; repeat it for several.)
 """
 
@@ -35,9 +35,12 @@ def main() -> None:
     parser.add_argument("seeds", nargs="*", type=int, default=[0])
     parser.add_argument("--only", action="append", default=[])
     parser.add_argument("--dwell", type=float, default=10.0)
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
     scenarios = [sc for sc in (*SCENARIOS, UNEXPLAINED)
                  if not args.only or any(o in sc.name for o in args.only)]
+    if args.quick:
+        args.seeds, scenarios = args.seeds[:1], scenarios[:1]
     head = f"{'before':>7s} {'after':>7s} {'told':>7s} {'a/told':>6s} {'left':>6s}"
     table: dict[str, list[str]] = {sc.name: [] for sc in scenarios}
     decisions: list[str] = []

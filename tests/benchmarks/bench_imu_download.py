@@ -10,7 +10,7 @@ daemon (``device:`` in its configuration), to the first CANICAL_RATE frame tagge
 a SIGHUP sent when the push returns. On a host without SocketCAN the script re-runs itself inside
 a User-mode Linux guest (one CPU, slow system calls: its absolute figures are the guest's).
 
-    python tests/benchmarks/bench_imu_download.py [--pushes N] [--rate 100]
+    python tests/benchmarks/bench_imu_download.py [--pushes N] [--rate 100] [--quick]
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pathlib import Path
 TESTS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS))
 
-import vcan_harness  # noqa: E402
+from support import vcan_harness  # noqa: E402
 
 CHANNEL = "vcan0"
 NODE = 0x10
@@ -159,7 +159,10 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pushes", type=int, default=10)
     parser.add_argument("--rate", type=float, default=100.0, help="raw samples/s the device streams")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
+    if args.quick:
+        args.pushes = 1
     status = vcan_harness.run_script_on_vcan()
     if status is not None:
         return status

@@ -1,10 +1,11 @@
 """Benchmark: run-time cost of the calibration models, and calibrate time for 1M samples.
 
-Prints figures; asserts nothing. Run: python tests/benchmarks/bench_models.py
+Prints figures; asserts nothing. Run: python tests/benchmarks/bench_models.py [--quick]
 """
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import io
 import tempfile
@@ -30,6 +31,10 @@ def best_of(fn, repeat: int = 5) -> float:
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    quick = parser.parse_args().quick
+    repeat = 1 if quick else 5
     session = paper_session()
     models = {
         "segmented-inverse (auto, C0)": fit_base(session, CalibrateOptions()),
@@ -38,16 +43,16 @@ def main() -> None:
         "forward-poly (order 3, Newton)": fit_base(session, CalibrateOptions(model="forward-poly", order=3)),
         "forward-poly (order 6, Newton)": fit_base(session, CalibrateOptions(model="forward-poly", order=6)),
     }
-    n = 1_000_000
+    n = 10_000 if quick else 1_000_000
     rng = np.random.default_rng(0)
     base = models["segmented-inverse (auto, C0)"]
     lo, hi = base.fitted.model.span
     dv = rng.uniform(lo, hi, n)
 
-    print(f"vectorised evaluation of {n:,} samples (best of 5):")
+    print(f"vectorised evaluation of {n:,} samples (best of {repeat}):")
     rates = {}
     for name, fit in models.items():
-        seconds = best_of(lambda fit=fit: fit.fitted.model.evaluate(dv))
+        seconds = best_of(lambda fit=fit: fit.fitted.model.evaluate(dv), repeat)
         rates[name] = n / seconds
         print(f"  {name:38s} {n / seconds / 1e6:8.2f} M samples/s")
     ref = rates["forward-poly (order 3, Newton)"]
@@ -55,16 +60,17 @@ def main() -> None:
           f"{rates['segmented-inverse (auto, C0)'] / ref:.1f}x")
 
     print("\nscalar evaluation, one sample at a time (the daemon's per-frame path):")
-    k = 100_000
+    k = 1_000 if quick else 100_000
     sample = dv[:k].tolist()
     for name, fit in models.items():
         one = fit.fitted.model.evaluate_one
-        seconds = best_of(lambda one=one: [one(x) for x in sample], repeat=3)
+        seconds = best_of(lambda one=one: [one(x) for x in sample], repeat=min(repeat, 3))
         print(f"  {name:38s} {seconds / k * 1e6:8.3f} us/sample")
 
-    print("\ncalibrate on a 1,000,000-sample session (auto model size, 41 rates, 3 sweeps):")
+    samples = 150_000 if quick else 1_000_000
+    print(f"\ncalibrate on a {samples:,}-sample session (auto model size, 41 rates, 3 sweeps):")
     rates_dps = np.concatenate([paper_rates(), paper_rates()[::-1], paper_rates()])
-    big = sweep_session(GyroModel(), rates_dps, dwell_s=1_000_000 / 200 / len(rates_dps))
+    big = sweep_session(GyroModel(), rates_dps, dwell_s=samples / 200 / len(rates_dps))
     for extend in (False, True):
         t0 = time.perf_counter()
         result = calibrate(big, CalibrateOptions(extend=extend), sensor_id="BENCH", axis="z")

@@ -2,12 +2,13 @@
 (what the reload worker does), then generate their correctors (done on the frame thread, on
 the first frame of the new sets). Prints the median over rounds.
 
-    python tests/benchmarks/bench_reload_build.py            # here
+    python tests/benchmarks/bench_reload_build.py [--quick]  # here
     # in the UML guest (vcan tier's machine): tests/vcan_harness.run_in_uml([...this script...])
 """
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import sys
 import tempfile
@@ -44,4 +45,6 @@ def main(rounds: int = 15) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    main(1 if parser.parse_args().quick else 15)

@@ -5,7 +5,7 @@ interface, so it needs no CAN hardware and no guest: on this machine's own kerne
 ``--baseline DIR`` the daemon of another source tree runs in turn with this one (a before/after
 table measured in the same run).
 
-    python tests/benchmarks/bench_serve_start.py [--runs N] [--baseline DIR]
+    python tests/benchmarks/bench_serve_start.py [--runs N] [--baseline DIR] [--quick]
 """
 
 from __future__ import annotations
@@ -33,7 +33,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5)
     parser.add_argument("--baseline", help="source tree of a daemon to compare (before/after)")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
+    if args.quick:
+        args.runs = 1
     folder = Path(tempfile.mkdtemp(prefix="canical-start-"))
     write_sets(folder, terms=ALL_TERMS)
     config = write_config(folder, "bench", interface="virtual")

@@ -11,12 +11,13 @@ ratio for the very same emulated passes calibrated without the bus (the emulator
 a session: canical.trials.table_grid_bus.stream_session), so the bus's own cost is the
 difference of the last two columns.
 
-Run: python tests/benchmarks/bench_table_grid_bus.py [SEEDS, default 0,1,2,3,4]
+Run: python tests/benchmarks/bench_table_grid_bus.py [SEEDS, default 0,1,2,3,4] [--quick]
+(``--quick``: seed 0, the ideal table and the grid's first cell; checks that the script runs.)
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -27,7 +28,7 @@ from canical.trials.table_grid import GRID, IDEAL
 from canical.trials.table_grid_bus import bus_cell, pooled_bus_ratio, stream_held_out_rms
 
 
-def main(seeds: tuple[int, ...]) -> None:
+def main(seeds: tuple[int, ...], cells: int | None = None) -> None:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench-grid-bus-") as tmp:
         folder = Path(tmp)
@@ -39,7 +40,7 @@ def main(seeds: tuple[int, ...]) -> None:
                   f"{'ratio':>5s}  {'per seed':{5 * len(seeds)}s} {'same passes, no bus':>19s}")
         print(header)
         print("-" * len(header))
-        for i, (name, behaviour) in enumerate(GRID):
+        for i, (name, behaviour) in enumerate(GRID[:cells]):
             results = [bus_cell(name, behaviour, folder / f"{i}-{s}", seed=s) for s in seeds]
             found = {r.found for r in results}
             found_text = "/".join(str(f) for f in sorted(found))
@@ -60,4 +61,11 @@ def main(seeds: tuple[int, ...]) -> None:
 
 
 if __name__ == "__main__":
-    main(tuple(int(s) for s in sys.argv[1].split(",")) if len(sys.argv) > 1 else (0, 1, 2, 3, 4))
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("seeds", nargs="?", default="0,1,2,3,4", help="comma-separated seeds")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    args = parser.parse_args()
+    if args.quick:
+        main((0,), cells=1)
+    else:
+        main(tuple(int(s) for s in args.seeds.split(",")))

@@ -12,7 +12,6 @@ from canical.sets.terms import (
     ChannelTracker,
     DirectionTracker,
     SlopeTracker,
-    Term,
     feature_values,
     lag_filter,
     term_from_dict,
@@ -34,15 +33,15 @@ def test_slope_tracker_converges_to_the_ramp_slope():
 
 def test_channel_lag_and_derivative_follow_a_ramp():
     """After a ramp has run many τ, the lag trails it by slope·τ and the derivative is the slope."""
-    lag = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="t", reference=1.0, tau_s=20.0))
-    der = ChannelTracker(Term("channel", "derivative", "bias", 0.0, channel="t", tau_s=20.0))
+    lag = ChannelTracker(20.0, reference=1.0)
+    der = ChannelTracker(20.0, derivative=True)
     times = np.arange(0, 400, 0.05)
     for t in times:
         x_lag, x_der = lag.update(0.5 * t, t), der.update(0.5 * t, t)
     # Exact discrete lag: it trails by slope·(τ − dt/2) to first order in dt/τ.
     assert x_der == pytest.approx(0.5 * (1 - 0.05 / 40.0), rel=1e-5)
     assert x_lag == pytest.approx(0.5 * times[-1] - 0.5 * (20.0 - 0.025) - 1.0, rel=1e-5)
-    fresh = ChannelTracker(Term("channel", "derivative", "bias", 0.0, channel="t", tau_s=5.0))
+    fresh = ChannelTracker(5.0, derivative=True)
     assert fresh.update(3.0, 0.0) == 0.0  # no change seen yet
 
 
@@ -54,7 +53,7 @@ def test_vectorised_lag_equals_the_tracker(seed, even, tau):
     n = 400
     t = np.arange(n) * 0.01 if even else np.cumsum(rng.uniform(0.001, 0.05, n))
     v = np.cumsum(rng.normal(0, 1, n))
-    tracker = ChannelTracker(Term("channel", "lag", "bias", 0.0, channel="c", tau_s=tau))
+    tracker = ChannelTracker(tau)
     one = [tracker.update(a, b) for a, b in zip(v.tolist(), t.tolist(), strict=True)]
     np.testing.assert_allclose(lag_filter(v, t, tau), one, rtol=1e-9, atol=1e-9)
 

@@ -1,0 +1,491 @@
+"""The registry of term kinds: each (kind, feature) of an effect term is one object here.
+
+Why: a term kind used to be a pair of strings that the validation, the corrector's two paths,
+the compiled corrector, the candidate search, the reports, the C evaluator and the benchmarks
+each spelled and dispatched on; a kind added later was missed in one of them. Now each kind is
+one object that knows
+
+* its names in the set file (``kind``, ``feature``) and its C form's identifier (``c_name``,
+  a ``CE_TERM_*`` code of ``firmware/canical_eval.c``'s ``TERM_SPECS``, which a test compares
+  with :data:`ALL`);
+* the fields it requires (``needs_tau``, ``needs_threshold``; every ``channel`` kind names a
+  channel) and the run-time inputs it reads (:meth:`TermKind.input_names`);
+* its state tracker (:meth:`TermKind.tracker`) and its feature x, for a block of samples
+  (:meth:`TermKind.values`) and for one sample (:meth:`TermKind.one`), the same operations
+  in the same order;
+* the statements the compiled corrector writes for it (:meth:`TermKind.code`), and whether
+  the compiled corrector may keep the part of x that depends on its input alone between
+  frames (``kept``, :meth:`TermKind.kept_x`);
+* its description in reports (:meth:`TermKind.describe`) and a channel transform's name as a
+  candidate (:meth:`ChannelKind.label`);
+* how large x can get for bounded inputs (:meth:`TermKind.reach`), so that loading a set can
+  prove its outputs finite.
+
+Adding a kind is one new class here (and one row plus one ``case`` in the C evaluator); the
+tests fail while any of these is missing. Like cantools' conversions: one class per kind
+behind a lookup (:func:`lookup`). The term record itself, and the set file's validation built
+on these objects, are :mod:`canical.sets.terms`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+
+from canical.sets.trackers import (
+    ChannelTracker,
+    DirectionTracker,
+    SlopeTracker,
+    direction_state,
+    gate_one,
+    rate_gate,
+    slope_state,
+)
+
+if TYPE_CHECKING:
+    from canical.sets.terms import Term
+
+#: The run-time input holding time since power-on (seconds).
+TIME_INPUT = "time_s"
+#: The kinds (groups of features) a set file names.
+CHANNEL = "channel"
+TIME = "time"
+DIRECTION = "direction"
+
+Tracker = ChannelTracker | DirectionTracker | SlopeTracker
+#: Inputs for a block of samples, and for one sample.
+Block = Mapping[str, np.ndarray]
+Sample = Mapping[str, float]
+
+
+@dataclass(frozen=True)
+class CodeNames:
+    """What the compiled corrector's statements for one term refer to: the expressions of the
+    term's input, of time and of the raw value, and the name its tracker's ``update`` is bound to."""
+
+    value: str
+    time: str
+    raw: str
+    track: str
+
+
+def _column(inputs: Block, name: str | None) -> np.ndarray:
+    """An input as floats; every term that reads one names it (validation checks)."""
+    if name is None:
+        raise ValueError("the term reads no input")
+    return np.asarray(inputs[name], dtype=float)
+
+
+def share(term: Term, x: str) -> str:
+    """The compiled line adding ``term``'s share c·x (bias) or c·x·ΔV (scale) to the shift."""
+    return f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")
+
+
+class TermKind:
+    """One (kind, feature) of effect term; subclasses fill in what differs."""
+
+    kind: ClassVar[str]
+    feature: ClassVar[str]
+    c_name: ClassVar[str]
+    needs_tau: ClassVar[bool] = False
+    needs_threshold: ClassVar[bool] = False
+    #: Whether the compiled corrector keeps the part of x that depends on the input alone.
+    kept: ClassVar[bool] = False
+    #: The tracker class this kind keeps its state in (None: stateless).
+    tracker_type: ClassVar[type | None] = None
+    #: Whether x is computed from the raw output itself (its tracker gets the raw value).
+    reads_raw: ClassVar[bool] = False
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.kind, self.feature)
+
+    @property
+    def needs_channel(self) -> bool:
+        return self.kind == CHANNEL
+
+    def __repr__(self) -> str:
+        return f"<term kind {self.kind}/{self.feature}>"
+
+    def input_names(self, term: Term) -> tuple[str, ...]:
+        """Every run-time input the term reads, the first its own (:meth:`input_name`)."""
+        return ()
+
+    def input_name(self, term: Term) -> str | None:
+        """The run-time input this term reads first (None: derived from raw alone)."""
+        names = self.input_names(term)
+        return names[0] if names else None
+
+    def tracker(self, term: Term) -> Tracker | None:
+        """A fresh state for one stream of samples (None: the kind has none)."""
+        return None
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        """x for a block of samples in time order, from a fresh state."""
+        raise NotImplementedError
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        """x for the next sample of the stream whose state ``tracker`` holds."""
+        raise NotImplementedError
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        """The compiled corrector's statements adding this term's share to ``shift``."""
+        return [share(term, self.code_x(term, names))]
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        """x as one expression of the compiled corrector (for kinds whose :meth:`code` uses it)."""
+        raise NotImplementedError
+
+    def kept_x(self, term: Term, value: str) -> str:
+        """x as an expression of the input ``value`` alone, for a ``kept`` kind."""
+        raise NotImplementedError(f"{self!r} is not kept between frames")
+
+    def describe(self, term: Term) -> str:
+        """A readable name for reports."""
+        raise NotImplementedError
+
+    def reach(self, term: Term, inputs: float) -> float:
+        """The largest |x| while every input (and the raw output's rate of change) stays within
+        ±``inputs``: what bounds the term's share (see :mod:`canical.sets.finite_outputs`)."""
+        return 1.0  # a direction, a warm-up: within ±1 whatever the inputs
+
+
+class ChannelKind(TermKind):
+    """A transform of an auxiliary channel v (minus its reference value)."""
+
+    kind = CHANNEL
+
+    def input_names(self, term: Term) -> tuple[str, ...]:
+        return (term.channel or "",)
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        """How a report or a candidate names this transform of ``channel``."""
+        raise NotImplementedError
+
+    def describe(self, term: Term) -> str:
+        return self.label(term.channel or "?", term.tau_s)
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return inputs + abs(term.reference)  # a level, a lag of it, a gated level: |v − ref|
+
+
+class ChannelOffset(ChannelKind):
+    """x = v − ref."""
+
+    feature = "offset"
+    c_name = "CE_TERM_CHANNEL_OFFSET"
+    kept = True
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        out: np.ndarray = _column(inputs, term.channel) - term.reference
+        return out
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return float(inputs[term.channel]) - term.reference  # type: ignore[index]
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return f"({names.value} - {term.reference!r})"
+
+    def kept_x(self, term: Term, value: str) -> str:
+        return f"({value} - {term.reference!r})"
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"{CHANNEL}:{channel}"
+
+
+class ChannelSquare(ChannelKind):
+    """x = (v − ref)²."""
+
+    feature = "square"
+    c_name = "CE_TERM_CHANNEL_SQUARE"
+    kept = True
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        x = _column(inputs, term.channel) - term.reference
+        out: np.ndarray = x * x
+        return out
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x = float(inputs[term.channel]) - term.reference  # type: ignore[index]
+        return x * x
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        return [f"    x = ({names.value} - {term.reference!r})", f"    shift += {term.coefficient!r} * "
+                + ("(x * x * dv)" if term.form == "scale" else "(x * x)")]
+
+    def kept_x(self, term: Term, value: str) -> str:
+        x = f"({value} - {term.reference!r})"
+        return f"({x} * {x})"  # the reference's x * x, x computed twice the same way
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"({channel})²"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return (inputs + abs(term.reference)) ** 2
+
+
+class ChannelLagged(ChannelKind):
+    """The channel seen through a first-order lag y (:class:`ChannelTracker`); reads time too."""
+
+    needs_tau = True
+    tracker_type = ChannelTracker
+    derivative: ClassVar[bool] = False
+
+    def input_names(self, term: Term) -> tuple[str, ...]:
+        return (term.channel or "", TIME_INPUT)
+
+    def tracker(self, term: Term) -> ChannelTracker:
+        return ChannelTracker(term.tau_s or 1.0, term.reference, self.derivative)
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        values = _column(inputs, term.channel)
+        tracker = self.tracker(term)
+        time_s = np.asarray(inputs[TIME_INPUT], dtype=float)
+        return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x: float = tracker.update(float(inputs[term.channel]), float(inputs[TIME_INPUT]))  # type: ignore[index]
+        return x
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return f"{names.track}(float({names.value}), float({names.time}))"
+
+
+class ChannelLag(ChannelLagged):
+    """x = y − ref: the die feels the channel late."""
+
+    feature = "lag"
+    c_name = "CE_TERM_CHANNEL_LAG"
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"lag({channel}, τ={tau_s:.0f} s)" if tau_s else f"lag({channel})"
+
+
+class ChannelDerivative(ChannelLagged):
+    """x = (v − y)/τ: the channel's rate of change smoothed with τ (a thermal transient)."""
+
+    feature = "derivative"
+    c_name = "CE_TERM_CHANNEL_DERIVATIVE"
+    derivative = True
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"d/dt {channel}"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return 2.0 * inputs / (term.tau_s or 1.0)  # |v − y| / τ, y a mean of past v
+
+
+class ChannelDirection(ChannelKind):
+    """x = ±1: the sign of the channel's last change larger than ``threshold_raw`` (its units)."""
+
+    feature = "direction"
+    c_name = "CE_TERM_CHANNEL_DIRECTION"
+    needs_threshold = True
+    tracker_type = DirectionTracker
+
+    def tracker(self, term: Term) -> DirectionTracker:
+        return DirectionTracker(term.threshold_raw or 1.0)
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return direction_state(_column(inputs, term.channel), term.threshold_raw or 1.0)
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x: float = tracker.update(float(inputs[term.channel]))  # type: ignore[index]
+        return x
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return f"{names.track}(float({names.value}))"
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"sign d/dt {channel}"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return 1.0
+
+
+class ChannelGated(ChannelKind):
+    """x = (v − ref)·g(ΔV) with the knee k = ``threshold_raw`` (raw units): an effect beyond a rate."""
+
+    feature = "gated"
+    c_name = "CE_TERM_CHANNEL_GATED"
+    needs_threshold = True
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        if dv is None:
+            raise ValueError("a gated term needs ΔV = raw − V0")
+        x = _column(inputs, term.channel) - term.reference
+        gated: np.ndarray = x * rate_gate(dv, term.threshold_raw or 1.0)
+        return gated
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return (float(inputs[term.channel]) - term.reference) * gate_one(dv, term.threshold_raw)  # type: ignore[index,arg-type]
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        """:func:`~canical.sets.trackers.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``."""
+        k = term.threshold_raw
+        return ["    a = abs(dv)", f"    g = a - {k!r}", "    g = 0.0 if 0.0 > g else g",
+                f"    x = ({names.value} - {term.reference!r}) * (g / ({k!r} if {k!r} > a else a))",
+                f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
+
+    def describe(self, term: Term) -> str:
+        return f"{term.channel} × (|ΔV| > {term.threshold_raw:.0f} counts)"
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return gated_name(channel)
+
+
+def gated_name(channel: str, knee_dps: float | None = None) -> str:
+    """``temp_c × (|rate| > 30 dps)``; without a knee, the candidate's name (knee to be estimated)."""
+    knee = "knee" if knee_dps is None else f"{knee_dps:.0f} dps"
+    return f"{channel} × (|rate| > {knee})"
+
+
+class TimeKind(TermKind):
+    """A function of time since power-on t (input ``time_s``)."""
+
+    kind = TIME
+    kept = True
+
+    def input_names(self, term: Term) -> tuple[str, ...]:
+        return (TIME_INPUT,)
+
+
+class TimeWarmup(TimeKind):
+    """x = 1 − exp(−t/τ)."""
+
+    feature = "warmup"
+    c_name = "CE_TERM_TIME_WARMUP"
+    needs_tau = True
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        warm: np.ndarray = 1.0 - np.exp(-_column(inputs, TIME_INPUT) / term.tau_s)
+        return warm
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return 1.0 - math.exp(-float(inputs[TIME_INPUT]) / term.tau_s)  # type: ignore[operator]
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return self.kept_x(term, names.value)
+
+    def kept_x(self, term: Term, value: str) -> str:
+        return f"(1.0 - exp(-{value} / {term.tau_s!r}))"
+
+    def describe(self, term: Term) -> str:
+        return f"warm-up (τ={term.tau_s:.0f} s)"
+
+
+class TimeLinear(TimeKind):
+    """x = t: a linear drift."""
+
+    feature = "linear"
+    c_name = "CE_TERM_TIME_LINEAR"
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return _column(inputs, TIME_INPUT)
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return float(inputs[TIME_INPUT])
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return names.value
+
+    def kept_x(self, term: Term, value: str) -> str:
+        return value
+
+    def describe(self, term: Term) -> str:
+        return "linear drift"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return inputs
+
+
+class DirectionSign(TermKind):
+    """x = ±1 (0 before either): the direction of the raw output's last significant change."""
+
+    kind = DIRECTION
+    feature = "sign"
+    c_name = "CE_TERM_DIRECTION_SIGN"
+    reads_raw = True
+    needs_threshold = True
+    tracker_type = DirectionTracker
+
+    def tracker(self, term: Term) -> DirectionTracker:
+        return DirectionTracker(term.threshold_raw or 1.0)
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return direction_state(raw, term.threshold_raw or 1.0)
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x: float = tracker.update(raw)
+        return x
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return f"{names.track}({names.raw})"
+
+    def describe(self, term: Term) -> str:
+        return "direction of approach"
+
+
+class DirectionSlope(TermKind):
+    """x = d(raw)/dt smoothed with τ (raw units per second; input ``time_s``)."""
+
+    kind = DIRECTION
+    feature = "slope"
+    c_name = "CE_TERM_DIRECTION_SLOPE"
+    reads_raw = True
+    needs_tau = True
+    tracker_type = SlopeTracker
+
+    def input_names(self, term: Term) -> tuple[str, ...]:
+        return (TIME_INPUT,)
+
+    def tracker(self, term: Term) -> SlopeTracker:
+        return SlopeTracker(term.tau_s or 1.0)
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0)
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x: float = tracker.update(raw, float(inputs[TIME_INPUT]))
+        return x
+
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        return f"{names.track}({names.raw}, float({names.time}))"
+
+    def describe(self, term: Term) -> str:
+        return "rate of change of raw"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return inputs
+
+
+CHANNEL_OFFSET = ChannelOffset()
+CHANNEL_SQUARE = ChannelSquare()
+CHANNEL_LAG = ChannelLag()
+CHANNEL_DERIVATIVE = ChannelDerivative()
+CHANNEL_DIRECTION = ChannelDirection()
+CHANNEL_GATED = ChannelGated()
+TIME_WARMUP = TimeWarmup()
+TIME_LINEAR = TimeLinear()
+DIRECTION_SIGN = DirectionSign()
+DIRECTION_SLOPE = DirectionSlope()
+
+#: Every kind this canical version reads, in the order error messages list them.
+ALL: tuple[TermKind, ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNEL_DERIVATIVE,
+                             CHANNEL_DIRECTION, CHANNEL_GATED, TIME_WARMUP, TIME_LINEAR,
+                             DIRECTION_SIGN, DIRECTION_SLOPE)
+_BY_KEY = {k.key: k for k in ALL}
+#: The features of each kind, as the set file names them.
+FEATURES: dict[str, tuple[str, ...]] = {}
+for _k in ALL:
+    FEATURES.setdefault(_k.kind, ())
+    FEATURES[_k.kind] += (_k.feature,)
+
+
+def lookup(kind: object, feature: object) -> TermKind | None:
+    """The kind a set file's ``kind``/``feature`` pair names (None: not one this version reads)."""
+    return _BY_KEY.get((kind, feature))  # type: ignore[arg-type]
