@@ -23,6 +23,7 @@ RINGS: tuple[tuple[str, ...], ...] = (
     ("calibrate", "sessions"),
     ("sets",),
     ("closed_loop", "sim"),
+    ("calibration_report",),
     ("pipeline", "report"),
     ("evaluation",),
     ("device",),

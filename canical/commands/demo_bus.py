@@ -43,7 +43,6 @@ from canical.errors import CanicalError
 from canical.frames.imu_frames import ImuFrames, set_tag
 from canical.imu_dictionary import AXES, sensor_id_for_serial
 from canical.pipeline import CalibrateOptions, calibrate
-from canical.report.markdown import written_model
 from canical.sessions.csv_file import format_session, read_table
 from canical.sets import coefficient_file
 from canical.sets.coefficient_file import set_crc
@@ -163,11 +162,12 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         result = calibrate(session, CalibrateOptions(), sensor_id=sensor, axis=o.axis)
         coeffs = out / f"imu-{o.axis}.yaml"
         coefficient_file.save(coeffs, result.coefficients)
-        loop = result.report.get("closed_loop", {})
-        effects = [e.get("name", str(e)) for e in result.report.get("effects", [])]
-        before, after = loop.get("held_out_rms_before_dps"), loop.get("held_out_rms_after_dps")
+        loop = result.report.closed_loop
+        effects = [e.name for e in result.report.effects]
+        before = loop.held_out_rms_before_dps if loop else None
+        after = loop.held_out_rms_after_dps if loop else None
         found = ", ".join(effects) or "none"
-        say(f"calibrated: {written_model(result.report)}; undeclared effect(s) found: {found}")
+        say(f"calibrated: {result.report.written_model()}; undeclared effect(s) found: {found}")
         if before is not None and after is not None:
             say(f"  held-out rms (2 s blocks, whole plateaus left out): rate model alone {before:.4f}, "
                 f"written set {after:.4f} deg/s")
