@@ -36,6 +36,7 @@ import numpy as np
 
 from canical.atomic_file import make_dirs, write_text_atomic
 from canical.bus.recording import Recording, open_recorder_bus, record
+from canical.calibrate.plateaus import span_means
 from canical.device.can_network import open_network, sdo_client_filters, sdo_server_filters
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.device.sdo_download import ImuClient, PushResult, push_sets
@@ -49,6 +50,7 @@ from canical.sets.coefficient_file import set_crc
 
 TEMP_BIAS_DPS_PER_C = 0.03  # the undeclared effect of the demo's IMU
 NOMINAL_COUNTS_PER_DPS = 400.0  # the datasheet's scale factor, for "before"
+MIN_PLATEAU_ROWS = 10  # a settled run shorter than this is not a plateau of the live comparison
 
 
 @dataclass(frozen=True)
@@ -335,15 +337,26 @@ def _field_session(rec: Recording, keep: np.ndarray, axis: str, sensor: str):
 
 
 def _plateau_rms(rate: np.ndarray, ref: np.ndarray, settled: np.ndarray) -> float:
-    """Rms over table plateaus of (mean rate − table rate): the calibration error, noise averaged out."""
-    errors = []
-    start = None
-    for i in range(len(ref) + 1):
-        inside = i < len(ref) and settled[i] and (start is None or ref[i] == ref[start])
-        if inside and start is None:
-            start = i
-        elif not inside and start is not None:
-            if i - start >= 10:
-                errors.append(float(np.mean(rate[start:i]) - ref[start]))
-            start = i if i < len(ref) and settled[i] else None
-    return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
+    """Rms over table plateaus of (mean rate − table rate): the calibration error, noise averaged out.
+
+    A plateau here is a run of at least ``MIN_PLATEAU_ROWS`` rows the table flags settled at one
+    rate: the few frames compared need no plateau finding, the table says where it stood still.
+    """
+    start, stop = _settled_runs(ref, settled)
+    long_enough = stop - start >= MIN_PLATEAU_ROWS
+    if not np.any(long_enough):
+        return float("nan")
+    start, stop = start[long_enough], stop[long_enough]
+    errors = span_means(rate, start, stop) - ref[start]
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+def _settled_runs(ref: np.ndarray, settled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``[start, stop)`` of each run of settled rows at one table rate."""
+    n = len(ref)
+    boundary = np.ones(n + 1, dtype=bool)  # a run may begin (or the one before end) at each True
+    boundary[1:n] = (ref[1:] != ref[:-1]) | (settled[1:] != settled[:-1])
+    edges = np.flatnonzero(boundary)
+    start, stop = edges[:-1], edges[1:]
+    on = np.asarray(settled, dtype=bool)[start]
+    return start[on], stop[on]
