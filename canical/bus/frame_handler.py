@@ -26,13 +26,13 @@ from canical.bus.active_sets import ActiveSets
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.socketcan import frame_key
 from canical.bus.socketcan_constants import FRAME_HEAD
-from canical.frames.codec import RateEncoder, RawDecoder
-from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
+from canical.frames.codec import RateEncoder, RawDecoder, signal_range
+from canical.frames.compiler import NotCompilable, codec_for, decode_lines, encode_lines
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
 
-__all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "Plan", "RawHandler",
-           "frame_layout", "generate_raw_handler", "plan_for"]
+__all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "OwnLayout", "Plan",
+           "RawHandler", "frame_layout", "generate_raw_handler", "own_layout", "plan_for"]
 
 log = logging.getLogger("canical.serve")
 
@@ -49,6 +49,34 @@ class InputFrame:
     decode: Callable[[bytes | bytearray], tuple[Any, ...]]
     length: int
     inputs_at: Positions
+
+
+@dataclass(frozen=True)
+class OwnLayout:
+    """The corrected frame in the IMU's own layout: the raw frame's message re-encoded, each
+    axis's signal holding its corrected value (saturated to the signal's range, rounded by the
+    encode as cantools does), every other signal copied through."""
+
+    encode: Callable[[Any], bytes]  # the raw message's encode, values in signal order
+    spans: tuple[tuple[float, float], ...]  # per signal of the raw message, the range it can carry
+    head: bytes  # the frame's kernel head: key, length
+    pad: bytes  # zeros to the classic frame's 8 data bytes
+    frame_id: int
+    extended: bool
+    gateway: bool  # sent on another bus than the sensor's
+
+
+def own_layout(config: DaemonConfig, raw_msg: Message, *, compiled: bool) -> OwnLayout | None:
+    """The own-layout output as configured (None: not sent)."""
+    out = config.own_layout
+    if out is None:
+        return None
+    return OwnLayout(
+        encode=codec_for(raw_msg, compiled=compiled).encode,
+        spans=tuple(signal_range(raw_msg, s.name) for s in raw_msg.signals),
+        head=FRAME_HEAD.pack(frame_key(out.frame_id, out.extended), raw_msg.length, 0, 0),
+        pad=bytes(max(0, 8 - raw_msg.length)), frame_id=out.frame_id, extended=out.extended,
+        gateway=out.channel is not None)
 
 
 @dataclass(frozen=True)
@@ -70,6 +98,7 @@ class FrameLayout:
     tx_counter_mask: int  # the rate frame's counter, likewise
     rate_head: bytes  # the rate frame's kernel head: key, length
     rate_pad: bytes  # zeros to the classic frame's 8 data bytes
+    own: OwnLayout | None = None  # the corrected frame in the raw frame's layout, if sent
 
 
 def _wrap_mask(message: Message, signal: str) -> int:
@@ -106,6 +135,7 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
         tx_counter_mask=_wrap_mask(rate_msg, "Counter"),
         rate_head=FRAME_HEAD.pack(frame_key(rate.frame_id, rate.is_extended), rate.length, 0, 0),
         rate_pad=bytes(max(0, 8 - rate.length)),
+        own=own_layout(config, raw_msg, compiled=compiled),
     )
 
 
@@ -213,6 +243,8 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
                                  held=held, cached=slow, state=state))
         flags.append("False")
     src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
+    if layout.own is not None:
+        _encode_and_send_own(src, layout, layout.own, plan, flags)
     _encode_and_send(src, layout, sets, flags)
     lines = src.lines
     source = "\n".join(with_state(lines[0], lines[1:], state, "on_raw")) + "\n"
@@ -227,6 +259,8 @@ def _decode_and_count(src: _Source, layout: FrameLayout, plan: Plan) -> None:
     width = len(layout.raw.index)
     try:  # the frame's length is the raw message's (the receive loop checked it)
         used = ({a.at for a in plan.axes} | {at for _, at in layout.raw_inputs_at} | {layout.counter_at})
+        if layout.own is not None:  # every signal is copied through
+            used = set(range(width))
         outs = [f"s{i}" if i in used else None for i in range(width)]
         src.add(*decode_lines(layout.raw_message, "data", outs))
     except NotCompilable:  # cantools decodes this frame (logged at start)
@@ -243,6 +277,34 @@ def _decode_and_count(src: _Source, layout: FrameLayout, plan: Plan) -> None:
                           f"    gap = prev is not None and {got} != ((prev + 1) & {layout.counter_mask:#x})",
                           "    if gap:", "        stats.counter_gaps += 1",
                           f"    self._prev_counter = {got}"])
+
+
+def _encode_and_send_own(src: _Source, layout: FrameLayout, own: OwnLayout, plan: Plan,
+                         flags: list[str]) -> None:
+    """The raw frame's message again, each axis's signal its corrected value saturated to the
+    signal's range (an uncalibrated axis: its raw value as it came), the others as decoded."""
+    values = [f"s{i}" for i in range(len(own.spans))]
+    spans: list[tuple[float, float] | None] = [None] * len(own.spans)
+    for k, axis in enumerate(plan.axes):
+        if flags[k] == "True":
+            continue
+        lo, hi = own.spans[axis.at]
+        zero = lo if lo > 0.0 else hi if hi < 0.0 else 0.0  # a non-finite rate is sent as 0
+        r = f"r{k}"
+        src.lines.append(f"    q{k} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
+                         f" if {r} - {r} == 0.0 else {zero!r}")
+        values[axis.at], spans[axis.at] = f"q{k}", (lo, hi)
+    try:
+        body, names, payload = encode_lines(layout.raw_message, values, [None] * len(values), tag="own_",
+                                            spans=spans)
+        src.add(body, names)
+    except NotCompilable:  # cantools encodes this frame (logged at start)
+        src.ns["own_encode"] = own.encode
+        payload = f"own_encode(({', '.join(values)},))"
+    pad = f" + {own.pad!r}" if own.pad else ""
+    src.ns["OWN"] = own.head
+    src.lines.extend(["    try:", f"        send_own(OWN + {payload}{pad}, MSG_DONTWAIT)",
+                      "    except OSError as exc:", "        send_failed(exc)"])
 
 
 def _encode_and_send(src: _Source, layout: FrameLayout, sets: ActiveSets, flags: list[str]) -> None:
