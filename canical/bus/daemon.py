@@ -118,7 +118,8 @@ class Daemon:
         self._counter_at = layout.counter_at
         self._input_handlers = layout.input_handlers
         self._raw_values, self._raw_length = self.raw.values, self.raw.length
-        self._encode_rate = self.rate.encode_in_order  # None: encode_xyz arranges the values
+        # None: encode_xyz arranges the values (or no rate frame is sent: frames.rate null).
+        self._encode_rate = None if self.rate is None else self.rate.encode_in_order
         self._rate_head, self._rate_pad = layout.rate_head, layout.rate_pad
         self._own = layout.own  # the corrected frame in the raw frame's layout (None: not sent)
         self.out_bus: can.BusABC | None = None  # the gateway's output bus (None: the sensor's bus)
@@ -387,7 +388,8 @@ class Daemon:
         compiled = self._compiled_axes
         encode = self._encode_rate
         send_own = self._own_send(sock)
-        if self.compiled and encode is not None and send_own is not None and len(sets.axes) == 3 and all(
+        in_order = encode is not None or self.rate is None  # the rate frame's signals as generated code sends
+        if self.compiled and in_order and send_own is not None and len(sets.axes) == 3 and all(
                 ax.corrector is None or compiled.get(ax.corrector) is not None for ax in sets.axes):
             handler = generate_raw_handler(
                 self.layout, sets, plan, owner=self, general=self._on_raw,
@@ -404,17 +406,18 @@ class Daemon:
         out = raw_socket_of(self.out_bus) if self.out_bus is not None else None
         return None if out is None else out.send
 
-    def _send_own_layout(self, signals: tuple[Any, ...], axes: tuple[tuple[int, float, bool], ...]) -> None:
-        """The reference path's own-layout frame: the raw frame's signals, each calibrated axis's
-        (position, corrected rate, uncalibrated) saturated to its signal's range."""
+    def _send_own_layout(self, data: bytes | bytearray, signals: tuple[Any, ...],
+                         axes: tuple[tuple[int, float, bool], ...]) -> None:
+        """The reference path's own-layout frame: the raw frame, each calibrated axis's signal
+        (position, corrected rate, uncalibrated) saturated to its range, the rest as it came."""
         own = self._own
         assert own is not None
-        values = list(signals)
-        for at, rate, uncalibrated in axes:
-            if not uncalibrated:
-                lo, hi = own.spans[at]
-                values[at] = lo if rate < lo else hi if rate > hi else rate
-        payload = own.encode(values)
+        rates = {at: rate for at, rate, uncalibrated in axes if not uncalibrated}
+        values = []
+        for at, (lo, hi) in zip(own.at, own.spans, strict=True):
+            rate = rates.get(at)
+            values.append(signals[at] if rate is None else lo if rate < lo else hi if rate > hi else rate)
+        payload = own.payload(data, values)
         bus = self.out_bus if own.gateway else self.bus
         sock = raw_socket_of(bus) if self.compiled else None
         if sock is not None:
@@ -481,12 +484,16 @@ class Daemon:
         ry = ry if isfinite(ry) else 0.0
         rz = rz if isfinite(rz) else 0.0
         if self._own is not None:
-            self._send_own_layout(signals, ((px.at, rx, ux), (py.at, ry, uy), (pz.at, rz, uz)))
+            self._send_own_layout(data, signals, ((px.at, rx, ux), (py.at, ry, uy), (pz.at, rz, uz)))
+        rate = self.rate
+        if rate is None:  # frames.rate null: the own-layout frame is the corrected frame
+            stats.frames_out += 1
+            return
         encode = self._encode_rate
         if encode is None:
-            payload = self.rate.encode_xyz(rx, ry, rz, ox, oy, oz, ux, uy, uz, stale, gap, sets.tag, counter)
+            payload = rate.encode_xyz(rx, ry, rz, ox, oy, oz, ux, uy, uz, stale, gap, sets.tag, counter)
         else:  # encode_xyz written out: saturated to each rate signal's range
-            (lx, hx), (ly, hy), (lz, hz) = self.rate.limits
+            (lx, hx), (ly, hy), (lz, hz) = rate.limits
             payload = encode((lx if rx < lx else hx if rx > hx else rx,
                               ly if ry < ly else hy if ry > hy else ry,
                               lz if rz < lz else hz if rz > hz else rz,
@@ -494,7 +501,7 @@ class Daemon:
         self._tx_counter = (counter + 1) & self._tx_counter_mask
         sock = self._sock if self.bus is self._sock_of else self._raw_socket()
         if sock is None:
-            self._send(self.rate.frame_id, self.rate.is_extended, payload)
+            self._send(rate.frame_id, rate.is_extended, payload)
         else:
             try:
                 sock.send(self._rate_head + payload + self._rate_pad, MSG_DONTWAIT)

@@ -78,7 +78,7 @@ class DaemonConfig:
     dbc_path: DbcSet  # the configuration's DBC files (canical's own frames are loaded beside them)
     sensor: str | None
     raw_message: str
-    rate_message: str
+    rate_message: str | None  # None: CANICAL_RATE not sent (frames.rate: null, own_layout instead)
     status_message: str
     counter_signal: str | None
     axes: tuple[AxisConfig, ...]
@@ -137,7 +137,7 @@ class _Frames:
     """The frames the daemon reads (raw) and sends (rate, status)."""
 
     raw: Message
-    rate: Message
+    rate: Message | None  # None: not sent
     status: Message
 
 
@@ -175,7 +175,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         dbc_path=dbc_path,
         sensor=_optional_text(content, "sensor", fail),
         raw_message=frames.raw.name,
-        rate_message=frames.rate.name,
+        rate_message=None if frames.rate is None else frames.rate.name,
         status_message=frames.status.name,
         counter_signal=counter,
         axes=axes,
@@ -216,21 +216,31 @@ def _frames(content: dict, dbc: _Dbc) -> _Frames:
     _no_unknown(frames, {"raw", "rate", "status"}, "frames.", dbc.fail)
     raw_default = _raw_message_of_axes(content, dbc.fail) or "IMU_RAW"
     raw_msg = dbc.message("frames.raw", frames.get("raw", raw_default))
-    rate_msg = dbc.message("frames.rate", frames.get("rate", "CANICAL_RATE"))
+    rate_msg = _rate_frame(content, frames, dbc)
     status_msg = dbc.message("frames.status", frames.get("status", "CANICAL_STATUS"))
-    if raw_msg.is_multiplexed() or rate_msg.is_multiplexed():
+    if raw_msg.is_multiplexed() or (rate_msg is not None and rate_msg.is_multiplexed()):
         raise dbc.fail("frames", "the raw and rate frames must not be multiplexed")
-    if raw_msg.is_fd or rate_msg.is_fd:
+    if raw_msg.is_fd or (rate_msg is not None and rate_msg.is_fd):
         raise dbc.fail("frames", "the raw and rate frames must be classic CAN frames")
     if not status_msg.is_multiplexed():
         raise dbc.fail("frames.status", f"message {status_msg.name} must be multiplexed by Page")
-    for sig in FRAME_SIGNALS:
-        dbc.need_signal("frames.rate", rate_msg, sig)
     for sig in STATUS_SIGNALS:
         dbc.need_signal("frames.status", status_msg, sig)
-    if raw_msg.frame_id in (rate_msg.frame_id, status_msg.frame_id):
+    if raw_msg.frame_id in (*([rate_msg.frame_id] if rate_msg else []), status_msg.frame_id):
         raise dbc.fail("frames.raw", "must differ from the rate and status frames")
     return _Frames(raw_msg, rate_msg, status_msg)
+
+
+def _rate_frame(content: dict, frames: dict, dbc: _Dbc) -> Message | None:
+    """``frames.rate``: canical's corrected frame, or null (not sent: the own layout is)."""
+    if "rate" in frames and frames["rate"] is None:
+        if content.get("own_layout") is None:
+            raise dbc.fail("frames.rate", "null (not sent) needs own_layout: corrected frames must go out")
+        return None
+    rate_msg = dbc.message("frames.rate", frames.get("rate", "CANICAL_RATE"))
+    for sig in FRAME_SIGNALS:
+        dbc.need_signal("frames.rate", rate_msg, sig)
+    return rate_msg
 
 
 def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisConfig, ...]:
@@ -245,8 +255,9 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisCo
             raise dbc.fail(key, "must be a mapping (raw, coefficients)")
         _no_unknown(entry, {"raw", "coefficients"}, f"{key}.", dbc.fail)
         raw_sig = _axis_raw_signal(entry.get("raw", f"GyroRaw{axis.upper()}"), f"{key}.raw", frames.raw, dbc)
-        for prefix in RATE_SIGNALS.values():
-            dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
+        if frames.rate is not None:
+            for prefix in RATE_SIGNALS.values():
+                dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
         coeff = entry.get("coefficients")
         coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
         axes.append(AxisConfig(axis, raw_sig, coeff_path))
@@ -313,7 +324,7 @@ def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]
         dbc.need_signal(f"{key}.signal", msg, sig_name)
         if msg.is_multiplexed():
             raise dbc.fail(f"{key}.signal", f"message {msg_name} is multiplexed (not supported for inputs)")
-        if msg.frame_id in (frames.rate.frame_id, frames.status.frame_id):
+        if msg.frame_id in {m.frame_id for m in (frames.rate, frames.status) if m is not None}:
             raise dbc.fail(f"{key}.signal", "cannot come from a frame the daemon sends")
         max_age = _positive(spec.get("max_age_s", 1.0), f"{key}.max_age_s", dbc.fail)
         inputs[str(name)] = InputSource(str(name), msg_name, sig_name, max_age)
@@ -345,7 +356,7 @@ def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSo
     if out_channel is None:  # on the sensor's bus: not an id the daemon reads or sends already
         taken = [frames.raw, frames.rate, frames.status,
                  *(dbc.db.get_message_by_name(s.message) for s in inputs.values())]
-        for msg in taken:
+        for msg in filter(None, taken):
             if (msg.frame_id, msg.is_extended_frame) == (frame_id, extended):
                 raise dbc.fail("own_layout.id", f"{frame_id:#x} is {msg.name}'s id on the same bus "
                                                 "(give another id, or another channel)")

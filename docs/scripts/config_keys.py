@@ -88,7 +88,8 @@ KEYS: tuple[Key, ...] = (
         "frames.rate",
         "`CANICAL_RATE`",
         "a DBC message, not multiplexed, classic CAN, with `RateAXIS`, "
-        "`OutOfSpanAXIS`, `UncalibratedAXIS` per axis and `Stale`, `CounterGap`, `SetTag`, `Counter`",
+        "`OutOfSpanAXIS`, `UncalibratedAXIS` per axis and `Stale`, `CounterGap`, `SetTag`, `Counter`; "
+        "or `null`: not sent (needs `own_layout`, whose frame is then the corrected frame)",
         "the corrected frame, sent once per raw frame",
     ),
     Key(

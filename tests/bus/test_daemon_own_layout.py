@@ -21,6 +21,7 @@ from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.errors import CanicalError
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 VENDOR, VENDOR_EXT = DATA / "vendor_imu.dbc", DATA / "vendor_imu_ext.dbc"
@@ -149,3 +150,38 @@ def test_bad_own_layout_is_one_line_exit_2(tmp_path: Path, capsys, own, key) -> 
     assert main(["serve", "--config", str(path), "--check"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{path}: {key}: " in err[0], err
+
+
+def test_own_layout_alone_without_canical_rate(tmp_path: Path) -> None:
+    """``frames.rate: null``: only the own-layout frame goes out, the same from both paths."""
+    path, message = vendor_setup(tmp_path, "intel-standard")
+    content = yaml.safe_load(path.read_text())
+    content["frames"] = {"rate": None}
+    path.write_text(yaml.safe_dump(content))
+    config = load_config(path)
+    assert config.rate_message is None
+    raws = vendor_stream(message, 100)
+    reference, compiled = Daemon(config, compiled=False), Daemon(config)
+    sent_ref: list[can.Message] = []
+
+    class RefBus:
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            sent_ref.append(msg)
+
+    for daemon in (reference, compiled):
+        daemon.load_sets()
+    reference.bus = RefBus()  # type: ignore[assignment]
+    for m in raws:
+        reference._dispatch(m)
+    sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in raws])
+    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
+    compiled._next_periodic = float("inf")
+    compiled._serve_until_deadline()
+    assert "send_own" in compiled._fast[2].source
+    assert {m.arbitration_id for m in sent_ref} == {0x298} and len(sent_ref) == 100
+    assert sock.sent == [bytes(m.data) for m in sent_ref]
+    assert compiled.stats.frames_out == reference.stats.frames_out == 100
+    content["own_layout"] = None
+    path.write_text(yaml.safe_dump(content))
+    with pytest.raises(CanicalError, match=r"frames.rate: null .* needs own_layout"):
+        load_config(path)
