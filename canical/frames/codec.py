@@ -9,29 +9,15 @@ values), so encoding a frame is one clamp per rate and one ``encode`` call.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any
 
-import cantools
-from cantools.database.can import Database, Message
+from cantools.database.can import Message
 
-from canical.errors import CanicalError
 from canical.frames.compiler import codec_for
+from canical.frames.dbc_files import load_dbc
 
-
-def load_dbc(path: str | os.PathLike[str]) -> Database:
-    """Load a DBC file; a missing or malformed one is one :class:`CanicalError` line."""
-    name = str(path)
-    if not Path(path).is_file():
-        raise CanicalError(f"{name}: DBC file not found")
-    try:
-        db = cantools.database.load_file(name, database_format="dbc", strict=True)
-    except Exception as exc:  # cantools raises many types for a bad file
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise CanicalError(f"{name}: not a valid DBC file ({first})") from None
-    return db  # type: ignore[return-value]
+__all__ = ["RateEncoder", "RawDecoder", "StatusEncoder", "load_dbc", "signal_range"]
 
 
 def signal_range(message: Message, name: str) -> tuple[float, float]:
