@@ -14,6 +14,7 @@ turn-on bias is new, the temperature slope is kept) and says so in its events.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -69,7 +70,7 @@ class BiasTracker:
         self.axes = tuple(axes)
         self.config = config
         prior = config.turn_on_sigma_dps**2
-        self.learned = list(learned) if learned is not None else [
+        self.learned = [dataclasses.replace(s) for s in learned] if learned is not None else [
             AxisBias(p00=prior, p11=config.temp_slope_sigma**2) for _ in self.axes]
         if len(self.learned) != len(self.axes):
             raise ValueError(f"{len(self.learned)} learned states for {len(self.axes)} axes")
