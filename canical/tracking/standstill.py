@@ -53,7 +53,7 @@ class WindowSums:
         self.temp_sum = 0.0
         self.cue_moving = False
 
-    def restart(self, t_s: float, rates: tuple[float, ...] | list[float]) -> None:
+    def restart(self, t_s: float, rates: Sequence[float]) -> None:
         self.ref = list(rates)
         self.s1 = [0.0] * len(self.ref)
         self.s2 = [0.0] * len(self.ref)

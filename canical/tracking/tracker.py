@@ -85,21 +85,30 @@ class BiasTracker:
         self._run: _Run | None = None
         self._last_t = math.nan
         self._temp = config.reference_c
+        self._window_s = config.window_s
+        self._slew_rate = config.slew_dps_per_s
+        self._cue_below = config.cue_threshold
+        self._target: list[float] = []
+        self._retarget()
 
     # -- per sample ---------------------------------------------------------------------------
     def step(self, t_s: float, rates: Sequence[float], temp_c: float = math.nan,
              cue: float | None = None) -> list[float]:
-        """Take one sample; return the bias to subtract from each axis's rate (deg/s)."""
-        cfg = self.config
+        """Take one sample; return the bias to subtract from each axis's rate (deg/s).
+
+        The returned list is the tracker's own (read it before the next call). Written for
+        the per-frame path: sums and a slew per axis, everything else once per window.
+        """
         last = self._last_t
         if t_s < last:
             self._power_on()
             last = math.nan
-        if not math.isnan(temp_c):
+        if temp_c != self._temp and temp_c == temp_c:  # a new reading (NaN: none, keep the last)
             self._temp = temp_c
+            self._retarget()
         sums = self._sums
         if sums.n == 0:
-            sums.restart(t_s, list(rates))
+            sums.restart(t_s, rates)
         s1, s2, ref = sums.s1, sums.s2, sums.ref
         for i, r in enumerate(rates):
             d = r - ref[i]
@@ -107,26 +116,28 @@ class BiasTracker:
             s2[i] += d * d
         sums.n += 1
         sums.temp_sum += self._temp
-        if cfg.cue_threshold is not None and not (cue is not None and cue < cfg.cue_threshold):
+        below = self._cue_below
+        if below is not None and not (cue is not None and cue < below):
             sums.cue_moving = True  # a missing cue counts as moving
-        if t_s - sums.start_s >= cfg.window_s:
+        if t_s - sums.start_s >= self._window_s:
             self._close_window(t_s)
-        return self._slew(t_s, last)
-
-    def _slew(self, t_s: float, last: float) -> list[float]:
-        cfg = self.config
+            self._retarget()
         applied = self.applied
-        h = self._temp - cfg.reference_c
-        if math.isnan(last):  # first sample of a power-on: no output yet to step from
-            for i, s in enumerate(self.learned):
-                applied[i] = s.b0 + s.slope * h
+        target = self._target
+        if last != last:  # first sample of a power-on: no output yet to step from
+            applied[:] = target
         else:
-            limit = cfg.slew_dps_per_s * (t_s - last)
-            for i, s in enumerate(self.learned):
-                delta = s.b0 + s.slope * h - applied[i]
+            limit = self._slew_rate * (t_s - last)
+            for i, goal in enumerate(target):
+                delta = goal - applied[i]
                 applied[i] += limit if delta > limit else -limit if delta < -limit else delta
         self._last_t = t_s
         return applied
+
+    def _retarget(self) -> None:
+        """The learned bias at the current temperature, per axis: what the output slews towards."""
+        h = self._temp - self.config.reference_c
+        self._target = [s.b0 + s.slope * h for s in self.learned]
 
     # -- per window ---------------------------------------------------------------------------
     def _close_window(self, t_s: float) -> None:
@@ -240,6 +251,7 @@ class BiasTracker:
         self.power_cycle += 1
         for state in self.learned:
             state.power_on(self.config.turn_on_sigma_dps)
+        self._retarget()
 
     # -- at the end, and for a status page -----------------------------------------------------
     def finish(self) -> None:
