@@ -38,10 +38,12 @@ def register(sub) -> None:
     track = p.add_argument_group("bias tracking (learn the bias at standstills, append bias_dps)")
     track.add_argument("--track-bias", action="store_true",
                        help="replay the drive through the bias tracker row by row and append bias_dps "
-                            "(subtract it from rate_dps); CSV input with a time_s column")
+                            "(subtract it from rate_dps); a CSV needs a time_s column (time since "
+                            "power-on), a CAN log takes it from the time_s input if mapped")
     track.add_argument("--standstill-column", metavar="NAME",
-                       help="cue column (vehicle speed, or a moving flag): stopped while below "
-                            "--standstill-below; nothing is learned while it says moving")
+                       help="cue column (vehicle speed, or a moving flag; in a CAN log an input mapped "
+                            "with --input/--config): stopped while below --standstill-below; nothing is "
+                            "learned while it says moving")
     track.add_argument("--standstill-below", type=float, default=0.1, metavar="X",
                        help="cue value below which the vehicle stands (default 0.1)")
     track.add_argument("--temp-column", default="temp_c", metavar="NAME",
@@ -72,9 +74,6 @@ def apply_set(args: argparse.Namespace) -> int:
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
     if is_canlog(args.input):
-        if args.track_bias:
-            raise CanicalError("--track-bias reads a CSV drive for now, not a CAN log: apply the log "
-                               "without it, then apply --track-bias to the CSV written")
         return run_canlog(args, corrector)
     needed = [args.raw_column, *corrector.required_inputs]
     if args.track_bias:
@@ -95,7 +94,7 @@ def apply_set(args: argparse.Namespace) -> int:
     rate, oos = corrector.correct(table.columns[args.raw_column], inputs)
     extra: dict[str, np.ndarray] = {}
     if args.track_bias:
-        extra["bias_dps"] = track_bias(args, cset, table, rate)
+        extra["bias_dps"] = track_bias(args, cset, table.columns, rate)
     write_rows(args.output, table, rate, oos, extra)
     n_out = int(np.count_nonzero(oos))
     note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
@@ -138,8 +137,12 @@ def tracking_columns(path: str, args: argparse.Namespace) -> list[str]:
             *([args.temp_column] if args.temp_column in header else [])]
 
 
-def track_bias(args: argparse.Namespace, cset, table, rate: np.ndarray) -> np.ndarray:
-    """The drive replayed through the tracker row by row, as the daemon would; report if asked."""
+def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
+               rate: np.ndarray) -> np.ndarray:
+    """The drive replayed through the tracker row by row, as the daemon would; report if asked.
+
+    ``columns`` holds time_s (since power-on), and the cue and temperature when there are.
+    """
     import math
 
     import numpy as np
@@ -153,11 +156,11 @@ def track_bias(args: argparse.Namespace, cset, table, rate: np.ndarray) -> np.nd
                                cue_threshold=args.standstill_below if args.standstill_column else None)
     except ValueError as exc:
         raise CanicalError(f"bias tracking: {exc}") from None
-    time_s = table.columns["time_s"]
+    time_s = columns["time_s"]
     if not np.isfinite(time_s).all():
         raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
-    temp = table.columns.get(args.temp_column)
-    cue = table.columns[args.standstill_column] if args.standstill_column else None
+    temp = columns.get(args.temp_column)
+    cue = columns[args.standstill_column] if args.standstill_column else None
     out = replay(time_s, rate, config, axes=(cset.axis,), temp_c=temp, cue=cue)
     for event in out.events:
         print(f"apply: {event.line((cset.axis,))}")
@@ -198,6 +201,12 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
             f"the coefficient set needs input(s) {', '.join(unmapped)}: map them with "
             "--input NAME=MESSAGE.Signal or --config"
         )
+    if args.track_bias:
+        if args.standstill_column and args.standstill_column not in source.inputs:
+            raise CanicalError(f"--standstill-column {args.standstill_column}: map it to a signal with "
+                               f"--input {args.standstill_column}=MESSAGE.Signal or --config")
+        extra = [n for n in ("time_s", args.standstill_column, args.temp_column) if n in source.inputs]
+        needed = list(dict.fromkeys([*needed, *extra]))
     log = read_canlog(
         args.input,
         dbc=source.dbc,
@@ -213,7 +222,11 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
     if TIME_INPUT in corrector.required_inputs:
         inputs[TIME_INPUT] = session.time_s
     rate, oos = corrector.correct(session.raw, inputs)
-    names = ["time_s", "raw", *session.aux, "rate_dps", "out_of_span"]
+    tracked = []
+    if args.track_bias:
+        columns = {**session.aux, "time_s": session.time_s}
+        tracked = [track_bias(args, cset, columns, rate)]
+    names = ["time_s", "raw", *session.aux, "rate_dps", "out_of_span", *(["bias_dps"] if tracked else [])]
     with atomic_writer(args.output) as out:
         for key, value in session.meta.items():
             out.write(f"# {key}: {value}\n")
@@ -221,8 +234,8 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         buf = io.StringIO()
         cols = [session.time_s, session.raw, *session.aux.values()]
         fmt = ["%.6f", "%.9g"] + ["%.9g"] * len(session.aux)
-        table = np.column_stack([*cols, rate, oos.astype(float)])
-        np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d"])
+        table = np.column_stack([*cols, rate, oos.astype(float), *tracked])
+        np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d", *(["%.6f"] if tracked else [])])
         out.write(buf.getvalue())
     n_out = int(np.count_nonzero(oos))
     note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""

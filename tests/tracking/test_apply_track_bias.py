@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support.daemon_fixtures import base_set
+from support.daemon_fixtures import DBC, base_set
 
 from canical.commands.cli import main
 from canical.sets import coefficient_file
@@ -96,3 +96,48 @@ def test_a_drive_without_time_is_refused(tmp_path: Path, capsys: pytest.CaptureF
     assert main(["apply", str(set_path), str(csv), "--track-bias", "-o", str(tmp_path / "o.csv")]) == 2
     assert "needs a time_s column" in capsys.readouterr().err
     assert not (tmp_path / "o.csv").exists()
+
+
+def drive_log(folder: Path) -> tuple[Path, Path, np.ndarray]:
+    """The drive's first power-on as a candump log: IMU_RAW (z counts, temperature), IMU_AUX uptime."""
+    import can
+
+    from canical.frames.codec import load_dbc
+
+    set_path, csv, _ = drive_csv(folder)
+    table = np.loadtxt(csv, delimiter=",", skiprows=2)
+    first = table[: int(np.argmax(np.diff(table[:, 0]) < 0)) + 1]
+    db = load_dbc(DBC)
+    raw, aux = db.get_message_by_name("IMU_RAW"), db.get_message_by_name("IMU_AUX")
+    log = folder / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for i, (t, counts, temp, _speed) in enumerate(first):
+            stamp = 1_700_000_000.0 + t
+            if i % 10 == 0:
+                logger.on_message_received(can.Message(
+                    timestamp=stamp, arbitration_id=aux.frame_id, is_extended_id=False,
+                    data=aux.encode({"SupplyVoltage": 5.0, "Uptime": float(t), "AuxCounter": 0})))
+            logger.on_message_received(can.Message(
+                timestamp=stamp, arbitration_id=raw.frame_id, is_extended_id=False,
+                data=raw.encode({"GyroRawX": 0, "GyroRawY": 0, "GyroRawZ": round(counts),
+                                 "Temperature": round(float(temp), 1), "Counter": i & 0xF,
+                                 "SensorFault": 0})))
+    return set_path, log, first
+
+
+def test_apply_track_bias_on_a_can_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    set_path, log, _ = drive_log(tmp_path)
+    out = tmp_path / "out.csv"
+    assert main(["apply", str(set_path), str(log), "--dbc", str(DBC), "--input", "temp_c=IMU_RAW.Temperature",
+                 "--input", "time_s=IMU_AUX.Uptime", "--track-bias", "--arw", "0.3", "-o", str(out)]) == 0
+    assert "adopted" in capsys.readouterr().out
+    header = out.read_text().splitlines()[2]
+    assert header == "time_s,raw,temp_c,rate_dps,out_of_span,bias_dps"
+    table = np.loadtxt(out, delimiter=",", skiprows=3)
+    again = replay(table[:, 0], table[:, 3], TrackerConfig(arw_deg_rt_h=0.3), temp_c=table[:, 2])
+    assert np.max(np.abs(again.bias_dps[:, 0] - table[:, 5])) <= 1e-5
+    assert abs(table[-1, 5] - 0.35 - 0.012 * (table[-1, 2] - 20.0)) < 0.03
+    assert main(["apply", str(set_path), str(log), "--dbc", str(DBC), "--track-bias", "--standstill-column",
+                 "speed", "-o", str(tmp_path / "o2.csv")]) == 2
+    assert "map it to a signal with --input speed=MESSAGE.Signal" in capsys.readouterr().err
+    assert not (tmp_path / "o2.csv").exists()
