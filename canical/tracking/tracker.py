@@ -46,6 +46,12 @@ class AxisStatus:
     age_s: float  # since the last window taken in (NaN: none this power-on)
     updates: int
 
+    def text(self) -> str:
+        """For a status line (systemd STATUS, a log): bias, uncertainty, age and updates."""
+        age = "not yet this power-on" if math.isnan(self.age_s) else f"{self.age_s:.0f} s ago"
+        return (f"{self.axis} bias {self.bias_dps:+.4f}±{self.sigma_dps:.4f} deg/s "
+                f"(applied {self.applied_dps:+.4f}), {self.updates} updates, last {age}")
+
 
 class _Run:
     """The still windows of one standstill so far; the last is pending (a guard until one follows)."""
