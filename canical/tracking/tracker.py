@@ -8,8 +8,9 @@ still and, if so, takes the window in. Of a run of still windows the last is nev
 vehicle may have started to move inside it), nor the quiet window before the first (it may hold
 the end of braking): they are guards.
 
-Time is time since power-on: when it goes back, the tracker takes it as a new power-on (the
-turn-on bias is new, the temperature slope is kept) and says so in its events.
+Time is time since power-on: when it goes back (by more than a second: less is jitter), the
+tracker takes it as a new power-on (the turn-on bias is new, the temperature slope is kept) and
+says so in its events.
 """
 
 from __future__ import annotations
@@ -51,6 +52,10 @@ class AxisStatus:
         age = "not yet this power-on" if math.isnan(self.age_s) else f"{self.age_s:.0f} s ago"
         return (f"{self.axis} bias {self.bias_dps:+.4f}±{self.sigma_dps:.4f} deg/s "
                 f"(applied {self.applied_dps:+.4f}), {self.updates} updates, last {age}")
+
+
+#: Time since power-on going back by more than this is a new power-on; less is timestamp jitter.
+POWER_ON_STEP_S = 1.0
 
 
 class _Run:
@@ -107,8 +112,11 @@ class BiasTracker:
         """
         last = self._last_t
         if t_s < last:
-            self._power_on()
-            last = math.nan
+            if t_s < last - POWER_ON_STEP_S:
+                self._power_on()
+                last = math.nan
+            else:  # jitter: time does not run back within a power-on
+                t_s = last
         if temp_c != self._temp and temp_c == temp_c:  # a new reading (NaN: none, keep the last)
             self._temp = temp_c
             self._retarget()

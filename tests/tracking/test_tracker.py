@@ -114,3 +114,14 @@ def test_three_axes_share_one_standstill() -> None:
 def test_bad_settings_are_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         TrackerConfig(**bad)
+
+
+def test_time_jitter_backwards_is_not_a_power_on() -> None:
+    t, r = stream(20, 0.3)
+    t = t.copy()
+    t[800] = t[799] - 0.02  # a timestamp out of order while the bias slews
+    out = replay(t, r, CONFIG)
+    assert out.power_cycles == 1
+    steps = np.abs(np.diff(out.bias_dps[:, 0]))
+    assert steps[798] > 0 and steps[799] == 0.0  # slewing; time stood still at the late stamp
+    assert steps[800] <= CONFIG.slew_dps_per_s * (t[801] - t[799]) * (1 + 1e-9)
