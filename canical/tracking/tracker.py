@@ -100,6 +100,7 @@ class BiasTracker:
         self._slew_rate = config.slew_dps_per_s
         self._cue_below = config.cue_threshold
         self._target: list[float] = []
+        self._settled = False  # the applied bias has reached the target on every axis
         self._retarget()
 
     # -- per sample ---------------------------------------------------------------------------
@@ -108,7 +109,9 @@ class BiasTracker:
         """Take one sample; return the bias to subtract from each axis's rate (deg/s).
 
         The returned list is the tracker's own (read it before the next call). Written for
-        the per-frame path: sums and a slew per axis, everything else once per window.
+        the per-frame path: sums and a slew per axis, everything else once per window, the
+        target (the learned bias at the latest temperature) too: the cabin warms by a fraction
+        of a degree in a window, and the slew takes the step out.
         """
         last = self._last_t
         if t_s < last:
@@ -117,9 +120,8 @@ class BiasTracker:
                 last = math.nan
             else:  # jitter: time does not run back within a power-on
                 t_s = last
-        if temp_c != self._temp and temp_c == temp_c:  # a new reading (NaN: none, keep the last)
+        if temp_c == temp_c:  # NaN: no reading, keep the last
             self._temp = temp_c
-            self._retarget()
         sums = self._sums
         if sums.n == 0:
             sums.restart(t_s, rates)
@@ -137,14 +139,23 @@ class BiasTracker:
             self._close_window(t_s)
             self._retarget()
         applied = self.applied
-        target = self._target
         if last != last:  # first sample of a power-on: no output yet to step from
-            applied[:] = target
-        else:
+            applied[:] = self._target
+            self._settled = True
+        elif not self._settled:
             limit = self._slew_rate * (t_s - last)
-            for i, goal in enumerate(target):
+            settled = True
+            for i, goal in enumerate(self._target):
                 delta = goal - applied[i]
-                applied[i] += limit if delta > limit else -limit if delta < -limit else delta
+                if delta > limit:
+                    applied[i] += limit
+                    settled = False
+                elif delta < -limit:
+                    applied[i] -= limit
+                    settled = False
+                else:
+                    applied[i] = goal
+            self._settled = settled
         self._last_t = t_s
         return applied
 
@@ -152,6 +163,7 @@ class BiasTracker:
         """The learned bias at the current temperature, per axis: what the output slews towards."""
         h = self._temp - self.config.reference_c
         self._target = [s.b0 + s.slope * h for s in self.learned]
+        self._settled = self._target == self.applied
 
     # -- per window ---------------------------------------------------------------------------
     def _close_window(self, t_s: float) -> None:
