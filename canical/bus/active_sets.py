@@ -23,6 +23,7 @@ import numpy as np
 
 from canical.bus.daemon_config import DaemonConfig
 from canical.errors import CanicalError
+from canical.frames.imu_frames import SET_TAG_MASK
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
@@ -58,7 +59,7 @@ class ActiveSets:
 
     axes: tuple[AxisSet, ...]
     combined_id: int
-    tag: int  # low 4 bits of combined_id: sent in every corrected frame
+    tag: int  # the low bits of combined_id (SET_TAG_MASK): sent in every corrected frame
     inputs: tuple[str, ...]  # union of the inputs the sets need
 
     @property
@@ -89,7 +90,7 @@ def build(axes: tuple[AxisSet, ...]) -> ActiveSets:
     """Combine per-axis sets into the value the loop reads."""
     combined = zlib.crc32(struct.pack(">" + "I" * len(axes), *(a.set_id for a in axes))) & 0xFFFFFFFF
     names = tuple(dict.fromkeys(n for a in axes for n in a.required_inputs))
-    return ActiveSets(axes=axes, combined_id=combined, tag=combined & 0xF, inputs=names)
+    return ActiveSets(axes=axes, combined_id=combined, tag=combined & SET_TAG_MASK, inputs=names)
 
 
 def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:

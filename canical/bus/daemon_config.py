@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from cantools.database.can import Database, Message
 
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
@@ -90,6 +92,37 @@ def load_config(path: str | os.PathLike[str], *, channel: str | None = None) -> 
     return parse_config(parse_yaml(text, str(cfg_path)), cfg_path, channel=channel)
 
 
+Fail = Callable[[str, str], CanicalError]
+
+
+class _Dbc:
+    """The DBC a configuration names, and its checks: each defect one line naming the key."""
+
+    def __init__(self, db: Database, name: str, fail: Fail) -> None:
+        self.db, self.name, self.fail = db, name, fail
+
+    def message(self, key: str, name: Any) -> Message:
+        if not isinstance(name, str) or not name:
+            raise self.fail(key, "must name a DBC message")
+        try:
+            return self.db.get_message_by_name(name)
+        except KeyError:
+            raise self.fail(key, f"message {name} not in {self.name}") from None
+
+    def need_signal(self, key: str, msg: Message, signal: str) -> None:
+        if signal not in {s.name for s in msg.signals}:
+            raise self.fail(key, f"signal {signal} not in message {msg.name} of {self.name}")
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """The frames the daemon reads (raw) and sends (rate, status)."""
+
+    raw: Message
+    rate: Message
+    status: Message
+
+
 def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) -> DaemonConfig:
     """Check parsed content; the DBC it names is loaded to check every message and signal."""
 
@@ -100,131 +133,33 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         raise CanicalError(f"{cfg_path}: not a canical daemon configuration (expected a mapping)")
     _no_unknown(content, _TOP_KEYS, "", fail)
     base = cfg_path.parent
-
     bus = _section(content, "bus", fail)
     _no_unknown(bus, {"interface", "channel", "options"}, "bus.", fail)
     interface = _text(bus, "interface", "bus.interface", fail)
     chan = channel or _text(bus, "channel", "bus.channel", fail)
-    options = bus.get("options", {}) or {}
-    if not isinstance(options, dict):
-        raise fail("bus.options", "must be a mapping of python-can keyword arguments")
-    for reserved in ("interface", "channel", "can_filters", "bustype"):
-        if reserved in options:
-            raise fail(f"bus.options.{reserved}", "is set by canical itself")
-
+    options = _bus_options(bus, fail)
     dbc_path = _path(content.get("dbc"), base, "dbc", fail, must_exist=True)
     try:
-        db = load_dbc(dbc_path)
+        dbc = _Dbc(load_dbc(dbc_path), dbc_path.name, fail)
     except CanicalError as exc:
         raise fail("dbc", str(exc)) from None
-    dbc_name = dbc_path.name
-
-    def message(key: str, name: Any) -> Any:
-        if not isinstance(name, str) or not name:
-            raise fail(key, "must name a DBC message")
-        try:
-            return db.get_message_by_name(name)
-        except KeyError:
-            raise fail(key, f"message {name} not in {dbc_name}") from None
-
-    def need_signal(key: str, msg: Any, signal: str) -> None:
-        if signal not in {s.name for s in msg.signals}:
-            raise fail(key, f"signal {signal} not in message {msg.name} of {dbc_name}")
-
-    frames = content.get("frames", {}) or {}
-    if not isinstance(frames, dict):
-        raise fail("frames", "must be a mapping")
-    _no_unknown(frames, {"raw", "rate", "status"}, "frames.", fail)
-    raw_msg = message("frames.raw", frames.get("raw", "IMU_RAW"))
-    rate_msg = message("frames.rate", frames.get("rate", "CANICAL_RATE"))
-    status_msg = message("frames.status", frames.get("status", "CANICAL_STATUS"))
-    if raw_msg.is_multiplexed() or rate_msg.is_multiplexed():
-        raise fail("frames", "the raw and rate frames must not be multiplexed")
-    if raw_msg.is_fd or rate_msg.is_fd:
-        raise fail("frames", "the raw and rate frames must be classic CAN frames")
-    if not status_msg.is_multiplexed():
-        raise fail("frames.status", f"message {status_msg.name} must be multiplexed by Page")
-    for sig in FRAME_SIGNALS:
-        need_signal("frames.rate", rate_msg, sig)
-    for sig in STATUS_SIGNALS:
-        need_signal("frames.status", status_msg, sig)
-    if raw_msg.frame_id in (rate_msg.frame_id, status_msg.frame_id):
-        raise fail("frames.raw", "must differ from the rate and status frames")
-
-    axes_in = _section(content, "axes", fail)
-    _no_unknown(axes_in, set(AXES), "axes.", fail)
-    axes = []
-    for axis in AXES:
-        entry = axes_in.get(axis) or {}
-        key = f"axes.{axis}"
-        if not isinstance(entry, dict):
-            raise fail(key, "must be a mapping (raw, coefficients)")
-        _no_unknown(entry, {"raw", "coefficients"}, f"{key}.", fail)
-        raw_sig = entry.get("raw", f"GyroRaw{axis.upper()}")
-        if not isinstance(raw_sig, str):
-            raise fail(f"{key}.raw", "must name a signal of the raw frame")
-        need_signal(f"{key}.raw", raw_msg, raw_sig)
-        for prefix in RATE_SIGNALS.values():
-            need_signal("frames.rate", rate_msg, f"{prefix}{axis.upper()}")
-        coeff = entry.get("coefficients")
-        coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", fail)
-        axes.append(AxisConfig(axis, raw_sig, coeff_path))
-    if not any(a.coefficients for a in axes):
-        raise fail("axes", "no axis has a coefficients file")
-
-    counter = content.get("counter", "Counter")
-    if counter is not None:
-        if not isinstance(counter, str):
-            raise fail("counter", "must name a signal of the raw frame, or be null")
-        need_signal("counter", raw_msg, counter)
-
-    inputs_in = content.get("inputs", {}) or {}
-    if not isinstance(inputs_in, dict):
-        raise fail("inputs", "must be a mapping of input name to {signal, max_age_s}")
-    inputs: dict[str, InputSource] = {}
-    for name, spec in inputs_in.items():
-        key = f"inputs.{name}"
-        if isinstance(spec, str):
-            spec = {"signal": spec}
-        if not isinstance(spec, dict):
-            raise fail(key, "must be a mapping {signal: MESSAGE.Signal, max_age_s: seconds}")
-        _no_unknown(spec, {"signal", "max_age_s"}, f"{key}.", fail)
-        ref = spec.get("signal")
-        if not isinstance(ref, str) or ref.count(".") != 1:
-            raise fail(f"{key}.signal", "must be MESSAGE.Signal")
-        msg_name, sig_name = ref.split(".")
-        msg = message(f"{key}.signal", msg_name)
-        need_signal(f"{key}.signal", msg, sig_name)
-        if msg.is_multiplexed():
-            raise fail(f"{key}.signal", f"message {msg_name} is multiplexed (not supported for inputs)")
-        if msg.frame_id in (rate_msg.frame_id, status_msg.frame_id):
-            raise fail(f"{key}.signal", "cannot come from a frame the daemon sends")
-        max_age = _positive(spec.get("max_age_s", 1.0), f"{key}.max_age_s", fail)
-        inputs[str(name)] = InputSource(str(name), msg_name, sig_name, max_age)
-
-    device = None
-    device_in = content.get("device")
-    if device_in is not None:
-        if not isinstance(device_in, dict):
-            raise fail("device", "must be a mapping {node: CANopen node id, timeout_s: seconds}")
-        _no_unknown(device_in, {"node", "timeout_s"}, "device.", fail)
-        node = device_in.get("node")
-        if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
-            raise fail("device.node", f"must be a CANopen node id 1..127, got {node!r}")
-        device = DeviceSource(node, _positive(device_in.get("timeout_s", 1.0), "device.timeout_s", fail))
-
+    frames = _frames(content, dbc)
+    axes = _axes(content, frames, dbc, base)
+    counter = _counter(content, frames, dbc)
+    inputs = _inputs(content, frames, dbc)
+    device = _device(content, fail)
     return DaemonConfig(
         path=cfg_path,
         interface=interface,
         channel=chan,
-        bus_options=dict(options),
+        bus_options=options,
         dbc_path=dbc_path,
         sensor=_optional_text(content, "sensor", fail),
-        raw_message=raw_msg.name,
-        rate_message=rate_msg.name,
-        status_message=status_msg.name,
+        raw_message=frames.raw.name,
+        rate_message=frames.rate.name,
+        status_message=frames.status.name,
         counter_signal=counter,
-        axes=tuple(axes),
+        axes=axes,
         inputs=inputs,
         status_period_s=_positive(content.get("status_period_s", 1.0), "status_period_s", fail),
         watch_period_s=_positive(content.get("watch_period_s", 1.0), "watch_period_s", fail),
@@ -232,27 +167,141 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     )
 
 
-def _no_unknown(section: Mapping[str, Any], allowed: set[str], prefix: str, fail) -> None:
+def _bus_options(bus: dict, fail: Fail) -> dict[str, Any]:
+    """``bus.options``: python-can's keyword arguments, but none that canical sets itself."""
+    options = bus.get("options", {}) or {}
+    if not isinstance(options, dict):
+        raise fail("bus.options", "must be a mapping of python-can keyword arguments")
+    for reserved in ("interface", "channel", "can_filters", "bustype"):
+        if reserved in options:
+            raise fail(f"bus.options.{reserved}", "is set by canical itself")
+    return dict(options)
+
+
+def _frames(content: dict, dbc: _Dbc) -> _Frames:
+    """``frames``: classic, unmultiplexed raw and rate frames with the signals the daemon fills,
+    a status frame multiplexed by page."""
+    frames = content.get("frames", {}) or {}
+    if not isinstance(frames, dict):
+        raise dbc.fail("frames", "must be a mapping")
+    _no_unknown(frames, {"raw", "rate", "status"}, "frames.", dbc.fail)
+    raw_msg = dbc.message("frames.raw", frames.get("raw", "IMU_RAW"))
+    rate_msg = dbc.message("frames.rate", frames.get("rate", "CANICAL_RATE"))
+    status_msg = dbc.message("frames.status", frames.get("status", "CANICAL_STATUS"))
+    if raw_msg.is_multiplexed() or rate_msg.is_multiplexed():
+        raise dbc.fail("frames", "the raw and rate frames must not be multiplexed")
+    if raw_msg.is_fd or rate_msg.is_fd:
+        raise dbc.fail("frames", "the raw and rate frames must be classic CAN frames")
+    if not status_msg.is_multiplexed():
+        raise dbc.fail("frames.status", f"message {status_msg.name} must be multiplexed by Page")
+    for sig in FRAME_SIGNALS:
+        dbc.need_signal("frames.rate", rate_msg, sig)
+    for sig in STATUS_SIGNALS:
+        dbc.need_signal("frames.status", status_msg, sig)
+    if raw_msg.frame_id in (rate_msg.frame_id, status_msg.frame_id):
+        raise dbc.fail("frames.raw", "must differ from the rate and status frames")
+    return _Frames(raw_msg, rate_msg, status_msg)
+
+
+def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisConfig, ...]:
+    """``axes``: per axis its raw signal and coefficients file; at least one axis has a file."""
+    axes_in = _section(content, "axes", dbc.fail)
+    _no_unknown(axes_in, set(AXES), "axes.", dbc.fail)
+    axes = []
+    for axis in AXES:
+        entry = axes_in.get(axis) or {}
+        key = f"axes.{axis}"
+        if not isinstance(entry, dict):
+            raise dbc.fail(key, "must be a mapping (raw, coefficients)")
+        _no_unknown(entry, {"raw", "coefficients"}, f"{key}.", dbc.fail)
+        raw_sig = entry.get("raw", f"GyroRaw{axis.upper()}")
+        if not isinstance(raw_sig, str):
+            raise dbc.fail(f"{key}.raw", "must name a signal of the raw frame")
+        dbc.need_signal(f"{key}.raw", frames.raw, raw_sig)
+        for prefix in RATE_SIGNALS.values():
+            dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
+        coeff = entry.get("coefficients")
+        coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
+        axes.append(AxisConfig(axis, raw_sig, coeff_path))
+    if not any(a.coefficients for a in axes):
+        raise dbc.fail("axes", "no axis has a coefficients file")
+    return tuple(axes)
+
+
+def _counter(content: dict, frames: _Frames, dbc: _Dbc) -> str | None:
+    """``counter``: the raw frame's rolling counter signal (null: not checked)."""
+    counter = content.get("counter", "Counter")
+    if counter is not None:
+        if not isinstance(counter, str):
+            raise dbc.fail("counter", "must name a signal of the raw frame, or be null")
+        dbc.need_signal("counter", frames.raw, counter)
+    return counter
+
+
+def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]:
+    """``inputs``: each run-time input's signal (``MESSAGE.Signal``, in a frame the daemon does
+    not send) and how old it may get."""
+    inputs_in = content.get("inputs", {}) or {}
+    if not isinstance(inputs_in, dict):
+        raise dbc.fail("inputs", "must be a mapping of input name to {signal, max_age_s}")
+    inputs: dict[str, InputSource] = {}
+    for name, spec in inputs_in.items():
+        key = f"inputs.{name}"
+        if isinstance(spec, str):
+            spec = {"signal": spec}
+        if not isinstance(spec, dict):
+            raise dbc.fail(key, "must be a mapping {signal: MESSAGE.Signal, max_age_s: seconds}")
+        _no_unknown(spec, {"signal", "max_age_s"}, f"{key}.", dbc.fail)
+        ref = spec.get("signal")
+        if not isinstance(ref, str) or ref.count(".") != 1:
+            raise dbc.fail(f"{key}.signal", "must be MESSAGE.Signal")
+        msg_name, sig_name = ref.split(".")
+        msg = dbc.message(f"{key}.signal", msg_name)
+        dbc.need_signal(f"{key}.signal", msg, sig_name)
+        if msg.is_multiplexed():
+            raise dbc.fail(f"{key}.signal", f"message {msg_name} is multiplexed (not supported for inputs)")
+        if msg.frame_id in (frames.rate.frame_id, frames.status.frame_id):
+            raise dbc.fail(f"{key}.signal", "cannot come from a frame the daemon sends")
+        max_age = _positive(spec.get("max_age_s", 1.0), f"{key}.max_age_s", dbc.fail)
+        inputs[str(name)] = InputSource(str(name), msg_name, sig_name, max_age)
+    return inputs
+
+
+def _device(content: dict, fail: Fail) -> DeviceSource | None:
+    """``device``: the IMU as a CANopen node whose own sets are used (absent: files only)."""
+    device_in = content.get("device")
+    if device_in is None:
+        return None
+    if not isinstance(device_in, dict):
+        raise fail("device", "must be a mapping {node: CANopen node id, timeout_s: seconds}")
+    _no_unknown(device_in, {"node", "timeout_s"}, "device.", fail)
+    node = device_in.get("node")
+    if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
+        raise fail("device.node", f"must be a CANopen node id 1..127, got {node!r}")
+    return DeviceSource(node, _positive(device_in.get("timeout_s", 1.0), "device.timeout_s", fail))
+
+
+def _no_unknown(section: Mapping[str, Any], allowed: set[str], prefix: str, fail: Fail) -> None:
     for key in section:
         if key not in allowed:
             raise fail(f"{prefix}{key}", f"unknown key (expected one of {', '.join(sorted(allowed))})")
 
 
-def _section(content: dict, key: str, fail) -> dict:
+def _section(content: dict, key: str, fail: Fail) -> dict:
     value = content.get(key)
     if not isinstance(value, dict):
         raise fail(key, "missing or not a mapping")
     return value
 
 
-def _text(section: dict, key: str, name: str, fail) -> str:
+def _text(section: dict, key: str, name: str, fail: Fail) -> str:
     value = section.get(key)
     if not isinstance(value, str) or not value:
         raise fail(name, "missing or not a non-empty string")
     return value
 
 
-def _optional_text(content: dict, key: str, fail) -> str | None:
+def _optional_text(content: dict, key: str, fail: Fail) -> str | None:
     value = content.get(key)
     if value is None:
         return None
@@ -261,14 +310,14 @@ def _optional_text(content: dict, key: str, fail) -> str | None:
     return str(value)
 
 
-def _positive(value: Any, key: str, fail) -> float:
+def _positive(value: Any, key: str, fail: Fail) -> float:
     number = isinstance(value, int | float) and not isinstance(value, bool)
     if not number or not math.isfinite(value) or value <= 0:
         raise fail(key, f"must be a positive number of seconds, got {value!r}")
     return float(value)
 
 
-def _path(value: Any, base: Path, key: str, fail, *, must_exist: bool = False) -> Path:
+def _path(value: Any, base: Path, key: str, fail: Fail, *, must_exist: bool = False) -> Path:
     if not isinstance(value, str) or not value:
         raise fail(key, "missing or not a file path")
     path = Path(value)

@@ -32,6 +32,9 @@ TPDO_MESSAGES = ("IMU_RAW", "IMU_AUX", "IMU_RATE")
 TABLE_MESSAGE = "TABLE_REF"
 #: DBC signal → session column / run-time input name.
 CHANNELS = {"Temperature": "temp_c", "SupplyVoltage": "supply_v", "Uptime": "time_s"}
+#: The set tag's mask: SetTag is 4 bits wide in every frame that carries it (IMU_RATE,
+#: CANICAL_RATE, CANICAL_STATUS page 1), the low bits of the combined set id.
+SET_TAG_MASK = 0xF
 
 
 def default_dbc_path() -> Path:
@@ -53,7 +56,7 @@ def set_tag(active_ids: dict[str, int]) -> int:
     """Low 4 bits of the combined set id, as the daemon computes it (:func:`canical.bus.active_sets.build`):
     CRC32 over the three set ids, x, y, z, each big-endian UNSIGNED32 (0 = none)."""
     blob = b"".join(int(active_ids.get(a, 0)).to_bytes(4, "big") for a in AXES)
-    return zlib.crc32(blob) & 0xF
+    return zlib.crc32(blob) & SET_TAG_MASK
 
 
 @dataclass(frozen=True)
@@ -82,6 +85,9 @@ class ImuFrames:
         self.messages[TABLE_MESSAGE] = table
         self.ids[TABLE_MESSAGE] = table.frame_id
         self._by_id = {fid: self.messages[name] for name, fid in self.ids.items()}
+        #: Per message, each signal's mask: rolling counters wrap at their DBC width.
+        self._masks = {name: {s.name: (1 << s.length) - 1 for s in msg.signals}
+                       for name, msg in self.messages.items()}
 
     def encode(self, name: str, values: dict[str, float | int]) -> tuple[int, bytes]:
         """(arbitration id, payload) of one frame; values outside a signal's range are clamped."""
@@ -96,21 +102,21 @@ class ImuFrames:
         return self.encode(
             "IMU_RAW",
             {"GyroRawX": x, "GyroRawY": y, "GyroRawZ": z, "Temperature": temp,
-             "Counter": counter & 0xF, "SensorFault": int(fault)},
+             "Counter": counter & self._masks["IMU_RAW"]["Counter"], "SensorFault": int(fault)},
         )
 
     def aux(self, supply_v: float, uptime_s: float, counter: int) -> tuple[int, bytes]:
         return self.encode(
             "IMU_AUX",
             {"SupplyVoltage": max(0.0, supply_v), "Uptime": max(0.0, uptime_s) % 4294967.0,
-             "AuxCounter": counter & 0xF},
+             "AuxCounter": counter & self._masks["IMU_AUX"]["AuxCounter"]},
         )
 
     def table(self, rate_dps: float, axis: str, settled: bool, counter: int) -> tuple[int, bytes]:
         return self.encode(
             TABLE_MESSAGE,
             {"TableRate": rate_dps, "TableAxis": AXES.index(axis), "TableSettled": int(settled),
-             "TableCounter": counter & 0xF},
+             "TableCounter": counter & self._masks[TABLE_MESSAGE]["TableCounter"]},
         )
 
     def rate(
@@ -121,7 +127,9 @@ class ImuFrames:
         tag: int,
         counter: int,
     ) -> tuple[int, bytes]:
-        values: dict[str, float | int] = {"SetTag": tag & 0xF, "Counter": counter & 0xF}
+        masks = self._masks["IMU_RATE"]
+        values: dict[str, float | int] = {"SetTag": tag & masks["SetTag"],
+                                          "Counter": counter & masks["Counter"]}
         for axis, r, o, u in zip(AXES, rates, out_of_span, uncalibrated, strict=True):
             a = axis.upper()
             values[f"Rate{a}"] = max(-327.68, min(327.67, r))

@@ -58,13 +58,6 @@ def supply_steps(levels_v=(4.6, 5.0, 5.4), period_s: float = 45.0, noise_v: floa
     return f
 
 
-def supply_constant(level_v: float = 5.0, noise_v: float = 0.005):
-    def f(t, w, rng):
-        return level_v + noise_v * rng.standard_normal(t.size)
-
-    return f
-
-
 def white_noise(mean: float = 0.0, sigma: float = 1.0):
     """A channel carrying only noise (a distractor)."""
 

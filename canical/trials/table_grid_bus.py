@@ -34,7 +34,7 @@ from canical.sessions.canlog import read_canlog
 from canical.sessions.session import Session
 from canical.sim.imu_stream import StreamConfig, TableMotion, imu_blocks
 from canical.sim.table_recording import TableBehaviour, schedule
-from canical.trials.table_grid import IDEAL, rows_on_rate_changes
+from canical.trials.table_grid import rows_on_rate_changes
 
 DBC = Path(__file__).resolve().parents[1] / "data" / "canical.dbc"
 #: The bus version's programme, shorter than the CSV grid's (every frame goes through python-can
@@ -165,11 +165,6 @@ def stream_held_out_rms(behaviour: TableBehaviour, *, seed: int = 0, **kw) -> fl
     result = calibrate(stream_session(behaviour, seed=seed, **kw), CalibrateOptions(extend=False),
                        sensor_id="IMU-NO-BUS", axis="z")
     return float(result.report["held_out"]["rms_dps"])
-
-
-def ideal_bus_cell(folder: Path, **kw) -> BusCellResult:
-    """The same sensor on an ideal table, through the same flow."""
-    return bus_cell("ideal steps", IDEAL, folder, **kw)
 
 
 def pooled_bus_ratio(results: list[BusCellResult], ideal: dict[int, BusCellResult]) -> float:

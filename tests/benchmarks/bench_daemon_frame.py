@@ -15,7 +15,8 @@ C no-op (``dict.get``), so the figure is the daemon's and not the stand-in's; it
 With ``--baseline DIR`` (a worktree of another commit, e.g. ``git worktree add /tmp/base
 main``) this script runs ``--rounds`` times under each tree's ``canical`` in turn, in child
 processes, and prints the median of each figure side by side: on a machine other processes
-share, only a comparison made at the same time means anything.
+share, only a comparison made at the same time means anything. Each tree runs its own copy of
+this script (it resets the daemon's internals between runs, and those differ between commits).
 
     python tests/benchmarks/bench_daemon_frame.py [--frames N] [--repeats N]
     python tests/benchmarks/bench_daemon_frame.py --baseline /tmp/base [--rounds 5]
@@ -40,8 +41,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from support.daemon_fixtures import ALL_TERMS, imu_stream, write_config, write_sets
 
-from canical.bus.daemon import CAN_MTU, FRAME_HEAD, TIMEVAL, Daemon
+from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.frame_handler import NO_PLAN
+from canical.bus.socketcan_constants import CAN_MTU, FRAME_HEAD, TIMEVAL
 
 BUS_LIMIT_FPS = 8_900  # classic CAN, 1 Mbit/s, 8-byte data frames back to back
 
@@ -155,9 +158,8 @@ def main() -> None:
             for ax in daemon.sets.axes:  # each run is a fresh stream for the stateful terms
                 ax.corrector.reset()
             daemon._compiled_axes.clear()
-            daemon._plan = (None, (), ())
-            if hasattr(daemon, "_fast"):  # the raw frame's generated handler holds the trackers too
-                daemon._fast = (None, None, daemon._on_raw)
+            daemon._plan = NO_PLAN
+            daemon._fast = (None, None, daemon._on_raw)  # the generated handler holds the trackers too
             daemon._prev_counter, daemon._tx_counter = None, 0
             daemon.values.clear()
             daemon.times.clear()
@@ -181,7 +183,7 @@ def main() -> None:
     def parts(daemon: Daemon):
         values = daemon.raw.values
         decoded = [values(p) for p in payloads]
-        plan = daemon._axes_plan(daemon.sets)[2]
+        plan = [(a.at, a.correct) for a in daemon._axes_plan(daemon.sets).axes]
         encode = daemon.rate.encode_xyz
 
         def decode_only() -> None:
@@ -190,7 +192,7 @@ def main() -> None:
 
         def correct_only() -> None:
             for s in decoded:
-                for at, correct, _ in plan:
+                for at, correct in plan:
                     correct(s[at], inputs)
 
         def encode_only() -> None:
@@ -225,10 +227,14 @@ def compare(args: argparse.Namespace) -> None:
     here = Path(__file__).resolve().parents[2]
     trees = {"baseline": args.baseline.resolve(), "this": here}
     figures: dict[str, list[dict[str, list[float]]]] = {name: [] for name in trees}
-    for _ in range(args.rounds):
-        for name, tree in trees.items():
+    for round_ in range(args.rounds):
+        # Which tree runs first alternates: on a loaded machine the second of two back-to-back
+        # runs was seen 10-15 % slower, whichever tree it was.
+        for name in (["baseline", "this"] if round_ % 2 == 0 else ["this", "baseline"]):
+            tree = trees[name]
             env = {**os.environ, "PYTHONPATH": str(tree)}
-            out = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--json", "--frames",
+            script = tree / "tests" / "benchmarks" / Path(__file__).name
+            out = subprocess.run([sys.executable, str(script), "--json", "--frames",
                                   str(args.frames), "--repeats", str(args.repeats),
                                   "--rate-limit", str(args.rate_limit)],
                                  env=env, cwd=tree, check=True, capture_output=True, text=True).stdout

@@ -16,11 +16,13 @@ from pathlib import Path
 
 import can
 import pytest
+from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG
 from support.daemon_fixtures import ALL_TERMS, imu_stream, write_config, write_sets
 
 from canical import atomic_file
-from canical.bus.daemon import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, FRAME_HEAD, TIMEVAL, Daemon
+from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
 
 
 class StandInSocket:
@@ -136,7 +138,7 @@ def test_compiled_daemon_sends_what_the_reference_sends(folder: Path) -> None:
     s = compiled.stats
     assert (s.bad_length, s.unknown_ids, s.remote_frames, s.fd_frames, s.error_frames) == (2, 2, 1, 1, 1)
     assert {a.axis: len(a.corrector.terms) for a in compiled.sets.axes} == {"x": 2, "y": 2, "z": 2}
-    assert all(getattr(f, "source", None) for _, f, _ in compiled._plan[2])  # every axis compiled
+    assert all(getattr(a.correct, "source", None) for a in compiled._plan.axes)  # every axis compiled
 
 
 def test_full_transmit_queue_drops_and_counts(folder: Path) -> None:

@@ -32,8 +32,10 @@ from support.daemon_fixtures import ALL_TERMS, AXES, base_set, decode_stream, im
 
 from canical.atomic_file import write_text_atomic
 from canical.bus.active_sets import SOURCE_FILE, ActiveSets, AxisSet, build
-from canical.bus.daemon import FRAME_HEAD, TIMEVAL, Daemon
+from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.reloads import Reload
+from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
 from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
@@ -147,10 +149,10 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
     sock = PacedSocket(daemon, frames)
     adopt = daemon._adopt
 
-    def recording_adopt(base: ActiveSets, new: ActiveSets, messages: list[str], why: str) -> None:
-        adopt(base, new, messages, why)
-        if new is not base and daemon.sets is new:
-            adopted.append((daemon.stats.frames_in, new))  # raw frames handled with the old sets
+    def recording_adopt(done: Reload) -> None:
+        adopt(done)
+        if done.changed and daemon.sets is done.new:
+            adopted.append((daemon.stats.frames_in, done.new))  # raw frames handled with the old sets
 
     daemon._adopt = recording_adopt  # type: ignore[method-assign]
 

@@ -1,0 +1,274 @@
+"""The raw frame's path, prepared once: the frames' layout, a plan per generation of sets, and
+the raw frame's handler generated as one function for exactly those sets.
+
+The daemon's reference handler (:meth:`canical.bus.daemon.Daemon._on_raw`) walks a plan, calls a
+function per axis, per codec and per check; at a few µs per frame those calls and lookups cost
+as much as the work. So, per generation of sets (and socket), it is written out here as one
+function: the decode's fields as locals, the three axes' corrections inline
+(:func:`~canical.sets.fast_corrector.corrector_lines`, the same statements as the compiled
+correctors), the staleness checks and constants written in, one ``send``. The generated
+handler hands a frame to the reference one when the sets are not its own or an input the sets
+need has not arrived yet, so both always send the same frames.
+"""
+
+from __future__ import annotations
+
+import logging
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
+from socket import MSG_DONTWAIT
+from typing import Any
+
+from cantools.database.can import Database, Message
+
+from canical.bus.active_sets import ActiveSets
+from canical.bus.daemon_config import DaemonConfig
+from canical.bus.socketcan import frame_key
+from canical.bus.socketcan_constants import FRAME_HEAD
+from canical.frames.codec import RateEncoder, RawDecoder
+from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
+from canical.sets.corrector import Corrector
+from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
+
+__all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "Plan", "RawHandler",
+           "frame_layout", "generate_raw_handler", "plan_for"]
+
+log = logging.getLogger("canical.serve")
+
+RawHandler = Callable[[bytes, float], None]
+#: Name → signal pairs of a frame: (input name, position of its signal in the decoded tuple).
+Positions = tuple[tuple[str, int], ...]
+
+
+@dataclass(frozen=True, slots=True)
+class InputFrame:
+    """A frame carrying run-time inputs: its decoder (values in signal order), length, and
+    which input each of its signals holds."""
+
+    decode: Callable[[bytes | bytearray], tuple[Any, ...]]
+    length: int
+    inputs_at: Positions
+
+
+@dataclass(frozen=True)
+class FrameLayout:
+    """The frames the daemon reads and sends, resolved from the DBC and the configuration at start."""
+
+    raw: RawDecoder
+    raw_message: Message
+    rate: RateEncoder
+    rate_message: Message
+    #: The other frames that carry inputs: decoder and (input, signal) pairs, by (id, extended).
+    input_frames: dict[tuple[int, bool], tuple[RawDecoder, tuple[tuple[str, str], ...]]]
+    #: The same by SocketCAN key, in their per-frame form.
+    input_handlers: dict[int, InputFrame]
+    raw_key: int  # the raw frame's SocketCAN key (id and extended flag)
+    raw_inputs_at: Positions  # inputs the raw frame itself carries
+    counter_at: int | None  # the raw frame's rolling counter (None: not checked)
+    counter_mask: int  # it wraps at its DBC width
+    tx_counter_mask: int  # the rate frame's counter, likewise
+    rate_head: bytes  # the rate frame's kernel head: key, length
+    rate_pad: bytes  # zeros to the classic frame's 8 data bytes
+
+
+def _wrap_mask(message: Message, signal: str) -> int:
+    """The mask a rolling counter wraps at: its signal's width in the DBC."""
+    return (1 << message.get_signal_by_name(signal).length) - 1
+
+
+def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> FrameLayout:
+    raw_msg = db.get_message_by_name(config.raw_message)
+    rate_msg = db.get_message_by_name(config.rate_message)
+    raw = RawDecoder(raw_msg, compiled=compiled)
+    rate = RateEncoder(rate_msg, compiled=compiled)
+    input_frames: dict[tuple[int, bool], tuple[RawDecoder, tuple[tuple[str, str], ...]]] = {}
+    for source in config.inputs.values():
+        if source.message == raw_msg.name:
+            continue
+        msg = db.get_message_by_name(source.message)
+        key = (msg.frame_id, msg.is_extended_frame)
+        decoder, pairs = input_frames.get(key, (RawDecoder(msg, compiled=compiled), ()))
+        input_frames[key] = (decoder, (*pairs, (source.name, source.signal)))
+    counter = config.counter_signal
+    return FrameLayout(
+        raw=raw, raw_message=raw_msg, rate=rate, rate_message=rate_msg, input_frames=input_frames,
+        input_handlers={
+            frame_key(*key): InputFrame(decoder.values, decoder.length,
+                                        tuple((n, decoder.index[s]) for n, s in pairs))
+            for key, (decoder, pairs) in input_frames.items()
+        },
+        raw_key=frame_key(raw.frame_id, raw.is_extended),
+        raw_inputs_at=tuple((s.name, raw.index[s.signal]) for s in config.inputs.values()
+                            if s.message == raw_msg.name),
+        counter_at=None if counter is None else raw.index[counter],
+        counter_mask=0 if counter is None else _wrap_mask(raw_msg, counter),
+        tx_counter_mask=_wrap_mask(rate_msg, "Counter"),
+        rate_head=FRAME_HEAD.pack(frame_key(rate.frame_id, rate.is_extended), rate.length, 0, 0),
+        rate_pad=bytes(max(0, 8 - rate.length)),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class AxisPlan:
+    """One axis of a generation of sets, as a frame needs it."""
+
+    at: int  # its raw signal's position in the decoded frame
+    correct: CorrectOne | None  # None: no set, the axis goes out uncalibrated
+    needs: tuple[str, ...]  # the inputs its set reads
+
+
+@dataclass(frozen=True, slots=True)
+class Plan:
+    """What a frame needs of one generation of sets (``sets`` None: no plan yet)."""
+
+    sets: ActiveSets | None
+    ages: tuple[tuple[str, float], ...]  # each input the sets read, and how old it may get
+    axes: tuple[AxisPlan, ...]
+
+
+NO_PLAN = Plan(None, (), ())
+#: Per corrector, its compiled function (None: the reference path); an entry goes with its corrector.
+CompiledAxes = weakref.WeakKeyDictionary[Corrector, CorrectOne | None]
+
+
+def plan_for(sets: ActiveSets, layout: FrameLayout, max_age: dict[str, float], cache: CompiledAxes, *,
+             compiled: bool) -> Plan:
+    """The inputs with their maximum age, and per axis where its raw signal is, the function that
+    corrects it and the inputs it needs.
+
+    Built once per generation of sets (the first frame after a reload), so each frame uses
+    the functions of exactly the sets it read. A corrector is compiled once
+    (:mod:`canical.sets.fast_corrector`) and keeps its function, and its state, across reloads
+    that keep it (``cache``); one with terms the compiler does not know keeps ``correct_one``.
+    """
+    axes = []
+    for ax in sets.axes:
+        corrector = ax.corrector
+        correct: CorrectOne | None = None
+        if corrector is not None:
+            if corrector not in cache:
+                fast = compile_corrector(corrector) if compiled else None
+                if fast is None and compiled:
+                    log.info("axis %s: %s; correcting with the reference path", ax.axis, why_not(corrector))
+                # None for the reference path: its bound method would hold the corrector,
+                # and the entry would outlive it (one leaked set per reload).
+                cache[corrector] = fast
+            correct = cache[corrector] or corrector.correct_one
+        axes.append(AxisPlan(layout.raw.index[ax.raw_signal], correct, ax.required_inputs))
+    return Plan(sets, tuple((name, max_age[name]) for name in sets.inputs), tuple(axes))
+
+
+@dataclass(frozen=True)
+class _Source:
+    """The generated function's lines so far and the names they use."""
+
+    lines: list[str]
+    ns: dict[str, Any]
+
+    def add(self, lines: list[str], names: dict[str, Any]) -> None:
+        self.lines.extend(lines)
+        self.ns.update(names)
+
+
+def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, owner: object,
+                         general: RawHandler, names: dict[str, Any]) -> RawHandler:
+    """The raw frame's handler for ``sets`` as one generated function.
+
+    ``owner`` is the daemon (the code reads its ``sets`` and keeps its ``_prev_counter`` and
+    ``_tx_counter``), ``general`` its reference handler, ``names`` what else the code calls:
+    ``stats``, ``values``, ``times``, ``encode`` (the rate frame's codec), ``send`` (the
+    socket's) and ``send_failed``. Only for three axes on compiled correctors and a rate
+    frame whose signals come in :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
+    """
+    carried = {name for name, _ in layout.raw_inputs_at}
+    awaited = [(name, age) for name, age in plan.ages if name not in carried]
+    src = _Source(["def on_raw(data, stamp):", "    if self.sets is not SETS:",
+                   "        return general(data, stamp)"],
+                  {"self": owner, "SETS": sets, "general": general, "decode": layout.raw.values, **names,
+                   "MSG_DONTWAIT": MSG_DONTWAIT, "FRAME": layout.rate_head})
+    if awaited:
+        src.lines.extend(["    try:",
+                          *(f"        t{i} = times[{name!r}]" for i, (name, _) in enumerate(awaited)),
+                          "    except KeyError:  # an input the sets need has not come yet",
+                          "        return general(data, stamp)"])
+    _decode_and_count(src, layout, plan)
+    # Each input the sets read, once: the raw frame's own from its fields, the others held.
+    held = {name: f"s{at}" for name, at in layout.raw_inputs_at}
+    for i, (name, _) in enumerate(awaited):
+        src.lines.append(f"    i{i} = values[{name!r}]")
+        held[name] = f"i{i}"
+    # The raw frame's own inputs are as old as this frame: never stale (max_age_s > 0).
+    # Inputs of other frames change only when those arrive: terms of them alone are kept.
+    slow, state = frozenset(f"i{i}" for i in range(len(awaited))), list[str]()
+    stale = " or ".join(f"stamp - t{i} > {age!r}" for i, (_, age) in enumerate(awaited)) or "False"
+    src.lines.append(f"    stale = {stale}")
+    flags = []  # the rate frame's axes in the sets' order, as the reference handler: rK, oK, flags[K]
+    for k, (ax, axis) in enumerate(zip(sets.axes, plan.axes, strict=True)):
+        if ax.corrector is None:  # uncalibrated: rate 0
+            src.lines.append(f"    r{k}, o{k} = 0.0, False")
+            flags.append("True")
+            continue
+        src.add(*corrector_lines(ax.corrector, f"s{axis.at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
+                                 held=held, cached=slow, state=state))
+        flags.append("False")
+    src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
+    _encode_and_send(src, layout, sets, flags)
+    lines = src.lines
+    source = "\n".join(with_state(lines[0], lines[1:], state, "on_raw")) + "\n"
+    exec(compile(source, f"<raw frame, sets {sets.combined_id:08x}>", "exec"), src.ns)
+    handler = src.ns["make"]()
+    handler.source = source
+    return handler
+
+
+def _decode_and_count(src: _Source, layout: FrameLayout, plan: Plan) -> None:
+    """Decode the fields the code uses, count the frame, hold its inputs, check its counter."""
+    width = len(layout.raw.index)
+    try:  # the frame's length is the raw message's (the receive loop checked it)
+        used = ({a.at for a in plan.axes} | {at for _, at in layout.raw_inputs_at} | {layout.counter_at})
+        outs = [f"s{i}" if i in used else None for i in range(width)]
+        src.add(*decode_lines(layout.raw_message, "data", outs))
+    except NotCompilable:  # cantools decodes this frame (logged at start)
+        src.lines.append(f"    {', '.join(f's{i}' for i in range(width))}, = decode(data)")
+    src.lines.append("    stats.frames_in += 1")
+    for name, at in layout.raw_inputs_at:
+        src.lines.extend([f"    values[{name!r}] = s{at}", f"    times[{name!r}] = stamp"])
+    counter_at = layout.counter_at
+    if counter_at is None:
+        src.lines.append("    gap = False")
+    else:
+        got = f"s{counter_at}"
+        src.lines.extend(["    prev = self._prev_counter",
+                          f"    gap = prev is not None and {got} != ((prev + 1) & {layout.counter_mask:#x})",
+                          "    if gap:", "        stats.counter_gaps += 1",
+                          f"    self._prev_counter = {got}"])
+
+
+def _encode_and_send(src: _Source, layout: FrameLayout, sets: ActiveSets, flags: list[str]) -> None:
+    """Saturate the rates, encode the rate frame, advance its counter, send it without waiting."""
+    rates = []
+    for k, (lo, hi) in enumerate(layout.rate.limits):
+        r = f"r{k}"
+        zero = lo if lo > 0.0 else hi if hi < 0.0 else 0.0  # a non-finite rate is sent as 0
+        src.lines.append(f"    {r} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
+                         f" if {r} - {r} == 0.0 else {zero!r}")
+        rates.append(r)
+    # The rate frame's signals in encode_xyz's order; all but the rates are bools, the tag
+    # (a constant here) and the counter (within its mask): packed as they are.
+    mask = layout.tx_counter_mask
+    values = [*rates, "o0", "o1", "o2", *flags, "stale", "gap", repr(sets.tag), "counter"]
+    bounds = [None, None, None, *[1] * 8, sets.tag, mask]
+    try:
+        # The rates are saturated to their signals' ranges above: no range check needed.
+        body, names, payload = encode_lines(layout.rate_message, values, bounds,
+                                            spans=[*layout.rate.limits, *[None] * 10])
+        src.add(body, names)
+    except NotCompilable:  # cantools encodes this frame (logged at start)
+        payload = f"encode(({', '.join(values)}))"
+    pad = f" + {layout.rate_pad!r}" if layout.rate_pad else ""
+    src.lines.extend([f"    payload = {payload}", f"    self._tx_counter = (counter + 1) & {mask:#x}",
+                      "    try:",
+                      f"        send(FRAME + payload{pad}, MSG_DONTWAIT)", "    except OSError as exc:",
+                      "        send_failed(exc)  # counted as dropped, or the bus is lost",
+                      "    stats.frames_out += 1"])
