@@ -3,8 +3,10 @@
 Why here and not in the daemon's configuration module: the keys are the tracker's settings and
 their checks are the tracker's (:class:`~canical.tracking.config.TrackerConfig`), so they live
 beside it; the daemon's configuration calls :func:`parse_bias_tracking` with its own ``fail``
-(which names the file) and then checks the cue's DBC signal and the state file's folder, which
-only it can. :data:`KEYS` documents every key for the configuration reference.
+(which names the file) and then checks that the cue and the temperature name inputs of its
+``inputs:`` section (a DBC signal held at its latest value, as every input), which only it can.
+Time since power-on is the ``time_s`` input where there is one. :data:`KEYS` documents every key
+for the configuration reference.
 """
 
 from __future__ import annotations
@@ -46,9 +48,10 @@ KEYS: tuple[Key, ...] = (
         "fastest change of the applied bias: no step in the output"),
     Key("turn_on_sigma_dps", f"{DEFAULT.turn_on_sigma_dps:g}", "positive number",
         "turn-on repeatability: how far a new power-on's bias may be from the last"),
-    Key("cue", "none", "a mapping", "a DBC signal that says whether the vehicle moves"),
-    Key("cue.signal", "required", "MESSAGE.Signal in the DBC", "e.g. vehicle speed or a moving flag"),
-    Key("cue.below", "0.1", "finite number", "the vehicle stands while the signal is below this"),
+    Key("temperature", "temp_c", "an input's name", "the input the bias is learned against"),
+    Key("cue", "none", "a mapping", "an input that says whether the vehicle moves (speed, a flag)"),
+    Key("cue.input", "required", "an input's name", "e.g. `speed`, mapped in `inputs:` to a DBC signal"),
+    Key("cue.below", "0.1", "finite number", "the vehicle stands while the input is below this"),
     Key("state_file", "none", "file path", "where the learned bias is kept across restarts (atomically)"),
 )
 _NUMBERS = ("arw_deg_rt_h", "window_s", "vibration_dps", "bound_dps", "slew_dps_per_s", "turn_on_sigma_dps")
@@ -60,14 +63,15 @@ class BiasTrackingSettings:
 
     enabled: bool
     tracker: TrackerConfig
-    cue_signal: str | None  # MESSAGE.Signal
+    cue_input: str | None  # the name of an input
+    temperature_input: str
     state_file: str | None  # as written: the daemon resolves it against its configuration's folder
 
 
 def parse_bias_tracking(section: Any, fail: Fail) -> BiasTrackingSettings:
     """Check the section (None: off); any defect is ``fail(key, message)`` naming the key."""
     if section is None:
-        return BiasTrackingSettings(False, DEFAULT, None, None)
+        return BiasTrackingSettings(False, DEFAULT, None, "temp_c", None)
     if not isinstance(section, dict):
         raise fail("bias_tracking", "must be a mapping")
     top = {k.key for k in KEYS if "." not in k.key}
@@ -79,7 +83,10 @@ def parse_bias_tracking(section: Any, fail: Fail) -> BiasTrackingSettings:
         raise fail(f"{PREFIX}enabled", f"must be true or false, got {enabled!r}")
     values: dict[str, Any] = {name: _number(section[name], f"{PREFIX}{name}", fail)
                               for name in _NUMBERS if name in section}
-    cue_signal, below = _cue(section.get("cue"), fail)
+    cue_input, below = _cue(section.get("cue"), fail)
+    temperature = section.get("temperature", "temp_c")
+    if not isinstance(temperature, str) or not temperature:
+        raise fail(f"{PREFIX}temperature", "must name an input")
     state = section.get("state_file")
     if state is not None and (not isinstance(state, str) or not state):
         raise fail(f"{PREFIX}state_file", "must be a file path")
@@ -88,7 +95,7 @@ def parse_bias_tracking(section: Any, fail: Fail) -> BiasTrackingSettings:
     except ValueError as exc:
         name = str(exc).split(" ", 1)[0]
         raise fail(f"{PREFIX}{name}", str(exc).split(" ", 1)[1]) from None
-    return BiasTrackingSettings(enabled, tracker, cue_signal, state)
+    return BiasTrackingSettings(enabled, tracker, cue_input, temperature, state)
 
 
 def _number(value: Any, key: str, fail: Fail) -> float:
@@ -101,11 +108,11 @@ def _cue(cue: Any, fail: Fail) -> tuple[str | None, float | None]:
     if cue is None:
         return None, None
     if not isinstance(cue, dict):
-        raise fail(f"{PREFIX}cue", "must be a mapping with signal (MESSAGE.Signal) and below")
+        raise fail(f"{PREFIX}cue", "must be a mapping with input (an input's name) and below")
     for key in cue:
-        if key not in ("signal", "below"):
-            raise fail(f"{PREFIX}cue.{key}", "unknown key (expected one of below, signal)")
-    signal = cue.get("signal")
-    if not isinstance(signal, str) or signal.count(".") != 1 or not all(signal.split(".")):
-        raise fail(f"{PREFIX}cue.signal", f"must be MESSAGE.Signal, got {signal!r}")
-    return signal, _number(cue.get("below", 0.1), f"{PREFIX}cue.below", fail)
+        if key not in ("input", "below"):
+            raise fail(f"{PREFIX}cue.{key}", "unknown key (expected one of below, input)")
+    name = cue.get("input")
+    if not isinstance(name, str) or not name:
+        raise fail(f"{PREFIX}cue.input", f"must name an input, got {name!r}")
+    return name, _number(cue.get("below", 0.1), f"{PREFIX}cue.below", fail)

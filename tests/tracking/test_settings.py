@@ -17,14 +17,15 @@ def fail(key: str, msg: str) -> CanicalError:
 
 def test_no_section_is_off() -> None:
     settings = parse_bias_tracking(None, fail)
-    assert not settings.enabled and settings.cue_signal is None
+    assert not settings.enabled and settings.cue_input is None and settings.temperature_input == "temp_c"
 
 
 def test_a_full_section() -> None:
     settings = parse_bias_tracking({"enabled": True, "arw_deg_rt_h": 0.3, "window_s": 2, "bound_dps": 1.5,
-                                    "cue": {"signal": "VEHICLE.Speed", "below": 0.2},
+                                    "cue": {"input": "speed", "below": 0.2}, "temperature": "cabin_c",
                                     "state_file": "bias.json"}, fail)
-    assert settings.enabled and settings.cue_signal == "VEHICLE.Speed" and settings.state_file == "bias.json"
+    assert settings.enabled and settings.cue_input == "speed" and settings.state_file == "bias.json"
+    assert settings.temperature_input == "cabin_c"
     assert settings.tracker.cue_threshold == 0.2 and settings.tracker.window_s == 2.0
     assert settings.tracker.bound_dps == 1.5 and settings.tracker.arw_deg_rt_h == 0.3
 
@@ -37,9 +38,10 @@ def test_a_full_section() -> None:
     ({"bound_dps": math.nan}, "bias_tracking.bound_dps: must be a finite number"),
     ({"vibration_dps": -1}, "bias_tracking.vibration_dps: must be a non-negative number"),
     ({"cue": "speed"}, "bias_tracking.cue: must be a mapping"),
-    ({"cue": {"signal": "Speed"}}, "bias_tracking.cue.signal: must be MESSAGE.Signal"),
-    ({"cue": {"signal": "V.Speed", "below": "low"}}, "bias_tracking.cue.below: must be a finite number"),
-    ({"cue": {"signal": "V.Speed", "above": 1}}, "bias_tracking.cue.above: unknown key"),
+    ({"cue": {"input": 3}}, "bias_tracking.cue.input: must name an input"),
+    ({"cue": {"input": "speed", "below": "low"}}, "bias_tracking.cue.below: must be a finite number"),
+    ({"cue": {"input": "speed", "above": 1}}, "bias_tracking.cue.above: unknown key"),
+    ({"temperature": ""}, "bias_tracking.temperature: must name an input"),
     ({"state_file": 3}, "bias_tracking.state_file: must be a file path"),
 ])
 def test_a_bad_key_is_one_line_naming_it(section, message: str) -> None:
@@ -50,7 +52,8 @@ def test_a_bad_key_is_one_line_naming_it(section, message: str) -> None:
 
 
 def test_every_documented_key_is_accepted() -> None:
-    values = {"enabled": True, "cue": {"signal": "V.Speed", "below": 0.1}, "state_file": "s.json"}
+    values = {"enabled": True, "cue": {"input": "speed", "below": 0.1}, "state_file": "s.json",
+              "temperature": "temp_c"}
     section = {k.key: values.get(k.key, 0.5) for k in KEYS if "." not in k.key}
     assert parse_bias_tracking(section, fail).enabled
 
