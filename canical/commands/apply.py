@@ -150,12 +150,14 @@ def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
     from canical.tracking.config import TrackerConfig
     from canical.tracking.replay import replay
 
-    arw = args.arw if args.arw is not None else cset.fit.get("arw_deg_rt_h", 0.5)
-    try:
-        config = TrackerConfig(arw_deg_rt_h=float(arw),
-                               cue_threshold=args.standstill_below if args.standstill_column else None)
-    except ValueError as exc:
-        raise CanicalError(f"bias tracking: {exc}") from None
+    config = getattr(args, "daemon_tracker", None)  # the daemon configuration's bias_tracking
+    if config is None:
+        arw = args.arw if args.arw is not None else cset.fit.get("arw_deg_rt_h", 0.5)
+        try:
+            config = TrackerConfig(arw_deg_rt_h=float(arw),
+                                   cue_threshold=args.standstill_below if args.standstill_column else None)
+        except ValueError as exc:
+            raise CanicalError(f"bias tracking: {exc}") from None
     time_s = columns["time_s"]
     if not np.isfinite(time_s).all():
         raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
@@ -174,6 +176,22 @@ def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
           f"standstills used, {learned.updates} windows; last bias {bias[-1]:+.4f} deg/s"
           f"{'' if math.isfinite(bias[-1]) else ' (no data)'}")
     return bias
+
+
+def use_daemon_tracking(args: argparse.Namespace) -> None:
+    """With --config whose bias_tracking: is on, track exactly as the daemon: its settings, cue and
+    temperature inputs (what the command line gives of them is not used)."""
+    if not args.config:
+        return
+    from canical.bus.daemon_config import load_config
+
+    tracking = load_config(args.config).bias_tracking
+    if tracking is None:
+        return
+    args.daemon_tracker = tracking.settings.tracker
+    args.standstill_column = tracking.settings.cue_input
+    args.temp_column = tracking.temperature_input or ""
+    print(f"apply: bias tracking as configured in {args.config} (bias_tracking:)")
 
 
 def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
@@ -202,6 +220,7 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
             "--input NAME=MESSAGE.Signal or --config"
         )
     if args.track_bias:
+        use_daemon_tracking(args)
         if args.standstill_column and args.standstill_column not in source.inputs:
             raise CanicalError(f"--standstill-column {args.standstill_column}: map it to a signal with "
                                f"--input {args.standstill_column}=MESSAGE.Signal or --config")

@@ -174,3 +174,32 @@ def test_a_bad_section_is_refused_at_start(tmp_path: Path, section: dict, messag
     with pytest.raises(CanicalError) as info:
         load_config(write_config(tmp_path, "bad", bias_tracking=section))
     assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_apply_with_the_daemon_configuration_tracks_as_the_daemon(tmp_path: Path, recorded,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """apply LOG --config CONFIG --track-bias takes bias_tracking: from the configuration."""
+    from canical.commands.cli import main
+
+    write_sets(tmp_path)
+    cfg_path = write_config(tmp_path, "trk", bias_tracking={**SETTINGS, "arw_deg_rt_h": 0.4})
+    msgs = drive_frames(30.0)
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for m in msgs:
+            logger.on_message_received(m)
+    daemon = Daemon(load_config(cfg_path), compiled=False)
+    daemon.load_sets()
+    daemon.bus = type("Bus", (), {"send": lambda self, msg, timeout=None: None})()  # type: ignore[assignment]
+    for m in msgs:
+        daemon._dispatch(m)
+    out = tmp_path / "z.csv"
+    assert main(["apply", str(tmp_path / "imu-z.yaml"), str(log), "--config", str(cfg_path), "--track-bias",
+                 "-o", str(out)]) == 0
+    assert "as configured in" in capsys.readouterr().out
+    lines = out.read_text().splitlines()
+    header = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    names = lines[header].split(",")
+    table = np.loadtxt(out, delimiter=",", skiprows=header + 1)
+    tracked = table[:, names.index("rate_dps")] - table[:, names.index("bias_dps")]
+    assert np.max(np.abs(tracked - np.array(recorded)[:, 2])) <= 2e-6  # the file's 6 decimals
