@@ -21,6 +21,7 @@ from canical.tracking import state_file
 from canical.tracking.tracker import BiasTracker
 
 log = logging.getLogger("canical.serve")
+NAN = math.nan
 
 
 class DaemonTracking:
@@ -34,6 +35,9 @@ class DaemonTracking:
         self.trackers: list[BiasTracker | None] = [None, None, None]
         self._t0: float | None = None
         self._saved_updates = -1
+        #: Per frame: the inputs' names (time, temperature, cue), and per axis its step and output.
+        self._names = (config.time_input, config.temperature_input, config.settings.cue_input)
+        self._steps: list[tuple[Any, list[float]]] = [(None, [0.0])] * 3
 
     def for_sets(self, combined_id: int, axes: tuple[str, ...], calibrated: tuple[bool, ...]) -> None:
         """New sets: save what was learned for the old ones, load (or start) the new ones' state."""
@@ -49,30 +53,31 @@ class DaemonTracking:
         self.trackers = [
             BiasTracker((axis,), self.config.settings.tracker, None if learned is None else (learned[k],))
             if ok else None for k, (axis, ok) in enumerate(zip(axes, calibrated, strict=True))]
+        self._steps = [(None, [0.0]) if t is None else (t.step, t.applied) for t in self.trackers]
         self._saved_updates = self._updates()
 
     def __call__(self, stamp: float, r0: float, r1: float, r2: float, u0: bool, u1: bool,
                  u2: bool) -> tuple[float, float, float]:
         """The three rates less each tracked axis's bias (per frame); an uncalibrated axis is left be."""
         values = self.values
-        cfg = self.config
-        if cfg.time_input is None:
+        time_name, temp_name, cue_name = self._names
+        if time_name is None:
             if self._t0 is None:
                 self._t0 = stamp
             t = stamp - self._t0
         else:
-            t = values.get(cfg.time_input, math.nan)
-        temp = math.nan if cfg.temperature_input is None else values.get(cfg.temperature_input, math.nan)
-        cue_name = cfg.settings.cue_input
+            t = values.get(time_name, NAN)
+        temp = NAN if temp_name is None else values.get(temp_name, NAN)
         cue = None if cue_name is None else values.get(cue_name)
-        ready = (t == t and (cfg.temperature_input is None or temp == temp)
-                 and (cue_name is None or cue is not None))
-        out = [r0, r1, r2]
-        for k, (tracker, uncalibrated) in enumerate(zip(self.trackers, (u0, u1, u2), strict=True)):
-            if tracker is not None and not uncalibrated:
-                bias = tracker.step(t, (out[k],), temp, cue)[0] if ready else tracker.applied[0]
-                out[k] -= bias
-        return out[0], out[1], out[2]
+        ready = t == t and (temp_name is None or temp == temp) and (cue_name is None or cue is not None)
+        (s0, a0), (s1, a1), (s2, a2) = self._steps
+        if s0 is not None and not u0:
+            r0 -= s0(t, (r0,), temp, cue)[0] if ready else a0[0]
+        if s1 is not None and not u1:
+            r1 -= s1(t, (r1,), temp, cue)[0] if ready else a1[0]
+        if s2 is not None and not u2:
+            r2 -= s2(t, (r2,), temp, cue)[0] if ready else a2[0]
+        return r0, r1, r2
 
     # -- between frames ------------------------------------------------------------------------
     def _updates(self) -> int:
