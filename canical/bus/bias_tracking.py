@@ -17,6 +17,7 @@ import math
 from typing import Any
 
 from canical.bus.daemon_config import BiasTracking
+from canical.bus.status import AXIS_CODES
 from canical.tracking import state_file
 from canical.tracking.tracker import BiasTracker
 
@@ -116,3 +117,10 @@ class DaemonTracking:
         """Per tracked axis: learned bias, uncertainty, age, updates (for a status page or a test)."""
         return [{"axis": s.axis, "bias_dps": s.bias_dps, "sigma_dps": s.sigma_dps, "age_s": s.age_s,
                  "updates": s.updates} for t in self.trackers if t is not None for s in t.status()]
+
+    def frame_pages(self) -> list[dict[str, float]]:
+        """Status frame page 3, one per tracked axis (signal name → value in its unit)."""
+        return [{"BiasAxis": AXIS_CODES[p["axis"]], "BiasLearned": p["bias_dps"], "BiasSigma": p["sigma_dps"],
+                 "BiasUpdates": min(p["updates"], 4095),
+                 "BiasAge": 65535 if not math.isfinite(p["age_s"]) else min(round(p["age_s"]), 65535)}
+                for p in self.status_pages()]

@@ -84,6 +84,7 @@ from canical.frames.codec import StatusEncoder, load_dbc
 __all__ = ["BusFactory", "Daemon"]
 
 log = logging.getLogger("canical.serve")
+BIAS_PAGE = 3  # the status frame's page for the learned bias (canical.bus.bias_tracking)
 
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
 RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
@@ -544,6 +545,10 @@ class Daemon:
         for page, values in self.status_pages():
             payload = self.status.encode(page, values, saturate=page in SATURATING_PAGES)
             self._send(self.status.frame_id, self.status.is_extended, payload)
+        if self.tracking is not None and BIAS_PAGE in self.status.pages:
+            for bias in self.tracking.frame_pages():
+                payload = self.status.encode_physical(BIAS_PAGE, bias)
+                self._send(self.status.frame_id, self.status.is_extended, payload)
 
     def status_line(self) -> str:
         line = status_line(self._state, self.stats, self.sets, channel=self.config.channel,

@@ -134,6 +134,18 @@ def test_the_daemon_tracks_the_bias_as_apply_does(tmp_path: Path, recorded, comp
     assert f"z bias {status['z']['bias_dps']:+.4f}" in daemon.status_line()
     loaded = state_file.load(tmp_path / "bias.json", daemon.sets.combined_id, ("x", "y", "z"))
     assert loaded.learned is not None and loaded.learned[2].updates == status["z"]["updates"]
+    if not compiled:  # the status frame's page 3: each axis's learned bias, as sent on the bus
+        sent: list[can.Message] = []
+        daemon.bus = type("Bus", (), {"send": lambda self, msg, timeout=None: sent.append(msg)})()  # type: ignore[assignment]
+        daemon._send_status()
+        message = load_dbc(DBC).get_message_by_name("CANICAL_STATUS")
+        pages = [message.decode(bytes(m.data), decode_choices=False) for m in sent]
+        bias = {p["BiasAxis"]: p for p in pages if p["Page"] == 3}
+        assert sorted(bias) == [0, 1, 2]
+        assert bias[2]["BiasLearned"] == pytest.approx(status["z"]["bias_dps"], abs=1e-4)
+        assert bias[2]["BiasSigma"] == pytest.approx(status["z"]["sigma_dps"], abs=1e-4)
+        assert bias[2]["BiasUpdates"] == status["z"]["updates"]
+        assert bias[2]["BiasAge"] == round(status["z"]["age_s"])
 
 
 def test_a_restart_starts_from_the_saved_state_and_new_sets_afresh(tmp_path: Path,

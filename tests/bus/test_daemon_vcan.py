@@ -367,6 +367,12 @@ def test_daemon_tracks_the_bias_like_apply(vcan_channel: str, tmp_path: Path, db
         expected = np.clip(table["rate_dps"] - table["bias_dps"], -327.68, 327.67)
         sent = np.array([g[f"Rate{axis.upper()}"] for g in got])
         assert np.max(np.abs(sent - expected)) <= HALF_LSB + 2e-6, axis
+    status = db.get_message_by_name("CANICAL_STATUS")
+    pages = [status.decode(bytes(m.data), decode_choices=False) for m in rec_msgs
+             if m.arbitration_id == status.frame_id]
+    bias = {p["BiasAxis"]: p for p in pages if p["Page"] == 3}  # the last of each axis
+    assert sorted(bias) == [0, 1, 2] and abs(bias[2]["BiasLearned"] - 0.3) < 0.05
+    assert bias[2]["BiasUpdates"] > 10 and bias[2]["BiasAge"] < 65535
     text = (tmp_path / "bias.json").read_text()  # saved at stop, keyed by the sets' combined id
     learned = state_file.parse(text, int(json.loads(text)["set_id"], 16), ("x", "y", "z"))
     assert learned[2].updates > 10
