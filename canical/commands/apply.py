@@ -39,7 +39,8 @@ def register(sub) -> None:
     track.add_argument("--track-bias", action="store_true",
                        help="replay the drive through the bias tracker row by row and append bias_dps "
                             "(subtract it from rate_dps); a CSV needs a time_s column (time since "
-                            "power-on), a CAN log takes it from the time_s input if mapped")
+                            "power-on), a CAN log takes it from the time_s input if mapped; with "
+                            "--config whose bias_tracking: is on, tracks with its settings, as the daemon")
     track.add_argument("--standstill-column", metavar="NAME",
                        help="cue column (vehicle speed, or a moving flag; in a CAN log an input mapped "
                             "with --input/--config): stopped while below --standstill-below; nothing is "
