@@ -51,6 +51,7 @@ from can.interfaces.socketcan.constants import (
 
 from canical.bus import active_sets
 from canical.bus.active_sets import ActiveSets
+from canical.bus.bias_tracking import DaemonTracking
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.frame_handler import (
     NO_PLAN,
@@ -90,6 +91,7 @@ from canical.frames.codec import StatusEncoder, load_dbc
 __all__ = ["BusFactory", "Daemon"]
 
 log = logging.getLogger("canical.serve")
+BIAS_PAGE = 3  # the status frame's page for the learned bias (canical.bus.bias_tracking)
 
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
 RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
@@ -135,6 +137,9 @@ class Daemon:
         self.values: dict[str, float] = {}  # latest value of each input
         self.times: dict[str, float] = {}  # and the timestamp of the frame that brought it
         self.stats = Stats()
+        #: The bias learned at standstills, when the configuration enables it.
+        self.tracking = (None if config.bias_tracking is None
+                         else DaemonTracking(config.bias_tracking, self.values))
         self.sets: ActiveSets = active_sets.build(())
         self.bus: can.BusABC | None = None
         self.outages = Outages(config.interface, config.channel)
@@ -371,6 +376,9 @@ class Daemon:
         """What a frame needs of ``sets`` (:func:`~canical.bus.frame_handler.plan_for`), kept
         until the sets change."""
         self._plan = plan_for(sets, self.layout, self.max_age, self._compiled_axes, compiled=self.compiled)
+        if self.tracking is not None:
+            self.tracking.for_sets(sets.combined_id, tuple(ax.axis for ax in sets.axes),
+                                   tuple(ax.corrector is not None for ax in sets.axes))
         return self._plan
 
     def _raw_handler(self, sock: socket.socket) -> RawHandler:
@@ -391,10 +399,12 @@ class Daemon:
         in_order = encode is not None or self.rate is None  # the rate frame's signals as generated code sends
         if self.compiled and in_order and send_own is not None and len(sets.axes) == 3 and all(
                 ax.corrector is None or compiled.get(ax.corrector) is not None for ax in sets.axes):
-            handler = generate_raw_handler(
-                self.layout, sets, plan, owner=self, general=self._on_raw,
-                names={"stats": self.stats, "values": self.values, "times": self.times, "encode": encode,
-                       "send": sock.send, "send_own": send_own, "send_failed": self._send_failed})
+            names = {"stats": self.stats, "values": self.values, "times": self.times, "encode": encode,
+                     "send": sock.send, "send_own": send_own, "send_failed": self._send_failed}
+            if self.tracking is not None:
+                names["track"] = self.tracking
+            handler = generate_raw_handler(self.layout, sets, plan, owner=self, general=self._on_raw,
+                                           names=names)
         self._fast = (sets, sock, handler)
         return handler
 
@@ -477,6 +487,8 @@ class Daemon:
             rz, oz, uz = 0.0, False, True
         else:
             (rz, oz), uz = fz(signals[pz.at], values), False
+        if self.tracking is not None:
+            rx, ry, rz = self.tracking(stamp, rx, ry, rz, ux, uy, uz)
         if stale:
             stats.stale_frames += 1
         counter = self._tx_counter
@@ -547,6 +559,9 @@ class Daemon:
             self._send_status()  # raises BusLost while the bus is down
             if self.outages.current is not None:
                 self.outages.ended(now)
+            if self.tracking is not None:
+                self.tracking.log_events()
+                self.tracking.save()
             self.notifier.status(self.status_line())
         deadlines = [self._next_status, self._next_watch]
         if self.notifier.watchdog_s is not None:
@@ -592,10 +607,16 @@ class Daemon:
         for page, values in self.status_pages():
             payload = self.status.encode(page, values, saturate=page in SATURATING_PAGES)
             self._send(self.status.frame_id, self.status.is_extended, payload)
+        if self.tracking is not None and BIAS_PAGE in self.status.pages:
+            for bias in self.tracking.frame_pages():
+                payload = self.status.encode_physical(BIAS_PAGE, bias)
+                self._send(self.status.frame_id, self.status.is_extended, payload)
 
     def status_line(self) -> str:
-        return status_line(self._state, self.stats, self.sets, channel=self.config.channel,
+        line = status_line(self._state, self.stats, self.sets, channel=self.config.channel,
                            outage=self.outages.current, now=time.monotonic())
+        tracked = "" if self.tracking is None else self.tracking.status_text()
+        return f"{line}; {tracked}" if tracked else line
 
     # ----------------------------------------------------------------------------------
     # The interface coming and going
@@ -665,4 +686,7 @@ class Daemon:
             with contextlib.suppress(BusLost):
                 self._send_status()
         self._close_bus()
+        if self.tracking is not None:
+            self.tracking.log_events()
+            self.tracking.save()
         log.info("stopped: %s", self.status_line())

@@ -21,6 +21,7 @@ from cantools.database.can import Database, Message
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.frames.dbc_files import DbcSet, dbc_label, require_sound
+from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
 from canical.yaml_text import parse_yaml
 
 AXES = ("x", "y", "z")
@@ -30,7 +31,7 @@ FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
 _TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
-             "watch_period_s", "own_layout"}
+             "watch_period_s", "own_layout", "bias_tracking"}
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,16 @@ class OwnLayoutOutput:
 
 
 @dataclass(frozen=True)
+class BiasTracking:
+    """``bias_tracking:`` resolved against the inputs: None where the daemon has no such input."""
+
+    settings: BiasTrackingSettings
+    temperature_input: str | None
+    time_input: str | None  # time since power-on (else frame time since the first raw frame)
+    state_file: Path | None
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     path: Path
     interface: str
@@ -87,6 +98,7 @@ class DaemonConfig:
     watch_period_s: float = 1.0
     device: DeviceSource | None = None
     own_layout: OwnLayoutOutput | None = None
+    bias_tracking: BiasTracking | None = None  # None: not enabled
 
     @property
     def coefficient_paths(self) -> dict[str, Path]:
@@ -167,6 +179,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     inputs = _inputs(content, frames, dbc)
     device = _device(content, fail)
     own_layout = _own_layout_output(content, frames, inputs, dbc, chan)
+    tracking = _bias_tracking(content, inputs, base, fail)
     return DaemonConfig(
         path=cfg_path,
         interface=interface,
@@ -184,6 +197,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         watch_period_s=_positive(content.get("watch_period_s", 1.0), "watch_period_s", fail),
         device=device,
         own_layout=own_layout,
+        bias_tracking=tracking,
     )
 
 
@@ -194,6 +208,26 @@ def _dbc_files(value: Any, base: Path, fail: Fail) -> DbcSet:
             raise fail("dbc", "an empty list (name one DBC file or several)")
         return DbcSet(_path(v, base, f"dbc[{i}]", fail, must_exist=True) for i, v in enumerate(value))
     return DbcSet((_path(value, base, "dbc", fail, must_exist=True),))
+
+
+def _bias_tracking(content: dict, inputs: dict[str, InputSource], base: Path,
+                   fail: Fail) -> BiasTracking | None:
+    """``bias_tracking``: the tracker's settings, its cue and temperature among the inputs."""
+    section = content.get("bias_tracking")
+    settings = parse_bias_tracking(section, fail)
+    if not settings.enabled:
+        return None
+    if settings.cue_input is not None and settings.cue_input not in inputs:
+        raise fail("bias_tracking.cue.input", f"no input {settings.cue_input!r} in inputs "
+                   f"(map it there to a DBC signal: {settings.cue_input}: {{signal: MESSAGE.Signal}})")
+    temperature: str | None = settings.temperature_input
+    if temperature not in inputs:
+        if isinstance(section, dict) and "temperature" in section:
+            raise fail("bias_tracking.temperature", f"no input {temperature!r} in inputs")
+        temperature = None  # the default temp_c, not mapped: learned without temperature
+    state = None if settings.state_file is None else _path(settings.state_file, base,
+                                                           "bias_tracking.state_file", fail)
+    return BiasTracking(settings, temperature, "time_s" if "time_s" in inputs else None, state)
 
 
 def _bus_options(bus: dict, fail: Fail) -> dict[str, Any]:

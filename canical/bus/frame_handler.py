@@ -236,8 +236,9 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
     ``owner`` is the daemon (the code reads its ``sets`` and keeps its ``_prev_counter`` and
     ``_tx_counter``), ``general`` its reference handler, ``names`` what else the code calls:
     ``stats``, ``values``, ``times``, ``encode`` (the rate frame's codec), ``send`` (the
-    socket's) and ``send_failed``. Only for three axes on compiled correctors and a rate
-    frame whose signals come in :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
+    socket's), ``send_failed`` and, with bias tracking on, ``track``. Only for three axes on
+    compiled correctors and a rate frame whose signals come in
+    :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
     """
     carried = {name for name, _ in layout.raw_inputs_at}
     awaited = [(name, age) for name, age in plan.ages if name not in carried]
@@ -270,6 +271,8 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
         src.add(*corrector_lines(ax.corrector, f"s{axis.at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
                                  held=held, cached=slow, state=state))
         flags.append("False")
+    if "track" in names:  # the bias learned at standstills, less (canical.bus.bias_tracking)
+        src.lines.append(f"    r0, r1, r2 = track(stamp, r0, r1, r2, {', '.join(flags)})")
     src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
     if layout.own is not None:
         _encode_and_send_own(src, layout.own, plan, flags)

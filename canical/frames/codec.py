@@ -150,3 +150,14 @@ class StatusEncoder:
             value = int(values.get(name, 0))
             data[name] = min(value, top) if saturate else value & top
         return self._message.encode(data, strict=False)
+
+    def encode_physical(self, page: int, values: dict[str, float]) -> bytes:
+        """Page ``page`` from values in the signals' units (scaled, signed), each clamped to its range."""
+        data: dict[str, float] = {"Page": page}
+        for name in self._pages.get(page, ()):
+            sig = self._message.get_signal_by_name(name)
+            value = float(values.get(name, 0.0))
+            lo = float(sig.minimum) if sig.minimum is not None else value
+            hi = float(sig.maximum) if sig.maximum is not None else value
+            data[name] = lo if value < lo else hi if value > hi else value
+        return self._message.encode(data, strict=False)

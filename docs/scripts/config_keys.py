@@ -33,6 +33,13 @@ class Key:
     meaning: str
 
 
+def _tracking_keys() -> tuple[Any, ...]:
+    """The ``bias_tracking`` keys, from the table beside their parser."""
+    from canical.tracking.settings import KEYS as TRACKING_KEYS
+
+    return TRACKING_KEYS
+
+
 INTRODUCTION = """\
 `canical serve --config FILE` (and `record`, `apply --config`) read one YAML file. Relative paths
 are taken from the file's folder. The whole file is checked before the daemon starts: a defect
@@ -182,6 +189,12 @@ KEYS: tuple[Key, ...] = (
         "positive number of seconds",
         "how often the coefficient files are checked for changes",
     ),
+    *(
+        Key("bias_tracking", "`null` (off)", "a mapping",
+            "learn each axis's bias at standstills and subtract it (see On the vehicle)"),
+        *(Key(f"bias_tracking.{k.key}", k.default if k.default in ("required", "none") else f"`{k.default}`",
+              k.check, k.meaning) for k in _tracking_keys()),
+    ),
 )
 
 
@@ -209,6 +222,8 @@ def base_content() -> dict[str, Any]:
     content["dbc"] = str(DBC)
     content["device"] = {"node": 0x10, "timeout_s": 1.0}
     content["own_layout"] = {"id": 0x298}
+    # off, so the example's inputs need not hold a cue; its sub-sections are probed all the same
+    content["bias_tracking"] = {"enabled": False, "cue": {"input": "supply_v", "below": 0.1}}
     return content
 
 

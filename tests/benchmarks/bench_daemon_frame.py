@@ -18,7 +18,7 @@ processes, and prints the median of each figure side by side: on a machine other
 share, only a comparison made at the same time means anything. Each tree runs its own copy of
 this script (it resets the daemon's internals between runs, and those differ between commits).
 
-    python tests/benchmarks/bench_daemon_frame.py [--frames N] [--repeats N] [--quick]
+    python tests/benchmarks/bench_daemon_frame.py [--frames N] [--repeats N] [--quick] [--track-bias]
     python tests/benchmarks/bench_daemon_frame.py --baseline /tmp/base [--rounds 5]
 """
 
@@ -129,6 +129,8 @@ def main() -> None:
                         help="peak table rate of the stream; the sets span about +-60 deg/s, so 75 puts "
                              "part of every axis beyond the span and 50 keeps it all inside")
     parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    parser.add_argument("--track-bias", action="store_true",
+                        help="bias_tracking: on (one tracker per axis, fed every frame)")
     args = parser.parse_args()
     if args.quick:
         args.frames, args.repeats, args.rounds = min(args.frames, 500), 1, 1
@@ -137,12 +139,14 @@ def main() -> None:
         return
     folder = Path(tempfile.mkdtemp(prefix="canical-bench-"))
     write_sets(folder, terms=ALL_TERMS)
-    config = load_config(write_config(folder, "bench"))
+    tracking = {"bias_tracking": {"enabled": True}} if args.track_bias else {}
+    config = load_config(write_config(folder, "bench", **tracking))
     # The same, also sending each corrected frame in the IMU's own layout (the raw frame's).
-    config_own = load_config(write_config(folder, "bench-own", own_layout={"id": 0x298}))
+    config_own = load_config(write_config(folder, "bench-own", own_layout={"id": 0x298}, **tracking))
     # Only the own layout: CANICAL_RATE not sent (frames.rate null).
     only_own = {"raw": "IMU_RAW", "rate": None, "status": "CANICAL_STATUS"}
-    config_only = load_config(write_config(folder, "bench-only", own_layout={"id": 0x298}, frames=only_own))
+    config_only = load_config(write_config(folder, "bench-only", own_layout={"id": 0x298}, frames=only_own,
+                                           **tracking))
     stream = imu_stream(args.frames, rate_limit_dps=args.rate_limit)
     msgs = [can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=i * 0.0005)
             for i, (fid, data) in enumerate(stream.frames)]
@@ -259,7 +263,9 @@ def compare(args: argparse.Namespace) -> None:
             script = tree / "tests" / "benchmarks" / Path(__file__).name
             out = subprocess.run([sys.executable, str(script), "--json", "--frames",
                                   str(args.frames), "--repeats", str(args.repeats),
-                                  "--rate-limit", str(args.rate_limit)],
+                                  "--rate-limit", str(args.rate_limit),
+                                  # tracking on in this tree only: the baseline shows the cost
+                                  *(["--track-bias"] if args.track_bias and name == "this" else [])],
                                  env=env, cwd=tree, check=True, capture_output=True, text=True).stdout
             figures[name].append(json.loads(out.splitlines()[-1]))
     print(f"per-frame path in-process, CPU µs per raw frame: median of {args.rounds} alternating runs "
