@@ -16,5 +16,15 @@ the others.
 
 # The package's public face: the submodules other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
-__all__ = ["active_sets", "daemon", "daemon_config", "frame_handler", "recording", "reloads", "sd_notify",
-           "service_install", "socketcan_constants"]
+__all__ = [
+    "active_sets",
+    "bias_tracking",
+    "daemon",
+    "daemon_config",
+    "frame_handler",
+    "recording",
+    "reloads",
+    "sd_notify",
+    "service_install",
+    "socketcan_constants",
+]

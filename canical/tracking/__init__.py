@@ -9,3 +9,16 @@ bounded slew (:mod:`.tracker`, one sample per call, the same code the daemon and
 offline replay run). Settings are :mod:`.config`, named records of what was adopted or
 refused are :mod:`.events`. Pure Python and numpy on plain data; imports only the ground floor.
 """
+
+# The package's public face: the submodules other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "config",
+    "estimate",
+    "events",
+    "explain",
+    "replay",
+    "settings",
+    "state_file",
+    "tracker",
+]
