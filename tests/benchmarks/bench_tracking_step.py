@@ -38,7 +38,10 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=200_000)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
+    if args.quick:
+        args.samples, args.repeat = 2_000, 1
     print("| axes | temperature | cue | µs per step (best of runs) |\n|---|---|---|---|")
     for axes in (1, 3):
         for moving_temp in (False, True):
