@@ -6,9 +6,6 @@ import dataclasses
 import os
 import random
 import signal
-import subprocess
-import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -81,36 +78,41 @@ def test_another_sets_or_axes_state_is_foreign(tmp_path: Path) -> None:
     assert missing.learned is None and "none yet" in missing.note
 
 
-WRITER = textwrap.dedent("""
-    import sys
-    from canical.tracking import state_file
-    from canical.tracking.estimate import AxisBias
-    path, start = sys.argv[1], int(sys.argv[2])
-    print("ready", flush=True)
-    n = start
-    while True:
-        n += 1
-        learned = [AxisBias(b0=n * 1e-3, slope=0.01, p00=1e-4, updates=n) for _ in range(3)]
-        state_file.save(path, 0x1234ABCD, ("x", "y", "z"), learned)
-""")
+def _write_forever(path: Path, start: int, ready: int) -> None:
+    """The forked writer: saves ever newer states until it is killed (never returns)."""
+    try:
+        os.write(ready, b"r")
+        n = start
+        while True:
+            n += 1
+            learned = [AxisBias(b0=n * 1e-3, slope=0.01, p00=1e-4, updates=n) for _ in range(3)]
+            state_file.save(path, 0x1234ABCD, ("x", "y", "z"), learned)
+    finally:
+        os._exit(0)
 
 
 def test_a_writer_killed_at_random_moments_leaves_the_old_state_or_the_new(tmp_path: Path) -> None:
-    """SIGKILL at 120 random moments while a writer saves again and again: the file always loads whole."""
+    """SIGKILL at 120 random moments while a writer saves again and again: the file always loads whole.
+
+    The writer is a forked copy of this process (no interpreter start per trial), killed as a
+    power cut or the OOM killer would: no handler, no flush, whatever it was doing."""
     path = tmp_path / "bias.json"
     state_file.save(path, SET_ID, AXES, [dataclasses.replace(s, updates=0) for s in LEARNED])
     rng = random.Random(20)
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     last = 0
     torn = 0  # kills that landed mid-write: a temporary left beside the file
     for _trial in range(120):
-        proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path), str(last)], stdout=subprocess.PIPE,
-                                env=env, text=True)
-        assert proc.stdout is not None and proc.stdout.readline() == "ready\n"
+        ready_r, ready_w = os.pipe()
+        pid = os.fork()
+        if pid == 0:
+            os.close(ready_r)
+            _write_forever(path, last, ready_w)
+        os.close(ready_w)
+        assert os.read(ready_r, 1) == b"r"
+        os.close(ready_r)
         time.sleep(rng.uniform(0.0, 0.03))
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        proc.stdout.close()
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
         leftovers = list(tmp_path.glob(".bias.json.*"))
         torn += bool(leftovers)
         for leftover in leftovers:
