@@ -138,10 +138,10 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     model = result.base.fitted.model
     # Default options fit a segmented-inverse model and close the loop on it.
     assert loop is not None and isinstance(model, PiecewisePoly)
-    found = tuple(e["name"] for e in loop.effects)
+    found = tuple(e.name for e in loop.effects)
     # Weaker alternatives (explain part of the same residual) are listed after the twins, marked ~.
     groups = tuple(
-        (*c["candidates"], *(f"~{w}" for w in c["weaker_alternatives"])) for c in loop.confounded
+        (*c.candidates, *(f"~{w}" for w in c.weaker_alternatives)) for c in loop.confounded
     )
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
@@ -151,16 +151,17 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     resized = reselect_size(
         scorer, Structure(result.base.fitted.spec, model.knots, model.scale, model.span, told), duration
     )
-    rms_oracle = min(scorer.score(same_size)[0], scorer.score(resized)[0])
+    rms_oracle = min(scorer.held_rms(same_size), scorer.held_rms(resized))
     in_groups = {name.lstrip("~") for g in groups for name in g}
     correct = (
         set(found) == set(scenario.expect)
         and set(scenario.confounded) <= in_groups
         and (bool(groups) == bool(scenario.confounded))
     )
-    left = result.report["unexplained"]
+    left = result.report.unexplained
+    assert left is not None  # the loop ran
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
-                       left["ratio"], left["unexplained"], tuple(c["paired_p"] for c in loop.confounded))
+                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded))
 
 
 def _oracle_terms(scenario, blocks):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -18,11 +18,22 @@ import numpy as np
 from canical.calibrate.cross_validation import cross_validate, prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
-from canical.calibrate.model_selection import select_model
+from canical.calibrate.model_selection import Candidate, select_model
 from canical.calibrate.noise_records import noise_analysis, sample_interval, zero_rate_records
 from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few, saturated
 from canical.calibrate.segment_points import rate_noise
 from canical.calibrate.zero_bias import zero_bias, zero_rate
+from canical.calibration_report import (
+    CalibrationReport,
+    ErrorStats,
+    LoopSection,
+    NoiseLevels,
+    SampleCounts,
+    SegmentPoint,
+    SizeCandidate,
+    Untestable,
+    Written,
+)
 from canical.closed_loop.blocks import BLOCK_S, make_blocks
 from canical.closed_loop.search import LoopResult, predict, run_loop
 from canical.closed_loop.unexplained import account
@@ -63,7 +74,7 @@ class BaseFit:
     points: FitPoints  # unsaturated plateaus only
     fitted: FittedModel
     saturated_rates: tuple[float, ...] = ()
-    candidates: list[dict[str, Any]] = field(default_factory=list)
+    candidates: tuple[SizeCandidate, ...] = ()
 
 
 ProgressFn = Callable[[str], None]
@@ -117,32 +128,27 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
     )
 
 
-def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, list[dict[str, Any]]]:
+def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
     base = ModelSpec(o.model, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
     if o.model == "segmented-linear":
-        return replace(base, order=1), []
+        return replace(base, order=1), ()
     if o.model == "forward-poly":
         if o.order is not None:
-            return replace(base, order=o.order), []
+            return replace(base, order=o.order), ()
         spec, cands = select_model(points, base, segments=(1,), orders=FORWARD_ORDERS)
-        return spec, [_candidate_row(c) for c in cands]
+        return spec, tuple(_size_candidate(c) for c in cands)
     if o.segments is not None and o.order is not None:
-        return base, []
+        return base, ()
     segments = (o.segments,) if o.segments is not None else (1, 2, 3, 4, 5, 6)
     orders = (o.order,) if o.order is not None else (1, 2, 3)
     spec, cands = select_model(points, base, segments=segments, orders=orders)
-    return spec, [_candidate_row(c) for c in cands]
+    return spec, tuple(_size_candidate(c) for c in cands)
 
 
-def _candidate_row(c) -> dict[str, Any]:
-    return {
-        "segments": c.spec.n_segments,
-        "order": c.spec.order,
-        "coefficients": c.n_coefficients,
-        "held_out_rms_dps": c.held_out.rms_dps,
-        "held_out_max_dps": c.held_out.max_dps,
-        "monotone": c.monotone,
-    }
+def _size_candidate(c: Candidate) -> SizeCandidate:
+    return SizeCandidate(segments=c.spec.n_segments, order=c.spec.order, coefficients=c.n_coefficients,
+                         held_out_rms_dps=c.held_out.rms_dps, held_out_max_dps=c.held_out.max_dps,
+                         monotone=c.monotone)
 
 
 def model_dict(fitted: FittedModel, v0: float) -> dict[str, Any]:
@@ -159,56 +165,47 @@ def model_dict(fitted: FittedModel, v0: float) -> dict[str, Any]:
     return piecewise_model_dict(fitted.spec.kind, model, v0, smoothness=smooth, segment_points_dps=points_dps)
 
 
-def error_stats(errors: np.ndarray) -> dict[str, float]:
-    return {"rms_dps": float(np.sqrt(np.mean(errors**2))), "max_dps": float(np.max(np.abs(errors)))}
+def error_stats(errors: np.ndarray) -> ErrorStats:
+    return ErrorStats(rms_dps=float(np.sqrt(np.mean(errors**2))), max_dps=float(np.max(np.abs(errors))))
 
 
-def base_report(session: Session, base: BaseFit) -> dict[str, Any]:
-    """Report fields of the base fit: samples, model, segment points, errors, noise."""
+def base_report(session: Session, base: BaseFit) -> CalibrationReport:
+    """The report of the base fit: samples, model, segment points, errors, noise; no Allan
+    analysis (``allan`` is empty) and no loop yet."""
     spec = base.fitted.spec
     held = cross_validate(base.points, lambda p: fit_model(p, spec).model)
     train = prediction_errors(base.fitted.model, base.points)
     slope = float(np.polyfit(base.points.rate, base.points.dv, 1)[0])
     per_sample_noise = float(np.median(base.points.dv_sem * np.sqrt(base.points.weight))) / abs(slope)
-    report: dict[str, Any] = {
-        "model": spec.kind,
-        "spec": spec.describe(),
-        "segments": spec.n_segments,
-        "order": spec.order,
-        "smoothness": spec.smoothness if spec.kind == "segmented-inverse" else None,
-        "v0": base.v0,
-        "samples": {
-            "total": len(session),
-            "used": base.plateaus.n_used,
-            "transition": base.plateaus.n_transition,
-            "settling": base.plateaus.n_settling,
-        },
-        "plateaus": base.plateaus.count,
-        "plateau_finding": base.plateaus.describe(),
-        "saturated_rates_dps": list(base.saturated_rates),
-        "rates": int(base.points.rate_groups().max()) + 1,
-        "segment_points": [
-            {
-                "rate_dps": e.rate_dps,
-                "raw": e.dv + base.v0,
-                "prominence_dps": e.prominence_dps,
-                "source": e.source,
-            }
-            for e in base.fitted.extrema
-        ],
-        "training": error_stats(train),
-        "held_out": {**error_stats(held.errors), "method": "leave-rates-out cross-validation"},
-        "noise": {
-            "per_sample_dps": per_sample_noise,
-            "plateau_mean_dps": float(np.median(rate_noise(base.points))),
-        },
-        "candidates": base.candidates,
-        "effects": [],
-    }
     jumps = getattr(base.fitted.model, "jumps", None)
-    if jumps is not None:
-        report["max_jump_at_segment_points_dps"] = float(np.max(np.abs(jumps()), initial=0.0))
-    return report
+    return CalibrationReport(
+        model=spec.kind,
+        spec=spec.describe(),
+        segments=spec.n_segments,
+        order=spec.order,
+        smoothness=spec.smoothness if spec.kind == "segmented-inverse" else None,
+        v0=base.v0,
+        samples=SampleCounts(total=len(session), used=base.plateaus.n_used,
+                             transition=base.plateaus.n_transition, settling=base.plateaus.n_settling),
+        plateaus=base.plateaus.count,
+        plateau_finding=base.plateaus.describe(),
+        saturated_rates_dps=base.saturated_rates,
+        rates=int(base.points.rate_groups().max()) + 1,
+        segment_points=tuple(
+            SegmentPoint(rate_dps=e.rate_dps, raw=e.dv + base.v0, prominence_dps=e.prominence_dps,
+                         source=e.source)
+            for e in base.fitted.extrema
+        ),
+        training=error_stats(train),
+        held_out=error_stats(held.errors),
+        noise=NoiseLevels(per_sample_dps=per_sample_noise,
+                          plateau_mean_dps=float(np.median(rate_noise(base.points)))),
+        candidates=base.candidates,
+        allan={},
+        written=Written(spec=spec.describe(), effect_terms=0),
+        max_jump_at_segment_points_dps=(
+            float(np.max(np.abs(jumps()), initial=0.0)) if jumps is not None else None),
+    )
 
 
 def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
@@ -231,7 +228,7 @@ def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
 @dataclass(frozen=True)
 class CalibrationResult:
     coefficients: CoefficientSet
-    report: dict[str, Any]
+    report: CalibrationReport
     base: BaseFit
     loop: LoopResult | None = None
 
@@ -271,29 +268,50 @@ def fitted_residual(loop: LoopResult) -> np.ndarray:
     return loop.blocks.points.rate - predict(loop.fit, loop.blocks)
 
 
-def loop_report(loop: LoopResult) -> dict[str, Any]:
-    """Report fields of the closed loop: before/after on held-out plateaus, effects, confounded."""
-    return {
-        "held_out_rms_before_dps": loop.rms_before,
-        "held_out_rms_after_dps": loop.rms_after,
-        "held_out_max_before_dps": float(np.max(np.abs(loop.errors_before))),
-        "held_out_max_after_dps": float(np.max(np.abs(loop.errors_after))),
-        "method": "leave-plateaus-out cross-validation on blocks of "
-        f"{BLOCK_S:g} s, {len(loop.blocks)} blocks",
-        "final_spec": loop.structure.spec.describe(),
-        "capacity_changes": loop.capacity_changes,
-        "untestable": [
-            {
-                "candidate": name,
-                "r2_with_table_rate": r2,
-                "why": "follows the table rate in this session; visit the rates in random order "
-                "or sweep up and down to test it",
-            }
-            for name, r2 in loop.untestable.items()
-        ],
-        "rounds": loop.rounds,
-        "steps": loop.steps,
+def loop_report(loop: LoopResult) -> LoopSection:
+    """The closed loop's section: before/after on held-out plateaus, the rounds and steps."""
+    return LoopSection(
+        held_out_rms_before_dps=loop.rms_before,
+        held_out_rms_after_dps=loop.rms_after,
+        held_out_max_before_dps=float(np.max(np.abs(loop.errors_before))),
+        held_out_max_after_dps=float(np.max(np.abs(loop.errors_after))),
+        method=f"leave-plateaus-out cross-validation on blocks of {BLOCK_S:g} s, {len(loop.blocks)} blocks",
+        final_spec=loop.structure.spec.describe(),
+        capacity_changes=tuple(loop.capacity_changes),
+        untestable=tuple(Untestable(name, r2) for name, r2 in loop.untestable.items()),
+        rounds=tuple(tuple(table) for table in loop.rounds),
+        steps=tuple(loop.steps),
+    )
+
+
+def with_loop(report: CalibrationReport, loop: LoopResult, n_terms: int) -> CalibrationReport:
+    """The base report with what the closed loop found, and the loop's model as the one written."""
+    return replace(
+        report,
+        effects=tuple(loop.effects),
+        confounded=tuple(loop.confounded),
+        closed_loop=loop_report(loop),
+        unexplained=account(loop.errors_after, fitted_residual(loop), loop.blocks, loop.candidates),
+        written=Written(spec=loop.structure.spec.describe(), effect_terms=n_terms),
+    )
+
+
+def fit_stats(report: CalibrationReport) -> dict[str, Any]:
+    """The coefficient file's ``fit`` section: the figures a set carries about its own fit."""
+    stats: dict[str, Any] = {
+        "samples_used": report.samples.used,
+        "plateaus": report.plateaus,
+        "training_rms_dps": report.training.rms_dps,
+        "training_max_dps": report.training.max_dps,
+        "held_out_rms_dps": report.held_out.rms_dps,
+        "held_out_max_dps": report.held_out.max_dps,
     }
+    if report.closed_loop is not None:
+        stats["extended_held_out_rms_dps"] = report.closed_loop.held_out_rms_after_dps
+        stats["effects"] = [e.name for e in report.effects]
+        if report.unexplained is not None and np.isfinite(report.unexplained.ratio):
+            stats["unexplained_ratio"] = report.unexplained.ratio
+    return stats
 
 
 def calibrate(
@@ -310,7 +328,7 @@ def calibrate(
     progress("cross-validating the chosen model")
     report = base_report(session, base)
     progress("Allan deviation of the zero-rate plateaus")
-    report["allan"] = zero_rate_noise(session, base)
+    report = replace(report, allan=zero_rate_noise(session, base))
     model = model_dict(base.fitted, base.v0)
     terms: tuple[dict[str, Any], ...] = ()
     loop = None
@@ -326,41 +344,17 @@ def calibrate(
             spec.kind, loop.fit.poly, base.v0, smoothness=spec.smoothness, segment_points_dps=points_dps
         )
         terms = tuple(t.to_dict() for t in loop.fit.terms)
-        report["effects"] = loop.effects
-        report["confounded"] = loop.confounded
-        report["closed_loop"] = loop_report(loop)
-        report["unexplained"] = account(
-            loop.errors_after, fitted_residual(loop), loop.blocks, loop.candidates
-        )
+        report = with_loop(report, loop, len(terms))
     elif options.extend:
-        report["closed_loop"] = {
-            "skipped": f"the effect search needs the segmented-inverse model, not {options.model}"
-        }
-    # What the coefficient file holds: the loop's final model, or the rate model alone.
-    report["written"] = {
-        "spec": loop.structure.spec.describe() if loop is not None else report["spec"],
-        "effect_terms": len(terms),
-    }
-    fit_stats = {
-        "samples_used": report["samples"]["used"],
-        "plateaus": report["plateaus"],
-        "training_rms_dps": report["training"]["rms_dps"],
-        "training_max_dps": report["training"]["max_dps"],
-        "held_out_rms_dps": report["held_out"]["rms_dps"],
-        "held_out_max_dps": report["held_out"]["max_dps"],
-    }
-    if loop is not None:
-        fit_stats["extended_held_out_rms_dps"] = loop.rms_after
-        fit_stats["effects"] = [e["name"] for e in loop.effects]
-        if np.isfinite(report["unexplained"]["ratio"]):
-            fit_stats["unexplained_ratio"] = report["unexplained"]["ratio"]
+        report = replace(report, loop_skipped="the effect search needs the segmented-inverse model, "
+                         f"not {options.model}")
     cset = CoefficientSet(
         sensor_id=sensor_id,
         axis=axis,
         v0=base.v0,
         model=model,
         terms=terms,
-        fit=fit_stats,
+        fit=fit_stats(report),
         created=dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         raw_units=raw_units,
     )

@@ -18,6 +18,17 @@
 #include <float.h>
 #include <stddef.h>
 
+/* Internal invariants (like libcanard's CANARD_ASSERT): assert() in a hosted build, nothing with
+ * NDEBUG or freestanding (no C library there); a build may define CE_ASSERT itself. */
+#ifndef CE_ASSERT
+#if defined(NDEBUG) || !defined(__STDC_HOSTED__) || !__STDC_HOSTED__
+#define CE_ASSERT(x) ((void)0)
+#else
+#include <assert.h>
+#define CE_ASSERT(x) assert(x)
+#endif
+#endif
+
 /* No <string.h>: the library builds freestanding (-ffreestanding, no C library at all). */
 static size_t text_length(const char *s)
 {
@@ -318,120 +329,157 @@ static double scale10(double m, int e)
     return e >= 0 ? m * POW10[e] : m / POW10[-e];
 }
 
-/* A number in the form Python's json.dumps writes it (int, or float repr). */
-static int parse_number(cur *c, double *out)
+/* The parts of a number as scanned: up to 19 significant digits as an integer, the power of
+ * ten that places them, and what the canonical-form check needs to know of each part. */
+typedef struct {
+    uint64_t m;          /* the first (at most 19) significant digits */
+    int sig;             /* digits in m */
+    int nsig;            /* significant digits written */
+    int dexp;            /* value = m * 10^(dexp + exponent) */
+    int nonzero;         /* a nonzero digit has been seen */
+    int neg, int_zero, int_digits;
+    int has_frac, frac_digits, frac_lead_zeros, frac_last;
+    int has_exp, exp_neg, exp_digits, exp_first, exp_val;
+} numeral;
+
+/* One significant digit: into m while it holds 19 digits. A fraction digit kept moves the point
+ * left; an integer digit beyond the 19 still counts a place; a fraction digit beyond them is dropped. */
+static void significant_digit(numeral *n, int d, int in_fraction)
 {
-    uint64_t m = 0;
-    int neg = 0, sig = 0, nsig = 0, dexp = 0, int_digits = 0, frac_digits = 0;
-    int frac_lead_zeros = 0, frac_last = -1, int_zero = 0, has_frac = 0, has_exp = 0;
-    int exp_neg = 0, exp_digits = 0, exp_first = 0, e10 = 0, nonzero = 0, exp_val = 0;
-    int b = tok(c);
-    if (b == '-') {
-        neg = 1;
-        c->p++;
+    n->nonzero = 1;
+    n->nsig++;
+    if (n->sig < 19) {
+        n->m = n->m * 10u + (uint64_t)d;
+        n->sig++;
+        n->dexp -= in_fraction;
+    } else {
+        n->dexp += !in_fraction;
     }
-    b = c->p < c->end ? *c->p : -1;
+}
+
+/* The integer part: "0" alone, or digits without a leading zero. */
+static int scan_integer_part(cur *c, numeral *n)
+{
+    int b = c->p < c->end ? *c->p : -1;
     if (!is_digit(b)) {
         return fail(c, CE_ERR_SYNTAX);
     }
     if (b == '0') {
-        int_zero = 1;
-        int_digits = 1;
+        n->int_zero = 1;
+        n->int_digits = 1;
         c->p++;
         if (c->p < c->end && is_digit(*c->p)) {
             return fail(c, CE_ERR_SYNTAX); /* leading zero */
         }
-    } else {
-        while (c->p < c->end && is_digit(*c->p)) {
-            int d = *c->p - '0';
-            nonzero = 1;
-            nsig++;
-            if (sig < 19) {
-                m = m * 10u + (uint64_t)d;
-                sig++;
-            } else {
-                dexp++;
-            }
-            int_digits++;
-            c->p++;
-        }
-    }
-    if (c->p < c->end && *c->p == '.') {
-        has_frac = 1;
-        c->p++;
-        if (!(c->p < c->end && is_digit(*c->p))) {
-            return fail(c, CE_ERR_SYNTAX);
-        }
-        while (c->p < c->end && is_digit(*c->p)) {
-            int d = *c->p - '0';
-            if (!nonzero && d == 0) {
-                frac_lead_zeros++;
-                dexp--;
-            } else {
-                nonzero = 1;
-                nsig++;
-                if (sig < 19) {
-                    m = m * 10u + (uint64_t)d;
-                    sig++;
-                    dexp--;
-                }
-            }
-            frac_last = d;
-            frac_digits++;
-            c->p++;
-        }
-    }
-    if (c->p < c->end && (*c->p == 'e' || *c->p == 'E')) {
-        has_exp = 1;
-        if (*c->p == 'E') {
-            return fail(c, CE_ERR_NOT_CANONICAL);
-        }
-        c->p++;
-        if (c->p < c->end && (*c->p == '+' || *c->p == '-')) {
-            exp_neg = *c->p == '-';
-            c->p++;
-        } else {
-            return fail(c, c->p < c->end && is_digit(*c->p) ? CE_ERR_NOT_CANONICAL : CE_ERR_SYNTAX);
-        }
-        if (!(c->p < c->end && is_digit(*c->p))) {
-            return fail(c, CE_ERR_SYNTAX);
-        }
-        exp_first = *c->p - '0';
-        while (c->p < c->end && is_digit(*c->p)) {
-            if (exp_val < 100000) {
-                exp_val = exp_val * 10 + (*c->p - '0');
-            }
-            exp_digits++;
-            c->p++;
-        }
-    }
-    /* Canonical form (Python's repr): ints plain; floats fixed for 1e-4 <= |x| < 1e16, else
-     * d[.ddd]e+XX; no trailing zeros in a fraction (but "x.0"); at most 17 digits. */
-    if (has_exp) {
-        int small_enough = exp_neg ? exp_val >= 5 : exp_val >= 16;
-        if (int_zero || int_digits != 1 || (has_frac && frac_last == 0) || nsig > 17 || exp_digits < 2 ||
-            (exp_digits > 2 && exp_first == 0) || !small_enough) {
-            return fail(c, CE_ERR_NOT_CANONICAL);
-        }
-    } else if (has_frac) {
-        int zero_frac = frac_digits == 1 && frac_last == 0;
-        if (nsig > 17 || int_digits > 16 || (!zero_frac && frac_last == 0) ||
-            (int_zero && !zero_frac && frac_lead_zeros > 3)) {
-            return fail(c, CE_ERR_NOT_CANONICAL);
-        }
-    } else if (neg && int_zero) {
-        return fail(c, CE_ERR_NOT_CANONICAL); /* -0 is written 0 */
-    }
-    e10 = dexp + (exp_neg ? -exp_val : exp_val);
-    if (m == 0) {
-        *out = neg ? -0.0 : 0.0;
         return 0;
     }
-    *out = scale10((double)m, e10);
+    while (c->p < c->end && is_digit(*c->p)) {
+        significant_digit(n, *c->p - '0', 0);
+        n->int_digits++;
+        c->p++;
+    }
+    return 0;
+}
+
+/* The fraction after '.', if any: at least one digit; leading zeros only move the point. */
+static int scan_fraction(cur *c, numeral *n)
+{
+    if (!(c->p < c->end && *c->p == '.')) {
+        return 0;
+    }
+    n->has_frac = 1;
+    c->p++;
+    if (!(c->p < c->end && is_digit(*c->p))) {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    while (c->p < c->end && is_digit(*c->p)) {
+        int d = *c->p - '0';
+        if (!n->nonzero && d == 0) {
+            n->frac_lead_zeros++;
+            n->dexp--;
+        } else {
+            significant_digit(n, d, 1);
+        }
+        n->frac_last = d;
+        n->frac_digits++;
+        c->p++;
+    }
+    return 0;
+}
+
+/* The exponent, if any: 'e', a sign (always written), digits (their value capped). */
+static int scan_exponent(cur *c, numeral *n)
+{
+    if (!(c->p < c->end && (*c->p == 'e' || *c->p == 'E'))) {
+        return 0;
+    }
+    n->has_exp = 1;
+    if (*c->p == 'E') {
+        return fail(c, CE_ERR_NOT_CANONICAL);
+    }
+    c->p++;
+    if (c->p < c->end && (*c->p == '+' || *c->p == '-')) {
+        n->exp_neg = *c->p == '-';
+        c->p++;
+    } else {
+        return fail(c, c->p < c->end && is_digit(*c->p) ? CE_ERR_NOT_CANONICAL : CE_ERR_SYNTAX);
+    }
+    if (!(c->p < c->end && is_digit(*c->p))) {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    n->exp_first = *c->p - '0';
+    while (c->p < c->end && is_digit(*c->p)) {
+        if (n->exp_val < 100000) {
+            n->exp_val = n->exp_val * 10 + (*c->p - '0');
+        }
+        n->exp_digits++;
+        c->p++;
+    }
+    return 0;
+}
+
+/* Canonical form (Python's repr): ints plain; floats fixed for 1e-4 <= |x| < 1e16, else
+ * d[.ddd]e+XX; no trailing zeros in a fraction (but "x.0"); at most 17 digits. */
+static int is_canonical(const numeral *n)
+{
+    if (n->has_exp) {
+        int small_enough = n->exp_neg ? n->exp_val >= 5 : n->exp_val >= 16;
+        return !(n->int_zero || n->int_digits != 1 || (n->has_frac && n->frac_last == 0) || n->nsig > 17 ||
+                 n->exp_digits < 2 || (n->exp_digits > 2 && n->exp_first == 0) || !small_enough);
+    }
+    if (n->has_frac) {
+        int zero_frac = n->frac_digits == 1 && n->frac_last == 0;
+        return !(n->nsig > 17 || n->int_digits > 16 || (!zero_frac && n->frac_last == 0) ||
+                 (n->int_zero && !zero_frac && n->frac_lead_zeros > 3));
+    }
+    return !(n->neg && n->int_zero); /* -0 is written 0 */
+}
+
+/* A number in the form Python's json.dumps writes it (int, or float repr). */
+static int parse_number(cur *c, double *out)
+{
+    numeral n;
+    zero(&n, sizeof n);
+    n.frac_last = -1;
+    if (tok(c) == '-') {
+        n.neg = 1;
+        c->p++;
+    }
+    if (scan_integer_part(c, &n) || scan_fraction(c, &n) || scan_exponent(c, &n)) {
+        return c->err;
+    }
+    if (!is_canonical(&n)) {
+        return fail(c, CE_ERR_NOT_CANONICAL);
+    }
+    if (n.m == 0) {
+        *out = n.neg ? -0.0 : 0.0;
+        return 0;
+    }
+    *out = scale10((double)n.m, n.dexp + (n.exp_neg ? -n.exp_val : n.exp_val));
     if (*out == 0.0 || !(*out - *out == 0.0)) {
         return fail(c, CE_ERR_NOT_CANONICAL); /* 0.0 or beyond float range: never written so */
     }
-    if (neg) {
+    if (n.neg) {
         *out = -*out;
     }
     return 0;
@@ -526,6 +574,7 @@ static int skip_value(cur *c)
             if (depth == CE_MAX_DEPTH) {
                 return fail(c, CE_ERR_LIMIT);
             }
+            CE_ASSERT(depth >= 0 && depth < CE_MAX_DEPTH);
             c->p++;
             is_obj[depth] = (uint8_t)(b == '{');
             last[depth] = NULL;
@@ -749,6 +798,7 @@ static int parse_coefficients(cur *c, reading *r)
                 if (number_value(c, &d)) {
                     return c->err;
                 }
+                CE_ASSERT(r->coeff_rows < CE_MAX_SEGMENTS && width < CE_MAX_COEFFS);
                 r->matrix[r->coeff_rows][width++] = d;
             }
             if (m < 0) {
@@ -879,102 +929,139 @@ static int parse_model(cur *c, reading *r)
     return more;
 }
 
-static int parse_term(cur *c, reading *r, ce_term *t)
+/* A term's fields as read, before they are checked against its kind. */
+typedef struct {
+    const uint8_t *kind, *feature, *form;
+    uint32_t kind_n, feature_n, form_n;
+    double coefficient, reference, tau, threshold;
+    int have_coefficient, have_reference, have_tau, have_threshold;
+    int channel_ok; /* a non-empty channel name */
+} term_fields;
+
+/* A name (kind, feature, form): its bytes if it is a string; any other value is skipped and the
+ * name left NULL, refused later as an unknown kind, feature or form. */
+static int name_value(cur *c, const uint8_t **s, uint32_t *n)
+{
+    *s = NULL;
+    *n = 0;
+    if (tok(c) == '"') {
+        return string_value(c, s, n);
+    }
+    return skip_value(c);
+}
+
+/* The channel's name into the term's slot of `r` (channel names are matched after parsing). */
+static int channel_value(cur *c, reading *r, uint8_t slot, term_fields *f)
+{
+    if (tok(c) != '"') {
+        return skip_value(c);
+    }
+    if (string_value(c, &r->channel[slot], &r->channel_n[slot])) {
+        return c->err;
+    }
+    f->channel_ok = r->channel_n[slot] > 0;
+    return 0;
+}
+
+/* Every member of a term object; unknown members are skipped. */
+static int read_term_fields(cur *c, reading *r, uint8_t slot, term_fields *f)
 {
     members it = {NULL, 0, 0};
-    const uint8_t *kind = NULL, *feature = NULL, *form = NULL;
-    uint32_t kind_n = 0, feature_n = 0, form_n = 0;
-    double coefficient = 0.0, reference = 0.0, tau = 0.0, threshold = 0.0;
-    int have_coefficient = 0, have_tau = 0, have_threshold = 0, have_reference = 0, more;
-    int channel_ok = 0;
-    size_t i;
-    const term_spec *spec = NULL;
-    uint8_t slot = (uint8_t)r->n_terms;
-    r->channel[slot] = NULL;
-    r->channel_n[slot] = 0;
+    int more, bad;
     while ((more = next_member(c, &it)) == 1) {
         if (key_is(&it, "channel")) {
-            if (tok(c) == '"') {
-                if (string_value(c, &r->channel[slot], &r->channel_n[slot])) {
-                    return c->err;
-                }
-                channel_ok = r->channel_n[slot] > 0;
-            } else if (skip_value(c)) {
-                return c->err;
-            }
+            bad = channel_value(c, r, slot, f);
         } else if (key_is(&it, "coefficient")) {
-            if (optional_number(c, &coefficient, &have_coefficient)) {
-                return c->err;
-            }
-        } else if (key_is(&it, "feature") || key_is(&it, "form") || key_is(&it, "kind")) {
-            const uint8_t *s = NULL;
-            uint32_t n = 0;
-            if (tok(c) == '"') {
-                if (string_value(c, &s, &n)) {
-                    return c->err;
-                }
-            } else if (skip_value(c)) {
-                return c->err; /* refused below as an unknown kind, feature or form */
-            }
-            if (key_is(&it, "feature")) {
-                feature = s;
-                feature_n = n;
-            } else if (key_is(&it, "form")) {
-                form = s;
-                form_n = n;
-            } else {
-                kind = s;
-                kind_n = n;
-            }
+            bad = optional_number(c, &f->coefficient, &f->have_coefficient);
+        } else if (key_is(&it, "feature")) {
+            bad = name_value(c, &f->feature, &f->feature_n);
+        } else if (key_is(&it, "form")) {
+            bad = name_value(c, &f->form, &f->form_n);
+        } else if (key_is(&it, "kind")) {
+            bad = name_value(c, &f->kind, &f->kind_n);
         } else if (key_is(&it, "reference")) {
-            if (optional_number(c, &reference, &have_reference)) {
-                return c->err;
-            }
+            bad = optional_number(c, &f->reference, &f->have_reference);
         } else if (key_is(&it, "tau_s")) {
-            if (optional_number(c, &tau, &have_tau)) {
-                return c->err;
-            }
+            bad = optional_number(c, &f->tau, &f->have_tau);
         } else if (key_is(&it, "threshold_raw")) {
-            if (optional_number(c, &threshold, &have_threshold)) {
-                return c->err;
-            }
-        } else if (skip_value(c)) {
+            bad = optional_number(c, &f->threshold, &f->have_threshold);
+        } else {
+            bad = skip_value(c);
+        }
+        if (bad) {
             return c->err;
         }
     }
-    if (more < 0) {
-        return more;
-    }
+    return more < 0 ? more : 0;
+}
+
+/* The evaluator's entry for the term's (kind, feature), or NULL when it has none. */
+static const term_spec *find_term_spec(const term_fields *f)
+{
+    const term_spec *spec = NULL;
+    size_t i;
     for (i = 0; i < N_TERM_SPECS; i++) {
-        if (bytes_are(kind, kind_n, TERM_SPECS[i].kind) && bytes_are(feature, feature_n, TERM_SPECS[i].feature)) {
+        if (bytes_are(f->kind, f->kind_n, TERM_SPECS[i].kind) &&
+            bytes_are(f->feature, f->feature_n, TERM_SPECS[i].feature)) {
             spec = &TERM_SPECS[i];
         }
     }
+    return spec;
+}
+
+/* 1 when the term has every field its kind needs, each in range, and a known form. */
+static int term_fields_ok(const term_spec *spec, const term_fields *f)
+{
+    if (!bytes_are(f->form, f->form_n, "bias") && !bytes_are(f->form, f->form_n, "scale")) {
+        return 0;
+    }
+    return !(((spec->needs & NEEDS_CHANNEL) && !f->channel_ok) || !f->have_coefficient ||
+             ((spec->needs & NEEDS_TAU) && !f->have_tau) ||
+             ((spec->needs & NEEDS_THRESHOLD) && !f->have_threshold) || (f->have_tau && !(f->tau > 0.0)) ||
+             (f->have_threshold && !(f->threshold > 0.0)));
+}
+
+/* The evaluator's form of a checked term (its state starts at zero: the set was zeroed). */
+static void fill_term(ce_term *t, const term_spec *spec, const term_fields *f)
+{
+    t->feature = spec->code;
+    t->scale_form = (uint8_t)bytes_are(f->form, f->form_n, "scale");
+    t->coefficient = (float)f->coefficient;
+    t->reference = (float)f->reference;
+    t->inv_tau = f->have_tau ? (float)(1.0 / f->tau) : 0.0f;
+    t->threshold = f->have_threshold ? (float)f->threshold : 1.0f;
+    if (f->have_tau) { /* the running mean lasts while elapsed ms < tau * 1000 (int32 ms) */
+        double ms = f->tau * 1000.0;
+        int32_t whole = ms < 2147483647.0 ? (int32_t)ms : INT32_MAX;
+        t->mean_ms = whole < INT32_MAX && (double)whole < ms ? whole + 1 : whole;
+    }
+}
+
+static int parse_term(cur *c, reading *r, ce_term *t)
+{
+    term_fields f;
+    const term_spec *spec;
+    int err;
+    uint8_t slot = (uint8_t)r->n_terms;
+    CE_ASSERT(r->n_terms < CE_MAX_TERMS);
+    zero(&f, sizeof f);
+    r->channel[slot] = NULL;
+    r->channel_n[slot] = 0;
+    err = read_term_fields(c, r, slot, &f);
+    if (err) {
+        return err;
+    }
+    spec = find_term_spec(&f);
     if (spec == NULL) {
         return fail(c, CE_ERR_TERM_KIND);
     }
-    if (!bytes_are(form, form_n, "bias") && !bytes_are(form, form_n, "scale")) {
-        return fail(c, CE_ERR_FIELD);
-    }
-    if (((spec->needs & NEEDS_CHANNEL) && !channel_ok) || !have_coefficient ||
-        ((spec->needs & NEEDS_TAU) && !have_tau) || ((spec->needs & NEEDS_THRESHOLD) && !have_threshold) ||
-        (have_tau && !(tau > 0.0)) || (have_threshold && !(threshold > 0.0))) {
+    if (!term_fields_ok(spec, &f)) {
         return fail(c, CE_ERR_FIELD);
     }
     if (!(spec->needs & NEEDS_CHANNEL)) {
         r->channel[slot] = NULL; /* only channel terms read a named input */
     }
-    t->feature = spec->code;
-    t->scale_form = (uint8_t)bytes_are(form, form_n, "scale");
-    t->coefficient = (float)coefficient;
-    t->reference = (float)reference;
-    t->inv_tau = have_tau ? (float)(1.0 / tau) : 0.0f;
-    t->threshold = have_threshold ? (float)threshold : 1.0f;
-    if (have_tau) { /* the running mean lasts while elapsed ms < tau * 1000 (int32 ms) */
-        double ms = tau * 1000.0;
-        int32_t whole = ms < 2147483647.0 ? (int32_t)ms : INT32_MAX;
-        t->mean_ms = whole < INT32_MAX && (double)whole < ms ? whole + 1 : whole;
-    }
+    fill_term(t, spec, &f);
     return 0;
 }
 
@@ -1092,8 +1179,10 @@ static int at_or_above(float raw, float shift, float k_hi, float k_lo)
 
 static float horner(const float *c, int n, float u)
 {
-    float acc = c[n - 1];
+    float acc;
     int k;
+    CE_ASSERT(n >= 1 && n <= CE_MAX_COEFFS);
+    acc = c[n - 1];
     for (k = n - 2; k >= 0; k--) {
         acc = acc * u + c[k];
     }
@@ -1281,6 +1370,7 @@ int ce_eval(ce_set *s, const ce_sample *in, float *rate_dps)
             seg++;
         }
     }
+    CE_ASSERT(s->n_segments >= 1 && s->n_segments <= CE_MAX_SEGMENTS && seg >= 0 && seg < s->n_segments);
     dv -= shift;
     if (s->model == 1) {
         *rate_dps = forward_rate(s, x, dv);
@@ -1468,6 +1558,7 @@ static void recentre(ce_set *s, int seg, const double *c, int n, double scale, d
     double d[CE_MAX_COEFFS], mid, half, shift, power = 1.0;
     float mid_f = (float)(0.5 * (a + b)), inv_half_f = (float)(2.0 / (b - a));
     int j, k, fits = 1;
+    CE_ASSERT(seg >= 0 && seg < CE_MAX_SEGMENTS && n >= 1 && n <= CE_MAX_COEFFS);
     mid = (double)mid_f;
     half = 1.0 / (double)inv_half_f;
     shift = mid / scale; /* p(shift + v): repeated synthetic division, O(n^2), in place */
@@ -1548,6 +1639,9 @@ static int derive(ce_set *s, const reading *r)
     return CE_OK;
 }
 
+/* More channels than CE_MAX_INPUTS (a function of a uint32_t: no "always false" at 255). */
+static int beyond_inputs(uint32_t n) { return n > CE_MAX_INPUTS; }
+
 int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t declared_crc,
             const ce_device *device)
 {
@@ -1558,7 +1652,7 @@ int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t decla
         return CE_ERR_ARG;
     }
     zero(set, sizeof *set);
-    if (content == NULL || device == NULL || device->n_inputs > CE_MAX_INPUTS) {
+    if (content == NULL || device == NULL || beyond_inputs(device->n_inputs)) {
         return CE_ERR_ARG;
     }
     if (ce_crc32(content, length) != declared_crc) {

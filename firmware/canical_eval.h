@@ -15,6 +15,10 @@
  *   CE_MAX_COEFFS coefficients per polynomial; the forward polynomial's Newton inversion
  *   stops after CE_NEWTON_MAX_ITER steps.
  * - ce_load() never reads outside [content, content + length) and writes only *set.
+ * - The build-time limits (CE_MAX_*) are checked here with #error: a limit that does not fit the
+ *   field counting it fails the build, not a set at run time.
+ * - Internal invariants are checked with CE_ASSERT in canical_eval.c: assert() in a hosted build,
+ *   nothing with NDEBUG or in a freestanding build (define CE_ASSERT to use your own).
  *
  * MIT licence, like the rest of canical.
  */
@@ -44,10 +48,29 @@ extern "C" {
 #define CE_MAX_DEPTH 16 /* JSON nesting (the "fit" statistics may nest) */
 #endif
 #define CE_NAME_MAX 24 /* longest channel name, bytes */
-#define CE_NEWTON_MAX_ITER 40
+#define CE_NEWTON_MAX_ITER 40 /* Newton steps of the forward polynomial's inversion, at most */
 
-/* Result codes: 0 success, negative refusal. */
-enum {
+/* Each limit must fit the uint8_t that counts it in ce_set, ce_fixed and ce_device, and be at
+ * least 1 (arrays are sized by it). */
+#if CE_MAX_SEGMENTS < 1 || CE_MAX_SEGMENTS > 255
+#error "CE_MAX_SEGMENTS must be 1..255 (ce_set.n_segments is a uint8_t)"
+#endif
+#if CE_MAX_COEFFS < 1 || CE_MAX_COEFFS > 255
+#error "CE_MAX_COEFFS must be 1..255 (ce_set.n_coeffs is a uint8_t)"
+#endif
+#if CE_MAX_TERMS < 1 || CE_MAX_TERMS > 255
+#error "CE_MAX_TERMS must be 1..255 (ce_set.n_terms is a uint8_t)"
+#endif
+#if CE_MAX_INPUTS < 1 || CE_MAX_INPUTS > 255
+#error "CE_MAX_INPUTS must be 1..255 (ce_device.n_inputs and ce_term.input are uint8_t)"
+#endif
+#if CE_MAX_DEPTH < 1 || CE_MAX_DEPTH > 255
+#error "CE_MAX_DEPTH must be 1..255 (the parser keeps a stack of this many levels)"
+#endif
+
+/* Result codes: 0 success, negative refusal. The functions return them as int (so that
+ * ce_eval can also return 0 or 1, and the ABI does not depend on the size of an enum). */
+typedef enum ce_result {
     CE_OK = 0,
     CE_ERR_ARG = -1,           /* NULL pointer or a ce_set that is not loaded */
     CE_ERR_CRC = -2,           /* CRC32 of the content differs from the declared one */
@@ -62,7 +85,7 @@ enum {
     CE_ERR_AXIS = -11,         /* sensor.axis is not the bank's axis */
     CE_ERR_SPAN = -12,         /* the span does not reach +-rated range */
     CE_ERR_INPUT = -13         /* a term reads a channel the device does not offer */
-};
+} ce_result;
 
 /* What the device says about itself; what a set must fit. */
 typedef struct {
@@ -80,7 +103,7 @@ typedef struct {
     const float *inputs;    /* ce_device.n_inputs channel values (NULL if there are none) */
 } ce_sample;
 
-/* Internal layout below: read-only to the caller. */
+/* One effect term of a loaded set. Internal layout below: read-only to the caller. */
 typedef struct {
     uint8_t feature;        /* CE_TERM_* in canical_eval.c */
     uint8_t scale_form;     /* 0: bias (dV' = dV - c x), 1: scale (dV' = dV - c x dV) */
@@ -101,6 +124,8 @@ typedef struct {
     int32_t mean_ms;
 } ce_term;
 
+/* A loaded coefficient set: model, effect terms and their run-time state. Built by ce_load()
+ * only; read-only to the caller (its size: ce_sizeof_set()). */
 typedef struct {
     uint32_t crc;           /* the set's identifier */
     uint8_t loaded;
@@ -123,7 +148,7 @@ typedef struct {
     uint32_t error_at;      /* byte offset where ce_load refused (for the log) */
 } ce_set;
 
-/* zlib's CRC32 (the bank CRC). */
+/* zlib's CRC32 (the bank CRC) of `length` bytes; 0 for a NULL `data`. */
 uint32_t ce_crc32(const uint8_t *data, uint32_t length);
 
 /* Validate a bank (content + declared CRC) for `device` and build `set` from it.
@@ -140,7 +165,9 @@ void ce_reset(ce_set *set);
  * the set is not loaded. */
 int ce_eval(ce_set *set, const ce_sample *sample, float *rate_dps);
 
-/* ce_eval over n samples in time order; inputs holds n_inputs values per sample. */
+/* ce_eval over n samples in time order; inputs holds n_inputs values per sample (NULL: none),
+ * time_ms may be NULL (time 0). Writes rate_dps[0..n) and out_of_span[0..n) (1 outside the
+ * span); returns CE_OK, or CE_ERR_ARG (a NULL pointer, the set not loaded, inputs missing). */
 int ce_eval_block(ce_set *set, uint32_t n, const float *raw, const uint32_t *time_ms,
                   const float *inputs, uint8_t n_inputs, float *rate_dps, uint8_t *out_of_span);
 
@@ -167,12 +194,14 @@ int ce_fixed_from(ce_fixed *fixed, const ce_set *set);
 /* Rate of one integer sample in 1/65536 deg/s; returns 1 out of span, 0 inside, CE_ERR_ARG. */
 int ce_fixed_eval(const ce_fixed *fixed, int32_t raw, int32_t *rate_q16);
 
-/* For bindings that treat ce_set as opaque bytes (canical's ctypes wrapper). */
+/* sizeof(ce_set), for bindings that treat it as opaque bytes (canical's ctypes wrapper). */
 uint32_t ce_sizeof_set(void);
+/* sizeof(ce_fixed), likewise. */
 uint32_t ce_sizeof_fixed(void);
-uint32_t ce_error_offset(const ce_set *set); /* byte where the last ce_load refused */
+/* The byte offset in the content where the last ce_load() refused (0 for a NULL set). */
+uint32_t ce_error_offset(const ce_set *set);
 
-/* A short English name of a result code. */
+/* A short English name of a result code (a ce_result); "unknown code" for any other value. */
 const char *ce_strerror(int code);
 
 #ifdef __cplusplus

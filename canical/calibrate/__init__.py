@@ -9,3 +9,18 @@ its Allan deviation (:mod:`.allan`, :mod:`.noise_records`).
 Pure functions on numpy arrays and plain data; imports only :mod:`canical.models` and the
 ground floor.
 """
+
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "allan",
+    "cross_validation",
+    "fit_points",
+    "model_fit",
+    "model_selection",
+    "noise_records",
+    "plateaus",
+    "robust",
+    "segment_points",
+    "zero_bias",
+]

@@ -12,6 +12,8 @@ from typing import Any
 
 import numpy as np
 
+from canical.calibrate.robust import median_step
+
 GAP_FACTOR = 1.5  # a step longer than this many sample intervals is a gap (rows lost)
 MIN_RECORD = 6  # samples: three independent clusters of two
 
@@ -23,10 +25,8 @@ def first_backwards(time_s: np.ndarray) -> int | None:
 
 
 def sample_interval(time_s: np.ndarray) -> float:
-    """The nominal interval: the median step (lost rows and jitter do not move it)."""
-    steps = np.diff(time_s)
-    steps = steps[steps > 0]
-    return float(np.median(steps)) if steps.size else 0.0
+    """The nominal interval: the median step (lost rows and jitter do not move it); 0 without one."""
+    return median_step(time_s, 0.0)
 
 
 def uniform_records(time_s: np.ndarray, rate: np.ndarray, dt: float) -> list[np.ndarray]:

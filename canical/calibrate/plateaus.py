@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import correlate, correlation_lags
 
+from canical.calibrate.robust import mad_sigma, median_step
 from canical.errors import CanicalError
 
 MIN_WINDOW_S = 0.5  # shortest window over which steadiness is judged
@@ -136,8 +137,7 @@ def reference_update_s(time_s: np.ndarray, ref_dps: np.ndarray) -> float:
     than a second are plateaus of a noiseless reference, not holding.
     """
     t = np.asarray(time_s, dtype=float)
-    dt = np.diff(t)
-    sample_s = float(np.median(dt[dt > 0])) if np.any(dt > 0) else 1.0
+    sample_s = median_step(t, 1.0)
     changes = np.flatnonzero(np.diff(ref_dps) != 0) + 1
     gaps = np.diff(t[changes])
     gaps = gaps[(gaps > 0) & (gaps < MAX_UPDATE_S)]
@@ -158,7 +158,7 @@ def reference_noise(time_s: np.ndarray, ref_dps: np.ndarray, update_s: float) ->
         return 0.0
     x = ref[np.clip(np.searchsorted(t, grid_t, side="right") - 1, 0, ref.size - 1)]
     d2 = x[2:] - 2 * x[1:-1] + x[:-2]
-    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+    return float(mad_sigma(d2) / np.sqrt(6.0))
 
 
 def reference_latency(time_s: np.ndarray, ref_dps: np.ndarray, raw: np.ndarray, update_s: float,
@@ -171,10 +171,9 @@ def reference_latency(time_s: np.ndarray, ref_dps: np.ndarray, raw: np.ndarray, 
     hold guard's, so it is taken off. Never negative: an early reference needs no end guard.
     """
     t = np.asarray(time_s, dtype=float)
-    dt = np.diff(t)
-    if t.size < 16 or not np.any(dt > 0):
+    step = median_step(t, 0.0)
+    if t.size < 16 or step == 0.0:
         return 0.0
-    step = float(np.median(dt[dt > 0]))
     grid = np.arange(t[0], t[-1], step)
     idx = np.clip(np.searchsorted(t, grid, side="right") - 1, 0, t.size - 1)
     x = np.diff(np.asarray(ref_dps, dtype=float)[idx])
@@ -219,86 +218,37 @@ def detect_plateaus(
     update = reference_update_s(t, ref)
     noise = reference_noise(t, ref, update)
     window = window_s if window_s is not None else max(MIN_WINDOW_S, WINDOW_UPDATES * update)
-    before, after, grid_t, rows_before, rows_after = window_medians(t, ref, window)
-    # Noise of a window median: ~1.25 σ/√(independent updates in it), for each side; a window
-    # thinned by lost rows is noisier, so its tolerance is wider.
-    dt = np.diff(t)
-    row_s = float(np.median(dt[dt > 0])) if np.any(dt > 0) else update
-    per_update = row_s / update
-    full = max(1.0, window / update)
-
-    def auto_tol(n_before: float | np.ndarray, n_after: float | np.ndarray) -> np.ndarray:
-        eff_b = np.clip(n_before * per_update, 1.0, full)
-        eff_a = np.clip(n_after * per_update, 1.0, full)
-        return np.maximum(TOL_FLOOR_DPS, TOL_SIGMAS * 1.2533 * noise * np.sqrt(1 / eff_b + 1 / eff_a))
-
-    tol = rate_tol if rate_tol is not None else float(auto_tol(full / per_update, full / per_update))
-    tol_grid = tol if rate_tol is not None else auto_tol(rows_before, rows_after)
-    steady_grid = np.abs(after - before) <= tol_grid
-    moving_starts = np.flatnonzero(np.diff(steady_grid.astype(np.int8)) == -1)
-    rate_changes = int(moving_starts.size + (not steady_grid[0]))
-    # A row is steady when the grid points on both sides of it are.
-    right = np.clip(np.searchsorted(grid_t, t, side="left"), 0, grid_t.size - 1)
-    left = np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, grid_t.size - 1)
-    steady = steady_grid[left] & steady_grid[right]
-    stretches = _runs(steady)
-    if noise == 0.0:
-        stretches = _exact_edges(ref, stretches)
+    row_s = median_step(t, update)
+    stretches, tol, rate_changes = _steady_stretches(t, ref, window, noise, update, row_s, rate_tol)
     # What the reference itself shows, for the report and the errors (before the flag).
     longest = max((float(t[b - 1] - t[a]) for a, b in stretches), default=0.0)
     n_flagged = 0
-    if settled is not None:  # the flag narrows stretches, never joins or widens them
-        flag = np.asarray(settled, dtype=bool)
-        narrowed = []
-        for a, b in stretches:
-            n_flagged += int(np.count_nonzero(~flag[a:b]))
-            narrowed += [(a + c, a + d) for c, d in _runs(flag[a:b])]
-        stretches = narrowed
+    if settled is not None:
+        stretches, n_flagged = _narrowed_by_flag(stretches, np.asarray(settled, dtype=bool))
     if latency_s is None:
         latency_s = reference_latency(t, ref, raw, update) if raw is not None else 0.0
     # A value held between updates may be up to one update old; one sent with every row is current.
     end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
-    slack = 0.25 * row_s  # a logger's timestamp jitter must not move a plateau's ends by a row
     observed = None
     if raw is not None:
         observed = observed_settling_s(t, np.asarray(raw, dtype=float), stretches, min_duration_s, row_s,
                                        end_guard)
-    if settle_s is not None:
-        source = "given"
-    elif observed is not None:
-        source = "observed"
-        # A noisy reference places a stretch's start only to within half a window.
-        settle_s = max(observed, SETTLE_FLOOR_S, 0.0 if noise == 0.0 else window / 2)
-    else:
-        source = "default"
-    rates: list[float] = []
-    starts, stops, sems = [], [], []
-    in_stretch = n_short = 0
-    for a, b in stretches:
-        in_stretch += b - a
-        duration = float(t[b - 1] - t[a])
-        if duration < min_duration_s:
-            n_short += duration >= window / 2  # a stretch, not a flicker between two ramps
-            continue
-        settle = settle_s if settle_s is not None else max(DEFAULT_SETTLE_S, SETTLE_FRACTION * duration)
-        first = a + int(np.searchsorted(t[a:b], t[a] + settle - slack, side="left"))
-        last = a + int(np.searchsorted(t[a:b], t[b - 1] - end_guard + slack, side="right"))
-        if last - first < 2:
-            continue
-        label[first:last] = len(rates)
-        rates.append(_robust_mean(ref[first:last], tol))
-        starts.append(first)
-        stops.append(last)
-        # Held repeats are one update: the rate averages (duration / update interval) of them.
-        sems.append(noise / np.sqrt(max(1.0, (t[last - 1] - t[first]) / update)))
-    n_used = int(np.sum(np.array(stops) - np.array(starts))) if stops else 0
+    settle_s, source = _start_guard(settle_s, observed, noise, window)
+    guards = _Guards(settle_s, end_guard, slack=0.25 * row_s)
+    cut = _cut_plateaus(t, ref, stretches, guards, min_duration_s=min_duration_s, window=window, tol=tol)
+    for i, (first, last) in enumerate(zip(cut.starts, cut.stops, strict=True)):
+        label[first:last] = i
+    # Held repeats are one update: the rate averages (duration / update interval) of them.
+    sems = [noise / np.sqrt(max(1.0, (t[last - 1] - t[first]) / update))
+            for first, last in zip(cut.starts, cut.stops, strict=True)]
+    n_used = int(np.sum(np.array(cut.stops) - np.array(cut.starts))) if cut.stops else 0
     return Plateaus(
         label=label,
-        rate_dps=np.array(rates, dtype=float),
-        start=np.array(starts, dtype=np.int64),
-        stop=np.array(stops, dtype=np.int64),
-        n_transition=n - in_stretch,
-        n_settling=in_stretch - n_used,
+        rate_dps=np.array(cut.rates, dtype=float),
+        start=np.array(cut.starts, dtype=np.int64),
+        stop=np.array(cut.stops, dtype=np.int64),
+        n_transition=n - cut.in_stretch,
+        n_settling=cut.in_stretch - n_used,
         ref_noise_dps=noise,
         rate_tol_dps=float(tol),
         update_s=update,
@@ -312,8 +262,113 @@ def detect_plateaus(
         longest_steady_s=longest,
         n_not_settled=n_flagged,
         rate_sem_dps=np.array(sems, dtype=float),
-        n_short=n_short,
+        n_short=cut.n_short,
     )
+
+
+def _window_tolerance(noise: float, per_update: float, full: float,
+                      n_before: float | np.ndarray, n_after: float | np.ndarray) -> np.ndarray:
+    """Tolerance of the change between two window medians, deg/s.
+
+    Noise of a window median: ~1.25 σ/√(independent updates in it), for each side; a window
+    thinned by lost rows is noisier, so its tolerance is wider.
+    """
+    eff_b = np.clip(n_before * per_update, 1.0, full)
+    eff_a = np.clip(n_after * per_update, 1.0, full)
+    return np.maximum(TOL_FLOOR_DPS, TOL_SIGMAS * 1.2533 * noise * np.sqrt(1 / eff_b + 1 / eff_a))
+
+
+def _steady_stretches(
+    t: np.ndarray, ref: np.ndarray, window: float, noise: float, update: float, row_s: float,
+    rate_tol: float | None,
+) -> tuple[list[tuple[int, int]], float, int]:
+    """Runs of rows where the reference's windowed median holds still: (stretches, the tolerance
+    for a full window, how many times the rate changed)."""
+    before, after, grid_t, rows_before, rows_after = window_medians(t, ref, window)
+    per_update = row_s / update
+    full = max(1.0, window / update)
+    tol_grid: float | np.ndarray
+    if rate_tol is not None:
+        tol = tol_grid = rate_tol
+    else:
+        tol = float(_window_tolerance(noise, per_update, full, full / per_update, full / per_update))
+        tol_grid = _window_tolerance(noise, per_update, full, rows_before, rows_after)
+    steady_grid = np.abs(after - before) <= tol_grid
+    moving_starts = np.flatnonzero(np.diff(steady_grid.astype(np.int8)) == -1)
+    rate_changes = int(moving_starts.size + (not steady_grid[0]))
+    # A row is steady when the grid points on both sides of it are.
+    right = np.clip(np.searchsorted(grid_t, t, side="left"), 0, grid_t.size - 1)
+    left = np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, grid_t.size - 1)
+    stretches = _runs(steady_grid[left] & steady_grid[right])
+    if noise == 0.0:
+        stretches = _exact_edges(ref, stretches)
+    return stretches, tol, rate_changes
+
+
+def _narrowed_by_flag(
+    stretches: list[tuple[int, int]], flag: np.ndarray
+) -> tuple[list[tuple[int, int]], int]:
+    """The stretches cut to the rows the table flags settled (never joined or widened), and how
+    many steady rows the flag left out."""
+    narrowed = []
+    n_flagged = 0
+    for a, b in stretches:
+        n_flagged += int(np.count_nonzero(~flag[a:b]))
+        narrowed += [(a + c, a + d) for c, d in _runs(flag[a:b])]
+    return narrowed, n_flagged
+
+
+def _start_guard(settle_s: float | None, observed: float | None, noise: float,
+                 window: float) -> tuple[float | None, str]:
+    """The start guard and where it came from: given, observed settling, or (None) the default."""
+    if settle_s is not None:
+        return settle_s, "given"
+    if observed is not None:
+        # A noisy reference places a stretch's start only to within half a window.
+        return max(observed, SETTLE_FLOOR_S, 0.0 if noise == 0.0 else window / 2), "observed"
+    return None, "default"
+
+
+@dataclass(frozen=True)
+class _Guards:
+    """What is cut from each steady stretch: the start (None: by its length) and the end, s."""
+
+    settle_s: float | None
+    end_s: float
+    slack: float  # a logger's timestamp jitter must not move a plateau's ends by a row
+
+
+@dataclass
+class _Cut:
+    """The plateaus cut from the steady stretches, in time order."""
+
+    rates: list[float]
+    starts: list[int]
+    stops: list[int]
+    in_stretch: int  # rows in any steady stretch
+    n_short: int  # stretches shorter than the minimum, not flickers
+
+
+def _cut_plateaus(t: np.ndarray, ref: np.ndarray, stretches: list[tuple[int, int]], guards: _Guards, *,
+                  min_duration_s: float, window: float, tol: float) -> _Cut:
+    """Each long enough stretch less its guards, with its rate (a robust mean of the reference)."""
+    cut = _Cut([], [], [], 0, 0)
+    for a, b in stretches:
+        cut.in_stretch += b - a
+        duration = float(t[b - 1] - t[a])
+        if duration < min_duration_s:
+            cut.n_short += duration >= window / 2  # a stretch, not a flicker between two ramps
+            continue
+        settle = (guards.settle_s if guards.settle_s is not None
+                  else max(DEFAULT_SETTLE_S, SETTLE_FRACTION * duration))
+        first = a + int(np.searchsorted(t[a:b], t[a] + settle - guards.slack, side="left"))
+        last = a + int(np.searchsorted(t[a:b], t[b - 1] - guards.end_s + guards.slack, side="right"))
+        if last - first < 2:
+            continue
+        cut.rates.append(_robust_mean(ref[first:last], tol))
+        cut.starts.append(first)
+        cut.stops.append(last)
+    return cut
 
 
 def observed_settling_s(t: np.ndarray, raw: np.ndarray, stretches: list[tuple[int, int]],
@@ -336,7 +391,7 @@ def observed_settling_s(t: np.ndarray, raw: np.ndarray, stretches: list[tuple[in
         x, tt = raw[a:b], t[a:b] - t[a]
         tail = x[tt >= tt[-1] / 2]
         final = float(np.median(tail))
-        sigma = 1.4826 * float(np.median(np.abs(tail - final)))
+        sigma = mad_sigma(tail, final)
         if sigma == 0.0:  # a quantised, noiseless output: within one step
             sigma = float(np.min(np.abs(np.diff(np.unique(tail))), initial=1.0))
         csum = np.concatenate(([0.0], np.cumsum(x - final)))
@@ -358,9 +413,8 @@ def window_medians(
     nearest ``min_rows`` on its side, so a rate change hidden in a gap still shows.
     """
     step = window / GRID_PER_WINDOW
-    dt = np.diff(t)
     # Half a row off the rows' own clock, so timestamps jittered by a logger fall on the same side.
-    offset = 0.5 * float(np.median(dt[dt > 0])) if np.any(dt > 0) else 0.0
+    offset = 0.5 * median_step(t, 0.0)
     grid_t = np.arange(t[0] + offset, t[-1] + step, step)
     lo = np.searchsorted(t, grid_t - window, side="left")
     mid = np.searchsorted(t, grid_t, side="left")
@@ -428,7 +482,7 @@ def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
 def _robust_mean(values: np.ndarray, tol: float) -> float:
     """Mean of the values near their median: efficient for jitter, deaf to a stray outlier."""
     mid = float(np.median(values))
-    spread = 1.4826 * float(np.median(np.abs(values - mid)))
+    spread = mad_sigma(values, mid)
     near = np.abs(values - mid) <= max(4.0 * spread, tol)
     return float(np.mean(values[near]))
 
@@ -455,9 +509,14 @@ def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
 
 def plateau_means(values: np.ndarray, plateaus: Plateaus) -> np.ndarray:
     """Mean of a per-sample array over each plateau's used samples."""
+    return span_means(values, plateaus.start, plateaus.stop)
+
+
+def span_means(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
+    """Mean of a per-sample array over each ``[start, stop)`` span, from one cumulative sum."""
     csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
-    sums = csum[plateaus.stop] - csum[plateaus.start]
-    means: np.ndarray = sums / (plateaus.stop - plateaus.start)
+    sums = csum[stop] - csum[start]
+    means: np.ndarray = sums / (stop - start)
     return means
 
 

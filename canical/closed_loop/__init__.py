@@ -6,3 +6,12 @@ variables from the session's channels (levels, derivatives, lags, hysteresis, ra
 :mod:`.unexplained` compares what remains with the session's noise floor. Imports
 :mod:`canical.calibrate`, :mod:`canical.sets`, :mod:`canical.sessions`, :mod:`canical.models`.
 """
+
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "blocks",
+    "findings",
+    "search",
+    "unexplained",
+]

@@ -54,6 +54,16 @@ from canical.closed_loop.candidates import (
     untestable,
     with_tau,
 )
+from canical.closed_loop.findings import (
+    Comparison,
+    Confound,
+    ConfoundCheck,
+    Effect,
+    Evidence,
+    LoopStep,
+    RoundRow,
+    Score,
+)
 from canical.errors import CanicalError
 from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_inverse import fit_segmented_inverse
@@ -225,20 +235,24 @@ class Scorer:
     blocks: Blocks
     folds: list[np.ndarray]
     duration_s: float
-    cache: dict[Any, tuple[float, float, int]] = field(default_factory=dict)
+    cache: dict[Any, Score] = field(default_factory=dict)
     losses: dict[Any, np.ndarray] = field(default_factory=dict)
 
-    def score(self, s: Structure) -> tuple[float, float, int]:
-        """(held-out rms, training RSS of plateau-mean residuals, number of coefficients)."""
+    def score(self, s: Structure) -> Score:
+        """Held-out rms, training RSS of plateau-mean residuals, number of coefficients."""
         key = (s.spec, tuple(s.knots), s.terms)
         if key not in self.cache:
             err = held_out_errors(self.blocks, s, self.folds, self.duration_s)
             fit = fit_structure(self.blocks, s, self.duration_s)
             resid = self.blocks.points.rate - predict(fit, self.blocks)
             n_par = (len(s.knots) + 1) * (s.spec.order + 1) + len(s.terms)
-            self.cache[key] = (rms(err), plateau_rss(self.blocks, resid), n_par)
+            self.cache[key] = Score(rms(err), plateau_rss(self.blocks, resid), n_par)
             self.losses[key] = plateau_losses(self.blocks, self.folds, err)
         return self.cache[key]
+
+    def held_rms(self, s: Structure) -> float:
+        """The structure's held-out rms, deg/s: what the loop ranks by."""
+        return self.score(s).held_out_rms_dps
 
     def plateau_loss(self, s: Structure) -> np.ndarray:
         """Sum of squared held-out block errors of each held-out plateau, in time order."""
@@ -294,11 +308,11 @@ def plateau_rss(blocks: Blocks, resid: np.ndarray) -> float:
     return float(np.sum(w * mean**2))
 
 
-def f_test(small: tuple[float, float, int], big: tuple[float, float, int], n: int) -> tuple[float, float]:
+def f_test(small: Score, big: Score, n: int) -> tuple[float, float]:
     """Nested-model F statistic and p-value (RSS from weighted least squares)."""
-    k = max(big[2] - small[2], 1)
-    dof = max(n - big[2], 1)
-    f = ((small[1] - big[1]) / k) / max(big[1] / dof, 1e-300)
+    k = max(big.n_par - small.n_par, 1)
+    dof = max(n - big.n_par, 1)
+    f = ((small.training_rss - big.training_rss) / k) / max(big.training_rss / dof, 1e-300)
     return float(f), float(stats.f.sf(f, k, dof))
 
 
@@ -337,9 +351,9 @@ class LoopResult:
     structure: Structure
     blocks: Blocks
     base_fit: Fit
-    effects: list[dict[str, Any]]
-    confounded: list[dict[str, Any]]
-    rounds: list[list[dict[str, Any]]]
+    effects: list[Effect]
+    confounded: list[Confound]
+    rounds: list[list[RoundRow]]
     rms_before: float
     rms_after: float
     errors_before: np.ndarray
@@ -348,13 +362,12 @@ class LoopResult:
     untestable: dict[str, float] = field(default_factory=dict)
     # Each change to the model in order, with the held-out error after it (same scheme throughout),
     # so a report can be read from the rate model alone down to the set that was written.
-    steps: list[dict[str, Any]] = field(default_factory=list)
+    steps: list[LoopStep] = field(default_factory=list)
     candidates: list[Candidate] = field(default_factory=list)  # every candidate built, for the residual
 
 
-def _step(scorer: Scorer, s: Structure, what: str) -> dict[str, Any]:
-    rms_dps, _, _ = scorer.score(s)
-    return {"step": what, "spec": s.spec.describe(), "terms": len(s.terms), "held_out_rms_dps": rms_dps}
+def _step(scorer: Scorer, s: Structure, what: str) -> LoopStep:
+    return LoopStep(what, s.spec.describe(), len(s.terms), scorer.held_rms(s))
 
 
 def _capacity_options(s: Structure) -> list[ModelSpec]:
@@ -381,7 +394,7 @@ def reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
     except CanicalError:
         return s
     resized = _with_spec(scorer.blocks, s, spec, duration_s)
-    if resized is None or scorer.score(resized)[0] >= scorer.score(s)[0]:
+    if resized is None or scorer.held_rms(resized) >= scorer.held_rms(s):
         return s
     return resized
 
@@ -411,6 +424,101 @@ def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float)
     return current
 
 
+# Rounds of the search: each scores every candidate and a bigger base, accepts at most one.
+MAX_ROUNDS = 12
+
+
+@dataclass(frozen=True)
+class _Bar:
+    """What a candidate must beat to be accepted: the relative held-out gain and the F-test level."""
+
+    min_gain: float
+    alpha: float
+
+
+def _judge(scorer: Scorer, current: Score, s: Structure, name: str, bar: _Bar) -> RoundRow:
+    """One row of a round's table: the structure's score against the current model, and the verdict."""
+    sc = scorer.score(s)
+    f, p = f_test(current, sc, scorer.n_plateaus)
+    ok = sc.held_out_rms_dps < current.held_out_rms_dps * (1 - bar.min_gain) and p < bar.alpha
+    return RoundRow(name, sc.held_out_rms_dps, f, p, bool(ok))
+
+
+def _score_round(
+    scorer: Scorer, s: Structure, pool: list[Candidate], bar: _Bar
+) -> tuple[list[RoundRow], list[tuple[float, str, Candidate | Structure]]]:
+    """Every candidate and every bigger base on the current model: the table, and those that pass."""
+    current = scorer.score(s)
+    options: list[tuple[str, Structure, Candidate | Structure]] = [
+        (cand.name, replace(s, terms=s.terms + cand.terms), cand) for cand in pool
+    ]
+    for cap in _capacity_options(s):
+        bigger = _with_spec(scorer.blocks, s, cap, scorer.duration_s)
+        if bigger is not None:
+            options.append((f"capacity:{cap.describe()}", bigger, bigger))
+    table = [_judge(scorer, current, st, name, bar) for name, st, _ in options]
+    passing = [(row.held_out_rms_dps, row.candidate, what)
+               for row, (_, _, what) in zip(table, options, strict=True) if row.passes]
+    passing.sort(key=lambda x: x[0])
+    return table, passing
+
+
+def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None) -> Confound:
+    """The report's record of a confounded group: who, how close, and the session that separates them."""
+    group = [check.best, *check.twins]
+    return Confound(
+        candidates=tuple(c.name for c in group),
+        weaker_alternatives=tuple(c.name for c in check.shadows),
+        held_out_rms_dps={c.name: check.evidence[c.name].held_out_rms_dps for c in group},
+        paired_p={c.name: check.evidence[c.name].p_best_better for c in check.twins},
+        paired_alpha=CONFOUND_ALPHA,
+        held_out_rms_before_dps=before.held_out_rms_dps,
+        resolved_by_user=chosen.name if chosen else None,
+        # the pair across families first: separating those needs a different session
+        recommendation=recommend(check.best, next((c for c in check.twins if c.kind != check.best.kind),
+                                                  check.twins[0])),
+    )
+
+
+def _effect(cand: Candidate, before: Score, after: Score, f: float, p: float, bar: _Bar,
+            terms: tuple[Term, ...]) -> Effect:
+    """The record of an accepted effect, with the terms as fitted when it was added."""
+    evidence = Evidence(held_out_gain=1.0 - after.held_out_rms_dps / before.held_out_rms_dps,
+                        min_gain=bar.min_gain, f_statistic=f, p_value=p, alpha=bar.alpha)
+    return Effect(kind=cand.kind, channel=cand.channel, name=cand.name, evidence=evidence,
+                  terms=tuple(t.to_dict() for t in terms), rms_before_dps=before.held_out_rms_dps,
+                  rms_after_dps=after.held_out_rms_dps)
+
+
+def _term_key(t: dict[str, Any]) -> tuple[Any, ...]:
+    return (t["kind"], t["channel"], t["feature"], t["form"], t["reference"])
+
+
+def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
+    """The effects with the final joint coefficients of the terms that stayed, and readable names.
+
+    An effect none of whose terms stayed is left out.
+    """
+    final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
+    out = []
+    for eff in effects:
+        terms = tuple(final_terms[k].to_dict() for k in map(_term_key, eff.terms) if k in final_terms)
+        if terms:
+            out.append(replace(eff, terms=terms, description=_describe_effect(eff, final_fit)))
+    return out
+
+
+def _describe_effect(eff: Effect, final_fit: Fit) -> str:
+    """A readable name with the final time constant: lag(temp_c, τ=140 s), temp_c × (|rate| > 30 dps)."""
+    lagged = [t for t in final_fit.terms if t.channel == eff.channel and t.spec is CHANNEL_LAG]
+    gated = [t for t in final_fit.terms if t.channel == eff.channel and t.spec is CHANNEL_GATED]
+    is_lag = lagged and eff.name.startswith("lag(")
+    description = lagged[0].describe() if is_lag else eff.name
+    if gated and eff.name == gated_name(eff.channel or ""):
+        description = gated_name(eff.channel or "", knee_dps(final_fit.poly, gated[0].threshold_raw))
+    return description
+
+
 def run_loop(
     blocks: Blocks,
     spec: ModelSpec,
@@ -433,43 +541,22 @@ def run_loop(
         progress(f"not testable here (follow the table rate): {', '.join(tied)}")
     pool = [c for c in pool if c.name not in tied]
     n_candidates = len(pool) + 2
-    alpha = ALPHA / max(n_candidates, 1)
-    min_gain = max(MIN_GAIN, 2.0 / np.sqrt(2.0 * scorer.n_plateaus))
+    bar = _Bar(min_gain=max(MIN_GAIN, 2.0 / np.sqrt(2.0 * scorer.n_plateaus)),
+               alpha=ALPHA / max(n_candidates, 1))
     base_score = scorer.score(s)
-    effects: list[dict[str, Any]] = []
-    confounded: list[dict[str, Any]] = []
-    rounds: list[list[dict[str, Any]]] = []
+    effects: list[Effect] = []
+    confounded: list[Confound] = []
+    rounds: list[list[RoundRow]] = []
     capacity_changes: list[str] = []
     steps = [_step(scorer, s, "rate model alone")]
-    for _round in range(12):
+    for _round in range(MAX_ROUNDS):
         current = scorer.score(s)
-        progress(f"round {len(rounds) + 1}: held-out rms {current[0]:.4f} deg/s, {len(pool)} candidates")
-        table: list[dict[str, Any]] = []
-        passing: list[tuple[float, str, Any]] = []
-        for cand in pool:
-            sc = scorer.score(replace(s, terms=s.terms + cand.terms))
-            f, p = f_test(current, sc, scorer.n_plateaus)
-            ok = sc[0] < current[0] * (1 - min_gain) and p < alpha
-            table.append(
-                {"candidate": cand.name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": bool(ok)}
-            )
-            if ok:
-                passing.append((sc[0], cand.name, cand))
-        for cap in _capacity_options(s):
-            bigger = _with_spec(blocks, s, cap, duration_s)
-            if bigger is None:
-                continue
-            sc = scorer.score(bigger)
-            f, p = f_test(current, sc, scorer.n_plateaus)
-            ok = sc[0] < current[0] * (1 - min_gain) and p < alpha
-            name = f"capacity:{cap.describe()}"
-            table.append({"candidate": name, "held_out_rms_dps": sc[0], "f": f, "p": p, "passes": bool(ok)})
-            if ok:
-                passing.append((sc[0], name, bigger))
+        progress(f"round {len(rounds) + 1}: held-out rms {current.held_out_rms_dps:.4f} deg/s, "
+                 f"{len(pool)} candidates")
+        table, passing = _score_round(scorer, s, pool, bar)
         rounds.append(table)
         if not passing:
             break
-        passing.sort(key=lambda x: x[0])
         _, best_name, best = passing[0]
         if isinstance(best, Structure):
             capacity_changes.append(best_name)
@@ -478,28 +565,14 @@ def run_loop(
             continue
         # Every candidate, not only those that passed at the current base size: with its
         # own best base size a candidate may turn out to explain the same residual.
-        best, twins, shadows, evidence = _confounded_with(scorer, s, best, pool, min_gain)
-        if twins:
-            chosen = next((c for c in (best, *twins) if c.name in prefer), None)
-            group = [best, *twins]
-            confounded.append(
-                {
-                    "candidates": [c.name for c in group],
-                    "weaker_alternatives": [c.name for c in shadows],
-                    # each with the base size it deserves, as compared
-                    "held_out_rms_dps": {c.name: evidence[c.name]["held_out_rms_dps"] for c in group},
-                    # one-sided paired p that the first predicts held-out plateaus better than each
-                    "paired_p": {c.name: evidence[c.name]["p_best_better"] for c in twins},
-                    "paired_alpha": CONFOUND_ALPHA,
-                    "held_out_rms_before_dps": current[0],
-                    "resolved_by_user": chosen.name if chosen else None,
-                    # the pair across families first: separating those needs a different session
-                    "recommendation": recommend(best, next((c for c in twins if c.kind != best.kind),
-                                                           twins[0])),
-                }
-            )
+        check = _confounded_with(scorer, s, best, pool, bar.min_gain)
+        best = check.best
+        if check.twins:
+            chosen = next((c for c in (best, *check.twins) if c.name in prefer), None)
+            confounded.append(_confound(check, current, chosen))
             # Shadows explain a part of the same residual: accepting one later would be a guess too.
-            pool = [c for c in pool if c not in group and c not in shadows]
+            group = [best, *check.twins]
+            pool = [c for c in pool if c not in group and c not in check.shadows]
             if chosen is None:
                 continue
             best = chosen
@@ -508,25 +581,9 @@ def run_loop(
         after = scorer.score(s_new)
         f, p = f_test(current, after, scorer.n_plateaus)
         fit_now = fit_structure(blocks, s_new, duration_s)
-        effects.append(
-            {
-                "kind": best.kind,
-                "channel": best.channel,
-                "name": best.name,
-                "evidence": {
-                    "test": "leave-plateaus-out cross-validation and nested F-test",
-                    "held_out_gain": 1.0 - after[0] / current[0],
-                    "min_gain": min_gain,
-                    "f_statistic": f,
-                    "p_value": p,
-                    "alpha": alpha,
-                },
-                "terms": [t.to_dict() for t in fit_now.terms[len(s.terms) :]],
-                "rms_before_dps": current[0],
-                "rms_after_dps": after[0],
-            }
-        )
-        progress(f"accepted {best.name}: held-out rms {current[0]:.4f} -> {after[0]:.4f} deg/s")
+        effects.append(_effect(best, current, after, f, p, bar, fit_now.terms[len(s.terms) :]))
+        progress(f"accepted {best.name}: held-out rms {current.held_out_rms_dps:.4f} -> "
+                 f"{after.held_out_rms_dps:.4f} deg/s")
         steps.append(_step(scorer, s_new, f"added {best.name}"))
         s = reselect_size(scorer, s_new, duration_s)
         if s is not s_new:
@@ -537,30 +594,17 @@ def run_loop(
         steps.append(_step(scorer, pruned_all, "terms that no longer pay removed"))
     s = pruned_all
     final_fit = fit_structure(blocks, s, duration_s)
-    # Effect terms in the report carry the final joint coefficients of the terms that stayed.
-    final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
-    for eff in effects:  # a readable name with the final time constant: lag(temp_c, τ=140 s)
-        lagged = [t for t in final_fit.terms if t.channel == eff["channel"] and t.spec is CHANNEL_LAG]
-        gated = [t for t in final_fit.terms if t.channel == eff["channel"] and t.spec is CHANNEL_GATED]
-        is_lag = lagged and eff["name"].startswith("lag(")
-        eff["description"] = lagged[0].describe() if is_lag else eff["name"]
-        if gated and eff["name"] == gated_name(eff["channel"]):  # temp_c × (|rate| > 30 dps)
-            eff["description"] = gated_name(eff["channel"], knee_dps(final_fit.poly, gated[0].threshold_raw))
-    for eff in effects:
-        keys = [(t["kind"], t["channel"], t["feature"], t["form"], t["reference"]) for t in eff["terms"]]
-        eff["terms"] = [final_terms[k].to_dict() for k in keys if k in final_terms]
-    effects = [e for e in effects if e["terms"]]
     base_s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
     return LoopResult(
         fit=final_fit,
         structure=s,
         blocks=blocks,
         base_fit=fit_structure(blocks, base_s, duration_s),
-        effects=effects,
+        effects=_final_effects(effects, final_fit),
         confounded=confounded,
         rounds=rounds,
-        rms_before=base_score[0],
-        rms_after=scorer.score(s)[0],
+        rms_before=base_score.held_out_rms_dps,
+        rms_after=scorer.held_rms(s),
         errors_before=held_out_errors(blocks, base_s, folds, duration_s),
         errors_after=held_out_errors(blocks, s, folds, duration_s),
         capacity_changes=capacity_changes,
@@ -570,11 +614,37 @@ def run_loop(
     )
 
 
+class _Footing:
+    """Structures on the base size each explanation deserves, for :func:`_confounded_with`.
+
+    An explanation's footing is the best (by held-out rms) of its own size chosen again with it
+    in and of every size another hopeful explanation needed.
+    """
+
+    def __init__(self, scorer: Scorer, s: Structure, hopeful: list[Candidate]) -> None:
+        self.scorer, self.s = scorer, s
+        self.own = {c.name: reselect_size(scorer, self.with_terms(c.terms), scorer.duration_s)
+                    for c in hopeful}
+        self.sizes = list(dict.fromkeys(st.spec for st in self.own.values()))
+
+    def with_terms(self, terms: tuple[Term, ...]) -> Structure:
+        return replace(self.s, terms=self.s.terms + terms)
+
+    def of(self, terms: tuple[Term, ...], first: Structure | None = None) -> Structure:
+        """The terms on the best of their own size and every size a hopeful candidate needed."""
+        duration = self.scorer.duration_s
+        options = [first or reselect_size(self.scorer, self.with_terms(terms), duration)]
+        for spec in self.sizes:
+            if spec != options[0].spec:
+                other = _with_spec(self.scorer.blocks, self.with_terms(terms), spec, duration)
+                options += [other] if other is not None else []
+        return min(options, key=self.scorer.held_rms)
+
+
 def _confounded_with(
     scorer: Scorer, s: Structure, best: Candidate, pool: list[Candidate], min_gain: float
-) -> tuple[Candidate, list[Candidate], list[Candidate], dict[str, dict[str, float]]]:
-    """The best explanation and the candidates that explain the same residual:
-    (best, twins, shadows, evidence per candidate).
+) -> ConfoundCheck:
+    """The best explanation and the candidates that explain the same residual, with the evidence.
 
     Each explanation is scored with the base size it deserves (an under-sized base
     leaves misfit that would blur the comparison): its own size chosen again with it
@@ -590,74 +660,67 @@ def _confounded_with(
     ``CONFOUND_ALPHA``: no fixed ratio of errors, so a pair is called confounded
     exactly when the plateau-to-plateau scatter of held-out errors allows either.
     """
-    duration = scorer.duration_s
-
-    def with_terms(terms: tuple[Term, ...]) -> Structure:
-        return replace(s, terms=s.terms + terms)
-
-    def held_rms(st: Structure) -> float:
-        return scorer.score(st)[0]
-
+    held_rms = scorer.held_rms
     r_now = held_rms(s)
     # A candidate that gains nothing at the current size is not re-scored with its own
     # size (that costs a model selection each); one that gains a little might still tie.
-    hopeful = [c for c in pool if c is best or held_rms(with_terms(c.terms)) < r_now * (1 - min_gain / 2)]
-    own = {c.name: reselect_size(scorer, with_terms(c.terms), duration) for c in hopeful}
-    sizes = list(dict.fromkeys(st.spec for st in own.values()))
-
-    def footing(terms: tuple[Term, ...], first: Structure | None = None) -> Structure:
-        """The terms on the best of their own size and every size a hopeful candidate needed."""
-        options = [first or reselect_size(scorer, with_terms(terms), duration)]
-        for spec in sizes:
-            if spec != options[0].spec:
-                other = _with_spec(scorer.blocks, with_terms(terms), spec, duration)
-                options += [other] if other is not None else []
-        return min(options, key=held_rms)
-
-    alone = {c.name: footing(c.terms, own[c.name]) for c in hopeful}
+    hopeful = [c for c in pool
+               if c is best or held_rms(replace(s, terms=s.terms + c.terms)) < r_now * (1 - min_gain / 2)]
+    footing = _Footing(scorer, s, hopeful)
+    alone = {c.name: footing.of(c.terms, footing.own[c.name]) for c in hopeful}
     useful = [c for c in hopeful if held_rms(alone[c.name]) < r_now * (1 - min_gain)] or [best]
     best = min(useful, key=lambda c: held_rms(alone[c.name]) if c.name in alone else r_now)
-    best_s = alone.get(best.name, with_terms(best.terms))
+    best_s = alone.get(best.name, footing.with_terms(best.terms))
+    check = ConfoundCheck(best, evidence={best.name: Comparison(held_rms(best_s), 0.5)})
+    _sort_twins(scorer, footing, check, best_s, [c for c in useful if c is not best], alone, min_gain)
+    _prefer_level(scorer, check, alone)
+    for nested in [c for c in check.twins if _nests(c, check.best) or any(_nests(c, o) for o in check.twins)]:
+        check.twins.remove(nested)
+        check.shadows.append(nested)
+    return check
+
+
+def _sort_twins(scorer: Scorer, footing: _Footing, check: ConfoundCheck, best_s: Structure,
+                others: list[Candidate], alone: dict[str, Structure], min_gain: float) -> None:
+    """Each other useful candidate: a later round's (it adds to the best), a twin or a shadow."""
+    held_rms = scorer.held_rms
     loss_best = scorer.plateau_loss(best_s)
-    evidence = {best.name: {"held_out_rms_dps": held_rms(best_s), "p_best_better": 0.5}}
 
     def adds(both: Structure, base: Structure) -> bool:
         """Does the pair predict clearly and significantly better than ``base`` alone?"""
         return (held_rms(both) < held_rms(base) * (1 - min_gain)
                 and better_p(scorer.plateau_loss(both), scorer.plateau_loss(base)) < CONFOUND_ALPHA)
 
-    twins: list[Candidate] = []
-    shadows: list[Candidate] = []
-    for other in useful:
-        if other is best:
-            continue
+    for other in others:
         other_s = alone[other.name]
-        both = footing(best.terms + other.terms)
+        both = footing.of(check.best.terms + other.terms)
         if adds(both, best_s):  # it explains something more: a later round judges it on its own
             continue
         p_best = better_p(loss_best, scorer.plateau_loss(other_s))
-        evidence[other.name] = {"held_out_rms_dps": held_rms(other_s), "p_best_better": p_best}
+        check.evidence[other.name] = Comparison(held_rms(other_s), p_best)
         twin = (p_best >= CONFOUND_ALPHA and held_rms(other_s) <= TWIN_RMS_RATIO * held_rms(best_s)
                 and not adds(both, other_s))
-        (twins if twin else shadows).append(other)
-    # A channel's level is its lag with τ → 0 (a drift is a warm-up with τ → ∞): when the two
-    # tie, the data do not need the time constant, and the simpler one is the answer.
-    level = next((c for c in twins if _nests(best, c)), None)
-    if level is not None:
-        twins.remove(level)
-        shadows.append(best)
-        best = level
-        loss_level = scorer.plateau_loss(alone[level.name])  # the twins judged against the one now first
-        for c in list(twins):
-            evidence[c.name]["p_best_better"] = better_p(loss_level, scorer.plateau_loss(alone[c.name]))
-            far = held_rms(alone[c.name]) > TWIN_RMS_RATIO * held_rms(alone[level.name])
-            if evidence[c.name]["p_best_better"] < CONFOUND_ALPHA or far:
-                twins.remove(c)
-                shadows.append(c)
-    for nested in [c for c in twins if _nests(c, best) or any(_nests(c, o) for o in twins)]:
-        twins.remove(nested)
-        shadows.append(nested)
-    return best, twins, shadows, evidence
+        (check.twins if twin else check.shadows).append(other)
+
+
+def _prefer_level(scorer: Scorer, check: ConfoundCheck, alone: dict[str, Structure]) -> None:
+    """A channel's level is its lag with τ → 0 (a drift is a warm-up with τ → ∞): when the two
+    tie, the data do not need the time constant, and the simpler one is the answer; the other
+    twins are then judged against it."""
+    level = next((c for c in check.twins if _nests(check.best, c)), None)
+    if level is None:
+        return
+    check.twins.remove(level)
+    check.shadows.append(check.best)
+    check.best = level
+    held_rms = scorer.held_rms
+    loss_level = scorer.plateau_loss(alone[level.name])
+    for c in list(check.twins):
+        check.with_p(c.name, better_p(loss_level, scorer.plateau_loss(alone[c.name])))
+        far = held_rms(alone[c.name]) > TWIN_RMS_RATIO * held_rms(alone[level.name])
+        if check.evidence[c.name].p_best_better < CONFOUND_ALPHA or far:
+            check.twins.remove(c)
+            check.shadows.append(c)
 
 
 def _nests(general: Candidate, simple: Candidate) -> bool:
@@ -677,34 +740,30 @@ def knee_dps(poly: PiecewisePoly, knee_raw: float | None) -> float:
     return float(np.mean(np.abs(w)))
 
 
-def _prune_all(scorer: Scorer, s: Structure) -> Structure:
-    """With the final base size, drop any accepted column that no longer earns its keep."""
-    terms = s.terms
+def _drop_unpaid(
+    scorer: Scorer, s: Structure, fixed: tuple[Term, ...], terms: tuple[Term, ...]
+) -> tuple[Term, ...]:
+    """Drop columns of ``terms`` (kept on top of ``fixed``) one at a time while held-out error
+    does not suffer by more than ``PRUNE_TOLERANCE``; at least one stays."""
+
+    def held(kept: tuple[Term, ...]) -> float:
+        return scorer.held_rms(replace(s, terms=fixed + kept))
+
     while len(terms) > 1:
-        full = scorer.score(replace(s, terms=terms))[0]
-        trials = [
-            (scorer.score(replace(s, terms=terms[:i] + terms[i + 1 :]))[0], i) for i in range(len(terms))
-        ]
-        best_rms, i = min(trials)
+        full = held(terms)
+        fewer = [terms[:i] + terms[i + 1 :] for i in range(len(terms))]
+        best_rms, i = min((held(f), i) for i, f in enumerate(fewer))
         if best_rms > full * (1 + PRUNE_TOLERANCE):
             break
-        terms = terms[:i] + terms[i + 1 :]
-    return replace(s, terms=terms)
+        terms = fewer[i]
+    return terms
+
+
+def _prune_all(scorer: Scorer, s: Structure) -> Structure:
+    """With the final base size, drop any accepted column that no longer earns its keep."""
+    return replace(s, terms=_drop_unpaid(scorer, s, (), s.terms))
 
 
 def _prune(scorer: Scorer, s: Structure, cand: Candidate) -> Candidate:
     """Drop the candidate's columns one at a time while held-out error does not suffer."""
-    terms = cand.terms
-    changed = True
-    while changed and len(terms) > 1:
-        changed = False
-        full = scorer.score(replace(s, terms=s.terms + terms))[0]
-        trials = []
-        for i in range(len(terms)):
-            fewer = terms[:i] + terms[i + 1 :]
-            trials.append((scorer.score(replace(s, terms=s.terms + fewer))[0], fewer))
-        best_rms, fewer = min(trials, key=lambda x: x[0])
-        if best_rms <= full * (1 + PRUNE_TOLERANCE):
-            terms = fewer
-            changed = True
-    return cand.with_terms(terms)
+    return cand.with_terms(_drop_unpaid(scorer, s, s.terms, cand.terms))

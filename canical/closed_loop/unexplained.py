@@ -25,10 +25,12 @@ Pure functions on the loop's blocks: no I/O.
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 
+from canical.calibrate.robust import mad_sigma
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
 
@@ -51,7 +53,7 @@ def block_noise_floor(blocks: Blocks, fitted_residual: np.ndarray) -> float:
     if not np.any(same):  # one block per plateau: the blocks' own standard errors
         return float(np.median(blocks.points.dv_sem)) / _sensitivity(blocks)
     d = np.diff(fitted_residual)[same]
-    return 1.4826 * float(np.median(np.abs(d - np.median(d)))) / np.sqrt(2.0)
+    return mad_sigma(d) / np.sqrt(2.0)
 
 
 def _sensitivity(blocks: Blocks) -> float:
@@ -82,13 +84,38 @@ def robust_rms(e: np.ndarray) -> float:
     return float(np.sqrt(np.median(np.asarray(e) ** 2) / 0.4549))
 
 
+@dataclass(frozen=True)
+class Correlate:
+    """A candidate variable and how closely the residual follows it."""
+
+    variable: str
+    abs_r: float
+
+
+@dataclass(frozen=True)
+class Unexplained:
+    """The report's ``unexplained`` section: residual rms, floor, ratio, verdict, best correlates."""
+
+    held_out_rms_dps: float
+    held_out_robust_rms_dps: float
+    noise_floor_dps: float
+    ratio: float
+    limit_ratio: float
+    unexplained: bool
+    noise_floor_method: str
+    correlates: tuple[Correlate, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
 def account(
     residual: np.ndarray,
     fitted_residual: np.ndarray,
     blocks: Blocks,
     candidates: list[Candidate],
     ratio_limit: float = UNEXPLAINED_RATIO,
-) -> dict[str, Any]:
+) -> Unexplained:
     """The report's ``unexplained`` section: residual rms, floor, ratio, verdict, best correlates.
 
     ``residual``: held-out errors after the loop; ``fitted_residual``: the final
@@ -99,30 +126,30 @@ def account(
     robust = robust_rms(residual)
     ratio = float(robust / floor) if floor > 0 else float("inf")
     ranked = correlations(residual, candidate_variables(candidates, blocks))
-    return {
-        "held_out_rms_dps": rms,
-        "held_out_robust_rms_dps": robust,
-        "noise_floor_dps": floor,
-        "ratio": ratio,
-        "limit_ratio": ratio_limit,
-        "unexplained": bool(ratio > ratio_limit),
-        "noise_floor_method": "scatter between successive 2 s blocks of one plateau (median-based)",
-        "correlates": [{"variable": n, "abs_r": float(r)} for n, r in ranked[:TOP_CORRELATED]],
-    }
+    return Unexplained(
+        held_out_rms_dps=rms,
+        held_out_robust_rms_dps=robust,
+        noise_floor_dps=floor,
+        ratio=ratio,
+        limit_ratio=ratio_limit,
+        unexplained=bool(ratio > ratio_limit),
+        noise_floor_method="scatter between successive 2 s blocks of one plateau (median-based)",
+        correlates=tuple(Correlate(n, float(r)) for n, r in ranked[:TOP_CORRELATED]),
+    )
 
 
-def one_line(section: dict[str, Any]) -> str:
+def one_line(section: Unexplained) -> str:
     """What the CLI prints: ``unexplained: 0.07 deg/s rms, 18× the noise floor (...)``."""
-    rms, floor, ratio = section["held_out_robust_rms_dps"], section["noise_floor_dps"], section["ratio"]
-    if not section["unexplained"]:
+    rms, floor, ratio = section.held_out_robust_rms_dps, section.noise_floor_dps, section.ratio
+    if not section.unexplained:
         return f"residual   {rms:.4f} deg/s rms, {ratio:.1f}× the noise floor {floor:.4f}: explained"
     return (f"unexplained: {rms:.3g} deg/s rms, {ratio:.0f}× the noise floor {floor:.4f} deg/s; "
             + where_to_look(section))
 
 
-def where_to_look(section: dict[str, Any]) -> str:
+def where_to_look(section: Unexplained) -> str:
     """The best-correlated candidate variables, or that none follows the residual."""
-    best = ", ".join(f"{c['variable']} (|r| {c['abs_r']:.2f})" for c in section["correlates"])
-    if not section["correlates"] or section["correlates"][0]["abs_r"] < WEAK_R:
+    best = ", ".join(f"{c.variable} (|r| {c.abs_r:.2f})" for c in section.correlates)
+    if not section.correlates or section.correlates[0].abs_r < WEAK_R:
         return f"no recorded variable follows it (best: {best}): look for one that was not recorded"
     return f"correlates best with {best}"

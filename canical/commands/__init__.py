@@ -5,6 +5,15 @@ dependencies (scipy, matplotlib, canopen) would make every start, and every
 ``canical push`` on a slow vehicle computer, pay for all of them.
 """
 
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "COMMANDS",
+    "cli",
+    "demo_bus",
+    "emulate",
+]
+
 # name -> one-line help, in the order ``canical --help`` lists them
 COMMANDS = {
     "calibrate": "fit a turntable session and write a coefficient set",

@@ -6,15 +6,19 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
+from canical.calibration_report import CalibrationReport
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
 from canical.output_plan import output_plan
 from canical.progress import Progress
-from canical.report.markdown import written_model
 from canical.sessions.canlog_format import CANLOG_FORMATS
+
+if TYPE_CHECKING:
+    from canical.closed_loop.search import LoopResult
 
 # The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
 # used, so that `--help` and argument errors answer at once.
@@ -191,23 +195,28 @@ def calibrate_session(args: argparse.Namespace) -> int:
         axis=args.axis or session.axis or "z",
         progress=progress.step,
     )
-    report = {"session": str(args.session), "coefficients": str(args.output), **result.report}
+    report = result.report.with_paths(str(args.session), str(args.output))
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
-        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
+        write_text_atomic(args.report, report_json(report))
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
-    left = report.get("unexplained")
-    if args.strict is not None and (left is None or left["ratio"] > args.strict):
-        why = (f"{left['ratio']:.1f}× the noise floor, above --strict {args.strict:g}" if left
+    left = report.unexplained
+    if args.strict is not None and (left is None or left.ratio > args.strict):
+        why = (f"{left.ratio:.1f}× the noise floor, above --strict {args.strict:g}" if left
                else "no closed loop ran, so the residual was not checked")
         print(f"calibrate: strict: the residual stays unexplained ({why})", file=sys.stderr)
         return EXIT_UNEXPLAINED
     return 0
 
 
-def write_report_dir(directory: Path, report: dict, loop) -> None:
+def report_json(report: CalibrationReport) -> str:
+    """The report.json text."""
+    return json.dumps(report.to_dict(), indent=2) + "\n"
+
+
+def write_report_dir(directory: Path, report: CalibrationReport, loop: LoopResult | None) -> None:
     """report.json, report.md and the plots, side by side."""
     from canical.atomic_file import make_dirs, write_text_atomic
     from canical.report.allan_plot import write_allan_plot
@@ -216,10 +225,10 @@ def write_report_dir(directory: Path, report: dict, loop) -> None:
 
     make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
-    if "curve" in report.get("allan", {}):
-        plots.append(write_allan_plot(report["allan"], directory / "allan.png",
+    if "curve" in report.allan:
+        plots.append(write_allan_plot(report.allan, directory / "allan.png",
                                       "Allan deviation, zero-rate plateaus").name)
-    write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
+    write_text_atomic(directory / "report.json", report_json(report))
     write_text_atomic(directory / "report.md", render(report, plots))
 
 
@@ -253,51 +262,49 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress):
     return log.session
 
 
-def _plateau_line(found: dict | None) -> str:
-    if not found:
-        return "plateaus   (not reported)"
+def _plateau_line(found: dict[str, Any]) -> str:
     return (f"plateaus   reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
             f"{found['rate_tol_dps']:.3g} deg/s, held {found['reference_update_s']:.3g} s, "
             f"late {found['reference_latency_s']:.3g} s, {found['rate_changes']} rate changes")
 
 
-def summary(report: dict) -> str:
+def summary(report: CalibrationReport) -> str:
     """A few lines a calibration engineer reads first."""
-    s = report["samples"]
+    s = report.samples
     lines = [
-        f"rate model {report['spec']} (size chosen on held-out plateau means)",
-        f"samples    {s['used']} of {s['total']} used "
-        f"({s['transition']} at changing rate, {s['settling']} settling), {report['plateaus']} plateaus",
-        _plateau_line(report.get("plateau_finding")),
-        f"V0         {report['v0']:.3f}",
+        f"rate model {report.spec} (size chosen on held-out plateau means)",
+        f"samples    {s.used} of {s.total} used "
+        f"({s.transition} at changing rate, {s.settling} settling), {report.plateaus} plateaus",
+        _plateau_line(report.plateau_finding),
+        f"V0         {report.v0:.3f}",
     ]
-    if report["segment_points"]:
-        pts = ", ".join(f"{p['rate_dps']:g}" for p in report["segment_points"])
+    if report.segment_points:
+        pts = ", ".join(f"{p.rate_dps:g}" for p in report.segment_points)
         lines.append(f"segments   at {pts} deg/s")
-    tr, ho = report["training"], report["held_out"]
-    lines.append(f"training   rms {tr['rms_dps']:.4f}  max {tr['max_dps']:.4f} deg/s (plateau means)")
-    lines.append(f"held-out   rms {ho['rms_dps']:.4f}  max {ho['max_dps']:.4f} deg/s "
+    tr, ho = report.training, report.held_out
+    lines.append(f"training   rms {tr.rms_dps:.4f}  max {tr.max_dps:.4f} deg/s (plateau means)")
+    lines.append(f"held-out   rms {ho.rms_dps:.4f}  max {ho.max_dps:.4f} deg/s "
                  "(plateau means, whole table rates left out)")
-    loop = report.get("closed_loop")
-    if loop and "skipped" not in loop:
-        found = ", ".join(e.get("description", e["name"]) for e in report["effects"]) or "none"
+    loop = report.closed_loop
+    if loop is not None:
+        found = ", ".join(e.label for e in report.effects) or "none"
         lines.append(f"effects    {found}")
-        for c in report.get("confounded", []):
-            lines.append(f"confounded {' / '.join(c['candidates'])}: {c['recommendation']}")
+        for c in report.confounded:
+            lines.append(f"confounded {' / '.join(c.candidates)}: {c.recommendation}")
         lines.append("loop       held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
-        for step in loop.get("steps", []):
-            terms = f", {step['terms']} effect terms" if step["terms"] else ""
-            lines.append(f"           {step['held_out_rms_dps']:.4f}  {step['step']} ({step['spec']}{terms})")
-    allan = report.get("allan", {})
+        for step in loop.steps:
+            terms = f", {step.terms} effect terms" if step.terms else ""
+            lines.append(f"           {step.held_out_rms_dps:.4f}  {step.step} ({step.spec}{terms})")
+    allan = report.allan
     if "terms" in allan:
         lo, hi = allan["tau_range_s"]
         terms = "; ".join(
             f"{t['name']} {t['value']:.3g} {t['unit']}" if t["resolved"] else f"{t['name']} not resolved"
             for t in allan["terms"].values())
         lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
-    if "unexplained" in report:
+    if report.unexplained is not None:
         from canical.closed_loop.unexplained import one_line
 
-        lines.append(one_line(report["unexplained"]))
-    lines.append(f"wrote      {Path(report['coefficients'])}: {written_model(report)}")
+        lines.append(one_line(report.unexplained))
+    lines.append(f"wrote      {Path(report.coefficients or '')}: {report.written_model()}")
     return "\n".join(lines)

@@ -14,7 +14,6 @@ Everything it writes goes to one folder.
 from __future__ import annotations
 
 import argparse
-import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -44,9 +43,9 @@ def demo(args: argparse.Namespace) -> int:
     """All parts; the files appear in ``--out`` together when the demo has succeeded."""
     import numpy as np
 
+    from canical.commands.calibrate import report_json
     from canical.evaluation import compare_models, held_out_set_errors, validation_record
     from canical.pipeline import CalibrateOptions, calibrate
-    from canical.report.markdown import written_model
     from canical.sessions.csv_file import format_session
     from canical.sets import coefficient_file
     from canical.sim.sessions import between_rates_session, constant_session, paper_session
@@ -85,12 +84,12 @@ def demo(args: argparse.Namespace) -> int:
 
     result = calibrate(train, CalibrateOptions(), sensor_id="SIM-0001", axis="z")
     coefficient_file.save(out / "coefficients.yaml", result.coefficients)
-    write_text_atomic(out / "report.json", json.dumps(result.report, indent=2) + "\n")
+    write_text_atomic(out / "report.json", report_json(result.report))
     written = held_out_set_errors(result.coefficients, test)
-    print(f"\nwrote {out / 'coefficients.yaml'} ({written_model(result.report)}) and {out / 'report.json'}")
+    print(f"\nwrote {out / 'coefficients.yaml'} ({result.report.written_model()}) and {out / 'report.json'}")
     print(f"  the written set on the second session: held-out rms {np.sqrt(np.mean(written**2)):.4f}, max "
           f"{np.max(np.abs(written)):.4f} deg/s (the table's scheme); `canical calibrate` on session.csv "
-          f"alone reports {result.report['held_out']['rms_dps']:.4f} (whole table rates left out)")
+          f"alone reports {result.report.held_out.rms_dps:.4f} (whole table rates left out)")
     closed_loop_demo(out, args.seed)
 
     # --- The IMU on a CAN bus (canical/commands/demo_bus.py): emulated device, session recorded from the
@@ -123,18 +122,17 @@ def closed_loop_demo(out: Path, seed: int) -> Path:
     loop = result.loop
     assert loop is not None, "the default options close the loop"
     print("held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
-    for e in result.report["effects"]:
-        terms = ", ".join(f"{t['feature']}/{t['form']}" for t in e["terms"])
-        ev = e["evidence"]
-        print(f"  (found {e['name']} ({terms}): held-out gain {ev['held_out_gain']:.0%} when added, "
-              f"p = {ev['p_value']:.1e})")
+    for e in result.report.effects:
+        terms = ", ".join(f"{t['feature']}/{t['form']}" for t in e.terms)
+        ev = e.evidence
+        print(f"  (found {e.name} ({terms}): held-out gain {ev.held_out_gain:.0%} when added, "
+              f"p = {ev.p_value:.1e})")
     for step in loop.steps:
-        print(f"  {step['held_out_rms_dps']:.4f}  {step['step']} ({step['spec']})")
+        print(f"  {step.held_out_rms_dps:.4f}  {step.step} ({step.spec})")
     print(f"written set: held-out rms {loop.rms_after:.4f} deg/s, "
           f"{loop.rms_before / loop.rms_after:.0f}x lower than the rate model alone")
     coeffs = out / "coefficients_with_effect.yaml"
     coefficient_file.save(coeffs, result.coefficients)
-    report = {"session": str(path), "coefficients": str(coeffs), **result.report}
-    write_report_dir(out / "report", report, loop)
+    write_report_dir(out / "report", result.report.with_paths(str(path), str(coeffs)), loop)
     print(f"wrote {coeffs} and {out / 'report'}/ (report.md, plots)")
     return coeffs

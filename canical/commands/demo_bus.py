@@ -36,6 +36,7 @@ import numpy as np
 
 from canical.atomic_file import make_dirs, write_text_atomic
 from canical.bus.recording import Recording, open_recorder_bus, record
+from canical.calibrate.plateaus import span_means
 from canical.device.can_network import open_network, sdo_client_filters, sdo_server_filters
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.device.sdo_download import ImuClient, PushResult, push_sets
@@ -43,13 +44,13 @@ from canical.errors import CanicalError
 from canical.frames.imu_frames import ImuFrames, set_tag
 from canical.imu_dictionary import AXES, sensor_id_for_serial
 from canical.pipeline import CalibrateOptions, calibrate
-from canical.report.markdown import written_model
 from canical.sessions.csv_file import format_session, read_table
 from canical.sets import coefficient_file
 from canical.sets.coefficient_file import set_crc
 
 TEMP_BIAS_DPS_PER_C = 0.03  # the undeclared effect of the demo's IMU
 NOMINAL_COUNTS_PER_DPS = 400.0  # the datasheet's scale factor, for "before"
+MIN_PLATEAU_ROWS = 10  # a settled run shorter than this is not a plateau of the live comparison
 
 
 @dataclass(frozen=True)
@@ -163,11 +164,12 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         result = calibrate(session, CalibrateOptions(), sensor_id=sensor, axis=o.axis)
         coeffs = out / f"imu-{o.axis}.yaml"
         coefficient_file.save(coeffs, result.coefficients)
-        loop = result.report.get("closed_loop", {})
-        effects = [e.get("name", str(e)) for e in result.report.get("effects", [])]
-        before, after = loop.get("held_out_rms_before_dps"), loop.get("held_out_rms_after_dps")
+        loop = result.report.closed_loop
+        effects = [e.name for e in result.report.effects]
+        before = loop.held_out_rms_before_dps if loop else None
+        after = loop.held_out_rms_after_dps if loop else None
         found = ", ".join(effects) or "none"
-        say(f"calibrated: {written_model(result.report)}; undeclared effect(s) found: {found}")
+        say(f"calibrated: {result.report.written_model()}; undeclared effect(s) found: {found}")
         if before is not None and after is not None:
             say(f"  held-out rms (2 s blocks, whole plateaus left out): rate model alone {before:.4f}, "
                 f"written set {after:.4f} deg/s")
@@ -335,15 +337,26 @@ def _field_session(rec: Recording, keep: np.ndarray, axis: str, sensor: str):
 
 
 def _plateau_rms(rate: np.ndarray, ref: np.ndarray, settled: np.ndarray) -> float:
-    """Rms over table plateaus of (mean rate − table rate): the calibration error, noise averaged out."""
-    errors = []
-    start = None
-    for i in range(len(ref) + 1):
-        inside = i < len(ref) and settled[i] and (start is None or ref[i] == ref[start])
-        if inside and start is None:
-            start = i
-        elif not inside and start is not None:
-            if i - start >= 10:
-                errors.append(float(np.mean(rate[start:i]) - ref[start]))
-            start = i if i < len(ref) and settled[i] else None
-    return float(np.sqrt(np.mean(np.square(errors)))) if errors else float("nan")
+    """Rms over table plateaus of (mean rate − table rate): the calibration error, noise averaged out.
+
+    A plateau here is a run of at least ``MIN_PLATEAU_ROWS`` rows the table flags settled at one
+    rate: the few frames compared need no plateau finding, the table says where it stood still.
+    """
+    start, stop = _settled_runs(ref, settled)
+    long_enough = stop - start >= MIN_PLATEAU_ROWS
+    if not np.any(long_enough):
+        return float("nan")
+    start, stop = start[long_enough], stop[long_enough]
+    errors = span_means(rate, start, stop) - ref[start]
+    return float(np.sqrt(np.mean(np.square(errors))))
+
+
+def _settled_runs(ref: np.ndarray, settled: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``[start, stop)`` of each run of settled rows at one table rate."""
+    n = len(ref)
+    boundary = np.ones(n + 1, dtype=bool)  # a run may begin (or the one before end) at each True
+    boundary[1:n] = (ref[1:] != ref[:-1]) | (settled[1:] != settled[:-1])
+    edges = np.flatnonzero(boundary)
+    start, stop = edges[:-1], edges[1:]
+    on = np.asarray(settled, dtype=bool)[start]
+    return start[on], stop[on]

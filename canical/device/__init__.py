@@ -7,3 +7,15 @@ device's banks A/B per axis, :mod:`.sdo_download` pushes and pulls sets over SDO
 :mod:`.dcf_export` writes sets as a DCF. The object dictionary itself is the ground floor's
 :mod:`canical.imu_dictionary`, because sets and frames need its names too.
 """
+
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "bank_payload",
+    "can_network",
+    "coefficient_banks",
+    "dcf_export",
+    "emulated_imu",
+    "firmware_eval",
+    "sdo_download",
+]

@@ -5,3 +5,11 @@ decodes them, through codecs :mod:`.compiler` builds from the DBC at start (stru
 scales and masks, proven equal to cantools). Shared by the daemon, the recorder, the log
 reader and the emulated IMU; imports only the ground floor.
 """
+
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "codec",
+    "compiler",
+    "imu_frames",
+]

@@ -15,6 +15,17 @@ from typing import TYPE_CHECKING, Protocol
 if TYPE_CHECKING:  # kept out of start-up: `canical calibrate --help` lists MODEL_KINDS
     import numpy as np
 
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "MODEL_KINDS",
+    "RateModel",
+    "forward_poly",
+    "piecewise",
+    "segmented_inverse",
+    "segmented_linear",
+]
+
 MODEL_KINDS = ("segmented-inverse", "segmented-linear", "forward-poly")
 
 

@@ -8,21 +8,16 @@ the two give different numbers for the same model.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from canical.calibration_report import CalibrationReport
+    from canical.closed_loop.findings import Confound
+    from canical.closed_loop.unexplained import Unexplained
 
 
-def written_model(report: dict[str, Any]) -> str:
-    """The model in the coefficient file: the loop's final one, with its effect terms."""
-    written = report.get("written", {"spec": report["spec"], "effect_terms": 0})
-    n = written["effect_terms"]
-    names = ", ".join(e["name"] for e in report.get("effects", []))
-    return written["spec"] + (f" + {n} effect term{'s' * (n != 1)} ({names})" if n else "")
-
-
-def _plateau_finding(found: dict[str, Any] | None) -> list[str]:
-    """What plateau finding estimated from the session (empty for an older report)."""
-    if not found:
-        return []
+def _plateau_finding(found: dict[str, Any]) -> list[str]:
+    """What plateau finding estimated from the session."""
     return [
         f"- plateau finding: reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
         f"{found['rate_tol_dps']:.3g} deg/s over {found['window_s']:.3g} s windows; reference held "
@@ -40,96 +35,45 @@ def _settle_source(found: dict[str, Any]) -> str:
     return {"given": "--settle", "default": "0.5 s or a tenth of the plateau"}.get(source, source)
 
 
-def render(report: dict[str, Any], plots: list[str]) -> str:
-    s = report["samples"]
+def render(report: CalibrationReport, plots: list[str]) -> str:
+    s = report.samples
     lines = [
         "# canical calibration report",
         "",
-        f"- session: `{report.get('session', '')}`",
-        f"- coefficient set: `{report.get('coefficients', '')}`: {written_model(report)}",
-        f"- samples used: {s['used']} of {s['total']} ({s['transition']} at a changing rate, "
-        f"{s['settling']} settling); {report['plateaus']} plateaus at {report['rates']} rates",
-        *_plateau_finding(report.get("plateau_finding")),
-        f"- zero bias V0: {report['v0']:.3f}",
+        f"- session: `{report.session or ''}`",
+        f"- coefficient set: `{report.coefficients or ''}`: {report.written_model()}",
+        f"- samples used: {s.used} of {s.total} ({s.transition} at a changing rate, "
+        f"{s.settling} settling); {report.plateaus} plateaus at {report.rates} rates",
+        *_plateau_finding(report.plateau_finding),
+        f"- zero bias V0: {report.v0:.3f}",
         "",
         "## Rate model alone",
         "",
-        f"{report['spec']}, the size chosen by held-out error on plateau means.",
+        f"{report.spec}, the size chosen by held-out error on plateau means.",
         "",
         "| | rms (deg/s) | max (deg/s) |",
         "|---|---|---|",
-        f"| training, plateau means | {report['training']['rms_dps']:.4f} | "
-        f"{report['training']['max_dps']:.4f} |",
-        f"| held-out, plateau means (whole table rates left out) | {report['held_out']['rms_dps']:.4f} | "
-        f"{report['held_out']['max_dps']:.4f} |",
+        f"| training, plateau means | {report.training.rms_dps:.4f} | {report.training.max_dps:.4f} |",
+        f"| held-out, plateau means (whole table rates left out) | {report.held_out.rms_dps:.4f} | "
+        f"{report.held_out.max_dps:.4f} |",
         "",
     ]
-    if report.get("segment_points"):
+    if report.segment_points:
         lines += ["Segment points (from residual extrema):", ""]
         lines += [
-            f"- {p['rate_dps']:g} deg/s (raw {p['raw']:.1f}), prominence {p['prominence_dps']:.4f}"
-            f" deg/s, {p['source']}"
-            for p in report["segment_points"]
+            f"- {p.rate_dps:g} deg/s (raw {p.raw:.1f}), prominence {p.prominence_dps:.4f} deg/s, {p.source}"
+            for p in report.segment_points
         ]
         lines.append("")
-    loop = report.get("closed_loop")
-    if loop and "skipped" not in loop:
-        lines += [
-            "## Closed loop: effects the model lacked",
-            "",
-            f"Every figure here is held-out error of {loop['method']}: another scheme than the plateau "
-            "means above, so the rate model alone has a figure of its own in it. Each row is one "
-            "change to the model, in the order the loop made it.",
-            "",
-            "| step | model | effect terms | held-out rms (deg/s), 2 s blocks |",
-            "|---|---|---|---|",
-        ]
-        for step in loop.get("steps", []):
-            lines.append(f"| {step['step']} | {step['spec']} | {step['terms']} | "
-                         f"{step['held_out_rms_dps']:.4f} |")
-        n_terms = report.get("written", {}).get("effect_terms", 0)
-        lines += [
-            f"| **written set** | {loop['final_spec']} | {n_terms} | "
-            f"**{loop['held_out_rms_after_dps']:.4f}** (max {loop['held_out_max_after_dps']:.4f}) |",
-            "",
-        ]
-        if report["effects"]:
-            lines += [
-                "| effect | held-out gain when added | p-value | terms (final coefficients) |",
-                "|---|---|---|---|",
-            ]
-            for e in report["effects"]:
-                terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e["terms"])
-                ev = e["evidence"]
-                name = e.get("description", e["name"])
-                lines.append(f"| {name} | {ev['held_out_gain']:.0%} | {ev['p_value']:.1e} | {terms} |")
-        else:
-            lines.append("No effect found: the residual is explained by the rate model and noise.")
-        lines.append("")
-        for c in report.get("confounded", []):
-            lines += [
-                f"**Confounded:** {' and '.join(c['candidates'])} explain the same residual "
-                f"(held-out rms {c['held_out_rms_before_dps']:.4f} deg/s without either). "
-                + _paired(c)
-                + (
-                    "Neither was added. "
-                    if not c["resolved_by_user"]
-                    else f"Added {c['resolved_by_user']} as asked (--prefer). "
-                )
-                + f"To separate them: {c['recommendation']}.",
-                "",
-            ]
-        if loop["capacity_changes"]:
-            lines += [f"Base model grown: {', '.join(loop['capacity_changes'])}.", ""]
-        lines += _unexplained(report.get("unexplained"))
-    elif loop:
-        lines += [f"Closed loop skipped: {loop['skipped']}.", ""]
-    allan = report.get("allan")
-    if allan:
+    if report.closed_loop is not None:
+        lines += _closed_loop(report)
+    elif report.loop_skipped is not None:
+        lines += [f"Closed loop skipped: {report.loop_skipped}.", ""]
+    if report.allan:
         from canical.calibrate.noise_records import describe  # numpy: calibrate's --help imports this module
 
         lines += ["## Noise: Allan deviation of the zero-rate plateaus", ""]
-        lines += [f"- {line}" for line in describe(allan)]
+        lines += [f"- {line}" for line in describe(report.allan)]
         lines += ["", "Terms the τ range cannot show are not resolved; the bound is what the data allows. "
                   "Rate random walk needs records much longer than a turntable's plateaus: "
                   "use `canical noise` on a static record of an hour or more.", ""]
@@ -138,36 +82,86 @@ def render(report: dict[str, Any], plots: list[str]) -> str:
     return "\n".join(lines)
 
 
-def _paired(c: dict) -> str:
+def _closed_loop(report: CalibrationReport) -> list[str]:
+    """The closed loop's section: each step, the effects, the confounded groups, what is left."""
+    loop = report.closed_loop
+    assert loop is not None
+    lines = [
+        "## Closed loop: effects the model lacked",
+        "",
+        f"Every figure here is held-out error of {loop.method}: another scheme than the plateau "
+        "means above, so the rate model alone has a figure of its own in it. Each row is one "
+        "change to the model, in the order the loop made it.",
+        "",
+        "| step | model | effect terms | held-out rms (deg/s), 2 s blocks |",
+        "|---|---|---|---|",
+    ]
+    for step in loop.steps:
+        lines.append(f"| {step.step} | {step.spec} | {step.terms} | {step.held_out_rms_dps:.4f} |")
+    lines += [
+        f"| **written set** | {loop.final_spec} | {report.written.effect_terms} | "
+        f"**{loop.held_out_rms_after_dps:.4f}** (max {loop.held_out_max_after_dps:.4f}) |",
+        "",
+    ]
+    if report.effects:
+        lines += [
+            "| effect | held-out gain when added | p-value | terms (final coefficients) |",
+            "|---|---|---|---|",
+        ]
+        for e in report.effects:
+            terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e.terms)
+            ev = e.evidence
+            lines.append(f"| {e.label} | {ev.held_out_gain:.0%} | {ev.p_value:.1e} | {terms} |")
+    else:
+        lines.append("No effect found: the residual is explained by the rate model and noise.")
+    lines.append("")
+    for c in report.confounded:
+        lines += [
+            f"**Confounded:** {' and '.join(c.candidates)} explain the same residual "
+            f"(held-out rms {c.held_out_rms_before_dps:.4f} deg/s without either). "
+            + _paired(c)
+            + (
+                "Neither was added. "
+                if not c.resolved_by_user
+                else f"Added {c.resolved_by_user} as asked (--prefer). "
+            )
+            + f"To separate them: {c.recommendation}.",
+            "",
+        ]
+    if loop.capacity_changes:
+        lines += [f"Base model grown: {', '.join(loop.capacity_changes)}.", ""]
+    return lines + _unexplained(report.unexplained)
+
+
+def _paired(c: Confound) -> str:
     """The paired test that found the held-out plateaus cannot tell the pair apart."""
-    ps = c.get("paired_p") or {}
-    if not ps:
+    if not c.paired_p:
         return ""
-    ps_text = ", ".join(f"{name} p = {p:.2g}" for name, p in ps.items())
-    return (f"The held-out plateaus cannot tell {c['candidates'][0]} apart from the others "
-            f"(paired test, one-sided, level {c.get('paired_alpha', 0.01):g}: {ps_text}). ")
+    ps_text = ", ".join(f"{name} p = {p:.2g}" for name, p in c.paired_p.items())
+    return (f"The held-out plateaus cannot tell {c.candidates[0]} apart from the others "
+            f"(paired test, one-sided, level {c.paired_alpha:g}: {ps_text}). ")
 
 
-def _unexplained(left: dict[str, Any] | None) -> list[str]:
+def _unexplained(left: Unexplained | None) -> list[str]:
     """The section on what the loop could not explain, plainly."""
     if not left:
         return []
     from canical.closed_loop.unexplained import where_to_look  # numpy: calibrate's --help imports this module
 
-    rms = left["held_out_robust_rms_dps"]
+    rms = left.held_out_robust_rms_dps
     head = (
-        f"**Unexplained: {rms:.3g} deg/s rms, {left['ratio']:.0f}× the noise floor** "
-        f"({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}). A structured residual "
+        f"**Unexplained: {rms:.3g} deg/s rms, {left.ratio:.0f}× the noise floor** "
+        f"({left.noise_floor_dps:.4f} deg/s, {left.noise_floor_method}). A structured residual "
         "remains that no candidate represents; do not take this calibration as complete. "
-        if left["unexplained"]
-        else f"Residual after the loop: {rms:.4f} deg/s rms, {left['ratio']:.1f}× the "
-        f"noise floor ({left['noise_floor_dps']:.4f} deg/s, {left['noise_floor_method']}): explained. "
+        if left.unexplained
+        else f"Residual after the loop: {rms:.4f} deg/s rms, {left.ratio:.1f}× the "
+        f"noise floor ({left.noise_floor_dps:.4f} deg/s, {left.noise_floor_method}): explained. "
     )
     return [
         "## What stays unexplained",
         "",
         "(Held-out residual as a robust rms, from the median squared error; plain rms "
-        f"{left['held_out_rms_dps']:.4f} deg/s.)",
+        f"{left.held_out_rms_dps:.4f} deg/s.)",
         "",
         head + f"Where to look: {where_to_look(left)} (plot `unexplained_residual.png`: the residual "
         "against time and every candidate variable).",

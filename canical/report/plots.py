@@ -25,6 +25,7 @@ import numpy as np
 
 from canical.atomic_file import make_dirs, write_bytes_atomic
 from canical.closed_loop.blocks import Blocks
+from canical.closed_loop.findings import Confound, Effect
 from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
 from canical.sets.terms import term_from_dict
@@ -116,13 +117,13 @@ def residual_vs_rate(loop: LoopResult, path: Path) -> None:
     _save(fig, path)
 
 
-def effect_plot(loop: LoopResult, effect: dict, path: Path) -> None:
+def effect_plot(loop: LoopResult, effect: Effect, path: Path) -> None:
     """Partial residual: the final model's residual plus this effect's own contribution."""
     blocks = loop.blocks
     resid = blocks.points.rate - predict(loop.fit, blocks)
-    terms = tuple(term_from_dict(t) for t in effect["terms"])
+    terms = tuple(term_from_dict(t) for t in effect.terms)
     contribution = effect_contribution(loop.fit, blocks, terms)
-    x, label = variable_of(effect["name"], blocks, loop)
+    x, label = variable_of(effect.name, blocks, loop)
     # The correction subtracts the error, so the sensor's error is the negative contribution.
     fig, ax = plt.subplots(figsize=(8, 4.2))
     ax.plot(x, -(resid + contribution), ".", ms=3, alpha=0.6, label="sensor error explained (blocks)")
@@ -130,18 +131,18 @@ def effect_plot(loop: LoopResult, effect: dict, path: Path) -> None:
     ax.set_xlabel(label)
     ax.set_ylabel("rate error (deg/s)")
     ax.set_title(
-        f"Effect {effect['name']}: when added, held-out rms {effect['rms_before_dps']:.4f} -> "
-        f"{effect['rms_after_dps']:.4f} deg/s\n(points: every block, final fit; rms: {HELD_OUT})",
+        f"Effect {effect.name}: when added, held-out rms {effect.rms_before_dps:.4f} -> "
+        f"{effect.rms_after_dps:.4f} deg/s\n(points: every block, final fit; rms: {HELD_OUT})",
         fontsize=10,
     )
     ax.legend(loc="best", fontsize=8)
     _save(fig, path)
 
 
-def confounded_plot(loop: LoopResult, group: dict, path: Path) -> None:
+def confounded_plot(loop: LoopResult, group: Confound, path: Path) -> None:
     blocks = loop.blocks
     resid = blocks.points.rate - loop.base_fit.poly.evaluate(blocks.points.dv)[0]
-    names = group["candidates"][:2]
+    names = group.candidates[:2]
     fig, axes = plt.subplots(1, len(names), figsize=(9, 3.8), squeeze=False)
     for ax, name in zip(axes[0], names, strict=True):
         x, label = variable_of(name, blocks, loop)
@@ -175,10 +176,10 @@ def unexplained_plot(loop: LoopResult, path: Path) -> None:
     for ax in list(axes.flat)[len(order):]:
         ax.axis("off")
     left = account(resid, blocks.points.rate - predict(loop.fit, blocks), blocks, loop.candidates)
-    verdict = "UNEXPLAINED" if left["unexplained"] else "explained"
+    verdict = "UNEXPLAINED" if left.unexplained else "explained"
     fig.suptitle(
-        f"Held-out residual after the loop: {left['held_out_robust_rms_dps']:.4f} deg/s rms (robust), "
-        f"{left['ratio']:.1f}x the noise floor {left['noise_floor_dps']:.4f} deg/s ({verdict})\n({HELD_OUT})",
+        f"Held-out residual after the loop: {left.held_out_robust_rms_dps:.4f} deg/s rms (robust), "
+        f"{left.ratio:.1f}x the noise floor {left.noise_floor_dps:.4f} deg/s ({verdict})\n({HELD_OUT})",
         fontsize=10,
     )
     fig.tight_layout()
@@ -196,7 +197,7 @@ def write_plots(loop: LoopResult, directory: Path) -> list[Path]:
     written = [directory / "residual_vs_rate.png"]
     residual_vs_rate(loop, written[0])
     for i, effect in enumerate(loop.effects, 1):
-        path = directory / f"effect_{i}_{_file_name(effect['name'])}.png"
+        path = directory / f"effect_{i}_{_file_name(effect.name)}.png"
         effect_plot(loop, effect, path)
         written.append(path)
     for i, group in enumerate(loop.confounded, 1):

@@ -5,3 +5,12 @@
 python-can reads (names of the formats in the light :mod:`.canlog_format`). Imports only
 :mod:`canical.frames` and the ground floor.
 """
+
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "canlog",
+    "canlog_format",
+    "csv_file",
+    "session",
+]

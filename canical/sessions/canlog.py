@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import can
@@ -80,6 +80,46 @@ def default_inputs(
     return out
 
 
+FrameKey = tuple[int, bool]  # arbitration id, extended
+FrameMap = dict[FrameKey, tuple[Message, list[tuple[str, str]]]]  # the message and its (channel, signal)s
+
+
+@dataclass
+class _LogRows:
+    """One row per raw frame once every needed signal has a value; the others held as of it."""
+
+    channels: list[str]  # the session's channels, in order
+    needed: list[str]  # signals a row cannot be made without
+    has_ref: bool
+    held: dict[str, float] = field(default_factory=dict)
+    times: list[float] = field(default_factory=list)
+    frame_no: list[int] = field(default_factory=list)
+    settled: list[float] = field(default_factory=list)
+    raws: list[float] = field(default_factory=list)
+    rows: list[list[float]] = field(default_factory=list)
+    refs: list[float] = field(default_factory=list)
+    frames: int = 0
+    skipped: int = 0
+    dropped: int = 0
+
+    def hold(self, values: Mapping[str, object], pairs: list[tuple[str, str]]) -> None:
+        for channel, sig in pairs:
+            self.held[channel] = _number(values, sig)
+
+    def add(self, timestamp: float, raw: float) -> None:
+        """A raw frame: a row, or skipped while a needed signal has not been seen."""
+        if any(c not in self.held for c in self.needed):
+            self.skipped += 1
+            return
+        self.times.append(timestamp)
+        self.frame_no.append(self.frames)
+        self.settled.append(self.held.get("\0settled", 1.0))
+        self.raws.append(raw)
+        self.rows.append([self.held[c] for c in self.channels])
+        if self.has_ref:
+            self.refs.append(self.held["\0ref"])
+
+
 def read_canlog(
     path: str | os.PathLike[str],
     *,
@@ -106,6 +146,26 @@ def read_canlog(
     raw_sig = raw_signal or f"GyroRaw{axis.upper()}"
     if raw_sig not in {s.name for s in raw.signals}:
         raise CanicalError(f"{dbc}: message {raw.name} has no signal {raw_sig} (axis {axis})")
+    wanted = _wanted_signals(db, inputs, ref)
+    by_id = _frames_by_id(db, dbc, wanted)
+    raw_key = (raw.frame_id, raw.is_extended_frame)
+    raw_pairs = by_id.pop(raw_key, (raw, []))[1]
+    log = _LogRows(channels=[c for c in wanted if not c.startswith("\0")],
+                   needed=[c for c in wanted if c not in ("\0axis", "\0settled")], has_ref=ref is not None)
+    try:
+        for frame in can.LogReader(name):
+            _take_frame(log, frame, raw, raw_sig, raw_pairs, by_id)
+    except CanicalError:
+        raise
+    except Exception as exc:  # python-can's readers raise many types on a damaged file
+        raise CanicalError(f"{name}: cannot read CAN log after {log.frames} frames ({exc})") from None
+    return CanlogSession(_session(log, name, raw.name, axis, sensor), log.frames, log.skipped, log.dropped,
+                         _table_axis(log.held))
+
+
+def _wanted_signals(db: Database, inputs: Mapping[str, str], ref: str | None) -> dict[str, str]:
+    """Channel -> ``MESSAGE.Signal`` of everything to hold: the inputs, the reference and, when the
+    DBC has the table's message, its axis and (with its rate) its settled flag, as ``\0`` names."""
     wanted = dict(inputs)
     if ref is not None:
         wanted["\0ref"] = ref
@@ -114,8 +174,12 @@ def read_canlog(
         table_signals = {sg.name for sg in db.get_message_by_name(TABLE_AXIS.split(".")[0]).signals}
         if ref == DEFAULT_REF and TABLE_SETTLED.split(".")[1] in table_signals:
             wanted.setdefault("\0settled", TABLE_SETTLED)  # the table's own flag goes with its rate
-    # frame id -> (message, [(channel, signal)])
-    by_id: dict[tuple[int, bool], tuple[Message, list[tuple[str, str]]]] = {}
+    return wanted
+
+
+def _frames_by_id(db: Database, dbc: str | os.PathLike[str], wanted: Mapping[str, str]) -> FrameMap:
+    """Frame id -> (message, [(channel, signal)]) of the wanted signals, each checked in the DBC."""
+    by_id: FrameMap = {}
     for channel, sref in wanted.items():
         msg_name, _, sig_name = sref.partition(".")
         msg = _message(db, msg_name, dbc)
@@ -126,86 +190,63 @@ def read_canlog(
             raise CanicalError(f"{sref}: multiplexed messages are not supported as channels")
         key = (msg.frame_id, msg.is_extended_frame)
         by_id.setdefault(key, (msg, []))[1].append((channel, sig_name))
-    raw_key = (raw.frame_id, raw.is_extended_frame)
-    raw_pairs = by_id.pop(raw_key, (raw, []))[1]
+    return by_id
 
-    held: dict[str, float] = {}
-    channels = [c for c in wanted if not c.startswith("\0")]
-    needed = [c for c in wanted if c not in ("\0axis", "\0settled")]
-    times: list[float] = []
-    frame_no: list[int] = []
-    settled: list[float] = []
-    raws: list[float] = []
-    rows: list[list[float]] = []
-    refs: list[float] = []
-    frames = skipped = dropped = 0
-    try:
-        reader = can.LogReader(name)
-        for frame in reader:
-            frames += 1
-            if frame.is_error_frame or frame.is_remote_frame or frame.is_fd:
-                dropped += 1
-                continue
-            key = (frame.arbitration_id, frame.is_extended_id)
-            if key == raw_key:
-                if len(frame.data) != raw.length:
-                    dropped += 1
-                    continue
-                values = _signals(raw, frame.data)
-                for channel, sig in raw_pairs:
-                    held[channel] = _number(values, sig)
-                if any(c not in held for c in needed):
-                    skipped += 1
-                    continue
-                times.append(float(frame.timestamp))
-                frame_no.append(frames)
-                settled.append(held.get("\0settled", 1.0))
-                raws.append(_number(values, raw_sig))
-                rows.append([held[c] for c in channels])
-                if ref is not None:
-                    refs.append(held["\0ref"])
-                continue
-            entry = by_id.get(key)
-            if entry is None:
-                continue
-            msg_def, pairs = entry
-            if len(frame.data) != msg_def.length:
-                dropped += 1
-                continue
-            values = _signals(msg_def, frame.data)
-            for channel, sig in pairs:
-                held[channel] = _number(values, sig)
-    except CanicalError:
-        raise
-    except Exception as exc:  # python-can's readers raise many types on a damaged file
-        raise CanicalError(f"{name}: cannot read CAN log after {frames} frames ({exc})") from None
-    if not raws:
-        what = f"{raw.name} frames" if frames else "frames"
-        extra = f" with {', '.join(c.strip(chr(0)) or 'ref' for c in needed)} seen" if needed else ""
-        raise CanicalError(f"{name}: no {what}{extra} in {frames} frames")
-    data = np.asarray(rows, dtype=float).reshape(len(raws), len(channels))
-    aux = {c: data[:, i] for i, c in enumerate(channels)}
-    t = np.asarray(times)
+
+def _take_frame(log: _LogRows, frame: can.Message, raw: Message, raw_sig: str,
+                raw_pairs: list[tuple[str, str]], by_id: FrameMap) -> None:
+    """One frame of the log, as the daemon takes it: dropped, a row (a raw frame), held, or ignored."""
+    log.frames += 1
+    if frame.is_error_frame or frame.is_remote_frame or frame.is_fd:
+        log.dropped += 1
+        return
+    key = (frame.arbitration_id, frame.is_extended_id)
+    is_raw = key == (raw.frame_id, raw.is_extended_frame)
+    entry = (raw, raw_pairs) if is_raw else by_id.get(key)
+    if entry is None:
+        return
+    msg_def, pairs = entry
+    if len(frame.data) != msg_def.length:
+        log.dropped += 1
+        return
+    values = _signals(msg_def, frame.data)
+    log.hold(values, pairs)
+    if is_raw:
+        log.add(float(frame.timestamp), _number(values, raw_sig))
+
+
+def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | None) -> Session:
+    """The rows as a session: in time order when it has a reference (a drive is corrected as is)."""
+    if not log.raws:
+        what = f"{raw_name} frames" if log.frames else "frames"
+        extra = f" with {', '.join(c.strip(chr(0)) or 'ref' for c in log.needed)} seen" if log.needed else ""
+        raise CanicalError(f"{name}: no {what}{extra} in {log.frames} frames")
+    data = np.asarray(log.rows, dtype=float).reshape(len(log.raws), len(log.channels))
+    aux = {c: data[:, i] for i, c in enumerate(log.channels)}
+    t = np.asarray(log.times)
     back = np.flatnonzero(np.diff(t) < 0)
-    if ref is not None and back.size:  # a session must be in time order; a drive is corrected as is
+    if log.has_ref and back.size:
         i = int(back[0]) + 1
-        raise CanicalError(f"{name}: frame {frame_no[i]}: timestamp goes backwards "
+        raise CanicalError(f"{name}: frame {log.frame_no[i]}: timestamp goes backwards "
                            f"({t[i]:.6f} after {t[i - 1]:.6f})")
     time_s = aux.pop(TIME_INPUT) if TIME_INPUT in aux else t - t[0]
-    axis_code = held.get("\0axis")
-    table_axis = {0: "x", 1: "y", 2: "z"}.get(int(axis_code)) if axis_code is not None else None
     meta = {"axis": axis, "source": Path(name).name}
     if sensor:
         meta = {"sensor": sensor, **meta}
-    session = Session(
+    return Session(
         time_s=time_s,
-        raw=np.asarray(raws),
-        ref_dps=np.asarray(refs) if ref is not None else None,
+        raw=np.asarray(log.raws),
+        ref_dps=np.asarray(log.refs) if log.has_ref else None,
         aux=aux,
         meta=meta,
-        settled=np.asarray(settled) != 0 if "\0settled" in held else None,
+        settled=np.asarray(log.settled) != 0 if "\0settled" in log.held else None,
     )
-    return CanlogSession(session, frames, skipped, dropped, table_axis)
+
+
+def _table_axis(held: Mapping[str, float]) -> str | None:
+    """The axis the table last reported turning, if it reports one."""
+    axis_code = held.get("\0axis")
+    return {0: "x", 1: "y", 2: "z"}.get(int(axis_code)) if axis_code is not None else None
 
 
 def _signals(message: Message, data: bytearray) -> Mapping[str, object]:

@@ -30,12 +30,6 @@ def log_format(path: str | os.PathLike[str]) -> str:
     return suffixes[-1] if suffixes else ""
 
 
-def log_suffix(path: str | os.PathLike[str]) -> str:
-    """The suffix python-can dispatches on, with its ``.gz``: ``x.asc.gz`` -> ``.asc.gz``."""
-    fmt = log_format(path)
-    return fmt + ".gz" if Path(path).suffix.lower() == ".gz" else fmt
-
-
 def is_canlog(path: str | os.PathLike[str]) -> bool:
     """Whether a file is a CAN log (anything else is read as a session CSV).
 

@@ -12,3 +12,16 @@ the ground floor; the grid trials that run calibration on it are :mod:`canical.t
   not told about (:class:`canical.sim.gyro.Effect`);
 * :mod:`canical.sim.sessions` — ready-made sessions: the paper's protocol, its validation records.
 """
+
+# The package's public face: the submodules (and names) other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = [
+    "effects",
+    "environment",
+    "gyro",
+    "imu_stream",
+    "rate_table",
+    "scenarios",
+    "sessions",
+    "table_recording",
+]

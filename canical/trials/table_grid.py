@@ -106,7 +106,7 @@ def held_out_rms(behaviour: TableBehaviour, *, seed: int, dwell_s: float, fs_hz:
     session, rec = recorded_sweep(gyro or GyroModel(), rates, behaviour, dwell_s=dwell_s,
                                   fs_hz=fs_hz, seed=seed)
     result = calibrate(session, CalibrateOptions(extend=False), sensor_id="SIM", axis="z")
-    return float(result.report["held_out"]["rms_dps"]), result, (session, rec)
+    return float(result.report.held_out.rms_dps), result, (session, rec)
 
 
 def score_cell(name: str, behaviour: TableBehaviour, *, seed: int = 0, dwell_s: float = 5.0,

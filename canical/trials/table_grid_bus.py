@@ -164,7 +164,7 @@ def stream_held_out_rms(behaviour: TableBehaviour, *, seed: int = 0, **kw) -> fl
     """Held-out rms of :func:`stream_session` calibrated as ``canical calibrate`` does."""
     result = calibrate(stream_session(behaviour, seed=seed, **kw), CalibrateOptions(extend=False),
                        sensor_id="IMU-NO-BUS", axis="z")
-    return float(result.report["held_out"]["rms_dps"])
+    return float(result.report.held_out.rms_dps)
 
 
 def pooled_bus_ratio(results: list[BusCellResult], ideal: dict[int, BusCellResult]) -> float:

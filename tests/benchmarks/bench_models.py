@@ -76,8 +76,8 @@ def main() -> None:
         result = calibrate(big, CalibrateOptions(extend=extend), sensor_id="BENCH", axis="z")
         seconds = time.perf_counter() - t0
         what = "with the closed loop" if extend else "rate model only    "
-        print(f"  in memory, {what}: {len(big):,} samples: {seconds:.2f} s  ({result.report['spec']}, "
-              f"held-out rms {result.report['held_out']['rms_dps']:.4f} deg/s)")
+        print(f"  in memory, {what}: {len(big):,} samples: {seconds:.2f} s  ({result.report.spec}, "
+              f"held-out rms {result.report.held_out.rms_dps:.4f} deg/s)")
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "big.csv"
         path.write_text(format_session(big))

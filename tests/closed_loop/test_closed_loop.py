@@ -101,7 +101,7 @@ def test_noise_channels_are_never_picked(seed):
     rates = np.random.default_rng(seed).permutation(paper_rates())
     session = sweep_session(GyroModel(), rates, dwell_s=8.0, seed=seed, aux=aux)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    assert result.report["effects"] == []
+    assert result.report.effects == ()
     assert result.coefficients.terms == ()
 
 
@@ -110,15 +110,15 @@ def test_prefer_resolves_a_confounded_pair():
     # seed 1: the session at which the warm-up was once attributed outright (see above)
     session = scenario.session(seed=1, dwell_s=8.0)
     result = calibrate(session, CalibrateOptions(prefer=("channel:temp_c",)), sensor_id="S", axis="z")
-    assert [e["name"] for e in result.report["effects"]] == ["channel:temp_c"]
-    assert result.report["confounded"][0]["resolved_by_user"] == "channel:temp_c"
-    assert "random order" in result.report["confounded"][0]["recommendation"]
+    assert [e.name for e in result.report.effects] == ["channel:temp_c"]
+    assert result.report.confounded[0].resolved_by_user == "channel:temp_c"
+    assert "random order" in result.report.confounded[0].recommendation
     # The report says on what evidence: the paired test's p for each twin, all above its level.
     from canical.report.markdown import render
 
-    group = result.report["confounded"][0]
-    assert set(group["paired_p"]) == set(group["candidates"][1:])
-    assert min(group["paired_p"].values()) >= group["paired_alpha"]
+    group = result.report.confounded[0]
+    assert set(group.paired_p) == set(group.candidates[1:])
+    assert min(group.paired_p.values()) >= group.paired_alpha
     assert "paired test, one-sided, level 0.01" in render(result.report, [])
 
 
@@ -189,9 +189,10 @@ def test_time_candidates_tied_to_the_rate_order_are_reported_not_fitted():
     gyro = GyroModel(effects=(fx.WarmupEffect(0.2, 200.0),))
     session = sweep_session(gyro, paper_rates(), dwell_s=2.0, fs_hz=100.0, seed=2)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    names = {u["candidate"] for u in result.report["closed_loop"]["untestable"]}
+    assert result.report.closed_loop is not None
+    names = {u.candidate for u in result.report.closed_loop.untestable}
     assert {"time:warm-up", "time:linear-drift"} <= names
-    assert all(e["kind"] != "time" for e in result.report["effects"])
+    assert all(e.kind != "time" for e in result.report.effects)
 
 
 CLEAN_NOISE = {
@@ -210,9 +211,9 @@ def test_clean_sensors_get_nothing_blamed_on_a_channel(noise, seed):
     rates = np.random.default_rng(seed).permutation(np.repeat(paper_rates(), 2))
     session = sweep_session(CLEAN_NOISE[noise], rates, dwell_s=6.0, seed=seed, aux=scenario.aux)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    assert [e["name"] for e in result.report["effects"] if e["kind"] == "channel"] == []
+    assert [e.name for e in result.report.effects if e.kind == "channel"] == []
     assert not any(t["kind"] == "channel" for t in result.coefficients.terms)
-    assert not result.report["unexplained"]["unexplained"]
+    assert result.report.unexplained is not None and not result.report.unexplained.unexplained
 
 
 def test_allan_terms_switch_on_and_off():
@@ -275,7 +276,7 @@ def test_thermal_transient_set_corrects_sample_by_sample():
     scenario = next(s for s in SCENARIOS if s.name.startswith("thermal transient: bias"))
     session = scenario.session(seed=5, dwell_s=8.0)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    assert [e["name"] for e in result.report["effects"]] == ["d/dt temp_c"]
+    assert [e.name for e in result.report.effects] == ["d/dt temp_c"]
     cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
     inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
     assert set(Corrector(cset).required_inputs) == {"temp_c", "time_s"}
@@ -297,10 +298,10 @@ def test_rate_gated_effect_is_found_with_its_knee_and_applied_sample_by_sample()
     scenario = next(s for s in SCENARIOS if s.name.startswith("temperature scale error only above"))
     session = scenario.session(seed=6, dwell_s=8.0)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    effects = result.report["effects"]
-    assert [e["name"] for e in effects] == ["temp_c × (|rate| > knee)"]
-    knee = float(effects[0]["description"].split("> ")[1].split(" dps")[0])
-    assert 25 <= knee <= 35, effects[0]["description"]
+    effects = result.report.effects
+    assert [e.name for e in effects] == ["temp_c × (|rate| > knee)"]
+    knee = float(effects[0].description.split("> ")[1].split(" dps")[0])
+    assert 25 <= knee <= 35, effects[0].description
     assert {t["feature"] for t in result.coefficients.terms} == {"gated"}
     cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
     assert Corrector(cset).required_inputs == ("temp_c",)

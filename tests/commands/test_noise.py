@@ -165,5 +165,5 @@ def test_closed_loop_blames_no_channel_for_bias_instability_and_rate_random_walk
     wander = flicker_rate(rng, len(session), 200.0, 50.0) + rate_random_walk(rng, len(session), 200.0, 200.0)
     noisy = replace(session, raw=np.round(session.raw + gyro.sensitivity * wander))
     result = calibrate(noisy, CalibrateOptions(), sensor_id="SIM", axis="z")
-    assert result.report["effects"] == []
+    assert result.report.effects == ()
     assert result.coefficients.terms == ()
