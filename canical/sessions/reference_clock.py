@@ -5,18 +5,20 @@ A table controller logs its rate to its own file, stamped by its own clock: anot
 (drift). The sensor's log has no table rate, but its raw output changes exactly when the
 table's rate does, so the two recordings can be lined up on those changes alone:
 
-* **Coarse**: both are smoothed onto a common time grid and differentiated; the lag where
-  the table's rate changes and the sensor's output changes correlate best is the offset.
-  The correlation is not normalised by the overlap, so a lag matching more changes wins
-  (the ends of a programme of equal steps tell its shifts apart). Drift is searched too, in
-  steps small enough that it never smears a change by more than a fraction of the smoothing.
-  A second peak as high as the best within the correlation's own noise is **ambiguous**
-  (a periodic programme, the sensor recording only part of the table's file): refused.
+* **Coarse**: both are smoothed onto a common time grid and differentiated; the lags where
+  the table's rate changes and the sensor's output changes correlate best are candidate
+  offsets. Drift is searched too, in steps small enough that it never smears a change by
+  more than a fraction of the smoothing. A programme of equal steps correlates nearly as
+  well shifted by one step, so the best few peaks are all refined.
 * **Fine**: each rate change the table shows is matched on its own, in a window around it,
   by the lag where the sensor's output best follows the table's rate (an affine fit: the
   sensor's scale and bias do not matter; its nonlinearity is nearly affine over one change).
   Steps are located by their edges, ramps by their corners.
 * **Offset and drift** are then a robust least-squares line through those lags against time.
+  Of the candidates, the one matching the most rate changes inside the session wins (the
+  ends of a programme tell its shifts apart: shifted, one change falls outside or finds no
+  partner). Two matching as many are **ambiguous** (a repeating programme, the sensor
+  recording only part of the table's file): refused, as are too few shared changes.
 
 The table's rate is joined to the sensor's samples as bus frames would be: each sample
 holds the latest table row as of its instant (so plateau finding sees a held reference,
@@ -26,7 +28,7 @@ left out. Pure numpy; errors are one line saying why the files cannot be aligned
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,7 +37,8 @@ from canical.errors import CanicalError
 GRID_S = 0.05  # common grid of the coarse search
 SMOOTH_S = 0.25  # each grid point is the mean over this window
 MAX_DRIFT_PPM = 1000.0  # clock rate errors searched (crystals are within ±100 ppm)
-AMBIGUITY_SIGMAS = 6.0  # a second alignment this close to the best, in its noise, is ambiguous
+CANDIDATES = 3  # coarse alignments refined: the best and those nearly as good
+CANDIDATE_SHARE = 0.8  # ...correlating at least this share of the best
 MAIN_LOBE = 0.5  # the best peak's lobe: lags where the correlation stays above half of it
 EVENT_SIGMAS = 8.0  # the table's rate is changing where its derivative exceeds this many sigmas
 MERGE_S = 0.5  # changes closer than this are one rate change
@@ -47,6 +50,8 @@ FINE_STEP_S = 0.0005
 MIN_FIT = 0.5  # a change matches when the sensor follows the table's rate this well (r²) there
 MIN_EVENTS = 3  # matched rate changes needed (offset, drift and a check)
 OUTLIER_SIGMAS = 4.0
+STEP_SHARE = 0.9  # a change is one step when one row-to-row jump carries this much of it
+MIN_HALF_WIDTH_S = 0.0025  # rows this close (200 Hz) locate a step as well as the sensor does
 
 
 @dataclass(frozen=True)
@@ -65,9 +70,10 @@ class ClockFit:
     offset_s: float
     drift_ppm: float
     events: int  # rate changes matched and used
-    rejected: int  # rate changes that did not match (or were outliers)
+    rejected: int  # rate changes matched but off the line (outliers)
     residual_s: float  # rms of the matched changes' lags about the fitted line
     overlap_s: float  # session time covered by the table's file
+    unmatched: int = 0  # the table's rate changes inside the session the sensor does not follow
 
     def to_table(self, session_s: np.ndarray) -> np.ndarray:
         return self.offset_s + (1.0 + self.drift_ppm * 1e-6) * np.asarray(session_s, dtype=float)
@@ -78,7 +84,8 @@ class ClockFit:
             "offset_s": self.offset_s,
             "drift_ppm": self.drift_ppm,
             "rate_changes_matched": self.events,
-            "rate_changes_rejected": self.rejected,
+            "rate_changes_off_the_line": self.rejected,
+            "rate_changes_unmatched": self.unmatched,
             "residual_ms": 1e3 * self.residual_s,
             "overlap_s": self.overlap_s,
         }
@@ -99,7 +106,12 @@ class _Coarse:
 
 
 def align_reference(time_s: np.ndarray, raw: np.ndarray, table: TableTrace) -> ClockFit:
-    """Offset and drift of the table's clock against the session's, from the rate changes both show."""
+    """Offset and drift of the table's clock against the session's, from the rate changes both show.
+
+    Each alignment the coarse search finds nearly as good as its best is refined; the one whose
+    line matches the most of the table's rate changes inside the session (less those it cannot
+    match) wins. A tie is ambiguous: a repeating programme seen only in part.
+    """
     t = np.asarray(time_s, dtype=float)
     x = np.asarray(raw, dtype=float)
     tt = np.asarray(table.time_s, dtype=float)
@@ -110,16 +122,41 @@ def align_reference(time_s: np.ndarray, raw: np.ndarray, table: TableTrace) -> C
     if not events:
         raise CanicalError(f"{table.source}: cannot align: the table's rate never changes "
                            "(no rate changes to line up with the sensor's)")
-    coarse = coarse_alignment(t, x, tt, ref, table.source)
+    scored: list[tuple[int, ClockFit]] = []
+    failure = ""
+    for coarse in coarse_alignments(t, x, tt, ref, table.source):
+        try:
+            fit = refined(t, x, tt, ref, events, coarse, table.source)
+        except CanicalError as exc:
+            failure = failure or str(exc)
+            continue
+        scored.append((fit.events + fit.rejected - fit.unmatched, fit))
+    if not scored:
+        raise CanicalError(failure)
+    scored.sort(key=lambda s: -s[0])
+    best = scored[0][1]
+    if len(scored) > 1 and scored[1][0] == scored[0][0]:
+        other = scored[1][1]
+        raise CanicalError(
+            f"{table.source}: cannot align: ambiguous: the table's clock offset by {best.offset_s:.4f} s "
+            f"and by {other.offset_s:.4f} s each match {scored[0][0]} rate changes (a repeating programme, "
+            "or a table file covering more than the log): trim the table's file to the session or vary "
+            "the steps or dwells")
+    return best
+
+
+def refined(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray,
+            events: list[tuple[float, float]], coarse: _Coarse, source: str) -> ClockFit:
+    """One coarse alignment refined on the rate changes inside the session."""
     fit = ClockFit(coarse.offset_s, coarse.drift * 1e6, 0, 0, 0.0, 0.0)
     inside = [e for e in events if _covered(fit, t, e)]
     if len(inside) < MIN_EVENTS:
         raise CanicalError(
-            f"{table.source}: cannot align: too little overlap: at the best alignment the log shares "
+            f"{source}: cannot align: too little overlap: at the best alignment the log shares "
             f"{_overlap_s(fit, t, tt):.3g} s and {len(inside)} rate changes with the table's file "
             f"(at least {MIN_EVENTS} are needed)")
     for _ in range(2):  # the second pass searches around the first one's line
-        fit = refine(t, x, tt, ref, inside, fit, table.source)
+        fit = refine(t, x, tt, ref, inside, fit, source)
     return fit
 
 
@@ -163,61 +200,30 @@ def smoothed_grid(t: np.ndarray, x: np.ndarray, start: float, stop: float,
     return grid, level
 
 
-def coarse_alignment(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray,
-                     source: str) -> _Coarse:
-    """The offset (and drift) where the sensor's and the table's rate changes correlate best."""
+def coarse_alignments(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray,
+                      source: str) -> list[_Coarse]:
+    """Offsets (and the drift) where the sensor's and the table's rate changes correlate best:
+    the best, then other peaks nearly as high (a shifted programme of equal steps)."""
     _, table_level = smoothed_grid(tt, ref, tt[0], tt[-1])
     a = np.diff(table_level)
     duration = float(t[-1] - t[0])
-    drift_step = SMOOTH_S / 4 / max(duration, 1.0)
+    drift_step = SMOOTH_S / 8 / max(duration, 1.0)
     n_drift = int(np.ceil(MAX_DRIFT_PPM * 1e-6 / drift_step))
-    best: tuple[float, float, int, np.ndarray, np.ndarray] | None = None
+    best: tuple[float, float, np.ndarray, int] | None = None
     for drift in drift_step * np.arange(-n_drift, n_drift + 1):
         # The sensor's grid runs at the table's grid step in table time.
         _, level = smoothed_grid(t, x, t[0], t[-1], scale=1.0 / (1.0 + drift))
         b = np.diff(level)
-        c = _cross_correlation(a, b)
-        k = int(np.argmax(np.abs(c)))
-        if best is None or abs(c[k]) > abs(best[0]):
-            best = (float(c[k]), float(drift), k, c, b)
+        c = np.abs(_cross_correlation(a, b))
+        k = int(np.argmax(c))
+        if best is None or c[k] > best[0]:
+            best = (float(c[k]), float(drift), c, b.size)
     assert best is not None
-    peak, drift, k, c, b = best
-    if peak == 0.0 or not np.any(b):
+    peak, drift, c, n_b = best
+    if peak == 0.0:
         raise CanicalError(f"{source}: cannot align: the sensor's output shows no rate changes")
-    second, k2 = _second_peak(c, k)
-    noise = np.sqrt(_level_noise(t, x) ** 2 * _smoothed_power(np.diff(a))
-                    + _level_noise(tt, ref) ** 2 * _smoothed_power(np.diff(b)))
-    lag = k - (b.size - 1)  # table index minus sensor index
-    if abs(peak) - second < AMBIGUITY_SIGMAS * np.sqrt(2.0) * noise:
-        other = k2 - (b.size - 1)
-        raise CanicalError(
-            f"{source}: cannot align: ambiguous: the rate changes line up about as well with the table's "
-            f"clock shifted by {abs(other - lag) * GRID_S:.4g} s (a repeating programme, or a table file "
-            "covering more than the log): trim the table's file to the session or vary the steps")
-    offset = tt[0] + lag * GRID_S - (1.0 + drift) * t[0]
-    return _Coarse(float(offset), drift)
-
-
-def _level_noise(t: np.ndarray, x: np.ndarray) -> float:
-    """Noise of one smoothed grid value: the rows' own noise (from their differences) over √(rows in a window)."""
-    per_row = _robust_sigma(np.diff(x)) / np.sqrt(2.0)
-    dt = np.diff(t)
-    row_s = float(np.median(dt[dt > 0])) if np.any(dt > 0) else SMOOTH_S
-    return per_row / np.sqrt(max(1.0, SMOOTH_S / row_s))
-
-
-def _smoothed_power(w: np.ndarray) -> float:
-    """``Var(Σ w_i·L_i) / σ_L²`` for grid values ``L`` that are means over overlapping windows.
-
-    The correlation is ``Σ a_i·(L_{i+1} - L_i) = -Σ (a_i - a_{i-1})·L_i``: its noise is that of the
-    smoothed levels weighted by the other signal's second difference; neighbouring levels share
-    rows (correlation ``1 - k/m`` at ``k`` grid steps, ``m`` steps per window).
-    """
-    m = max(1, round(SMOOTH_S / GRID_S))
-    total = float(w @ w)
-    for k in range(1, m):
-        total += 2 * (1 - k / m) * float(w[:-k] @ w[k:])
-    return max(total, 0.0)
+    return [_Coarse(float(tt[0] + (k - (n_b - 1)) * GRID_S - (1.0 + drift) * t[0]), drift)
+            for k in _peaks(c)]
 
 
 def _cross_correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -228,23 +234,33 @@ def _cross_correlation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.concatenate((c[size - (b.size - 1):], c[: a.size])) if b.size > 1 else c[: a.size]
 
 
-def _second_peak(c: np.ndarray, k: int) -> tuple[float, int]:
-    """The highest |c| outside the best peak's main lobe, and where it is."""
-    mag = np.abs(c)
-    low = mag < MAIN_LOBE * mag[k]
-    left = np.flatnonzero(low[:k])
-    right = np.flatnonzero(low[k:])
-    lo = int(left[-1]) if left.size else 0
-    hi = k + int(right[0]) if right.size else c.size
-    outside = np.concatenate((mag[:lo], np.zeros(hi - lo), mag[hi:]))
-    j = int(np.argmax(outside))
-    return float(outside[j]), j
+def _peaks(c: np.ndarray) -> list[int]:
+    """The highest peak of ``c`` and up to ``CANDIDATES - 1`` others at least ``CANDIDATE_SHARE``
+    of its height, each outside the others' lobes (where ``c`` stays above half its peak)."""
+    mag = c.copy()
+    top = float(mag.max())
+    found: list[int] = []
+    while len(found) < CANDIDATES:
+        k = int(np.argmax(mag))
+        if found and mag[k] < CANDIDATE_SHARE * top:
+            break
+        found.append(k)
+        low = mag < MAIN_LOBE * mag[k]
+        left, right = np.flatnonzero(low[:k]), np.flatnonzero(low[k:])
+        mag[(int(left[-1]) if left.size else 0):(k + int(right[0]) if right.size else mag.size)] = 0.0
+    return found
 
 
 def refine(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray,
            events: list[tuple[float, float]], fit: ClockFit, source: str) -> ClockFit:
-    """Each rate change matched on its own, then a robust line through their lags."""
-    centres, lags = [], []
+    """Each rate change matched on its own, then a robust line through their lags.
+
+    Where every matched change is a step the table recorded between two rows, each lag is
+    known only to within half the rows' spacing (the step happened somewhere between them):
+    the line is then the one that stays deepest inside all those intervals, which a table
+    whose rows fall at varying phases of its steps narrows far below one row's spacing.
+    """
+    centres, lags, halves = [], [], []
     for i, (start, end) in enumerate(events):
         before = start - events[i - 1][1] if i else MAX_PAD_S
         after = events[i + 1][0] - end if i + 1 < len(events) else MAX_PAD_S
@@ -254,6 +270,7 @@ def refine(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray,
         if lag is not None:
             centres.append(_to_session(fit, (start + end) / 2))
             lags.append(lag)
+            halves.append(step_half_width(tt, ref, start, end))
     if len(lags) < MIN_EVENTS:
         raise CanicalError(
             f"{source}: cannot align: the sensor's output follows only {len(lags)} of the table's "
@@ -266,12 +283,49 @@ def refine(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray,
         resid = lag_s - (intercept + slope * tc)
         spread = max(_robust_sigma(resid[keep]), 1e-4)
         keep = np.abs(resid) <= OUTLIER_SIGMAS * spread
+    half = np.asarray(halves)[keep]
+    if np.all(half > 0) and np.median(half) > MIN_HALF_WIDTH_S:
+        intercept, slope = deepest_line(tc[keep], lag_s[keep], half, float(intercept), float(slope))
+        resid = lag_s - (intercept + slope * tc)
     scale = 1.0 + fit.drift_ppm * 1e-6 + slope
     offset = fit.offset_s + intercept
-    result = ClockFit(float(offset), float((scale - 1.0) * 1e6), int(keep.sum()), len(events) - int(keep.sum()),
+    used = int(keep.sum())
+    result = ClockFit(float(offset), float((scale - 1.0) * 1e6), used, tc.size - used,
                       float(np.sqrt(np.mean(resid[keep] ** 2))), 0.0)
-    return ClockFit(result.offset_s, result.drift_ppm, result.events, result.rejected, result.residual_s,
-                    _overlap_s(result, t, tt))
+    return replace(result, unmatched=len(events) - tc.size, overlap_s=_overlap_s(result, t, tt))
+
+
+def step_half_width(tt: np.ndarray, ref: np.ndarray, start: float, end: float) -> float:
+    """Half the spacing of the two rows a step fell between; 0 when the change is not one step."""
+    rows = np.flatnonzero((tt >= start - SMOOTH_S) & (tt <= end + SMOOTH_S))
+    if rows.size < 2:
+        return 0.0
+    d = np.diff(ref[rows])
+    j = int(np.argmax(np.abs(d)))
+    total = ref[rows[-1]] - ref[rows[0]]
+    if total == 0 or abs(d[j]) < STEP_SHARE * abs(total):
+        return 0.0
+    return float(tt[rows[j] + 1] - tt[rows[j]]) / 2
+
+
+def deepest_line(tc: np.ndarray, lag: np.ndarray, half: np.ndarray, intercept: float,
+                 slope: float) -> tuple[float, float]:
+    """The line (intercept, slope) deepest inside every interval ``lag ± half``: the largest
+    smallest margin, by a grid search that zooms in around the least-squares line."""
+    centre = float(np.mean(tc))
+    a0 = intercept + slope * centre  # intercept at the centre: the two are then nearly independent
+    span = max(float(np.ptp(tc)), 1.0)
+    da, db = float(np.max(half)), 2 * float(np.max(half)) / span
+    best = (a0, slope)
+    for _ in range(4):
+        a = best[0] + da * np.linspace(-1, 1, 41)
+        b = best[1] + db * np.linspace(-1, 1, 41)
+        pred = a[:, None, None] + b[None, :, None] * (tc - centre)[None, None, :]
+        margin = np.min(half - np.abs(lag - pred), axis=2)
+        i, j = np.unravel_index(int(np.argmax(margin)), margin.shape)
+        best = (float(a[i]), float(b[j]))
+        da, db = da / 10, db / 10
+    return best[0] - best[1] * centre, best[1]
 
 
 def event_lag(t: np.ndarray, x: np.ndarray, tt: np.ndarray, ref: np.ndarray, fit: ClockFit,
