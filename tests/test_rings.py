@@ -22,7 +22,7 @@ RINGS: tuple[tuple[str, ...], ...] = (
     ("yaml_text", "output_plan", "imu_dictionary"),
     ("atomic_file",),
     ("models", "frames"),
-    ("calibrate", "sessions"),
+    ("calibrate", "sessions", "tracking"),
     ("sets",),
     ("closed_loop", "sim"),
     ("calibration_report",),

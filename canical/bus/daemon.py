@@ -40,10 +40,18 @@ from socket import MSG_DONTWAIT
 from typing import Any
 
 import can
-from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG, CANFD_MTU
+from can.interfaces.socketcan.constants import (
+    CAN_EFF_FLAG,
+    CAN_ERR_FLAG,
+    CAN_RAW_FILTER,
+    CAN_RTR_FLAG,
+    CANFD_MTU,
+    SOL_CAN_RAW,
+)
 
 from canical.bus import active_sets
 from canical.bus.active_sets import ActiveSets
+from canical.bus.bias_tracking import DaemonTracking
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.frame_handler import (
     NO_PLAN,
@@ -83,6 +91,7 @@ from canical.frames.codec import StatusEncoder, load_dbc
 __all__ = ["BusFactory", "Daemon"]
 
 log = logging.getLogger("canical.serve")
+BIAS_PAGE = 3  # the status frame's page for the learned bias (canical.bus.bias_tracking)
 
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
 RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
@@ -111,8 +120,11 @@ class Daemon:
         self._counter_at = layout.counter_at
         self._input_handlers = layout.input_handlers
         self._raw_values, self._raw_length = self.raw.values, self.raw.length
-        self._encode_rate = self.rate.encode_in_order  # None: encode_xyz arranges the values
+        # None: encode_xyz arranges the values (or no rate frame is sent: frames.rate null).
+        self._encode_rate = None if self.rate is None else self.rate.encode_in_order
         self._rate_head, self._rate_pad = layout.rate_head, layout.rate_pad
+        self._own = layout.own  # the corrected frame in the raw frame's layout (None: not sent)
+        self.out_bus: can.BusABC | None = None  # the gateway's output bus (None: the sensor's bus)
         self._counter_mask, self._tx_counter_mask = layout.counter_mask, layout.tx_counter_mask
         self._compiled_axes: CompiledAxes = weakref.WeakKeyDictionary()
         self._plan: Plan = NO_PLAN
@@ -125,6 +137,9 @@ class Daemon:
         self.values: dict[str, float] = {}  # latest value of each input
         self.times: dict[str, float] = {}  # and the timestamp of the frame that brought it
         self.stats = Stats()
+        #: The bias learned at standstills, when the configuration enables it.
+        self.tracking = (None if config.bias_tracking is None
+                         else DaemonTracking(config.bias_tracking, self.values))
         self.sets: ActiveSets = active_sets.build(())
         self.bus: can.BusABC | None = None
         self.outages = Outages(config.interface, config.channel)
@@ -159,6 +174,20 @@ class Daemon:
             kwargs.setdefault("fd", True)
         return self.bus_factory(interface=self.config.interface, channel=self.config.channel,
                                 can_filters=self.can_filters(), **kwargs)
+
+    def open_output_bus(self) -> can.BusABC | None:
+        """The gateway's output bus, when the own-layout frame goes to another channel: opened to
+        send only. Nothing is read from it (its kernel filter passes no frame), so nothing on it
+        can reach the sensor's bus."""
+        own = self.config.own_layout
+        if own is None or own.channel is None:
+            return None
+        bus = self.bus_factory(interface=self.config.interface, channel=own.channel,
+                               **dict(self.config.bus_options))
+        sock = raw_socket_of(bus)
+        if sock is not None:
+            sock.setsockopt(SOL_CAN_RAW, CAN_RAW_FILTER, b"")  # no filter: no frame is received
+        return bus
 
     def load_sets(self) -> None:
         sets, messages = active_sets.initial(self.config)
@@ -347,6 +376,9 @@ class Daemon:
         """What a frame needs of ``sets`` (:func:`~canical.bus.frame_handler.plan_for`), kept
         until the sets change."""
         self._plan = plan_for(sets, self.layout, self.max_age, self._compiled_axes, compiled=self.compiled)
+        if self.tracking is not None:
+            self.tracking.for_sets(sets.combined_id, tuple(ax.axis for ax in sets.axes),
+                                   tuple(ax.corrector is not None for ax in sets.axes))
         return self._plan
 
     def _raw_handler(self, sock: socket.socket) -> RawHandler:
@@ -363,14 +395,48 @@ class Daemon:
         handler: RawHandler = self._on_raw
         compiled = self._compiled_axes
         encode = self._encode_rate
-        if self.compiled and encode is not None and len(sets.axes) == 3 and all(
+        send_own = self._own_send(sock)
+        in_order = encode is not None or self.rate is None  # the rate frame's signals as generated code sends
+        if self.compiled and in_order and send_own is not None and len(sets.axes) == 3 and all(
                 ax.corrector is None or compiled.get(ax.corrector) is not None for ax in sets.axes):
-            handler = generate_raw_handler(
-                self.layout, sets, plan, owner=self, general=self._on_raw,
-                names={"stats": self.stats, "values": self.values, "times": self.times, "encode": encode,
-                       "send": sock.send, "send_failed": self._send_failed})
+            names = {"stats": self.stats, "values": self.values, "times": self.times, "encode": encode,
+                     "send": sock.send, "send_own": send_own, "send_failed": self._send_failed}
+            if self.tracking is not None:
+                names["track"] = self.tracking
+            handler = generate_raw_handler(self.layout, sets, plan, owner=self, general=self._on_raw,
+                                           names=names)
         self._fast = (sets, sock, handler)
         return handler
+
+    def _own_send(self, sock: socket.socket) -> Callable[..., int] | None:
+        """The own-layout frame's ``send`` for generated code: the sensor socket's, or the
+        gateway's output socket's (None: the output bus has none, the reference path sends)."""
+        if self._own is None or not self._own.gateway:
+            return sock.send
+        out = raw_socket_of(self.out_bus) if self.out_bus is not None else None
+        return None if out is None else out.send
+
+    def _send_own_layout(self, data: bytes | bytearray, signals: tuple[Any, ...],
+                         axes: tuple[tuple[int, float, bool], ...]) -> None:
+        """The reference path's own-layout frame: the raw frame, each calibrated axis's signal
+        (position, corrected rate, uncalibrated) saturated to its range, the rest as it came."""
+        own = self._own
+        assert own is not None
+        rates = {at: rate for at, rate, uncalibrated in axes if not uncalibrated}
+        values = []
+        for at, (lo, hi) in zip(own.at, own.spans, strict=True):
+            rate = rates.get(at)
+            values.append(signals[at] if rate is None else lo if rate < lo else hi if rate > hi else rate)
+        payload = own.payload(data, values)
+        bus = self.out_bus if own.gateway else self.bus
+        sock = raw_socket_of(bus) if self.compiled else None
+        if sock is not None:
+            try:
+                sock.send(own.head + payload + own.pad, MSG_DONTWAIT)
+            except OSError as exc:
+                self._send_failed(exc)
+        elif bus is not None and not send_message(bus, own.frame_id, own.extended, payload):
+            self.stats.tx_dropped += 1
 
     def _on_raw(self, data: bytes | bytearray, stamp: float) -> None:
         """Decode, correct three axes, encode, send: once per raw frame (the reference handler)."""
@@ -421,17 +487,25 @@ class Daemon:
             rz, oz, uz = 0.0, False, True
         else:
             (rz, oz), uz = fz(signals[pz.at], values), False
+        if self.tracking is not None:
+            rx, ry, rz = self.tracking(stamp, rx, ry, rz, ux, uy, uz)
         if stale:
             stats.stale_frames += 1
         counter = self._tx_counter
         rx = rx if isfinite(rx) else 0.0
         ry = ry if isfinite(ry) else 0.0
         rz = rz if isfinite(rz) else 0.0
+        if self._own is not None:
+            self._send_own_layout(data, signals, ((px.at, rx, ux), (py.at, ry, uy), (pz.at, rz, uz)))
+        rate = self.rate
+        if rate is None:  # frames.rate null: the own-layout frame is the corrected frame
+            stats.frames_out += 1
+            return
         encode = self._encode_rate
         if encode is None:
-            payload = self.rate.encode_xyz(rx, ry, rz, ox, oy, oz, ux, uy, uz, stale, gap, sets.tag, counter)
+            payload = rate.encode_xyz(rx, ry, rz, ox, oy, oz, ux, uy, uz, stale, gap, sets.tag, counter)
         else:  # encode_xyz written out: saturated to each rate signal's range
-            (lx, hx), (ly, hy), (lz, hz) = self.rate.limits
+            (lx, hx), (ly, hy), (lz, hz) = rate.limits
             payload = encode((lx if rx < lx else hx if rx > hx else rx,
                               ly if ry < ly else hy if ry > hy else ry,
                               lz if rz < lz else hz if rz > hz else rz,
@@ -439,7 +513,7 @@ class Daemon:
         self._tx_counter = (counter + 1) & self._tx_counter_mask
         sock = self._sock if self.bus is self._sock_of else self._raw_socket()
         if sock is None:
-            self._send(self.rate.frame_id, self.rate.is_extended, payload)
+            self._send(rate.frame_id, rate.is_extended, payload)
         else:
             try:
                 sock.send(self._rate_head + payload + self._rate_pad, MSG_DONTWAIT)
@@ -485,6 +559,9 @@ class Daemon:
             self._send_status()  # raises BusLost while the bus is down
             if self.outages.current is not None:
                 self.outages.ended(now)
+            if self.tracking is not None:
+                self.tracking.log_events()
+                self.tracking.save()
             self.notifier.status(self.status_line())
         deadlines = [self._next_status, self._next_watch]
         if self.notifier.watchdog_s is not None:
@@ -530,10 +607,16 @@ class Daemon:
         for page, values in self.status_pages():
             payload = self.status.encode(page, values, saturate=page in SATURATING_PAGES)
             self._send(self.status.frame_id, self.status.is_extended, payload)
+        if self.tracking is not None and BIAS_PAGE in self.status.pages:
+            for bias in self.tracking.frame_pages():
+                payload = self.status.encode_physical(BIAS_PAGE, bias)
+                self._send(self.status.frame_id, self.status.is_extended, payload)
 
     def status_line(self) -> str:
-        return status_line(self._state, self.stats, self.sets, channel=self.config.channel,
+        line = status_line(self._state, self.stats, self.sets, channel=self.config.channel,
                            outage=self.outages.current, now=time.monotonic())
+        tracked = "" if self.tracking is None else self.tracking.status_text()
+        return f"{line}; {tracked}" if tracked else line
 
     # ----------------------------------------------------------------------------------
     # The interface coming and going
@@ -544,8 +627,10 @@ class Daemon:
         while self._running:
             try:
                 self.bus = self.open_bus()
+                self.out_bus = self.open_output_bus()
                 return
             except (OSError, can.CanError) as exc:
+                self._close_bus()
                 self._bus_failed(f"cannot open: {exc}")
             if first and self._reload_requested:
                 self._reload_requested = False
@@ -581,6 +666,12 @@ class Daemon:
         self.outages.wait(lambda: self._running, tick)
 
     def _close_bus(self) -> None:
+        if self.out_bus is not None:
+            try:
+                self.out_bus.shutdown()
+            except (OSError, can.CanError) as exc:
+                log.debug("closing the output bus: %s", exc)
+            self.out_bus = None
         if self.bus is not None:
             try:
                 self.bus.shutdown()
@@ -595,4 +686,7 @@ class Daemon:
             with contextlib.suppress(BusLost):
                 self._send_status()
         self._close_bus()
+        if self.tracking is not None:
+            self.tracking.log_events()
+            self.tracking.save()
         log.info("stopped: %s", self.status_line())

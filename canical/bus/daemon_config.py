@@ -20,6 +20,8 @@ from cantools.database.can import Database, Message
 
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
+from canical.frames.dbc_files import DbcSet, dbc_label, require_sound
+from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
 from canical.yaml_text import parse_yaml
 
 AXES = ("x", "y", "z")
@@ -29,7 +31,7 @@ FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
 _TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
-             "watch_period_s"}
+             "watch_period_s", "own_layout", "bias_tracking"}
 
 
 @dataclass(frozen=True)
@@ -58,15 +60,36 @@ class DeviceSource:
 
 
 @dataclass(frozen=True)
+class OwnLayoutOutput:
+    """The corrected frame in the IMU's own layout: the raw frame's message re-encoded with the
+    axes' corrected values, sent at ``frame_id`` on ``channel`` (None: the sensor's own bus;
+    another channel: a one-way gateway, nothing is read from it)."""
+
+    frame_id: int
+    extended: bool
+    channel: str | None
+
+
+@dataclass(frozen=True)
+class BiasTracking:
+    """``bias_tracking:`` resolved against the inputs: None where the daemon has no such input."""
+
+    settings: BiasTrackingSettings
+    temperature_input: str | None
+    time_input: str | None  # time since power-on (else frame time since the first raw frame)
+    state_file: Path | None
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     path: Path
     interface: str
     channel: str
     bus_options: dict[str, Any]
-    dbc_path: Path
+    dbc_path: DbcSet  # the configuration's DBC files (canical's own frames are loaded beside them)
     sensor: str | None
     raw_message: str
-    rate_message: str
+    rate_message: str | None  # None: CANICAL_RATE not sent (frames.rate: null, own_layout instead)
     status_message: str
     counter_signal: str | None
     axes: tuple[AxisConfig, ...]
@@ -74,6 +97,8 @@ class DaemonConfig:
     status_period_s: float = 1.0
     watch_period_s: float = 1.0
     device: DeviceSource | None = None
+    own_layout: OwnLayoutOutput | None = None
+    bias_tracking: BiasTracking | None = None  # None: not enabled
 
     @property
     def coefficient_paths(self) -> dict[str, Path]:
@@ -105,9 +130,14 @@ class _Dbc:
         if not isinstance(name, str) or not name:
             raise self.fail(key, "must name a DBC message")
         try:
-            return self.db.get_message_by_name(name)
+            message = self.db.get_message_by_name(name)
         except KeyError:
             raise self.fail(key, f"message {name} not in {self.name}") from None
+        try:
+            require_sound(message, self.name)
+        except CanicalError as exc:
+            raise self.fail(key, str(exc)) from None
+        return message
 
     def need_signal(self, key: str, msg: Message, signal: str) -> None:
         if signal not in {s.name for s in msg.signals}:
@@ -119,7 +149,7 @@ class _Frames:
     """The frames the daemon reads (raw) and sends (rate, status)."""
 
     raw: Message
-    rate: Message
+    rate: Message | None  # None: not sent
     status: Message
 
 
@@ -138,9 +168,9 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     interface = _text(bus, "interface", "bus.interface", fail)
     chan = channel or _text(bus, "channel", "bus.channel", fail)
     options = _bus_options(bus, fail)
-    dbc_path = _path(content.get("dbc"), base, "dbc", fail, must_exist=True)
+    dbc_path = _dbc_files(content.get("dbc"), base, fail)
     try:
-        dbc = _Dbc(load_dbc(dbc_path), dbc_path.name, fail)
+        dbc = _Dbc(load_dbc(dbc_path), dbc_label(dbc_path), fail)
     except CanicalError as exc:
         raise fail("dbc", str(exc)) from None
     frames = _frames(content, dbc)
@@ -148,6 +178,8 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     counter = _counter(content, frames, dbc)
     inputs = _inputs(content, frames, dbc)
     device = _device(content, fail)
+    own_layout = _own_layout_output(content, frames, inputs, dbc, chan)
+    tracking = _bias_tracking(content, inputs, base, fail)
     return DaemonConfig(
         path=cfg_path,
         interface=interface,
@@ -156,7 +188,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         dbc_path=dbc_path,
         sensor=_optional_text(content, "sensor", fail),
         raw_message=frames.raw.name,
-        rate_message=frames.rate.name,
+        rate_message=None if frames.rate is None else frames.rate.name,
         status_message=frames.status.name,
         counter_signal=counter,
         axes=axes,
@@ -164,7 +196,38 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         status_period_s=_positive(content.get("status_period_s", 1.0), "status_period_s", fail),
         watch_period_s=_positive(content.get("watch_period_s", 1.0), "watch_period_s", fail),
         device=device,
+        own_layout=own_layout,
+        bias_tracking=tracking,
     )
+
+
+def _dbc_files(value: Any, base: Path, fail: Fail) -> DbcSet:
+    """``dbc``: one DBC file or a list of them, each existing (canical's own frames come beside them)."""
+    if isinstance(value, list):
+        if not value:
+            raise fail("dbc", "an empty list (name one DBC file or several)")
+        return DbcSet(_path(v, base, f"dbc[{i}]", fail, must_exist=True) for i, v in enumerate(value))
+    return DbcSet((_path(value, base, "dbc", fail, must_exist=True),))
+
+
+def _bias_tracking(content: dict, inputs: dict[str, InputSource], base: Path,
+                   fail: Fail) -> BiasTracking | None:
+    """``bias_tracking``: the tracker's settings, its cue and temperature among the inputs."""
+    section = content.get("bias_tracking")
+    settings = parse_bias_tracking(section, fail)
+    if not settings.enabled:
+        return None
+    if settings.cue_input is not None and settings.cue_input not in inputs:
+        raise fail("bias_tracking.cue.input", f"no input {settings.cue_input!r} in inputs "
+                   f"(map it there to a DBC signal: {settings.cue_input}: {{signal: MESSAGE.Signal}})")
+    temperature: str | None = settings.temperature_input
+    if temperature not in inputs:
+        if isinstance(section, dict) and "temperature" in section:
+            raise fail("bias_tracking.temperature", f"no input {temperature!r} in inputs")
+        temperature = None  # the default temp_c, not mapped: learned without temperature
+    state = None if settings.state_file is None else _path(settings.state_file, base,
+                                                           "bias_tracking.state_file", fail)
+    return BiasTracking(settings, temperature, "time_s" if "time_s" in inputs else None, state)
 
 
 def _bus_options(bus: dict, fail: Fail) -> dict[str, Any]:
@@ -185,22 +248,33 @@ def _frames(content: dict, dbc: _Dbc) -> _Frames:
     if not isinstance(frames, dict):
         raise dbc.fail("frames", "must be a mapping")
     _no_unknown(frames, {"raw", "rate", "status"}, "frames.", dbc.fail)
-    raw_msg = dbc.message("frames.raw", frames.get("raw", "IMU_RAW"))
-    rate_msg = dbc.message("frames.rate", frames.get("rate", "CANICAL_RATE"))
+    raw_default = _raw_message_of_axes(content, dbc.fail) or "IMU_RAW"
+    raw_msg = dbc.message("frames.raw", frames.get("raw", raw_default))
+    rate_msg = _rate_frame(content, frames, dbc)
     status_msg = dbc.message("frames.status", frames.get("status", "CANICAL_STATUS"))
-    if raw_msg.is_multiplexed() or rate_msg.is_multiplexed():
+    if raw_msg.is_multiplexed() or (rate_msg is not None and rate_msg.is_multiplexed()):
         raise dbc.fail("frames", "the raw and rate frames must not be multiplexed")
-    if raw_msg.is_fd or rate_msg.is_fd:
+    if raw_msg.is_fd or (rate_msg is not None and rate_msg.is_fd):
         raise dbc.fail("frames", "the raw and rate frames must be classic CAN frames")
     if not status_msg.is_multiplexed():
         raise dbc.fail("frames.status", f"message {status_msg.name} must be multiplexed by Page")
-    for sig in FRAME_SIGNALS:
-        dbc.need_signal("frames.rate", rate_msg, sig)
     for sig in STATUS_SIGNALS:
         dbc.need_signal("frames.status", status_msg, sig)
-    if raw_msg.frame_id in (rate_msg.frame_id, status_msg.frame_id):
+    if raw_msg.frame_id in (*([rate_msg.frame_id] if rate_msg else []), status_msg.frame_id):
         raise dbc.fail("frames.raw", "must differ from the rate and status frames")
     return _Frames(raw_msg, rate_msg, status_msg)
+
+
+def _rate_frame(content: dict, frames: dict, dbc: _Dbc) -> Message | None:
+    """``frames.rate``: canical's corrected frame, or null (not sent: the own layout is)."""
+    if "rate" in frames and frames["rate"] is None:
+        if content.get("own_layout") is None:
+            raise dbc.fail("frames.rate", "null (not sent) needs own_layout: corrected frames must go out")
+        return None
+    rate_msg = dbc.message("frames.rate", frames.get("rate", "CANICAL_RATE"))
+    for sig in FRAME_SIGNALS:
+        dbc.need_signal("frames.rate", rate_msg, sig)
+    return rate_msg
 
 
 def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisConfig, ...]:
@@ -214,12 +288,10 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisCo
         if not isinstance(entry, dict):
             raise dbc.fail(key, "must be a mapping (raw, coefficients)")
         _no_unknown(entry, {"raw", "coefficients"}, f"{key}.", dbc.fail)
-        raw_sig = entry.get("raw", f"GyroRaw{axis.upper()}")
-        if not isinstance(raw_sig, str):
-            raise dbc.fail(f"{key}.raw", "must name a signal of the raw frame")
-        dbc.need_signal(f"{key}.raw", frames.raw, raw_sig)
-        for prefix in RATE_SIGNALS.values():
-            dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
+        raw_sig = _axis_raw_signal(entry.get("raw", f"GyroRaw{axis.upper()}"), f"{key}.raw", frames.raw, dbc)
+        if frames.rate is not None:
+            for prefix in RATE_SIGNALS.values():
+                dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
         coeff = entry.get("coefficients")
         coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
         axes.append(AxisConfig(axis, raw_sig, coeff_path))
@@ -228,9 +300,35 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisCo
     return tuple(axes)
 
 
+def _raw_message_of_axes(content: dict, fail: Fail) -> str | None:
+    """The message the axes name as ``MESSAGE.Signal`` (None: they name signals of ``frames.raw``).
+
+    All axes come from one message: the daemon corrects one frame into one frame."""
+    axes_in = content.get("axes")
+    if not isinstance(axes_in, dict):
+        return None
+    named = {str(e["raw"]).split(".")[0] for e in axes_in.values()
+             if isinstance(e, dict) and isinstance(e.get("raw"), str) and "." in e["raw"]}
+    if len(named) > 1:
+        raise fail("axes", f"raw signals in several messages ({', '.join(sorted(named))}): "
+                           "the axes the daemon corrects must come from one message")
+    return named.pop() if named else None
+
+
+def _axis_raw_signal(value: Any, key: str, raw: Message, dbc: _Dbc) -> str:
+    """``axes.AXIS.raw``: ``Signal`` of the raw frame, or ``MESSAGE.Signal`` naming the raw frame."""
+    if not isinstance(value, str) or not value or value.count(".") > 1:
+        raise dbc.fail(key, "must name a signal of the raw frame, or be MESSAGE.Signal")
+    message, _, signal = value.rpartition(".")
+    if message and message != raw.name:
+        raise dbc.fail(key, f"message {message} is not the raw frame {raw.name} (frames.raw)")
+    dbc.need_signal(key, raw, signal)
+    return signal
+
+
 def _counter(content: dict, frames: _Frames, dbc: _Dbc) -> str | None:
-    """``counter``: the raw frame's rolling counter signal (null: not checked)."""
-    counter = content.get("counter", "Counter")
+    """``counter``: the raw frame's rolling counter signal (absent or null: none, not checked)."""
+    counter = content.get("counter")
     if counter is not None:
         if not isinstance(counter, str):
             raise dbc.fail("counter", "must name a signal of the raw frame, or be null")
@@ -260,11 +358,43 @@ def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]
         dbc.need_signal(f"{key}.signal", msg, sig_name)
         if msg.is_multiplexed():
             raise dbc.fail(f"{key}.signal", f"message {msg_name} is multiplexed (not supported for inputs)")
-        if msg.frame_id in (frames.rate.frame_id, frames.status.frame_id):
+        if msg.frame_id in {m.frame_id for m in (frames.rate, frames.status) if m is not None}:
             raise dbc.fail(f"{key}.signal", "cannot come from a frame the daemon sends")
         max_age = _positive(spec.get("max_age_s", 1.0), f"{key}.max_age_s", dbc.fail)
         inputs[str(name)] = InputSource(str(name), msg_name, sig_name, max_age)
     return inputs
+
+
+def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSource], dbc: _Dbc,
+                       channel: str) -> OwnLayoutOutput | None:
+    """``own_layout``: send each corrected frame in the raw frame's own layout too, at ``id``,
+    on the sensor's bus or, with ``channel``, on another one (absent: not sent)."""
+    spec = content.get("own_layout")
+    if spec is None:
+        return None
+    if not isinstance(spec, dict):
+        raise dbc.fail("own_layout", "must be a mapping {id: CAN id, extended: bool, channel: name}")
+    _no_unknown(spec, {"id", "extended", "channel"}, "own_layout.", dbc.fail)
+    extended = spec.get("extended", frames.raw.is_extended_frame)
+    if not isinstance(extended, bool):
+        raise dbc.fail("own_layout.extended", f"must be true or false, got {extended!r}")
+    frame_id = spec.get("id")
+    top = 0x1FFFFFFF if extended else 0x7FF
+    if not isinstance(frame_id, int) or isinstance(frame_id, bool) or not 0 <= frame_id <= top:
+        raise dbc.fail("own_layout.id", f"must be a CAN id 0..{top:#x}, got {frame_id!r}")
+    out_channel = spec.get("channel")
+    if out_channel is not None and (not isinstance(out_channel, str) or not out_channel):
+        raise dbc.fail("own_layout.channel", "must be a non-empty interface name")
+    if out_channel == channel:
+        out_channel = None
+    if out_channel is None:  # on the sensor's bus: not an id the daemon reads or sends already
+        taken = [frames.raw, frames.rate, frames.status,
+                 *(dbc.db.get_message_by_name(s.message) for s in inputs.values())]
+        for msg in filter(None, taken):
+            if (msg.frame_id, msg.is_extended_frame) == (frame_id, extended):
+                raise dbc.fail("own_layout.id", f"{frame_id:#x} is {msg.name}'s id on the same bus "
+                                                "(give another id, or another channel)")
+    return OwnLayoutOutput(frame_id, extended, out_channel)
 
 
 def _device(content: dict, fail: Fail) -> DeviceSource | None:

@@ -13,6 +13,7 @@ need has not arrived yet, so both always send the same frames.
 
 from __future__ import annotations
 
+import copy
 import logging
 import weakref
 from collections.abc import Callable
@@ -26,13 +27,13 @@ from canical.bus.active_sets import ActiveSets
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.socketcan import frame_key
 from canical.bus.socketcan_constants import FRAME_HEAD
-from canical.frames.codec import RateEncoder, RawDecoder
-from canical.frames.compiler import NotCompilable, decode_lines, encode_lines
+from canical.frames.codec import RateEncoder, RawDecoder, signal_range
+from canical.frames.compiler import NotCompilable, codec_for, decode_lines, encode_lines
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
 
-__all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "Plan", "RawHandler",
-           "frame_layout", "generate_raw_handler", "plan_for"]
+__all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "OwnLayout", "Plan",
+           "RawHandler", "frame_layout", "generate_raw_handler", "own_layout", "plan_for"]
 
 log = logging.getLogger("canical.serve")
 
@@ -52,13 +53,67 @@ class InputFrame:
 
 
 @dataclass(frozen=True)
+class OwnLayout:
+    """The corrected frame in the IMU's own layout: the raw frame's bytes, each axis's signal
+    replaced by its corrected value (saturated to the signal's range, rounded by the encode as
+    cantools does), every other bit copied through as it came.
+
+    Only the axes' signals are encoded (``encode``, of a message holding just them); the rest
+    of the frame is the raw frame's bits (``keep``), so no other signal is decoded or encoded."""
+
+    encode: Callable[[Any], bytes]  # the axes' signals alone, values in ``message``'s order
+    message: Message  # the raw message with only the axes' signals
+    at: tuple[int, ...]  # per signal of ``message``, its position in the raw frame's decode
+    spans: tuple[tuple[float, float], ...]  # per signal of ``message``, the range it can carry
+    keep: int  # the raw frame's bits (little-endian integer) that are not the axes' signals
+    length: int
+    head: bytes  # the frame's kernel head: key, length
+    pad: bytes  # zeros to the classic frame's 8 data bytes
+    frame_id: int
+    extended: bool
+    gateway: bool  # sent on another bus than the sensor's
+
+    def payload(self, data: bytes | bytearray, values: Any) -> bytes:
+        """The frame for the axes' values (in ``message``'s order): the reference path's form."""
+        n = self.length
+        word = int.from_bytes(self.encode(values), "little") | (int.from_bytes(data, "little") & self.keep)
+        return word.to_bytes(n, "little")
+
+
+def _axes_message(raw_msg: Message, names: tuple[str, ...]) -> Message:
+    """The raw message with only the axes' signals (same bits), for encoding them alone."""
+    signals = [copy.deepcopy(raw_msg.get_signal_by_name(n)) for n in dict.fromkeys(names)]
+    return Message(frame_id=raw_msg.frame_id, name=raw_msg.name, length=raw_msg.length, signals=signals,
+                   is_extended_frame=raw_msg.is_extended_frame, strict=False)
+
+
+def own_layout(config: DaemonConfig, raw_msg: Message, *, compiled: bool) -> OwnLayout | None:
+    """The own-layout output as configured (None: not sent)."""
+    out = config.own_layout
+    if out is None:
+        return None
+    axes = _axes_message(raw_msg, tuple(a.raw_signal for a in config.axes))
+    ones = {s.name: -1 if s.is_signed else (1 << s.length) - 1 for s in axes.signals}
+    mask = int.from_bytes(axes.encode(ones, scaling=False, strict=False), "little")
+    order = [s.name for s in raw_msg.signals]
+    return OwnLayout(
+        encode=codec_for(axes, compiled=compiled).encode, message=axes,
+        at=tuple(order.index(s.name) for s in axes.signals),
+        spans=tuple(signal_range(raw_msg, s.name) for s in axes.signals),
+        keep=((1 << (8 * raw_msg.length)) - 1) & ~mask, length=raw_msg.length,
+        head=FRAME_HEAD.pack(frame_key(out.frame_id, out.extended), raw_msg.length, 0, 0),
+        pad=bytes(max(0, 8 - raw_msg.length)), frame_id=out.frame_id, extended=out.extended,
+        gateway=out.channel is not None)
+
+
+@dataclass(frozen=True)
 class FrameLayout:
     """The frames the daemon reads and sends, resolved from the DBC and the configuration at start."""
 
     raw: RawDecoder
     raw_message: Message
-    rate: RateEncoder
-    rate_message: Message
+    rate: RateEncoder | None  # None: CANICAL_RATE is not sent (the own layout is)
+    rate_message: Message | None
     #: The other frames that carry inputs: decoder and (input, signal) pairs, by (id, extended).
     input_frames: dict[tuple[int, bool], tuple[RawDecoder, tuple[tuple[str, str], ...]]]
     #: The same by SocketCAN key, in their per-frame form.
@@ -70,6 +125,7 @@ class FrameLayout:
     tx_counter_mask: int  # the rate frame's counter, likewise
     rate_head: bytes  # the rate frame's kernel head: key, length
     rate_pad: bytes  # zeros to the classic frame's 8 data bytes
+    own: OwnLayout | None = None  # the corrected frame in the raw frame's layout, if sent
 
 
 def _wrap_mask(message: Message, signal: str) -> int:
@@ -79,9 +135,9 @@ def _wrap_mask(message: Message, signal: str) -> int:
 
 def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> FrameLayout:
     raw_msg = db.get_message_by_name(config.raw_message)
-    rate_msg = db.get_message_by_name(config.rate_message)
+    rate_msg = None if config.rate_message is None else db.get_message_by_name(config.rate_message)
     raw = RawDecoder(raw_msg, compiled=compiled)
-    rate = RateEncoder(rate_msg, compiled=compiled)
+    rate = None if rate_msg is None else RateEncoder(rate_msg, compiled=compiled)
     input_frames: dict[tuple[int, bool], tuple[RawDecoder, tuple[tuple[str, str], ...]]] = {}
     for source in config.inputs.values():
         if source.message == raw_msg.name:
@@ -103,9 +159,11 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
                             if s.message == raw_msg.name),
         counter_at=None if counter is None else raw.index[counter],
         counter_mask=0 if counter is None else _wrap_mask(raw_msg, counter),
-        tx_counter_mask=_wrap_mask(rate_msg, "Counter"),
-        rate_head=FRAME_HEAD.pack(frame_key(rate.frame_id, rate.is_extended), rate.length, 0, 0),
-        rate_pad=bytes(max(0, 8 - rate.length)),
+        tx_counter_mask=0 if rate_msg is None else _wrap_mask(rate_msg, "Counter"),
+        rate_head=b"" if rate is None else FRAME_HEAD.pack(frame_key(rate.frame_id, rate.is_extended),
+                                                           rate.length, 0, 0),
+        rate_pad=b"" if rate is None else bytes(max(0, 8 - rate.length)),
+        own=own_layout(config, raw_msg, compiled=compiled),
     )
 
 
@@ -178,8 +236,9 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
     ``owner`` is the daemon (the code reads its ``sets`` and keeps its ``_prev_counter`` and
     ``_tx_counter``), ``general`` its reference handler, ``names`` what else the code calls:
     ``stats``, ``values``, ``times``, ``encode`` (the rate frame's codec), ``send`` (the
-    socket's) and ``send_failed``. Only for three axes on compiled correctors and a rate
-    frame whose signals come in :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
+    socket's), ``send_failed`` and, with bias tracking on, ``track``. Only for three axes on
+    compiled correctors and a rate frame whose signals come in
+    :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
     """
     carried = {name for name, _ in layout.raw_inputs_at}
     awaited = [(name, age) for name, age in plan.ages if name not in carried]
@@ -212,8 +271,15 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
         src.add(*corrector_lines(ax.corrector, f"s{axis.at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
                                  held=held, cached=slow, state=state))
         flags.append("False")
+    if "track" in names:  # the bias learned at standstills, less (canical.bus.bias_tracking)
+        src.lines.append(f"    r0, r1, r2 = track(stamp, r0, r1, r2, {', '.join(flags)})")
     src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
-    _encode_and_send(src, layout, sets, flags)
+    if layout.own is not None:
+        _encode_and_send_own(src, layout.own, plan, flags)
+    if layout.rate is not None:
+        _encode_and_send(src, layout, layout.rate, sets, flags)
+    else:  # the own-layout frame is the corrected frame
+        src.lines.append("    stats.frames_out += 1")
     lines = src.lines
     source = "\n".join(with_state(lines[0], lines[1:], state, "on_raw")) + "\n"
     exec(compile(source, f"<raw frame, sets {sets.combined_id:08x}>", "exec"), src.ns)
@@ -245,10 +311,45 @@ def _decode_and_count(src: _Source, layout: FrameLayout, plan: Plan) -> None:
                           f"    self._prev_counter = {got}"])
 
 
-def _encode_and_send(src: _Source, layout: FrameLayout, sets: ActiveSets, flags: list[str]) -> None:
+def _encode_and_send_own(src: _Source, own: OwnLayout, plan: Plan, flags: list[str]) -> None:
+    """The raw frame again, each axis's signal its corrected value saturated to the signal's
+    range (an uncalibrated axis: its raw value as it came), every other bit as it came."""
+    rates = {axis.at: (k, flags[k] == "True") for k, axis in enumerate(plan.axes)}
+    values: list[str] = []
+    spans: list[tuple[float, float] | None] = []
+    for at, (lo, hi) in zip(own.at, own.spans, strict=True):
+        k, uncalibrated = rates.get(at, (-1, True))
+        if uncalibrated:
+            values.append(f"s{at}")
+            spans.append(None)
+            continue
+        zero = lo if lo > 0.0 else hi if hi < 0.0 else 0.0  # a non-finite rate is sent as 0
+        r = f"r{k}"
+        src.lines.append(f"    q{k} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
+                         f" if {r} - {r} == 0.0 else {zero!r}")
+        values.append(f"q{k}")
+        spans.append((lo, hi))
+    try:
+        body, names, payload = encode_lines(own.message, values, [None] * len(values), tag="own_",
+                                            spans=spans)
+        src.add(body, names)
+    except NotCompilable:  # cantools encodes this frame (logged at start)
+        src.ns["own_encode"] = own.encode
+        payload = f"own_encode(({', '.join(values)},))"
+    src.ns.update({"OWN": own.head, "from_bytes": int.from_bytes})
+    n = own.length
+    frame = (f"((from_bytes({payload}, 'little') | (from_bytes(data, 'little') & {own.keep:#x}))"
+             f".to_bytes({n}, 'little'))")
+    pad = f" + {own.pad!r}" if own.pad else ""
+    src.lines.extend(["    try:", f"        send_own(OWN + {frame}{pad}, MSG_DONTWAIT)",
+                      "    except OSError as exc:", "        send_failed(exc)"])
+
+
+def _encode_and_send(src: _Source, layout: FrameLayout, rate: RateEncoder, sets: ActiveSets,
+                     flags: list[str]) -> None:
     """Saturate the rates, encode the rate frame, advance its counter, send it without waiting."""
     rates = []
-    for k, (lo, hi) in enumerate(layout.rate.limits):
+    for k, (lo, hi) in enumerate(rate.limits):
         r = f"r{k}"
         zero = lo if lo > 0.0 else hi if hi < 0.0 else 0.0  # a non-finite rate is sent as 0
         src.lines.append(f"    {r} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
@@ -261,8 +362,9 @@ def _encode_and_send(src: _Source, layout: FrameLayout, sets: ActiveSets, flags:
     bounds = [None, None, None, *[1] * 8, sets.tag, mask]
     try:
         # The rates are saturated to their signals' ranges above: no range check needed.
+        assert layout.rate_message is not None
         body, names, payload = encode_lines(layout.rate_message, values, bounds,
-                                            spans=[*layout.rate.limits, *[None] * 10])
+                                            spans=[*rate.limits, *[None] * 10])
         src.add(body, names)
     except NotCompilable:  # cantools encodes this frame (logged at start)
         payload = f"encode(({', '.join(values)}))"

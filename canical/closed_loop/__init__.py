@@ -11,6 +11,7 @@ variables from the session's channels (levels, derivatives, lags, hysteresis, ra
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = [
     "blocks",
+    "candidates",
     "findings",
     "search",
     "unexplained",

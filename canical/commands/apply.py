@@ -35,11 +35,32 @@ def register(sub) -> None:
     p.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
     p.add_argument("--sensor", help="sensor id of the input (default: its '# sensor:' line)")
     add_canlog_arguments(p)
+    track = p.add_argument_group("bias tracking (learn the bias at standstills, append bias_dps)")
+    track.add_argument("--track-bias", action="store_true",
+                       help="replay the drive through the bias tracker row by row and append bias_dps "
+                            "(subtract it from rate_dps); a CSV needs a time_s column (time since "
+                            "power-on), a CAN log takes it from the time_s input if mapped; with "
+                            "--config whose bias_tracking: is on, tracks with its settings, as the daemon")
+    track.add_argument("--standstill-column", metavar="NAME",
+                       help="cue column (vehicle speed, or a moving flag; in a CAN log an input mapped "
+                            "with --input/--config): stopped while below --standstill-below; nothing is "
+                            "learned while it says moving")
+    track.add_argument("--standstill-below", type=float, default=0.1, metavar="X",
+                       help="cue value below which the vehicle stands (default 0.1)")
+    track.add_argument("--temp-column", default="temp_c", metavar="NAME",
+                       help="temperature column the bias is learned against (default temp_c, if present)")
+    track.add_argument("--arw", type=float, metavar="DEG_PER_RT_H",
+                       help="the sensor's angle random walk (default: the set's fit.arw_deg_rt_h, else 0.5)")
+    track.add_argument("--report-dir", metavar="DIR",
+                       help="write a drive report there: heading with and without tracking, learned "
+                            "bias against temperature, each standstill used or refused and why")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    with output_plan(args.output):
+    if (args.standstill_column or args.report_dir or args.arw is not None) and not args.track_bias:
+        raise CanicalError("--standstill-column, --report-dir and --arw need --track-bias")
+    with output_plan(args.output, dirs=[args.report_dir]):
         return apply_set(args)
 
 
@@ -56,6 +77,8 @@ def apply_set(args: argparse.Namespace) -> int:
     if is_canlog(args.input):
         return run_canlog(args, corrector)
     needed = [args.raw_column, *corrector.required_inputs]
+    if args.track_bias:
+        needed = list(dict.fromkeys([*needed, *tracking_columns(args.input, args)]))
     table = read_table(args.input, columns=needed)
     sensor = args.sensor or table.meta.get("sensor")
     if sensor and sensor != cset.sensor_id:
@@ -65,34 +88,111 @@ def apply_set(args: argparse.Namespace) -> int:
     axis = table.meta.get("axis")
     if axis and axis != cset.axis:
         raise CanicalError(f"{args.coefficients} is for axis {cset.axis}, {args.input} is axis {axis}")
-    for name in ("rate_dps", "out_of_span"):
+    for name in ("rate_dps", "out_of_span", *(["bias_dps"] if args.track_bias else [])):
         if name in table.header:
             raise CanicalError(f"{args.input} already has a {name} column")
     inputs = {name: table.columns[name] for name in corrector.required_inputs}
     rate, oos = corrector.correct(table.columns[args.raw_column], inputs)
-    write_rows(args.output, table, rate, oos)
+    extra: dict[str, np.ndarray] = {}
+    if args.track_bias:
+        extra["bias_dps"] = track_bias(args, cset, table.columns, rate)
+    write_rows(args.output, table, rate, oos, extra)
     n_out = int(np.count_nonzero(oos))
     note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
     print(f"apply: {len(table.rows)} rows corrected with set 0x{corrector.set_id:08x}{note} -> {args.output}")
     return 0
 
 
-def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray) -> None:
+def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray,
+               extra: dict[str, np.ndarray] | None = None) -> None:
     """Echo the input rows with the new columns, atomically, in chunks with progress."""
     from canical.atomic_file import atomic_writer
 
+    extra = extra or {}
     progress = Progress("apply", len(table.rows))
     with atomic_writer(path) as out:
         for line in table.preamble:
             out.write(line + "\n")
-        out.write(",".join([*table.header, "rate_dps", "out_of_span"]) + "\n")
+        out.write(",".join([*table.header, "rate_dps", "out_of_span", *extra]) + "\n")
         for start in range(0, len(table.rows), CHUNK_ROWS):
             stop = min(start + CHUNK_ROWS, len(table.rows))
             buf = io.StringIO()
-            for line, r, o in zip(table.rows[start:stop], rate[start:stop], oos[start:stop], strict=True):
-                buf.write(f"{line},{r:.6f},{int(o)}\n")
+            tails = [[f",{v:.6f}" for v in col[start:stop].tolist()] for col in extra.values()]
+            for i, (line, r, o) in enumerate(zip(table.rows[start:stop], rate[start:stop], oos[start:stop],
+                                                 strict=True)):
+                buf.write(f"{line},{r:.6f},{int(o)}{''.join(t[i] for t in tails)}\n")
             out.write(buf.getvalue())
             progress.update(stop)
+
+
+def tracking_columns(path: str, args: argparse.Namespace) -> list[str]:
+    """time_s, the cue if asked for, and the temperature column if the file has one."""
+    from canical.sessions.csv_file import read_table
+
+    header = read_table(path, columns=[]).header
+    if "time_s" not in header:
+        raise CanicalError(f"{path}: --track-bias needs a time_s column (time since power-on)")
+    if args.standstill_column and args.standstill_column not in header:
+        raise CanicalError(f"{path}: no column {args.standstill_column!r} for --standstill-column")
+    return ["time_s", *([args.standstill_column] if args.standstill_column else []),
+            *([args.temp_column] if args.temp_column in header else [])]
+
+
+def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
+               rate: np.ndarray) -> np.ndarray:
+    """The drive replayed through the tracker row by row, as the daemon would; report if asked.
+
+    ``columns`` holds time_s (since power-on), and the cue and temperature when there are.
+    """
+    import math
+
+    import numpy as np
+
+    from canical.tracking.config import TrackerConfig
+    from canical.tracking.replay import replay
+
+    config = getattr(args, "daemon_tracker", None)  # the daemon configuration's bias_tracking
+    if config is None:
+        arw = args.arw if args.arw is not None else cset.fit.get("arw_deg_rt_h", 0.5)
+        try:
+            config = TrackerConfig(arw_deg_rt_h=float(arw),
+                                   cue_threshold=args.standstill_below if args.standstill_column else None)
+        except ValueError as exc:
+            raise CanicalError(f"bias tracking: {exc}") from None
+    time_s = columns["time_s"]
+    if not np.isfinite(time_s).all():
+        raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
+    temp = columns.get(args.temp_column)
+    cue = columns[args.standstill_column] if args.standstill_column else None
+    out = replay(time_s, rate, config, axes=(cset.axis,), temp_c=temp, cue=cue)
+    for event in out.events:
+        print(f"apply: {event.line((cset.axis,))}")
+    if args.report_dir:
+        from canical.report.drive import write_drive_report
+
+        write_drive_report(args.report_dir, time_s, rate, out, (cset.axis,))
+    bias: np.ndarray = out.bias_dps[:, 0]
+    learned = out.learned[0]
+    print(f"apply: bias tracking: {sum(e.decision == 'adopted' for e in out.events)} of {len(out.events)} "
+          f"standstills used, {learned.updates} windows; last bias {bias[-1]:+.4f} deg/s"
+          f"{'' if math.isfinite(bias[-1]) else ' (no data)'}")
+    return bias
+
+
+def use_daemon_tracking(args: argparse.Namespace) -> None:
+    """With --config whose bias_tracking: is on, track exactly as the daemon: its settings, cue and
+    temperature inputs (what the command line gives of them is not used)."""
+    if not args.config:
+        return
+    from canical.bus.daemon_config import load_config
+
+    tracking = load_config(args.config).bias_tracking
+    if tracking is None:
+        return
+    args.daemon_tracker = tracking.settings.tracker
+    args.standstill_column = tracking.settings.cue_input
+    args.temp_column = tracking.temperature_input or ""
+    print(f"apply: bias tracking as configured in {args.config} (bias_tracking:)")
 
 
 def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
@@ -120,6 +220,13 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
             f"the coefficient set needs input(s) {', '.join(unmapped)}: map them with "
             "--input NAME=MESSAGE.Signal or --config"
         )
+    if args.track_bias:
+        use_daemon_tracking(args)
+        if args.standstill_column and args.standstill_column not in source.inputs:
+            raise CanicalError(f"--standstill-column {args.standstill_column}: map it to a signal with "
+                               f"--input {args.standstill_column}=MESSAGE.Signal or --config")
+        extra = [n for n in ("time_s", args.standstill_column, args.temp_column) if n in source.inputs]
+        needed = list(dict.fromkeys([*needed, *extra]))
     log = read_canlog(
         args.input,
         dbc=source.dbc,
@@ -135,7 +242,11 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
     if TIME_INPUT in corrector.required_inputs:
         inputs[TIME_INPUT] = session.time_s
     rate, oos = corrector.correct(session.raw, inputs)
-    names = ["time_s", "raw", *session.aux, "rate_dps", "out_of_span"]
+    tracked = []
+    if args.track_bias:
+        columns = {**session.aux, "time_s": session.time_s}
+        tracked = [track_bias(args, cset, columns, rate)]
+    names = ["time_s", "raw", *session.aux, "rate_dps", "out_of_span", *(["bias_dps"] if tracked else [])]
     with atomic_writer(args.output) as out:
         for key, value in session.meta.items():
             out.write(f"# {key}: {value}\n")
@@ -143,8 +254,8 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         buf = io.StringIO()
         cols = [session.time_s, session.raw, *session.aux.values()]
         fmt = ["%.6f", "%.9g"] + ["%.9g"] * len(session.aux)
-        table = np.column_stack([*cols, rate, oos.astype(float)])
-        np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d"])
+        table = np.column_stack([*cols, rate, oos.astype(float), *tracked])
+        np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d", *(["%.6f"] if tracked else [])])
         out.write(buf.getvalue())
     n_out = int(np.count_nonzero(oos))
     note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""

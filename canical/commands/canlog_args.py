@@ -10,14 +10,18 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from canical.errors import CanicalError
 from canical.sessions.canlog_format import CANLOG_FORMATS
 
+if TYPE_CHECKING:
+    from canical.frames.dbc_files import DbcSet
+
 
 @dataclass(frozen=True)
 class CanlogSource:
-    dbc: Path
+    dbc: DbcSet  # the DBC files (canical's own frames are loaded beside them)
     inputs: dict[str, str]  # channel name -> MESSAGE.Signal
     raw_message: str
     raw_signals: dict[str, str]  # axis -> raw signal
@@ -27,7 +31,8 @@ class CanlogSource:
 
 def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(f"CAN logs ({CANLOG_FORMATS})")
-    group.add_argument("--dbc", help="DBC that describes the log's frames")
+    group.add_argument("--dbc", action="append", metavar="DBC",
+                       help="DBC that describes the log's frames (repeatable: several files)")
     group.add_argument("--config", help="daemon configuration: its DBC, frames and input mapping")
     group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",
                        help="a channel from a signal, held at its latest value (repeatable)")
@@ -36,6 +41,7 @@ def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
 def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
     """Resolve the options; a log without a DBC is one actionable error line."""
     from canical.bus.daemon_config import load_config  # cantools: not for every command's --help
+    from canical.frames.dbc_files import DbcSet
     from canical.sessions.canlog import parse_signal_map
     from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE
 
@@ -52,7 +58,7 @@ def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
         raw_signals = {a.axis: a.raw_signal for a in config.axes}
         sensor = config.sensor
     if args.dbc:
-        dbc = Path(args.dbc)
+        dbc = DbcSet(Path(p) for p in args.dbc)
     if dbc is None:
         raise CanicalError(f"{log_file}: reading a CAN log needs --dbc or --config")
     inputs.update(parse_signal_map(args.inputs))

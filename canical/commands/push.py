@@ -64,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:
         client = ImuClient(network, args.node, args.timeout)
+        client.require_canical_objects()
         result = push_sets(client, sets, dry_run=args.dry_run)
     if isinstance(result, PushPlan):
         where = f"node 0x{args.node:02x} serial {result.serial} on {args.interface} {args.channel}"

@@ -16,11 +16,15 @@ import errno
 import signal
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
 from canical.errors import CanicalError
 from canical.output_plan import cannot_write, output_plan
 from canical.sessions.canlog_format import CANLOG_FORMATS, CANLOG_SUFFIXES, log_format, require_log_support
+
+if TYPE_CHECKING:
+    from canical.frames.dbc_files import DbcSet
 
 # python-can and cantools are imported where used, so that `--help` answers at once.
 
@@ -32,19 +36,21 @@ def register(sub) -> None:
     p.add_argument("--config", help="daemon configuration: interface, channel, DBC and input frames")
     p.add_argument("--interface", help="python-can interface (default: the configuration's)")
     p.add_argument("--channel", help="CAN channel (default: the configuration's)")
-    p.add_argument("--dbc", help="DBC (default: the configuration's)")
+    p.add_argument("--dbc", action="append", help="DBC (default: the configuration's; repeatable)")
     p.add_argument("--duration", type=float, help="seconds to record")
     p.add_argument("--frames", type=int, help="stop after this many raw frames")
     p.set_defaults(run=run)
 
 
-def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
+def _frames(args: argparse.Namespace) -> tuple[str, str, DbcSet, list[str]]:
     """Interface, channel, DBC and the names of the messages to record."""
     from canical.bus.daemon_config import load_config
     from canical.frames.codec import load_dbc
+    from canical.frames.dbc_files import dbc_set
     from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF
 
-    interface, channel, dbc, names = args.interface, args.channel, args.dbc, [DEFAULT_RAW_MESSAGE]
+    interface, channel, names = args.interface, args.channel, [DEFAULT_RAW_MESSAGE]
+    dbc = dbc_set(args.dbc) if args.dbc else None
     if args.config:
         config = load_config(args.config, channel=args.channel)
         interface = interface or config.interface
@@ -63,7 +69,7 @@ def _frames(args: argparse.Namespace) -> tuple[str, str, Path, list[str]]:
     ref_message = DEFAULT_REF.split(".")[0]
     if ref_message in known:
         names.append(ref_message)
-    return interface, channel, Path(dbc), list(dict.fromkeys(names))
+    return interface, channel, dbc, list(dict.fromkeys(names))
 
 
 def run(args: argparse.Namespace) -> int:

@@ -43,6 +43,33 @@ def setup_logging(verbose: bool) -> None:
         logging.getLogger("canopen").setLevel(logging.WARNING)  # SDO chatter when reading the device
 
 
+def check_device(config) -> None:
+    """``device:``: the node must carry canical's coefficient objects (a vendor's IMU does not:
+    one line, exit 2). A node that does not answer is only noted: the files are the fallback."""
+    from canical.device.can_network import open_network, quiet_canopen_logging, sdo_client_filters
+    from canical.device.sdo_download import DeviceSilent, ImuClient
+    from canical.errors import CanicalError
+
+    device = config.device
+    quiet_canopen_logging()
+    try:
+        network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
+                               **config.bus_options)
+    except CanicalError as exc:
+        print(f"device: not checked ({exc}); the coefficient files will be used if it does not answer")
+        return
+    try:
+        client = ImuClient(network, device.node, device.timeout_s)
+        try:
+            client.require_canical_objects()
+        except DeviceSilent as exc:
+            print(f"device: {exc}; the coefficient files will be used")
+            return
+        print(f"device: node 0x{device.node:02x} carries canical's coefficient objects")
+    finally:
+        network.disconnect()
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.bus import active_sets
     from canical.bus.daemon import Daemon
@@ -56,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
                 continue
             corrector = active_sets.load_axis(config, axis.axis, axis.coefficients)
             print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}")
+        if config.device is not None:
+            check_device(config)
         print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
         return 0
     setup_logging(args.verbose)

@@ -62,6 +62,15 @@ class DeviceSilent(CanicalError):
     """The device stopped answering (timeout): gone, powered off, or the bus is down."""
 
 
+#: SDO aborts that say an object or sub-index is not in the node's dictionary at all.
+NOT_IN_DICTIONARY = (0x06020000, 0x06090011)
+IDENTITY_VENDOR, IDENTITY_PRODUCT = (0x1018, 1), (0x1018, 2)
+
+
+class NotCanicalDevice(CanicalError):
+    """The node answers, but has no coefficient objects: it does not run canical's firmware."""
+
+
 class ImuClient:
     """SDO access to one IMU node; every failure is one :class:`CanicalError` line."""
 
@@ -121,6 +130,28 @@ class ImuClient:
     # ---------------------------------------------------------------------------------------
     # What the device says about itself
     # ---------------------------------------------------------------------------------------
+
+    def require_canical_objects(self) -> None:
+        """Refuse, before anything is read or written, a node without canical's coefficient
+        objects (a vendor's IMU): one line saying what the way for it is."""
+        try:
+            self.node.sdo.upload(*self.objects.active_banks)
+        except SdoAbortedError as exc:
+            if exc.code not in NOT_IN_DICTIONARY:
+                return  # it has the object (a refusal is the device's own business)
+        except (SdoCommunicationError, can.CanError) as exc:
+            raise self._fail(exc, "reading its identity") from None
+        else:
+            return
+        who = ""
+        with contextlib.suppress(SdoAbortedError, SdoCommunicationError, can.CanError):
+            vendor = int.from_bytes(self.node.sdo.upload(*IDENTITY_VENDOR), "little")
+            product = int.from_bytes(self.node.sdo.upload(*IDENTITY_PRODUCT), "little")
+            who = f" (vendor 0x{vendor:08x}, product 0x{product:08x})"
+        raise NotCanicalDevice(
+            f"node 0x{self.node_id:02x}{who}: this IMU does not carry canical's coefficient objects "
+            f"(0x{self.objects.active_banks[0]:04x} not in its dictionary); the way for it is "
+            f"`canical serve` with set files (axes.AXIS.coefficients), which corrects its frames on the bus")
 
     def serial(self) -> int:
         return self.read_uint(self.objects.serial, "reading the serial number (0x1018 sub 4)")
@@ -331,6 +362,7 @@ def push_sets(
 
 def pull_sets(client: ImuClient, axes: tuple[str, ...] = AXES) -> dict[str, CoefficientSet]:
     """The device's active sets for ``axes`` (those that have one), each verified three ways."""
+    client.require_canical_objects()
     active = client.active()
     ids = client.active_ids()
     out = {}

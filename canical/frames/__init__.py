@@ -11,5 +11,6 @@ reader and the emulated IMU; imports only the ground floor.
 __all__ = [
     "codec",
     "compiler",
+    "dbc_files",
     "imu_frames",
 ]

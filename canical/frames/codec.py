@@ -9,29 +9,15 @@ values), so encoding a frame is one clamp per rate and one ``encode`` call.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any
 
-import cantools
-from cantools.database.can import Database, Message
+from cantools.database.can import Message
 
-from canical.errors import CanicalError
 from canical.frames.compiler import codec_for
+from canical.frames.dbc_files import load_dbc
 
-
-def load_dbc(path: str | os.PathLike[str]) -> Database:
-    """Load a DBC file; a missing or malformed one is one :class:`CanicalError` line."""
-    name = str(path)
-    if not Path(path).is_file():
-        raise CanicalError(f"{name}: DBC file not found")
-    try:
-        db = cantools.database.load_file(name, database_format="dbc", strict=True)
-    except Exception as exc:  # cantools raises many types for a bad file
-        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise CanicalError(f"{name}: not a valid DBC file ({first})") from None
-    return db  # type: ignore[return-value]
+__all__ = ["RateEncoder", "RawDecoder", "StatusEncoder", "load_dbc", "signal_range"]
 
 
 def signal_range(message: Message, name: str) -> tuple[float, float]:
@@ -163,4 +149,15 @@ class StatusEncoder:
             top = (1 << self._widths[name]) - 1
             value = int(values.get(name, 0))
             data[name] = min(value, top) if saturate else value & top
+        return self._message.encode(data, strict=False)
+
+    def encode_physical(self, page: int, values: dict[str, float]) -> bytes:
+        """Page ``page`` from values in the signals' units (scaled, signed), each clamped to its range."""
+        data: dict[str, float] = {"Page": page}
+        for name in self._pages.get(page, ()):
+            sig = self._message.get_signal_by_name(name)
+            value = float(values.get(name, 0.0))
+            lo = float(sig.minimum) if sig.minimum is not None else value
+            hi = float(sig.maximum) if sig.maximum is not None else value
+            data[name] = lo if value < lo else hi if value > hi else value
         return self._message.encode(data, strict=False)

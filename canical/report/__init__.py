@@ -9,6 +9,7 @@
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = [
     "allan_plot",
+    "drive",
     "markdown",
     "plots",
 ]

@@ -25,9 +25,11 @@ import numpy as np
 
 from canical.atomic_file import make_dirs, write_bytes_atomic
 from canical.closed_loop.blocks import Blocks
+from canical.closed_loop.candidates import DIRECTION_NAME, SLOPE_NAME, WARMUP_NAME
 from canical.closed_loop.findings import Confound, Effect
 from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
+from canical.sets.term_kinds import CHANNEL_OFFSET, TIME
 from canical.sets.terms import term_from_dict
 
 
@@ -41,6 +43,8 @@ def _save(fig, path: Path) -> None:
 #: Units of auxiliary channels by the suffix of their name (a set names channels, not units).
 SUFFIX_UNITS = {"c": "°C", "degc": "°C", "k": "K", "v": "V", "mv": "mV", "a": "A", "ma": "mA", "g": "g",
                 "dps": "deg/s", "s": "s", "hz": "Hz", "pa": "Pa", "pct": "%"}
+#: How a channel's level candidate is named (``channel:temp_c``): what follows is the channel.
+LEVEL_PREFIX = CHANNEL_OFFSET.label("")
 #: Held out in every plot of the loop: what its errors are measured on.
 HELD_OUT = "held out: whole plateaus (2 s blocks), each predicted by a fit without it"
 
@@ -68,16 +72,16 @@ def variable_label(name: str) -> str:
     gated = re.match(r"(\S+) × \(\|rate\|", name)
     if gated:
         return f"{name} ({channel_unit(gated.group(1))})"
-    if name.startswith("channel:"):
-        channel = name.split(":", 1)[1]
+    if name.startswith(LEVEL_PREFIX):
+        channel = name.removeprefix(LEVEL_PREFIX)
         return f"{channel} ({channel_unit(channel)})"
-    if name.startswith("time:warm-up"):
+    if name.startswith(WARMUP_NAME):
         return f"{name}: 1 − exp(−t/τ) (no unit)"
-    if name.startswith("time"):
+    if name.startswith(TIME):
         return f"{name}: time since power-on (s)"
-    if name == "rate-of-change":
+    if name == SLOPE_NAME:
         return "rate of change of raw (raw units/s)"
-    if name == "direction":
+    if name == DIRECTION_NAME:
         return "direction state (−1 falling, +1 rising)"
     return name
 
@@ -85,16 +89,15 @@ def variable_label(name: str) -> str:
 def variable_of(name: str, blocks: Blocks, loop: LoopResult | None = None) -> tuple[np.ndarray, str]:
     """The x-axis for a candidate: its channel (or its transform), time since power-on, or direction."""
     cand = next((c for c in (loop.candidates if loop else []) if c.name == name), None)
-    if cand is not None and not name.startswith(("channel:", "time", "direction", "rate-of-change")):
+    if cand is not None and not name.startswith((LEVEL_PREFIX, TIME, DIRECTION_NAME, SLOPE_NAME)):
         return candidate_variables([cand], blocks)[name], variable_label(name)
-    if name.startswith("channel:"):
-        ch = name.split(":", 1)[1]
-        return blocks.aux[ch], variable_label(name)
-    if name.startswith("time"):
+    if name.startswith(LEVEL_PREFIX):
+        return blocks.aux[name.removeprefix(LEVEL_PREFIX)], variable_label(name)
+    if name.startswith(TIME):
         return blocks.time_s, "time since power-on (s)"
-    if name == "rate-of-change":
+    if name == SLOPE_NAME:
         return blocks.slope, variable_label(name)
-    return blocks.direction, variable_label("direction")
+    return blocks.direction, variable_label(DIRECTION_NAME)
 
 
 def residual_vs_rate(loop: LoopResult, path: Path) -> None:

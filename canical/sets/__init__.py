@@ -9,3 +9,8 @@ kind), :mod:`.terms` the validated term record, :mod:`.trackers` the terms' stat
 :mod:`.admission` decides which sets a device may take. Imports only :mod:`canical.models`
 and the ground floor.
 """
+
+# The package's public face: the submodules other rings and the tests import;
+# tests/test_rings.py keeps this list equal to those imports.
+__all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "term_kinds",
+           "terms"]

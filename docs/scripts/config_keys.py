@@ -33,6 +33,13 @@ class Key:
     meaning: str
 
 
+def _tracking_keys() -> tuple[Any, ...]:
+    """The ``bias_tracking`` keys, from the table beside their parser."""
+    from canical.tracking.settings import KEYS as TRACKING_KEYS
+
+    return TRACKING_KEYS
+
+
 INTRODUCTION = """\
 `canical serve --config FILE` (and `record`, `apply --config`) read one YAML file. Relative paths
 are taken from the file's folder. The whole file is checked before the daemon starts: a defect
@@ -65,8 +72,11 @@ KEYS: tuple[Key, ...] = (
     Key(
         "dbc",
         "required",
-        "an existing file that cantools loads",
-        "the frame layouts: the one source of truth",
+        "an existing file, or a list of them, that cantools loads (non-strictly: a message with overlapping "
+        "signals is refused only if canical uses it); a name or id two files define differently is refused",
+        "the frame layouts: the one source of truth; canical's own frames (`CANICAL_RATE`, "
+        "`CANICAL_STATUS`…) are loaded beside them from the shipped `canical.dbc` where the files "
+        "do not define them",
     ),
     Key(
         "sensor",
@@ -77,15 +87,16 @@ KEYS: tuple[Key, ...] = (
     Key("frames", "`{}`", "a mapping", "which DBC messages the daemon reads and sends"),
     Key(
         "frames.raw",
-        "`IMU_RAW`",
-        "a DBC message, not multiplexed, classic CAN, not the rate or status frame",
+        "the message the axes name as `MESSAGE.Signal`, else `IMU_RAW`",
+        "a DBC message, not multiplexed, classic CAN (standard or extended id), not the rate or status frame",
         "the IMU's raw frame, one correction per frame",
     ),
     Key(
         "frames.rate",
         "`CANICAL_RATE`",
         "a DBC message, not multiplexed, classic CAN, with `RateAXIS`, "
-        "`OutOfSpanAXIS`, `UncalibratedAXIS` per axis and `Stale`, `CounterGap`, `SetTag`, `Counter`",
+        "`OutOfSpanAXIS`, `UncalibratedAXIS` per axis and `Stale`, `CounterGap`, `SetTag`, `Counter`; "
+        "or `null`: not sent (needs `own_layout`, whose frame is then the corrected frame)",
         "the corrected frame, sent once per raw frame",
     ),
     Key(
@@ -104,7 +115,8 @@ KEYS: tuple[Key, ...] = (
     Key(
         "axes.AXIS.raw",
         "`GyroRawX`, `GyroRawY`, `GyroRawZ`",
-        "a signal of the raw frame",
+        "a signal of the raw frame, or `MESSAGE.Signal` (every axis from the same message, "
+        "which is then the raw frame)",
         "the axis's raw signal: the physical value the DBC gives (its scale and offset applied), "
         "the same value a session's `raw` column holds",
     ),
@@ -116,7 +128,7 @@ KEYS: tuple[Key, ...] = (
     ),
     Key(
         "counter",
-        "`Counter`",
+        "`null` (no counter check)",
         "a signal of the raw frame, or `null` (no counter check)",
         "the raw frame's rolling counter: a jump sets CounterGap",
     ),
@@ -147,12 +159,41 @@ KEYS: tuple[Key, ...] = (
     ),
     Key("device.node", "required", "integer 1..127", "the IMU's CANopen node id (e.g. `0x10`)"),
     Key("device.timeout_s", "`1.0`", "positive number of seconds", "SDO timeout"),
+    Key(
+        "own_layout",
+        "`null` (not sent)",
+        "a mapping",
+        "the corrected frame in the IMU's own layout: the raw frame's message re-encoded with each axis's "
+        "signal its corrected value (saturated to the signal's range, rounded as cantools does; an "
+        "uncalibrated axis as it came), every other signal copied through; `CANICAL_RATE` is still sent",
+    ),
+    Key(
+        "own_layout.id",
+        "required",
+        "a CAN id (standard up to `0x7FF`, extended up to `0x1FFFFFFF`); on the sensor's bus not an id "
+        "the daemon reads or sends",
+        "the id the own-layout frame is sent at",
+    ),
+    Key("own_layout.extended", "the raw frame's", "`true` or `false`", "whether that id is extended"),
+    Key(
+        "own_layout.channel",
+        "`null` (the sensor's bus)",
+        "a non-empty interface name",
+        "another channel of the same interface: a one-way gateway, sensor bus in, this bus out "
+        "(nothing is read from it)",
+    ),
     Key("status_period_s", "`1.0`", "positive number of seconds", "status frames and systemd STATUS"),
     Key(
         "watch_period_s",
         "`1.0`",
         "positive number of seconds",
         "how often the coefficient files are checked for changes",
+    ),
+    *(
+        Key("bias_tracking", "`null` (off)", "a mapping",
+            "learn each axis's bias at standstills and subtract it (see On the vehicle)"),
+        *(Key(f"bias_tracking.{k.key}", k.default if k.default in ("required", "none") else f"`{k.default}`",
+              k.check, k.meaning) for k in _tracking_keys()),
     ),
 )
 
@@ -180,6 +221,9 @@ def base_content() -> dict[str, Any]:
     content = yaml.safe_load(EXAMPLE.read_text(encoding="utf-8"))
     content["dbc"] = str(DBC)
     content["device"] = {"node": 0x10, "timeout_s": 1.0}
+    content["own_layout"] = {"id": 0x298}
+    # off, so the example's inputs need not hold a cue; its sub-sections are probed all the same
+    content["bias_tracking"] = {"enabled": False, "cue": {"input": "supply_v", "below": 0.1}}
     return content
 
 
@@ -273,10 +317,10 @@ def default_checks() -> list[tuple[str, str, object]]:
     by_axis = {a.axis: a for a in cfg.axes}
     assert cfg.device is not None
     return [
-        ("frames.raw", documented["frames.raw"], cfg.raw_message),
+        ("frames.raw", documented["frames.raw"].split(", else ")[-1], cfg.raw_message),
         ("frames.rate", documented["frames.rate"], cfg.rate_message),
         ("frames.status", documented["frames.status"], cfg.status_message),
-        ("counter", documented["counter"], cfg.counter_signal),
+        ("counter", documented["counter"].split(" ")[0], cfg.counter_signal),
         ("axes.AXIS.raw", documented["axes.AXIS.raw"].split(", ")[0], by_axis["x"].raw_signal),
         (
             "axes.AXIS.coefficients",

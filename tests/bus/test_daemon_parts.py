@@ -136,7 +136,7 @@ def test_rate_encoder_saturates_instead_of_failing() -> None:
 def test_status_pages_fill_missing_signals_and_wrap_counters() -> None:
     msg = load_dbc(DBC).get_message_by_name("CANICAL_STATUS")
     enc = StatusEncoder(msg)
-    assert enc.pages == (0, 1, 2)
+    assert enc.pages == (0, 1, 2, 3)  # 3: the learned bias, sent with bias_tracking on
     d = msg.decode(enc.encode(0, {"FramesIn": 70_000, "BusErrors": 300}), decode_choices=False)
     assert (d["FramesIn"], d["BusErrors"], d["FramesOut"]) == (70_000 - 65_536, 300 - 256, 0)
 

@@ -7,6 +7,7 @@ frame. Streams are paced for the slow one-CPU guest these run in on kernels with
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
@@ -321,3 +322,57 @@ def test_interface_down_and_up_survived(vcan_channel: str, tmp_path: Path, db) -
     assert len(out) == 400, daemon.log()
     assert st[(2, 0)]["BusRestarts"] >= 1, (st, daemon.log())
     assert "reopened" in daemon.log()
+
+
+def test_daemon_tracks_the_bias_like_apply(vcan_channel: str, tmp_path: Path, db) -> None:
+    """bias_tracking: on: every corrected frame equals apply --track-bias's rate_dps - bias_dps (to
+    the 0.01 deg/s resolution) on a candump log of the same frames: a standstill, a steady turn on
+    z, a standstill. The daemon logs what it adopted and refused, and saves the learned state."""
+    from test_daemon_bias_tracking import drive_frames
+
+    from canical.tracking import state_file
+
+    paths = write_sets(tmp_path)
+    config = write_config(tmp_path, vcan_channel,
+                          bias_tracking={"enabled": True, "arw_deg_rt_h": 0.5, "state_file": "bias.json"})
+    frames = [(m.arbitration_id, bytes(m.data)) for m in drive_frames(40.0)]
+    raw_count = sum(1 for fid, _ in frames if fid == 0x190)
+    rec = Recorder(vcan_channel)
+    daemon = DaemonProcess(config)
+    try:
+        with _bus(vcan_channel) as tx:
+            send_paced(tx, frames, RATE_HZ * 1.1)
+        rate_id = db.get_message_by_name("CANICAL_RATE").frame_id
+        out = rec.wait_count(rate_id, raw_count, timeout=60)
+        time.sleep(1.5)  # one more status period: events logged, state saved
+        assert any("z bias" in m.get("STATUS", "") for m in daemon.notify.messages)
+    finally:
+        code = daemon.stop()
+        rec_msgs = list(rec.messages)
+        rec.close()
+    assert code == 0, daemon.log()
+    assert len(out) == raw_count, daemon.log()
+    assert "adopted" in daemon.log() and "beyond the plausibility bound" in daemon.log()
+    log = tmp_path / "drive.log"
+    _write_canlog(log, [m for m in rec_msgs if m.arbitration_id in (0x190, 0x290)])
+    got = _rates(db, out)
+    for axis in ("x", "y", "z"):
+        csv = tmp_path / f"apply-{axis}.csv"
+        proc = subprocess.run([sys.executable, "-m", "canical", "apply", str(paths[axis]), str(log),
+                               "--config", str(config), "--track-bias", "-o", str(csv)],
+                              capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+        table = read_table(csv).columns
+        assert len(table["rate_dps"]) == len(got)
+        expected = np.clip(table["rate_dps"] - table["bias_dps"], -327.68, 327.67)
+        sent = np.array([g[f"Rate{axis.upper()}"] for g in got])
+        assert np.max(np.abs(sent - expected)) <= HALF_LSB + 2e-6, axis
+    status = db.get_message_by_name("CANICAL_STATUS")
+    pages = [status.decode(bytes(m.data), decode_choices=False) for m in rec_msgs
+             if m.arbitration_id == status.frame_id]
+    bias = {p["BiasAxis"]: p for p in pages if p["Page"] == 3}  # the last of each axis
+    assert sorted(bias) == [0, 1, 2] and abs(bias[2]["BiasLearned"] - 0.3) < 0.05
+    assert bias[2]["BiasUpdates"] > 10 and bias[2]["BiasAge"] < 65535
+    text = (tmp_path / "bias.json").read_text()  # saved at stop, keyed by the sets' combined id
+    learned = state_file.parse(text, int(json.loads(text)["set_id"], 16), ("x", "y", "z"))
+    assert learned[2].updates > 10

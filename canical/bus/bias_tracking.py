@@ -1,0 +1,126 @@
+"""The bias learned at standstills, on the bus: one tracker per calibrated axis, fed per raw frame.
+
+Why per axis: ``canical apply SET LOG --track-bias`` replays one axis's set, so the daemon tracks
+each axis on its own with exactly the same steps (:meth:`canical.tracking.tracker.BiasTracker.step`
+on the same corrected rate, time, temperature and cue), and the two give the same bias bit for
+bit. A tracker steps only on frames where its axis is calibrated and the tracking's inputs have
+arrived (the frames ``apply`` keeps). Between frames the daemon logs each standstill adopted or
+refused, puts each axis's learned bias in systemd's STATUS, and keeps the learned state in the
+state file (:mod:`canical.tracking.state_file`), keyed by the sets' combined id: new sets start
+afresh, with one log line.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Any
+
+from canical.bus.daemon_config import BiasTracking
+from canical.bus.status import AXIS_CODES
+from canical.tracking import state_file
+from canical.tracking.tracker import BiasTracker
+
+log = logging.getLogger("canical.serve")
+NAN = math.nan
+
+
+class DaemonTracking:
+    """The daemon's trackers for one generation of sets, and what it does with them between frames."""
+
+    def __init__(self, config: BiasTracking, values: dict[str, float]) -> None:
+        self.config = config
+        self.values = values
+        self.set_id: int | None = None
+        self.axes: tuple[str, ...] = ()
+        self.trackers: list[BiasTracker | None] = [None, None, None]
+        self._t0: float | None = None
+        self._saved_updates = -1
+        #: Per frame: the inputs' names (time, temperature, cue), and per axis its step and output.
+        self._names = (config.time_input, config.temperature_input, config.settings.cue_input)
+        self._steps: list[tuple[Any, list[float]]] = [(None, [0.0])] * 3
+
+    def for_sets(self, combined_id: int, axes: tuple[str, ...], calibrated: tuple[bool, ...]) -> None:
+        """New sets: save what was learned for the old ones, load (or start) the new ones' state."""
+        if combined_id == self.set_id:
+            return
+        self.save()
+        self.set_id, self.axes = combined_id, axes
+        learned = None
+        if self.config.state_file is not None:
+            loaded = state_file.load(self.config.state_file, combined_id, axes)
+            log.info("%s", loaded.note)
+            learned = loaded.learned
+        self.trackers = [
+            BiasTracker((axis,), self.config.settings.tracker, None if learned is None else (learned[k],))
+            if ok else None for k, (axis, ok) in enumerate(zip(axes, calibrated, strict=True))]
+        self._steps = [(None, [0.0]) if t is None else (t.step, t.applied) for t in self.trackers]
+        self._saved_updates = self._updates()
+
+    def __call__(self, stamp: float, r0: float, r1: float, r2: float, u0: bool, u1: bool,
+                 u2: bool) -> tuple[float, float, float]:
+        """The three rates less each tracked axis's bias (per frame); an uncalibrated axis is left be."""
+        values = self.values
+        time_name, temp_name, cue_name = self._names
+        if time_name is None:
+            if self._t0 is None:
+                self._t0 = stamp
+            t = stamp - self._t0
+        else:
+            t = values.get(time_name, NAN)
+        temp = NAN if temp_name is None else values.get(temp_name, NAN)
+        cue = None if cue_name is None else values.get(cue_name)
+        ready = t == t and (temp_name is None or temp == temp) and (cue_name is None or cue is not None)
+        (s0, a0), (s1, a1), (s2, a2) = self._steps
+        if s0 is not None and not u0:
+            r0 -= s0(t, (r0,), temp, cue)[0] if ready else a0[0]
+        if s1 is not None and not u1:
+            r1 -= s1(t, (r1,), temp, cue)[0] if ready else a1[0]
+        if s2 is not None and not u2:
+            r2 -= s2(t, (r2,), temp, cue)[0] if ready else a2[0]
+        return r0, r1, r2
+
+    # -- between frames ------------------------------------------------------------------------
+    def _updates(self) -> int:
+        return sum(t.learned[0].updates for t in self.trackers if t is not None)
+
+    def log_events(self) -> None:
+        for tracker in self.trackers:
+            if tracker is None:
+                continue
+            for event in tracker.events:
+                report = log.info if event.decision == "adopted" else log.warning
+                report("bias %s", event.line(tracker.axes))
+            tracker.events.clear()
+            tracker.taken.clear()
+
+    def status_text(self) -> str:
+        return "; ".join(s.text() for t in self.trackers if t is not None for s in t.status())
+
+    def save(self) -> None:
+        """Write the learned state if it changed (atomically); a failure is logged, not fatal."""
+        if self.config.state_file is None or self.set_id is None or self._updates() == self._saved_updates:
+            return
+        learned = [t.learned[0] if t is not None else None for t in self.trackers]
+        if any(s is None for s in learned):  # an uncalibrated axis: keep a fresh state in its place
+            from canical.tracking.estimate import AxisBias
+
+            learned = [s if s is not None else AxisBias() for s in learned]
+        try:
+            state_file.save(self.config.state_file, self.set_id, self.axes, learned)  # type: ignore[arg-type]
+        except OSError as exc:
+            log.warning("bias state %s: cannot write (%s)", self.config.state_file, exc)
+            return
+        self._saved_updates = self._updates()
+
+    def status_pages(self) -> list[dict[str, Any]]:
+        """Per tracked axis: learned bias, uncertainty, age, updates (for a status page or a test)."""
+        return [{"axis": s.axis, "bias_dps": s.bias_dps, "sigma_dps": s.sigma_dps, "age_s": s.age_s,
+                 "updates": s.updates} for t in self.trackers if t is not None for s in t.status()]
+
+    def frame_pages(self) -> list[dict[str, float]]:
+        """Status frame page 3, one per tracked axis (signal name → value in its unit)."""
+        return [{"BiasAxis": AXIS_CODES[p["axis"]], "BiasLearned": p["bias_dps"], "BiasSigma": p["sigma_dps"],
+                 "BiasUpdates": min(p["updates"], 4095),
+                 "BiasAge": 65535 if not math.isfinite(p["age_s"]) else min(round(p["age_s"]), 65535)}
+                for p in self.status_pages()]

@@ -1,0 +1,173 @@
+"""DBC files as vehicles and vendors write them: several at once, loaded the way cantools loads them.
+
+Why: a vehicle's DBC often has one odd message nobody uses (two signals overlapping, a signal
+past the frame's end); refusing the whole file for it blocks the message the IMU does use. So
+each file is loaded non-strictly, the messages that needed it are named once on stderr, and
+only a message canical actually uses is refused for it (:func:`require_sound`, one line).
+A user's IMU and vehicle come with several files, and canical's own frames (``CANICAL_RATE``,
+``CANICAL_STATUS``, ``TABLE_REF``...) live in the shipped ``canical.dbc``: the files are merged,
+the shipped one always beside them (only where the user's files do not define that name or id
+themselves), and a name or id two files define differently is an error naming both files.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import cantools
+from cantools.database.can import Database, Message
+
+from canical.errors import CanicalError
+
+#: One DBC path, or several.
+DbcPaths = str | os.PathLike[str] | Sequence[str | os.PathLike[str]]
+
+_WARNED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+def shipped_dbc_path() -> Path:
+    """canical's own frames: the DBC shipped with the package (``dbc/canical.dbc`` in the source tree)."""
+    return Path(str(resources.files("canical") / "data" / "canical.dbc"))
+
+
+class DbcSet(tuple[Path, ...]):
+    """Several DBC files where one path is expected: printed as their names, read by :func:`load_dbc`.
+
+    Why a path-like: the readers that take one DBC path pass it on to :func:`load_dbc` and
+    name it in their messages; given this, they read every file and name them all.
+    """
+
+    def __str__(self) -> str:
+        return " + ".join(str(p) for p in self)
+
+    def __fspath__(self) -> str:
+        return str(self[0])
+
+
+def dbc_set(paths: DbcPaths) -> DbcSet:
+    """The paths as a :class:`DbcSet`."""
+    return DbcSet(dbc_list(paths))
+
+
+def dbc_list(paths: DbcPaths) -> tuple[Path, ...]:
+    """The paths as a tuple, whether one or several were given."""
+    if isinstance(paths, DbcSet):
+        return tuple(paths)
+    if isinstance(paths, str | os.PathLike):
+        return (Path(paths),)
+    return tuple(Path(p) for p in paths)
+
+
+def dbc_label(paths: DbcPaths) -> str:
+    """The files' names for a message (``vendor.dbc + canical.dbc``)."""
+    return " + ".join(p.name for p in dbc_list(paths))
+
+
+def why_broken(message: Message) -> str | None:
+    """Why cantools' strict check refuses the message (signals overlapping or past its end), or None."""
+    try:
+        message._check_signal_tree([None] * (8 * message.length), message.signal_tree)
+    except Exception as exc:  # cantools.database.Error, or anything an odd tree raises
+        return str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+    return None
+
+
+def require_sound(message: Message, what: str) -> None:
+    """Refuse a message canical reads or writes when cantools could load it only non-strictly."""
+    reason = why_broken(message)
+    if reason is not None:
+        raise CanicalError(f"{what}: message {message.name} is broken ({reason})")
+
+
+def _load_one(path: Path) -> Database:
+    name = str(path)
+    if not path.is_file():
+        raise CanicalError(f"{name}: DBC file not found")
+    try:
+        db = cantools.database.load_file(name, database_format="dbc", strict=False)
+    except Exception as exc:  # cantools raises many types for a bad file
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CanicalError(f"{name}: not a valid DBC file ({first})") from None
+    return db  # type: ignore[return-value]
+
+
+def _layout(message: Message) -> tuple[object, ...]:
+    """What makes two definitions of a message the same: id, length and every signal's encoding."""
+    return (message.name, message.frame_id, message.is_extended_frame, message.length, message.is_fd,
+            tuple((s.name, s.start, s.length, s.byte_order, s.is_signed, s.is_float, s.conversion.scale,
+                   s.conversion.offset, s.minimum, s.maximum, s.is_multiplexer,
+                   tuple(s.multiplexer_ids or ()), s.multiplexer_signal) for s in message.signals))
+
+
+@dataclass(frozen=True)
+class _Seen:
+    message: Message
+    path: Path
+
+
+class _Merge:
+    """Messages of several files by name and by id, each with the file that defined it."""
+
+    def __init__(self) -> None:
+        self.by_name: dict[str, _Seen] = {}
+        self.by_id: dict[tuple[int, bool], _Seen] = {}
+
+    def add(self, message: Message, path: Path, *, yield_to_user: bool = False) -> None:
+        key = (message.frame_id, message.is_extended_frame)
+        named, at_id = self.by_name.get(message.name), self.by_id.get(key)
+        if yield_to_user and (named or at_id):
+            return  # the user's own definition of a canical frame wins
+        if named and _layout(named.message) != _layout(message):
+            raise CanicalError(f"message {message.name} is defined differently in {named.path} and {path}")
+        if at_id and at_id.message.name != message.name:
+            ext = "extended " if key[1] else ""
+            raise CanicalError(f"{ext}id {key[0]:#x} is {at_id.message.name} in {at_id.path} "
+                               f"and {message.name} in {path}")
+        if named:
+            return  # the same message twice
+        seen = _Seen(message, path)
+        self.by_name[message.name] = seen
+        self.by_id[key] = seen
+
+
+def load_dbc(paths: DbcPaths, *, with_shipped: bool = True) -> Database:
+    """Load one or several DBC files (and canical's own frames) as one database.
+
+    Each bad file is one :class:`CanicalError` line; messages that load only non-strictly
+    are named once on stderr (:func:`require_sound` refuses the ones canical uses).
+    """
+    files = dbc_list(paths)
+    if not files:
+        raise CanicalError("no DBC file given")
+    merge, nodes = _Merge(), {}
+    relaxed: list[str] = []
+    for path in files:
+        db = _load_one(path)
+        for message in db.messages:
+            merge.add(message, path)
+            if why_broken(message) is not None:
+                relaxed.append(message.name)
+        nodes.update({n.name: n for n in db.nodes})
+    shipped = shipped_dbc_path()
+    if with_shipped and shipped.is_file() and all(p.resolve() != shipped.resolve() for p in files):
+        for message in _load_one(shipped).messages:
+            merge.add(message, shipped, yield_to_user=True)
+    _warn_relaxed(files, relaxed)
+    return Database(messages=[s.message for s in merge.by_name.values()], nodes=list(nodes.values()),
+                    strict=False)
+
+
+def _warn_relaxed(files: tuple[Path, ...], relaxed: list[str]) -> None:
+    """Name, once per process, the messages that cantools had to load non-strictly."""
+    key = (dbc_label(files), tuple(sorted(set(relaxed))))
+    if not relaxed or key in _WARNED:
+        return
+    _WARNED.add(key)
+    names = ", ".join(sorted(set(relaxed)))
+    print(f"canical: warning: {key[0]}: loaded non-strictly (overlapping or oversized signals, "
+          f"not used unless named): {names}", file=sys.stderr)
