@@ -43,6 +43,20 @@ class ErrorStats:
 
 
 @dataclass(frozen=True)
+class LeftOutPlateau:
+    """A plateau found but not fitted (its output at a rail), where it is and why."""
+
+    index: int
+    rate_dps: float
+    start_s: float
+    stop_s: float
+    why: str
+
+    def label(self) -> str:
+        return f"{self.rate_dps:g} deg/s at {self.start_s:.1f}-{self.stop_s:.1f} s ({self.why})"
+
+
+@dataclass(frozen=True)
 class SegmentPoint:
     """A segment point of the rate model, where the residual of a smaller model peaked."""
 
@@ -138,6 +152,8 @@ class CalibrationReport:
     unexplained: Unexplained | None = None  # with the closed loop only
     session: str | None = None  # the input and output paths, when the CLI knows them
     coefficients: str | None = None
+    left_out_plateaus: tuple[LeftOutPlateau, ...] = ()
+    reference_clock: dict[str, Any] | None = None  # a table file aligned to the log (the CLI's)
 
     @property
     def loop_ran(self) -> bool:
@@ -145,6 +161,9 @@ class CalibrationReport:
 
     def with_paths(self, session: str, coefficients: str) -> CalibrationReport:
         return replace(self, session=session, coefficients=coefficients)
+
+    def with_reference_clock(self, clock: dict[str, Any] | None) -> CalibrationReport:
+        return replace(self, reference_clock=clock)
 
     def written_model(self) -> str:
         """The model in the coefficient file: the loop's final one, with its effect terms."""
@@ -159,6 +178,8 @@ class CalibrationReport:
             out["session"] = self.session
         if self.coefficients is not None:
             out["coefficients"] = self.coefficients
+        if self.reference_clock is not None:
+            out["reference_clock"] = self.reference_clock
         out |= {
             "model": self.model,
             "spec": self.spec,
@@ -170,6 +191,7 @@ class CalibrationReport:
             "plateaus": self.plateaus,
             "plateau_finding": self.plateau_finding,
             "saturated_rates_dps": list(self.saturated_rates_dps),
+            "left_out_plateaus": [asdict(p) for p in self.left_out_plateaus],
             "rates": self.rates,
             "segment_points": [asdict(p) for p in self.segment_points],
             "training": asdict(self.training),

@@ -20,12 +20,14 @@ from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
 from canical.calibrate.model_selection import Candidate, select_model
 from canical.calibrate.noise_records import noise_analysis, sample_interval, zero_rate_records
-from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few, saturated
+from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few
+from canical.calibrate.rails import RailCheck, RailLimits, rail_plateaus
 from canical.calibrate.segment_points import rate_noise
 from canical.calibrate.zero_bias import zero_bias, zero_rate
 from canical.calibration_report import (
     CalibrationReport,
     ErrorStats,
+    LeftOutPlateau,
     LoopSection,
     NoiseLevels,
     SampleCounts,
@@ -75,6 +77,13 @@ class BaseFit:
     fitted: FittedModel
     saturated_rates: tuple[float, ...] = ()
     candidates: tuple[SizeCandidate, ...] = ()
+    left_out: tuple[LeftOutPlateau, ...] = ()  # plateaus not fitted (at a rail), named for the user
+
+    def kept(self) -> np.ndarray:
+        """Per plateau: fitted (not left out at a rail)."""
+        out = np.ones(self.plateaus.count, dtype=bool)
+        out[[p.index for p in self.left_out]] = False
+        return out
 
 
 ProgressFn = Callable[[str], None]
@@ -97,11 +106,13 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
             plateaus, min_duration_s=options.min_duration_s,
             what=f"no zero-rate plateau among {plateaus.count} plateaus (V0 cannot be measured)"))
     v0 = zero_bias(session.raw, plateaus)
-    clipped = saturated(session.raw, plateaus)
+    rails = rail_plateaus(session.raw, plateaus, rail_limits(session))
+    clipped = rails.left_out
     points = fit_points(session.raw, v0, plateaus).take(~clipped)
-    if clipped.any():
-        rates = ", ".join(f"{r:g}" for r in np.unique(plateaus.rate_dps[clipped]))
-        progress(f"left out {int(clipped.sum())} plateaus where the sensor saturates ({rates} deg/s)")
+    left_out = left_out_plateaus(session, plateaus, rails)
+    if left_out:
+        progress(f"left out {len(left_out)} plateaus at a rail of the sensor's output "
+                 f"({', '.join(f'{p.rate_dps:g}' for p in left_out)} deg/s)")
     n_rates = int(points.rate_groups().max()) + 1
     if n_rates < 4:
         raise CanicalError(explain_too_few(
@@ -111,7 +122,23 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
     spec, candidates = _choose_spec(points, options)
     fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
-    return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates)
+    return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates, left_out)
+
+
+def rail_limits(session: Session) -> RailLimits | None:
+    """The session's rail as plateau checking takes it (None: no rail known)."""
+    rail = session.rail
+    return None if rail is None else RailLimits(rail.low, rail.high, rail.source, rail.resolution)
+
+
+def left_out_plateaus(session: Session, plateaus: Plateaus, rails: RailCheck) -> tuple[LeftOutPlateau, ...]:
+    """Each plateau left out at a rail: where it is and why, for the summary and the report."""
+    t = session.time_s
+    return tuple(
+        LeftOutPlateau(index=int(i), rate_dps=float(plateaus.rate_dps[i]),
+                       start_s=float(t[plateaus.start[i]]), stop_s=float(t[plateaus.stop[i] - 1]),
+                       why=rails.why[i])
+        for i in np.flatnonzero(rails.left_out))
 
 
 def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
@@ -190,6 +217,7 @@ def base_report(session: Session, base: BaseFit) -> CalibrationReport:
         plateaus=base.plateaus.count,
         plateau_finding=base.plateaus.describe(),
         saturated_rates_dps=base.saturated_rates,
+        left_out_plateaus=base.left_out,
         rates=int(base.points.rate_groups().max()) + 1,
         segment_points=tuple(
             SegmentPoint(rate_dps=e.rate_dps, raw=e.dv + base.v0, prominence_dps=e.prominence_dps,
@@ -242,7 +270,7 @@ def extend_model(
     if not isinstance(model, PiecewisePoly):
         raise CanicalError(f"the closed loop needs a segmented model, not {base.fitted.spec.kind}")
     slope = abs(float(np.polyfit(base.points.rate, base.points.dv, 1)[0]))
-    keep = ~saturated(session.raw, base.plateaus)
+    keep = base.kept()
     blocks = make_blocks(
         session,
         base.plateaus,

@@ -2,7 +2,8 @@
 
 Plateaus of constant table rate (:mod:`.plateaus`), the zero-rate bias V0 (:mod:`.zero_bias`),
 one fit point per plateau (:mod:`.fit_points`), segment points at extrema of a global fit's
-residual (:mod:`.segment_points`), the models fitted (:mod:`.model_fit`) and their size chosen
+residual (:mod:`.segment_points`), plateaus at a rail of the output left out
+(:mod:`.rails`), the models fitted (:mod:`.model_fit`) and their size chosen
 by cross-validation (:mod:`.cross_validation`, :mod:`.model_selection`); the sensor's noise by
 its Allan deviation (:mod:`.allan`, :mod:`.noise_records`).
 
@@ -20,6 +21,7 @@ __all__ = [
     "model_selection",
     "noise_records",
     "plateaus",
+    "rails",
     "robust",
     "segment_points",
     "zero_bias",

@@ -528,16 +528,3 @@ def plateau_stds(values: np.ndarray, plateaus: Plateaus) -> np.ndarray:
     var = np.maximum(sq - mean * mean, 0.0) * n / np.maximum(n - 1, 1)
     std: np.ndarray = np.sqrt(var)
     return std
-
-
-def saturated(raw: np.ndarray, plateaus: Plateaus, *, min_fraction: float = 0.01) -> np.ndarray:
-    """Per plateau: whether the sensor sat at a rail of its converter.
-
-    A clipped output repeats the session's extreme raw value exactly, many times;
-    noise alone almost never does. Such a plateau says nothing about the scale
-    factor at its rate (every rate beyond the rail reads the same), so it must
-    not be fitted.
-    """
-    hi, lo = np.max(raw), np.min(raw)
-    at_rail = ((raw == hi) | (raw == lo)).astype(float)
-    return plateau_means(at_rail, plateaus) >= min_fraction

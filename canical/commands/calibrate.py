@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -19,11 +20,14 @@ from canical.sessions.canlog_format import CANLOG_FORMATS
 
 if TYPE_CHECKING:
     from canical.closed_loop.search import LoopResult
+    from canical.sessions.session import Session
 
 # The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
 # used, so that `--help` and argument errors answer at once.
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
+RAW_INPUT = "raw"  # --input raw=MESSAGE.Signal: the gyro signal of a CAN log
+REF_INPUT = "ref_dps"  # --input ref_dps=MESSAGE.Signal: the table's rate
 EXIT_UNEXPLAINED = 3  # --strict: the calibration leaves an unexplained residual (2 is bad input)
 STRICT_RATIO = 3.0  # --strict without a value: this many times the session's noise floor
 
@@ -36,6 +40,15 @@ def _positive_ratio(text: str) -> float:
     if not value >= 1.0:
         raise argparse.ArgumentTypeError("--strict must be at least 1 (a multiple of the noise floor)")
     return value
+
+
+def _rail(text: str):
+    from canical.sessions.session import parse_rail
+
+    try:
+        return parse_rail(text, "--rail")
+    except CanicalError as exc:
+        raise argparse.ArgumentTypeError(str(exc).removeprefix("--rail: ")) from None
 
 
 def _auto_or_int(name: str, low: int, high: int):
@@ -139,6 +152,16 @@ def register(sub) -> None:
                    metavar="MULTIPLE",
                    help="exit with status 3 when the residual after the closed loop stays above MULTIPLE "
                    f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written")
+    p.add_argument("--reference", metavar="FILE",
+                   help="the table controller's own recording of its rate on its own clock: a CSV "
+                   "(time_s and --ref-column) or a CAN log (--input ref_dps=MESSAGE.Signal, else "
+                   "TABLE_REF.TableRate); aligned to the session by the rate changes both show (offset "
+                   "and drift, reported). CAN logs name their gyro signal with --input raw=MESSAGE.Signal "
+                   "and, without --reference, their table rate with --input ref_dps=MESSAGE.Signal")
+    p.add_argument("--rail", type=_rail, metavar="LO,HI",
+                   help="the raw signal's limits: plateaus at them are left out of the fit (default: the "
+                   "DBC signal's range for a CAN log, the CSV's '# rail: LO,HI' line; none known: only "
+                   "plateaus pinned to one extreme value)")
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
     add_session_arguments(p)
@@ -164,8 +187,14 @@ def calibrate_session(args: argparse.Namespace) -> int:
     if is_canlog(args.session):
         session = read_canlog_session(args, progress)
     else:
-        session = read_session(args.session, raw_column=args.raw_column, ref_column=args.ref_column,
+        session = read_session(args.session, raw_column=args.raw_column,
+                               ref_column=None if args.reference else args.ref_column,
                                settled_column=args.settled_column)
+    clock = None
+    if args.reference:
+        session, clock = align_table_file(args, session, progress)
+    if args.rail is not None:
+        session = replace(session, rail=replace(args.rail, source="--rail"))
     sensor = args.sensor or session.sensor_id
     if args.sensor and session.sensor_id and args.sensor != session.sensor_id:
         raise CanicalError(f"--sensor {args.sensor} but {args.session} was recorded from {session.sensor_id}")
@@ -195,7 +224,7 @@ def calibrate_session(args: argparse.Namespace) -> int:
         axis=args.axis or session.axis or "z",
         progress=progress.step,
     )
-    report = result.report.with_paths(str(args.session), str(args.output))
+    report = result.report.with_paths(str(args.session), str(args.output)).with_reference_clock(clock)
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
         write_text_atomic(args.report, report_json(report))
@@ -232,14 +261,55 @@ def write_report_dir(directory: Path, report: CalibrationReport, loop: LoopResul
     write_text_atomic(directory / "report.md", render(report, plots))
 
 
-def read_canlog_session(args: argparse.Namespace, progress: Progress):
-    """A turntable session recorded from the bus: raw frames of one axis, the table's rate held."""
+def align_table_file(args: argparse.Namespace, session: Session, progress: Progress
+                     ) -> tuple[Session, dict[str, Any]]:
+    """The session with the table's own file as its reference, aligned by the rate changes both show."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.sessions.canlog import parse_signal_map
+    from canical.sessions.canlog_format import is_canlog
+    from canical.sessions.reference_clock import align_reference, join_reference
+    from canical.sessions.table_file import read_table_trace
+
+    dbc = signal = None
+    if is_canlog(args.reference):
+        dbc = canlog_source(args, args.reference).dbc
+        signal = parse_signal_map(args.inputs).get(REF_INPUT)
+    table = read_table_trace(args.reference, column=args.ref_column, dbc=dbc, signal=signal)
+    progress.step(f"aligning {args.reference} ({table.time_s.size} rows) to the session by its rate changes")
+    fit = align_reference(session.time_s, session.raw, table)
+    joined = join_reference(session.time_s, table, fit)
+    outside = int((~joined.inside).sum())
+    clock = {"file": str(args.reference), **fit.describe(), "samples_outside": outside}
+    progress.step(reference_line(clock))
+    return replace(session, ref_dps=joined.ref_dps, settled=None).take(joined.inside), clock
+
+
+def reference_line(clock: dict[str, Any]) -> str:
+    """One line on how the table's file was put on the session's clock."""
+    outside = f", {clock['samples_outside']} samples outside it left out" if clock["samples_outside"] else ""
+    return (f"reference  {clock['file']} on its own clock: offset {clock['offset_s']:.4f} s, drift "
+            f"{clock['drift_ppm']:.1f} ppm, {clock['rate_changes_matched']} rate changes matched "
+            f"(rms {clock['residual_ms']:.1f} ms){outside}")
+
+
+def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session:
+    """A turntable session recorded from the bus: raw frames of one axis, the table's rate held.
+
+    ``--input raw=MESSAGE.Signal`` names the gyro signal, ``--input ref_dps=MESSAGE.Signal`` the
+    table's rate (without ``--reference``); every other input is an auxiliary channel.
+    """
     from canical.commands.canlog_args import canlog_source
     from canical.sessions.canlog import default_inputs, read_canlog
+    from canical.sessions.canlog_format import DEFAULT_REF
 
     source = canlog_source(args, args.session)
-    inputs = source.inputs if (source.inputs or source.from_config) else default_inputs(source.dbc)
+    inputs = dict(source.inputs) if (source.inputs or source.from_config) else default_inputs(source.dbc)
+    named_raw, named_ref = inputs.pop(RAW_INPUT, None), inputs.pop(REF_INPUT, None)
+    raw_message, _, raw_signal = (named_raw or f"{source.raw_message}.").partition(".")
+    ref = None if args.reference else (named_ref or DEFAULT_REF)
     axis = args.axis
+    if axis is None and named_raw:
+        axis = "z"
     if axis is None:  # the table says which axis it turns; a first pass finds out
         first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs={}, ref=None,
                             raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"))
@@ -249,15 +319,16 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress):
         dbc=source.dbc,
         axis=axis,
         inputs=inputs,
-        raw_message=source.raw_message,
-        raw_signal=source.raw_signals.get(axis),
+        ref=ref,
+        raw_message=raw_message,
+        raw_signal=raw_signal or source.raw_signals.get(axis),
         sensor=args.sensor or source.sensor,
     )
     if log.table_axis and log.table_axis != axis:
         print(f"calibrate: warning: the table reports turning axis {log.table_axis}, calibrating {axis}",
               file=sys.stderr)
     channels = ", ".join(log.session.aux) or "none"
-    progress.step(f"{len(log.session)} {source.raw_message} frames of axis {axis} from {log.frames} "
+    progress.step(f"{len(log.session)} {raw_message} frames of axis {axis} from {log.frames} "
                   f"frames ({log.skipped} before the reference, {log.dropped} dropped); channels: {channels}")
     return log.session
 
@@ -276,8 +347,11 @@ def summary(report: CalibrationReport) -> str:
         f"samples    {s.used} of {s.total} used "
         f"({s.transition} at changing rate, {s.settling} settling), {report.plateaus} plateaus",
         _plateau_line(report.plateau_finding),
+        *(f"left out   {p.label()}" for p in report.left_out_plateaus),
         f"V0         {report.v0:.3f}",
     ]
+    if report.reference_clock is not None:
+        lines.insert(0, reference_line(report.reference_clock))
     if report.segment_points:
         pts = ", ".join(f"{p.rate_dps:g}" for p in report.segment_points)
         lines.append(f"segments   at {pts} deg/s")

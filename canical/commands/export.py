@@ -28,7 +28,20 @@ def register(sub) -> None:
         help="bank to fill: one the device is not running (a fresh device runs none) [A]",
     )
     d.add_argument("--bitrate", type=int, default=500, help="bus bit rate in kbit/s [500]")
+    d.add_argument("--rated-range", type=_rated_range, default=None, metavar="DPS",
+                   help="the device's rated range, deg/s, that each set's span must cover, as configured "
+                   "on the device (object 'Rated range'); 0: no check [the EDS's default]")
     d.set_defaults(run=run)
+
+
+def _rated_range(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError("--rated-range takes a number of deg/s") from None
+    if not 0 <= value < float("inf"):
+        raise argparse.ArgumentTypeError("--rated-range must be a finite number of deg/s, 0 or more")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,12 +81,15 @@ def export_dcf(args: argparse.Namespace) -> int:
     od = object_dictionary(args.node)
     rated = {}
     for axis, (index, sub) in objects.rated_range.items():
-        rated[axis] = float(default_value(member(od, index, sub)))
+        declared = args.rated_range
+        rated[axis] = float(default_value(member(od, index, sub))) if declared is None else declared
     limits = DeviceLimits(int(sensor), rated)
     for axis, (path, cset) in sets.items():
         problem = admission_problem(cset, axis, limits)
         if problem:
-            raise CanicalError(f"{path}: {problem}")
+            source = ("--rated-range" if args.rated_range is not None
+                      else "the EDS's default; --rated-range sets the device's")
+            raise CanicalError(f"{path}: {problem} ({source})")
     values = bank_values(objects, {a: c for a, (_, c) in sets.items()}, args.bank)
     out = Path(args.output)
     text = dcf_text(eds_path().read_text(encoding="utf-8"), values, node_id=args.node,

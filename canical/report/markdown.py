@@ -27,6 +27,15 @@ def _plateau_finding(found: dict[str, Any]) -> list[str]:
     ]
 
 
+def _reference_clock(clock: dict[str, Any] | None) -> list[str]:
+    """How the table's own file was put on the session's clock, when it was."""
+    if clock is None:
+        return []
+    return [f"- reference: `{clock['file']}` on its own clock, offset {clock['offset_s']:.4f} s, drift "
+            f"{clock['drift_ppm']:.1f} ppm, {clock['rate_changes_matched']} rate changes matched "
+            f"(rms {clock['residual_ms']:.1f} ms)"]
+
+
 def _settle_source(found: dict[str, Any]) -> str:
     """Where the start guard came from: given, or the settling the sensor showed."""
     source = found.get("settle_source", "default")
@@ -45,6 +54,8 @@ def render(report: CalibrationReport, plots: list[str]) -> str:
         f"- samples used: {s.used} of {s.total} ({s.transition} at a changing rate, "
         f"{s.settling} settling); {report.plateaus} plateaus at {report.rates} rates",
         *_plateau_finding(report.plateau_finding),
+        *(f"- left out: {p.label()}" for p in report.left_out_plateaus),
+        *_reference_clock(report.reference_clock),
         f"- zero bias V0: {report.v0:.3f}",
         "",
         "## Rate model alone",

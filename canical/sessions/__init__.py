@@ -12,5 +12,7 @@ __all__ = [
     "canlog",
     "canlog_format",
     "csv_file",
+    "reference_clock",
     "session",
+    "table_file",
 ]

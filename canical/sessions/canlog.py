@@ -24,12 +24,12 @@ from pathlib import Path
 
 import can
 import numpy as np
-from cantools.database.can import Database, Message
+from cantools.database.can import Database, Message, Signal
 
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF, require_log_support
-from canical.sessions.session import Session
+from canical.sessions.session import Rail, Session
 
 TIME_INPUT = "time_s"
 TABLE_AXIS = "TABLE_REF.TableAxis"
@@ -159,8 +159,27 @@ def read_canlog(
         raise
     except Exception as exc:  # python-can's readers raise many types on a damaged file
         raise CanicalError(f"{name}: cannot read CAN log after {log.frames} frames ({exc})") from None
-    return CanlogSession(_session(log, name, raw.name, axis, sensor), log.frames, log.skipped, log.dropped,
-                         _table_axis(log.held))
+    rail = signal_rail(raw.get_signal_by_name(raw_sig), f"DBC signal {raw.name}.{raw_sig}")
+    return CanlogSession(_session(log, name, raw.name, axis, sensor, rail), log.frames, log.skipped,
+                         log.dropped, _table_axis(log.held))
+
+
+def signal_rail(signal: Signal, where: str) -> Rail | None:
+    """The physical limits a DBC signal can carry: its bit width through its scale and offset,
+    narrowed by a declared minimum/maximum. None for a float signal (no converter rail to see)."""
+    if signal.is_float:
+        return None
+    n = signal.length
+    lo_raw, hi_raw = (-(1 << (n - 1)), (1 << (n - 1)) - 1) if signal.is_signed else (0, (1 << n) - 1)
+    scale, offset = float(signal.scale), float(signal.offset)
+    low, high = sorted((offset + scale * lo_raw, offset + scale * hi_raw))
+    what = f"{n}-bit {'signed' if signal.is_signed else 'unsigned'}, scale {scale:g}"
+    declared_lo, declared_hi = signal.minimum, signal.maximum
+    if declared_lo is not None and declared_hi is not None and declared_lo < declared_hi \
+            and (declared_lo > low or declared_hi < high):
+        low, high = max(low, float(declared_lo)), min(high, float(declared_hi))
+        what += f", declared {declared_lo:g} to {declared_hi:g}"
+    return Rail(low, high, f"{where}: {what}", abs(scale))
 
 
 def _wanted_signals(db: Database, inputs: Mapping[str, str], ref: str | None) -> dict[str, str]:
@@ -215,7 +234,8 @@ def _take_frame(log: _LogRows, frame: can.Message, raw: Message, raw_sig: str,
         log.add(float(frame.timestamp), _number(values, raw_sig))
 
 
-def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | None) -> Session:
+def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | None,
+             rail: Rail | None) -> Session:
     """The rows as a session: in time order when it has a reference (a drive is corrected as is)."""
     if not log.raws:
         what = f"{raw_name} frames" if log.frames else "frames"
@@ -240,6 +260,7 @@ def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | N
         aux=aux,
         meta=meta,
         settled=np.asarray(log.settled) != 0 if "\0settled" in log.held else None,
+        rail=rail,
     )
 
 
@@ -270,3 +291,37 @@ def _message(db: Database, name: str, dbc: str | os.PathLike[str]) -> Message:
         return db.get_message_by_name(name)
     except KeyError:
         raise CanicalError(f"{dbc}: no message {name}") from None
+
+
+def read_signal_trace(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str],
+                      signal: str) -> tuple[np.ndarray, np.ndarray]:
+    """(frame timestamps, values) of one ``MESSAGE.Signal`` in a log, on the log's own clock.
+
+    For a table controller's own log: every frame of the message is a row, as recorded.
+    """
+    name = str(path)
+    if not Path(path).is_file():
+        raise CanicalError(f"{name}: file not found")
+    require_log_support(path)
+    db = load_dbc(dbc)
+    msg_name, _, sig_name = signal.partition(".")
+    msg = _message(db, msg_name, dbc)
+    if sig_name not in {s.name for s in msg.signals}:
+        raise CanicalError(f"{dbc}: message {msg_name} has no signal {sig_name}")
+    key = (msg.frame_id, msg.is_extended_frame)
+    times: list[float] = []
+    values: list[float] = []
+    try:
+        for frame in can.LogReader(name):
+            if frame.is_error_frame or frame.is_remote_frame or frame.is_fd \
+                    or (frame.arbitration_id, frame.is_extended_id) != key or len(frame.data) != msg.length:
+                continue
+            times.append(float(frame.timestamp))
+            values.append(_number(_signals(msg, frame.data), sig_name))
+    except CanicalError:
+        raise
+    except Exception as exc:  # python-can's readers raise many types on a damaged file
+        raise CanicalError(f"{name}: cannot read CAN log ({exc})") from None
+    if not times:
+        raise CanicalError(f"{name}: no {msg_name} frames")
+    return np.asarray(times), np.asarray(values)

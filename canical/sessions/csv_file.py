@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.sessions.session import Session
+from canical.sessions.session import Session, parse_rail
 
 TIME_COLUMN = "time_s"
 
@@ -145,6 +145,7 @@ def session_from_table(
     if n > 1 and np.any(np.diff(time_s) < 0):
         bad = int(np.argmax(np.diff(time_s) < 0)) + 1
         raise CanicalError(f"{table.path}: line {table.first_data_line + bad}: time_s goes backwards")
+    rail = parse_rail(table.meta["rail"], f"{table.path}: # rail") if "rail" in table.meta else None
     known = {TIME_COLUMN, raw_column, ref_column or "ref_dps", settled_column}
     aux = {c: v for c, v in table.columns.items() if c not in known}
     return Session(
@@ -154,6 +155,7 @@ def session_from_table(
         aux=aux,
         meta=dict(table.meta),
         settled=table.columns[settled_column] != 0 if settled_column else None,
+        rail=rail,
     )
 
 
@@ -174,6 +176,8 @@ def format_session(session: Session, *, float_format: str = "%.9g") -> str:
     out = io.StringIO()
     for key, value in session.meta.items():
         out.write(f"# {key}: {value}\n")
+    if session.rail is not None and "rail" not in session.meta:
+        out.write(f"# rail: {session.rail.low!r},{session.rail.high!r}\n")
     names = [TIME_COLUMN]
     cols = [session.time_s]
     if session.ref_dps is not None:

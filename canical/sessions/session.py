@@ -18,6 +18,33 @@ from canical.errors import CanicalError
 
 
 @dataclass(frozen=True)
+class Rail:
+    """The limits of the raw signal as its definition gives them: values there are clipped.
+
+    From the DBC (bit width, scale, offset, declared range), a CSV's ``# rail: LO,HI`` line or
+    ``--rail``; never from the values recorded. ``resolution`` is the signal's step (a value
+    within half a step of a limit is at it); ``source`` says where the limits come from.
+    """
+
+    low: float
+    high: float
+    source: str
+    resolution: float = 0.0
+
+
+def parse_rail(text: str, source: str) -> Rail:
+    """``LO,HI`` as a rail; one line naming ``source`` when it is not two finite numbers, LO < HI."""
+    parts = text.split(",")
+    try:
+        low, high = (float(p) for p in parts) if len(parts) == 2 else (float("nan"),) * 2
+    except ValueError:
+        low = high = float("nan")
+    if not (np.isfinite(low) and np.isfinite(high) and low < high):
+        raise CanicalError(f"{source}: rail {text.strip()!r}: expected LO,HI (two numbers, LO below HI)")
+    return Rail(low, high, source)
+
+
+@dataclass(frozen=True)
 class Session:
     """Samples of one axis, in time order."""
 
@@ -27,6 +54,7 @@ class Session:
     aux: dict[str, np.ndarray] = field(default_factory=dict)
     meta: dict[str, str] = field(default_factory=dict)
     settled: np.ndarray | None = None
+    rail: Rail | None = None  # the raw signal's limits, when its definition or the user gives them
 
     def __len__(self) -> int:
         return int(self.raw.shape[0])
@@ -56,4 +84,5 @@ class Session:
             aux={name: values[index] for name, values in self.aux.items()},
             meta=dict(self.meta),
             settled=None if self.settled is None else self.settled[index],
+            rail=self.rail,
         )

@@ -99,6 +99,15 @@ def test_export_refuses_what_push_refuses(tmp_path: Path) -> None:
     assert ok.returncode == 2 and "1..127" in ok.stderr and not out.exists()
 
 
+def test_the_rated_range_checked_can_be_the_devices_own(tmp_path: Path) -> None:
+    """The EDS's default (50 deg/s) unless --rated-range gives the device's configured one."""
+    out, wide = export(tmp_path, {"z": imu_set("z")}, "--rated-range", "70")
+    assert wide.returncode == 2 and "does not cover the rated range ±70 deg/s (--rated-range)" in wide.stderr
+    assert not out.exists()
+    out, ok = export(tmp_path, {"z": imu_set("z")}, "--rated-range", "60")
+    assert ok.returncode == 0, ok.stderr
+
+
 @contextlib.contextmanager
 def emulated(tmp_path: Path, name: str) -> Iterator[tuple[EmulatedImu, str]]:
     channel = f"dcf-{uuid.uuid4().hex}"

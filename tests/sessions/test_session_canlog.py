@@ -234,3 +234,17 @@ def test_asammdf_is_imported_only_when_an_mf4_is_named() -> None:
         proc = subprocess.run([sys.executable, "-c", probe, "calibrate", arg], capture_output=True, text=True,
                               timeout=120, check=True)
         assert proc.stdout.strip() == loaded, (arg, proc.stdout, proc.stderr)
+
+
+def test_the_gyro_and_table_signals_can_be_named(turntable) -> None:
+    """``--input raw=`` and ``--input ref_dps=`` name the signals: the same set as canical's defaults."""
+    from canical.commands.cli import main
+
+    _, paths, _, folder = turntable
+    common = ["--no-extend", "--segments", "3", "--order", "2", "--sensor", "IMU-0001", "--axis", "z"]
+    log = str(paths[".log"])
+    assert main(["calibrate", log, "--dbc", str(DBC), *common, "-o", str(folder / "d.yaml")]) == 0
+    assert main(["calibrate", log, "--dbc", str(DBC), "--input", "raw=IMU_RAW.GyroRawZ",
+                 "--input", "ref_dps=TABLE_REF.TableRate", *common, "-o", str(folder / "n.yaml")]) == 0
+    default, named = (coefficient_file.load(folder / f) for f in ("d.yaml", "n.yaml"))
+    assert named.v0 == pytest.approx(default.v0, abs=1e-6)

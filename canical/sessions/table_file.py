@@ -1,0 +1,37 @@
+"""A rate table's own recording of its rate: a CSV (``time_s``, ``ref_dps``) or a CAN log, on its own clock.
+
+Read as it is: times on the table controller's clock (aligned to the sensor's log by
+:mod:`.reference_clock`), one row per record, in time order.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from canical.errors import CanicalError
+from canical.sessions.canlog import read_signal_trace
+from canical.sessions.canlog_format import DEFAULT_REF, is_canlog
+from canical.sessions.csv_file import TIME_COLUMN, read_table
+from canical.sessions.reference_clock import TableTrace
+
+
+def read_table_trace(path: str | os.PathLike[str], *, column: str = "ref_dps",
+                     dbc: str | os.PathLike[str] | None = None, signal: str | None = None) -> TableTrace:
+    """The table's rate and its own times; a CAN log needs the DBC (``signal``: TABLE_REF.TableRate)."""
+    name = str(path)
+    if is_canlog(path):
+        if dbc is None:
+            raise CanicalError(f"{name}: reading a CAN log needs --dbc or --config")
+        t, ref = read_signal_trace(path, dbc=dbc, signal=signal or DEFAULT_REF)
+    else:
+        table = read_table(path, [TIME_COLUMN, column])
+        t, ref = table.columns[TIME_COLUMN], table.columns[column]
+    back = np.flatnonzero(np.diff(t) < 0)
+    if back.size:
+        i = int(back[0]) + 1
+        raise CanicalError(f"{name}: row {i + 1}: time goes backwards ({t[i]:.6g} s after {t[i - 1]:.6g} s)")
+    if t.size < 4:
+        raise CanicalError(f"{name}: only {t.size} rows: too few to align with the log")
+    return TableTrace(np.asarray(t, dtype=float), np.asarray(ref, dtype=float), name)

@@ -1,0 +1,114 @@
+"""``calibrate`` from a vendor's CAN log plus the table controller's own file on its own clock."""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import replace
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+from support.table_clock import own_clock_case, table_csv
+
+from canical.commands.cli import main
+from canical.sessions.csv_file import format_session
+from canical.sessions.reference_clock import align_reference, join_reference
+from canical.sim.gyro import GyroModel
+
+T0 = 1_700_000_000.0  # the logger's clock
+#: A vendor's CANopen IMU: gyro in TPDO2 at 0x288, three int16 at 0.1 deg/s, no counter.
+VENDOR_DBC = """VERSION ""
+NS_ :
+BS_:
+BU_: IMU
+BO_ 648 TPDO2: 6 IMU
+ SG_ GyroX : 0|16@1- (0.1,0) [-3276.8|3276.7] "deg/s" Vector__XXX
+ SG_ GyroY : 16|16@1- (0.1,0) [-3276.8|3276.7] "deg/s" Vector__XXX
+ SG_ GyroZ : 32|16@1- (0.1,0) [-3276.8|3276.7] "deg/s" Vector__XXX
+"""
+#: Its output is the rate in deg/s, quantised to 0.1 deg/s.
+QUANTISED = GyroModel(sensitivity=1.0, bias_counts=0.3, lsb=0.1, rail_counts=3276.7)
+
+
+@pytest.fixture(scope="module")
+def vendor_files(tmp_path_factory: pytest.TempPathFactory):
+    folder = tmp_path_factory.mktemp("vendor")
+    case = own_clock_case(0, gyro=QUANTISED, fs_hz=100.0, offset_s=5000.25, drift_ppm=-75.0)
+    (folder / "vendor.dbc").write_text(VENDOR_DBC)
+    with can.Logger(str(folder / "imu.log")) as log:
+        for t, raw in zip(case.session.time_s, case.session.raw, strict=True):
+            data = struct.pack("<hhh", 3, -2, round(float(raw) * 10))
+            log.on_message_received(can.Message(timestamp=T0 + float(t), arbitration_id=0x288,
+                                                is_extended_id=False, data=data))
+    (folder / "table.csv").write_text(table_csv(case.table))
+    return case, folder
+
+
+def _run(folder: Path, *args: str) -> int:
+    try:
+        return main(["calibrate", *args])
+    except SystemExit as stop:
+        return int(stop.code or 0)
+
+
+def test_a_vendor_log_calibrates_against_the_tables_own_file(vendor_files, capsys) -> None:
+    case, folder = vendor_files
+    code = _run(folder, str(folder / "imu.log"), "--dbc", str(folder / "vendor.dbc"),
+                "--input", "raw=TPDO2.GyroZ", "--reference", str(folder / "table.csv"), "--no-extend",
+                "-o", str(folder / "aligned.yaml"), "--report", str(folder / "aligned.json"))
+    assert code == 0, capsys.readouterr().err
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith("reference  ") and "drift" in out
+    report = json.loads((folder / "aligned.json").read_text())
+    clock = report["reference_clock"]
+    assert clock["offset_s"] == pytest.approx(5000.25, abs=0.1)
+    assert clock["rate_changes_matched"] >= 38
+    # The DBC's rail (±3276.8 deg/s) is nowhere near: every plateau to ±60 deg/s is kept.
+    assert report["left_out_plateaus"] == [] and report["saturated_rates_dps"] == []
+    assert report["rates"] == 41
+
+    # The same samples with the table's rate perfectly aligned, as a session CSV.
+    fit = align_reference(case.session.time_s, case.session.raw, case.table)
+    inside = join_reference(case.session.time_s, case.table, fit).inside
+    perfect = join_reference(case.session.time_s, case.table, case.truth)
+    session = replace(case.session, raw=np.round(case.session.raw * 10) / 10,
+                      ref_dps=perfect.ref_dps).take(inside & perfect.inside)
+    (folder / "perfect.csv").write_text(format_session(session))
+    assert _run(folder, str(folder / "perfect.csv"), "--no-extend", "-o", str(folder / "perfect.yaml"),
+                "--report", str(folder / "perfect.json")) == 0
+    best = json.loads((folder / "perfect.json").read_text())["held_out"]["rms_dps"]
+    assert report["held_out"]["rms_dps"] <= 1.5 * best
+
+
+def test_a_session_csv_takes_the_tables_file_too(vendor_files, tmp_path: Path, capsys) -> None:
+    case, folder = vendor_files
+    path = tmp_path / "log.csv"
+    path.write_text(format_session(case.session))  # no ref_dps column
+    assert _run(tmp_path, str(path), "--reference", str(folder / "table.csv"), "--no-extend",
+                "--segments", "3", "--order", "2", "-o", str(tmp_path / "set.yaml")) == 0
+    assert "on its own clock: offset 5000.2" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("what, table, extra, message", [
+    ("flat", "time_s,ref_dps\n" + "".join(f"{i / 10},0\n" for i in range(100)), (), "never changes"),
+    ("no column", "time_s,rate\n1,0\n2,0\n3,0\n4,0\n", (), "missing column 'ref_dps'"),
+    ("backwards", "time_s,ref_dps\n1,0\n3,0\n2,0\n4,0\n5,0\n", (), "time goes backwards"),
+    ("bad signal", None, ("--input", "raw=TPDO2.GyroW"), "has no signal GyroW"),
+])
+def test_bad_inputs_are_one_line_exit_2_nothing_written(vendor_files, tmp_path: Path, capsys, what: str,
+                                                        table: str | None, extra: tuple[str, ...],
+                                                        message: str) -> None:
+    _, folder = vendor_files
+    reference = folder / "table.csv"
+    if table is not None:
+        reference = tmp_path / "table.csv"
+        reference.write_text(table)
+    out = tmp_path / "set.yaml"
+    code = _run(tmp_path, str(folder / "imu.log"), "--dbc", str(folder / "vendor.dbc"),
+                *(extra or ("--input", "raw=TPDO2.GyroZ")), "--reference", str(reference), "-o", str(out),
+                "--report", str(tmp_path / "r.json"))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+    assert not out.exists() and not (tmp_path / "r.json").exists()
