@@ -116,13 +116,24 @@ def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray,
         out.write(",".join([*table.header, "rate_dps", "out_of_span", *extra]) + "\n")
         for start in range(0, len(table.rows), CHUNK_ROWS):
             stop = min(start + CHUNK_ROWS, len(table.rows))
-            buf = io.StringIO()
-            tails = [[f",{v:.6f}" for v in col[start:stop].tolist()] for col in extra.values()]
-            for i, (line, r, o) in enumerate(zip(table.rows[start:stop], rate[start:stop], oos[start:stop],
-                                                 strict=True)):
-                buf.write(f"{line},{r:.6f},{int(o)}{''.join(t[i] for t in tails)}\n")
-            out.write(buf.getvalue())
+            out.write(_chunk_text(table.rows[start:stop], rate[start:stop], oos[start:stop],
+                                  [col[start:stop] for col in extra.values()]))
             progress.update(stop)
+
+
+def _chunk_text(rows: list[str], rate: np.ndarray, oos: np.ndarray, extra: list[np.ndarray]) -> str:
+    """Rows with their new columns; the extra columns (the tracked bias) joined once per row only
+    when there are any, so plain ``apply`` keeps its one format per row."""
+    buf = io.StringIO()
+    if not extra:
+        for line, r, o in zip(rows, rate, oos, strict=True):
+            buf.write(f"{line},{r:.6f},{int(o)}\n")
+        return buf.getvalue()
+    tails = ["".join(cells) for cells in zip(*([f",{v:.6f}" for v in col.tolist()] for col in extra),
+                                            strict=True)]
+    for line, r, o, tail in zip(rows, rate, oos, tails, strict=True):
+        buf.write(f"{line},{r:.6f},{int(o)}{tail}\n")
+    return buf.getvalue()
 
 
 def tracking_columns(path: str, args: argparse.Namespace) -> list[str]:
