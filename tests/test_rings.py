@@ -18,7 +18,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "canical"
 
 #: Bottom to top. A name is a package (``models``) or a module at the package root.
 RINGS: tuple[tuple[str, ...], ...] = (
-    ("errors", "progress", "bus_outage"),
+    ("errors", "progress", "bus_outage", "robust_stats"),
     ("yaml_text", "output_plan", "imu_dictionary"),
     ("atomic_file",),
     ("models", "frames"),

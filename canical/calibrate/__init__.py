@@ -22,7 +22,6 @@ __all__ = [
     "noise_records",
     "plateaus",
     "rails",
-    "robust",
     "segment_points",
     "zero_bias",
 ]

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import correlate, correlation_lags
 
-from canical.calibrate.robust import mad_sigma, median_step
 from canical.errors import CanicalError
+from canical.robust_stats import mad_sigma, median_step
 
 MIN_WINDOW_S = 0.5  # shortest window over which steadiness is judged
 WINDOW_UPDATES = 8  # ...and at least this many reference updates

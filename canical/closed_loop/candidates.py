@@ -30,6 +30,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from canical.closed_loop.blocks import SLOPE_TAU_S, Blocks
+from canical.robust_stats import mad_sigma
 from canical.sets.term_kinds import (
     CHANNEL,
     CHANNEL_DERIVATIVE,
@@ -42,7 +43,6 @@ from canical.sets.term_kinds import (
     DIRECTION_SIGN,
     DIRECTION_SLOPE,
     TIME,
-    TIME_INPUT,
     TIME_LINEAR,
     TIME_WARMUP,
     TermKind,
@@ -210,7 +210,7 @@ def sample_noise(values: np.ndarray) -> float:
     d = np.diff(np.asarray(values, dtype=float))
     if d.size == 0:
         return 0.0
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2.0))
+    return mad_sigma(d) / float(np.sqrt(2.0))
 
 
 def derivative_window(blocks: Blocks, channel: str) -> float:
@@ -320,7 +320,3 @@ def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] 
         (replace(t, threshold_raw=tau) if gated else replace(t, tau_s=tau)) if in_group(t, group) else t
         for t in terms
     )
-
-
-def uses_time(terms: tuple[Term, ...]) -> bool:
-    return any(t.input_name == TIME_INPUT for t in terms)

@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from canical.calibrate.robust import mad_sigma
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
+from canical.robust_stats import mad_sigma
 
 # Clean simulated sensors (white noise, or with bias instability and rate random
 # walk) leave 1.0-1.4x the floor on held-out plateaus; an unexplained effect the

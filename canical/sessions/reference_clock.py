@@ -33,6 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.robust_stats import mad_sigma
 
 GRID_S = 0.05  # common grid of the coarse search
 SMOOTH_S = 0.25  # each grid point is the mean over this window
@@ -403,4 +404,4 @@ def _overlap_s(fit: ClockFit, t: np.ndarray, tt: np.ndarray) -> float:
 def _robust_sigma(x: np.ndarray) -> float:
     if x.size == 0:
         return 0.0
-    return float(1.4826 * np.median(np.abs(x - np.median(x))))
+    return mad_sigma(x)
