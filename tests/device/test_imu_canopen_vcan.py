@@ -159,7 +159,7 @@ def test_the_tool_refuses_what_it_can_before_writing(vcan_channel: str, tmp_path
     damaged = tmp_path / "damaged.yaml"
     damaged.write_text(Path(good[2]).read_text().replace("v0: ", "v0: 1", 1))
     absent = canical("push", good[2], "--node", "0x33", "--channel", vcan_channel, "--timeout", "0.3")
-    assert_one_line_error(absent, "node 0x33", "no answer while reading the serial number")
+    assert_one_line_error(absent, "node 0x33", "no answer while reading its identity")
     with device(vcan_channel, tmp_path, "--rate", "0", "--rated-range", "70"):
         assert_one_line_error(canical("push", foreign[2], *bus_args(vcan_channel)),
                               "not for this device", "set is for sensor 4712, this device is serial 4711")
