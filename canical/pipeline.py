@@ -324,6 +324,23 @@ def with_loop(report: CalibrationReport, loop: LoopResult, n_terms: int) -> Cali
     )
 
 
+def set_arw(report: CalibrationReport) -> float | None:
+    """The angle random walk the set carries (deg/√h), for telling a standstill on the vehicle.
+
+    From the Allan analysis of the zero-rate plateaus when it resolved the term; else from the
+    plateaus' per-sample noise at the session's sample rate (white noise: N = σ·√Δt). None when
+    the session shows neither.
+    """
+    term = report.allan.get("terms", {}).get("arw", {})
+    if term.get("resolved"):
+        return float(term["value"])
+    rate_hz = report.allan.get("sample_rate_hz")
+    sigma = report.noise.per_sample_dps
+    if rate_hz and np.isfinite(sigma) and sigma > 0:
+        return float(sigma / np.sqrt(rate_hz) * 60.0)
+    return None
+
+
 def fit_stats(report: CalibrationReport) -> dict[str, Any]:
     """The coefficient file's ``fit`` section: the figures a set carries about its own fit."""
     stats: dict[str, Any] = {
@@ -334,6 +351,9 @@ def fit_stats(report: CalibrationReport) -> dict[str, Any]:
         "held_out_rms_dps": report.held_out.rms_dps,
         "held_out_max_dps": report.held_out.max_dps,
     }
+    arw = set_arw(report)
+    if arw is not None:
+        stats["arw_deg_rt_h"] = arw
     if report.closed_loop is not None:
         stats["extended_held_out_rms_dps"] = report.closed_loop.held_out_rms_after_dps
         stats["effects"] = [e.name for e in report.effects]

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from typing import Any
 
 from canical.bus.daemon_config import BiasTracking
@@ -40,8 +41,13 @@ class DaemonTracking:
         self._names = (config.time_input, config.temperature_input, config.settings.cue_input)
         self._steps: list[tuple[Any, list[float]]] = [(None, [0.0])] * 3
 
-    def for_sets(self, combined_id: int, axes: tuple[str, ...], calibrated: tuple[bool, ...]) -> None:
-        """New sets: save what was learned for the old ones, load (or start) the new ones' state."""
+    def for_sets(self, combined_id: int, axes: tuple[str, ...],
+                 fits: tuple[Mapping[str, Any] | None, ...]) -> None:
+        """New sets: save what was learned for the old ones, load (or start) the new ones' state.
+
+        ``fits`` holds each axis's set's ``fit`` section (None: the axis is not calibrated); each
+        tracker tells a standstill by its own set's angle random walk unless the configuration
+        gives one."""
         if combined_id == self.set_id:
             return
         self.save()
@@ -51,9 +57,11 @@ class DaemonTracking:
             loaded = state_file.load(self.config.state_file, combined_id, axes)
             log.info("%s", loaded.note)
             learned = loaded.learned
+        settings = self.config.settings
         self.trackers = [
-            BiasTracker((axis,), self.config.settings.tracker, None if learned is None else (learned[k],))
-            if ok else None for k, (axis, ok) in enumerate(zip(axes, calibrated, strict=True))]
+            BiasTracker((axis,), settings.tracker.for_set(fit, arw_given=settings.arw_given),
+                        None if learned is None else (learned[k],))
+            if fit is not None else None for k, (axis, fit) in enumerate(zip(axes, fits, strict=True))]
         self._steps = [(None, [0.0]) if t is None else (t.step, t.applied) for t in self.trackers]
         self._saved_updates = self._updates()
 

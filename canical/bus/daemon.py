@@ -378,7 +378,8 @@ class Daemon:
         self._plan = plan_for(sets, self.layout, self.max_age, self._compiled_axes, compiled=self.compiled)
         if self.tracking is not None:
             self.tracking.for_sets(sets.combined_id, tuple(ax.axis for ax in sets.axes),
-                                   tuple(ax.corrector is not None for ax in sets.axes))
+                                   tuple(None if ax.corrector is None else ax.corrector.cset.fit
+                                         for ax in sets.axes))
         return self._plan
 
     def _raw_handler(self, sock: socket.socket) -> RawHandler:

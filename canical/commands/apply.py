@@ -162,14 +162,17 @@ def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
     from canical.tracking.config import TrackerConfig
     from canical.tracking.replay import replay
 
-    config = getattr(args, "daemon_tracker", None)  # the daemon configuration's bias_tracking
-    if config is None:
-        arw = args.arw if args.arw is not None else cset.fit.get("arw_deg_rt_h", 0.5)
+    settings = getattr(args, "daemon_tracking", None)  # the daemon configuration's bias_tracking
+    if settings is not None:
+        config = settings.tracker.for_set(cset.fit, arw_given=settings.arw_given)
+    else:
         try:
-            config = TrackerConfig(arw_deg_rt_h=float(arw),
-                                   cue_threshold=args.standstill_below if args.standstill_column else None)
+            arw = args.arw if args.arw is not None else TrackerConfig.arw_deg_rt_h
+            cue_below = args.standstill_below if args.standstill_column else None
+            config = TrackerConfig(arw_deg_rt_h=arw, cue_threshold=cue_below)
         except ValueError as exc:
             raise CanicalError(f"bias tracking: {exc}") from None
+        config = config.for_set(cset.fit, arw_given=args.arw is not None)
     time_s = columns["time_s"]
     if not np.isfinite(time_s).all():
         raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
@@ -200,7 +203,7 @@ def use_daemon_tracking(args: argparse.Namespace) -> None:
     tracking = load_config(args.config).bias_tracking
     if tracking is None:
         return
-    args.daemon_tracker = tracking.settings.tracker
+    args.daemon_tracking = tracking.settings
     args.standstill_column = tracking.settings.cue_input
     args.temp_column = tracking.temperature_input or ""
     print(f"apply: bias tracking as configured in {args.config} (bias_tracking:)")

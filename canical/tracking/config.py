@@ -7,7 +7,9 @@ same settings, and the tracker reads nothing else, so the same settings give the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
+from typing import Any
 
 SQRT_HOUR = 60.0  # √(3600 s): deg/√h → deg/s/√Hz
 
@@ -54,6 +56,14 @@ class TrackerConfig:
             raise ValueError("reference_c must be a finite number")
         if self.cue_threshold is not None and not math.isfinite(self.cue_threshold):
             raise ValueError("cue_threshold must be a finite number")
+
+    def for_set(self, fit: Mapping[str, Any], *, arw_given: bool) -> TrackerConfig:
+        """These settings for one axis's set: its angle random walk (``fit.arw_deg_rt_h``, what
+        calibrate measured) unless the user gave one; a set without it keeps the default."""
+        arw = fit.get("arw_deg_rt_h")
+        if arw_given or not isinstance(arw, int | float) or not (math.isfinite(arw) and arw > 0):
+            return self
+        return replace(self, arw_deg_rt_h=float(arw))
 
     @property
     def white_dps_rt_hz(self) -> float:

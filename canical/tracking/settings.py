@@ -36,8 +36,8 @@ class Key:
 #: Every key of the section: what the reference page lists and what the parser accepts.
 KEYS: tuple[Key, ...] = (
     Key("enabled", "false", "true or false", "learn each axis's bias at standstills and subtract it"),
-    Key("arw_deg_rt_h", f"{DEFAULT.arw_deg_rt_h:g}", "positive number",
-        "the sensor's angle random walk (deg/√h), from the calibration's noise analysis"),
+    Key("arw_deg_rt_h", f"each set's fit.arw_deg_rt_h, else {DEFAULT.arw_deg_rt_h:g}", "positive number",
+        "the sensor's angle random walk (deg/√h); given here, it overrides what calibrate measured"),
     Key("window_s", f"{DEFAULT.window_s:g}", "positive number",
         "statistics window: decisions once per window"),
     Key("vibration_dps", f"{DEFAULT.vibration_dps:g}", "number ≥ 0",
@@ -66,6 +66,7 @@ class BiasTrackingSettings:
     cue_input: str | None  # the name of an input
     temperature_input: str
     state_file: str | None  # as written: the daemon resolves it against its configuration's folder
+    arw_given: bool = False  # arw_deg_rt_h was given: it overrides each set's own
 
 
 def parse_bias_tracking(section: Any, fail: Fail) -> BiasTrackingSettings:
@@ -95,7 +96,8 @@ def parse_bias_tracking(section: Any, fail: Fail) -> BiasTrackingSettings:
     except ValueError as exc:
         name = str(exc).split(" ", 1)[0]
         raise fail(f"{PREFIX}{name}", str(exc).split(" ", 1)[1]) from None
-    return BiasTrackingSettings(enabled, tracker, cue_input, temperature, state)
+    return BiasTrackingSettings(enabled, tracker, cue_input, temperature, state,
+                                arw_given="arw_deg_rt_h" in section)
 
 
 def _number(value: Any, key: str, fail: Fail) -> float:

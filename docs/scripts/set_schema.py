@@ -88,8 +88,9 @@ FIELDS: tuple[Field, ...] = (
     Field(
         "fit",
         "mapping",
-        "statistics of the fit (samples, plateaus, training and held-out errors): "
-        "informative, not used to correct",
+        "statistics of the fit (samples, plateaus, training and held-out errors, the angle random walk "
+        "`arw_deg_rt_h` that bias tracking tells a standstill by): "
+        "not used to correct",
     ),
     Field(
         "crc32",

@@ -215,3 +215,18 @@ def test_apply_with_the_daemon_configuration_tracks_as_the_daemon(tmp_path: Path
     table = np.loadtxt(out, delimiter=",", skiprows=header + 1)
     tracked = table[:, names.index("rate_dps")] - table[:, names.index("bias_dps")]
     assert np.max(np.abs(tracked - np.array(recorded)[:, 2])) <= 2e-6  # the file's 6 decimals
+
+
+@pytest.mark.parametrize(("section", "expected"), [
+    ({"enabled": True}, (0.2, None, 0.5)),  # each set's own; a set without one: the default
+    ({"enabled": True, "arw_deg_rt_h": 0.4}, (0.4, None, 0.4)),  # configured: it overrides the sets'
+])
+def test_each_axis_tells_a_standstill_by_its_sets_noise(tmp_path: Path, section: dict,
+                                                        expected: tuple) -> None:
+    write_sets(tmp_path)
+    config = load_config(write_config(tmp_path, "arw", bias_tracking=section))
+    assert config.bias_tracking is not None
+    tracking = DaemonTracking(config.bias_tracking, {})
+    tracking.for_sets(7, ("x", "y", "z"), ({"arw_deg_rt_h": 0.2}, None, {}))
+    got = tuple(None if t is None else t.config.arw_deg_rt_h for t in tracking.trackers)
+    assert got == expected

@@ -167,3 +167,15 @@ def test_closed_loop_blames_no_channel_for_bias_instability_and_rate_random_walk
     result = calibrate(noisy, CalibrateOptions(), sensor_id="SIM", axis="z")
     assert result.report.effects == ()
     assert result.coefficients.terms == ()
+
+
+@pytest.mark.parametrize(("noise_dps", "seed"), [(0.08, 0), (0.2, 3)])
+def test_the_set_carries_the_angle_random_walk_it_measured(noise_dps: float, seed: int) -> None:
+    """fit.arw_deg_rt_h (what bias tracking tells a standstill by) is the sensor's white noise:
+    N = σ_sample·√Δt, within the read-out's own interval for a clean sensor."""
+    gyro = GyroModel(noise_dps=noise_dps)
+    session = paper_session(gyro, seed=seed)
+    result = calibrate(session, CalibrateOptions(extend=False), sensor_id="SIM", axis="z")
+    fs = 1.0 / float(np.median(np.diff(session.time_s)))
+    truth = noise_dps / np.sqrt(fs) * 60.0
+    assert result.coefficients.fit["arw_deg_rt_h"] == pytest.approx(truth, rel=0.1)

@@ -62,3 +62,15 @@ def test_a_status_line_says_bias_uncertainty_age_and_updates() -> None:
     line = AxisStatus("z", 0.4123, 0.0031, 0.41, 12.0, 158).text()
     assert line == "z bias +0.4123±0.0031 deg/s (applied +0.4100), 158 updates, last 12 s ago"
     assert "not yet this power-on" in AxisStatus("z", 0.0, 0.5, 0.0, math.nan, 0).text()
+
+
+def test_the_sets_angle_random_walk_is_used_unless_given() -> None:
+    """A standstill is told by each set's own measured noise; a configured figure overrides it."""
+    base = parse_bias_tracking({"enabled": True}, fail)
+    assert not base.arw_given
+    assert base.tracker.for_set({"arw_deg_rt_h": 0.21}, arw_given=False).arw_deg_rt_h == 0.21
+    assert base.tracker.for_set({}, arw_given=False).arw_deg_rt_h == base.tracker.arw_deg_rt_h
+    assert base.tracker.for_set({"arw_deg_rt_h": -1.0}, arw_given=False) is base.tracker
+    given = parse_bias_tracking({"enabled": True, "arw_deg_rt_h": 0.4}, fail)
+    assert given.arw_given
+    assert given.tracker.for_set({"arw_deg_rt_h": 0.21}, arw_given=True).arw_deg_rt_h == 0.4
