@@ -25,7 +25,7 @@ from canical.bus.daemon_config import DaemonConfig
 from canical.errors import CanicalError
 from canical.frames.imu_frames import SET_TAG_MASK
 from canical.sets import coefficient_file
-from canical.sets.coefficients import CoefficientSet
+from canical.sets.coefficients import DEFAULT_RAW_UNITS, CoefficientSet
 from canical.sets.corrector import Corrector
 
 SOURCE_NONE = 0
@@ -106,6 +106,10 @@ def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path 
         raise CanicalError(
             f"{path}: set is for sensor {cset.sensor_id}, configured sensor is {config.sensor}"
         )
+    units = next((a.raw_units for a in config.axes if a.axis == axis), "")
+    if units and cset.raw_units not in (units, DEFAULT_RAW_UNITS):
+        raise CanicalError(f"{path}: set is for raw values in {cset.raw_units}, the DBC signal of "
+                           f"axis {axis} is in {units}")
     corrector = Corrector(cset)
     missing = [n for n in corrector.required_inputs if n not in config.inputs]
     if missing:

@@ -49,6 +49,7 @@ class AxisConfig:
     axis: str
     raw_signal: str
     coefficients: Path | None  # None: the axis is sent uncalibrated
+    raw_units: str = ""  # the raw signal's unit as its DBC gives it ("": none given)
 
 
 @dataclass(frozen=True)
@@ -294,7 +295,8 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisCo
                 dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
         coeff = entry.get("coefficients")
         coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
-        axes.append(AxisConfig(axis, raw_sig, coeff_path))
+        units = frames.raw.get_signal_by_name(raw_sig).unit or ""
+        axes.append(AxisConfig(axis, raw_sig, coeff_path, units))
     if not any(a.coefficients for a in axes):
         raise dbc.fail("axes", "no axis has a coefficients file")
     return tuple(axes)

@@ -17,6 +17,8 @@ from canical.models import MODEL_KINDS
 from canical.output_plan import output_plan
 from canical.progress import Progress
 from canical.sessions.canlog_format import CANLOG_FORMATS
+from canical.sessions.session import RAW_UNITS
+from canical.sets.coefficients import DEFAULT_RAW_UNITS
 
 if TYPE_CHECKING:
     from canical.closed_loop.search import LoopResult
@@ -222,6 +224,7 @@ def calibrate_session(args: argparse.Namespace) -> int:
         options,
         sensor_id=sensor,
         axis=args.axis or session.axis or "z",
+        raw_units=session.meta.get(RAW_UNITS, DEFAULT_RAW_UNITS),
         progress=progress.step,
     )
     report = result.report.with_paths(str(args.session), str(args.output)).with_reference_clock(clock)

@@ -29,7 +29,7 @@ from cantools.database.can import Database, Message, Signal
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF, require_log_support
-from canical.sessions.session import Rail, Session
+from canical.sessions.session import RAW_UNITS, Rail, Session
 
 TIME_INPUT = "time_s"
 TABLE_AXIS = "TABLE_REF.TableAxis"
@@ -159,9 +159,10 @@ def read_canlog(
         raise
     except Exception as exc:  # python-can's readers raise many types on a damaged file
         raise CanicalError(f"{name}: cannot read CAN log after {log.frames} frames ({exc})") from None
-    rail = signal_rail(raw.get_signal_by_name(raw_sig), f"DBC signal {raw.name}.{raw_sig}")
-    return CanlogSession(_session(log, name, raw.name, axis, sensor, rail), log.frames, log.skipped,
-                         log.dropped, _table_axis(log.held))
+    signal = raw.get_signal_by_name(raw_sig)
+    rail = signal_rail(signal, f"DBC signal {raw.name}.{raw_sig}")
+    session = _session(log, name, raw.name, axis, sensor, rail, signal.unit or None)
+    return CanlogSession(session, log.frames, log.skipped, log.dropped, _table_axis(log.held))
 
 
 def signal_rail(signal: Signal, where: str) -> Rail | None:
@@ -235,7 +236,7 @@ def _take_frame(log: _LogRows, frame: can.Message, raw: Message, raw_sig: str,
 
 
 def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | None,
-             rail: Rail | None) -> Session:
+             rail: Rail | None, raw_units: str | None) -> Session:
     """The rows as a session: in time order when it has a reference (a drive is corrected as is)."""
     if not log.raws:
         what = f"{raw_name} frames" if log.frames else "frames"
@@ -253,6 +254,8 @@ def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | N
     meta = {"axis": axis, "source": Path(name).name}
     if sensor:
         meta = {"sensor": sensor, **meta}
+    if raw_units:  # "raw" is the signal's physical value: the set says in which unit
+        meta[RAW_UNITS] = raw_units
     return Session(
         time_s=time_s,
         raw=np.asarray(log.raws),

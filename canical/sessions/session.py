@@ -44,6 +44,10 @@ def parse_rail(text: str, source: str) -> Rail:
     return Rail(low, high, source)
 
 
+#: The metadata key of the raw values' unit (a CSV's ``# raw_units:`` line, a log's DBC signal unit).
+RAW_UNITS = "raw_units"
+
+
 @dataclass(frozen=True)
 class Session:
     """Samples of one axis, in time order."""

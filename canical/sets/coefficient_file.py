@@ -21,7 +21,13 @@ import yaml
 from canical.atomic_file import write_text_atomic
 from canical.errors import CanicalError
 from canical.models import MODEL_KINDS
-from canical.sets.coefficients import PIECEWISE_KINDS, SCHEMA_VERSION, CoefficientSet, finite
+from canical.sets.coefficients import (
+    DEFAULT_RAW_UNITS,
+    PIECEWISE_KINDS,
+    SCHEMA_VERSION,
+    CoefficientSet,
+    finite,
+)
 from canical.sets.finite_outputs import check_finite_outputs
 from canical.sets.terms import term_from_dict
 from canical.yaml_text import parse_yaml
@@ -131,7 +137,7 @@ def from_content(content: Any, source: str) -> CoefficientSet:
         terms=tuple(terms),
         fit=fit,
         created=str(content.get("created", "")),
-        raw_units=str(units.get("raw", "counts")),
+        raw_units=str(units.get("raw", DEFAULT_RAW_UNITS)),
         rate_units=str(units.get("rate", "deg/s")),
         schema=schema,
     )

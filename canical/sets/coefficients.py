@@ -23,6 +23,9 @@ PIECEWISE_KINDS = ("segmented-inverse", "segmented-linear")
 OUT_OF_SPAN_BEHAVIOUR = "linear-extrapolation"
 
 
+#: What a set says of its raw values when the session did not name their unit.
+DEFAULT_RAW_UNITS = "counts"
+
 @dataclass(frozen=True)
 class CoefficientSet:
     """One axis of one sensor: zero bias, rate model, effect terms, fit statistics."""
@@ -34,7 +37,7 @@ class CoefficientSet:
     terms: tuple[dict[str, Any], ...] = ()
     fit: dict[str, Any] = field(default_factory=dict)
     created: str = ""
-    raw_units: str = "counts"
+    raw_units: str = DEFAULT_RAW_UNITS  # the raw signal's unit (a DBC signal's physical unit)
     rate_units: str = "deg/s"
     schema: int = SCHEMA_VERSION
 

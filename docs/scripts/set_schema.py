@@ -32,7 +32,9 @@ FIELDS: tuple[Field, ...] = (
         "as decimal text (0x1018 sub 4), which `push` and the device check",
     ),
     Field("sensor.axis", "`x`, `y` or `z`", "the axis the set corrects"),
-    Field("units.raw", "string", "unit of raw (`counts`): informative"),
+    Field("units.raw", "string", "unit of raw: the DBC signal's unit when calibrated from a CAN log, a "
+          "session CSV's `# raw_units:` line, else `counts`; `serve` refuses a set whose unit is not its "
+          "raw signal's (`counts` matches any)"),
     Field("units.rate", "string", "unit of the corrected rate (`deg/s`)"),
     Field("created", "ISO 8601 text", "when the set was written (UTC)"),
     Field("v0", "number", "zero bias in raw units, measured on the zero-rate plateaus"),

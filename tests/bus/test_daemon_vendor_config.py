@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,7 @@ from support.daemon_fixtures import TERMS, write_sets
 from canical.bus.daemon_config import load_config
 from canical.commands.cli import main
 from canical.frames import dbc_files
+from canical.sets import coefficient_file
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 VENDOR, VENDOR_EXT = DATA / "vendor_imu.dbc", DATA / "vendor_imu_ext.dbc"
@@ -100,3 +102,15 @@ def test_dbc_is_repeatable_on_the_verbs_that_read_logs() -> None:
     add_canlog_arguments(parser)
     source = canlog_source(parser.parse_args(["--dbc", str(VENDOR), "--dbc", str(VENDOR_EXT)]), "drive.log")
     assert list(source.dbc) == [VENDOR, VENDOR_EXT] and str(source.dbc) == f"{VENDOR} + {VENDOR_EXT}"
+
+
+def test_a_set_for_raw_values_in_another_unit_is_refused(tmp_path, sets, capsys) -> None:
+    """The vendor's signals are in deg/s: a set made for raw values in mV is for another signal."""
+    mv = tmp_path / "y-mv.yaml"
+    coefficient_file.save(mv, replace(coefficient_file.load(sets["y"]), raw_units="mV"))
+    axes = {a: {"raw": f"GYRO_TPDO2.Gyro{a.upper()}", "coefficients": str(mv if a == "y" else sets[a])}
+            for a in "xyz"}
+    assert main(["serve", "--config", str(vendor_config(tmp_path, sets, axes=axes)), "--check"]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
+    assert len(errors) == 1 and errors[0].endswith(
+        "set is for raw values in mV, the DBC signal of axis y is in deg/s"), errors

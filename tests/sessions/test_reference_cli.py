@@ -10,6 +10,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+import yaml
 from support.table_clock import own_clock_case, table_csv
 
 from canical.commands.cli import main
@@ -68,6 +69,8 @@ def test_a_vendor_log_calibrates_against_the_tables_own_file(vendor_files, capsy
     # The DBC's rail (±3276.8 deg/s) is nowhere near: every plateau to ±60 deg/s is kept.
     assert report["left_out_plateaus"] == [] and report["saturated_rates_dps"] == []
     assert report["rates"] == 41
+    # "raw" is the DBC's physical value, and the set says in which unit.
+    assert yaml.safe_load((folder / "aligned.yaml").read_text())["units"]["raw"] == "deg/s"
 
     # The same samples with the table's rate perfectly aligned, as a session CSV.
     fit = align_reference(case.session.time_s, case.session.raw, case.table)
