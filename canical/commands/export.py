@@ -1,17 +1,27 @@
 """``canical export dcf``: coefficient sets as a DCF any CANopen configuration tool can download.
 
     canical export dcf imu-x.yaml imu-y.yaml imu-z.yaml -o imu.dcf [--node 0x10] [--bank A]
+                       [--channel can0 [--interface socketcan]]
 
 The sets are checked as ``canical push`` checks them before writing (one per axis, one
 sensor whose id is a serial number, span covering the EDS's rated range); the DCF is
-written atomically. See :mod:`canical.device.dcf_export` for what the file holds and its limits.
+written atomically. Offline the node cannot be asked, so the DCF describes canical's object
+dictionary for whatever node id it is given, and says so; with ``--channel`` the node is asked
+first, like ``push`` asks it: a node without canical's coefficient objects (a vendor's IMU) is
+refused in one line, and the sets must be for its serial number and cover its rated range.
+See :mod:`canical.device.dcf_export` for what the file holds and its limits.
 """
 
 from __future__ import annotations
 
 import argparse
+from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
+from canical.device.can_network import DEFAULT_SDO_TIMEOUT_S
+
+if TYPE_CHECKING:
+    from canical.sets.admission import DeviceLimits
 
 
 def register(sub) -> None:
@@ -30,7 +40,13 @@ def register(sub) -> None:
     d.add_argument("--bitrate", type=int, default=500, help="bus bit rate in kbit/s [500]")
     d.add_argument("--rated-range", type=_rated_range, default=None, metavar="DPS",
                    help="the device's rated range, deg/s, that each set's span must cover, as configured "
-                   "on the device (object 'Rated range'); 0: no check [the EDS's default]")
+                   "on the device (object 'Rated range'); 0: no check [the device's with --channel, "
+                   "else the EDS's default]")
+    d.add_argument("--channel", help="ask the node on this CAN channel before writing: that it carries "
+                   "canical's objects, its serial number and rated range [offline: not asked]")
+    d.add_argument("--interface", default="socketcan", help="python-can interface for --channel [socketcan]")
+    d.add_argument("--timeout", type=float, default=DEFAULT_SDO_TIMEOUT_S,
+                   help=f"with --channel: seconds to wait for each SDO answer [{DEFAULT_SDO_TIMEOUT_S:g}]")
     d.set_defaults(run=run)
 
 
@@ -79,16 +95,21 @@ def export_dcf(args: argparse.Namespace) -> int:
         )
     objects = imu_objects()
     od = object_dictionary(args.node)
+    device = None if args.channel is None else node_limits(args)
     rated = {}
     for axis, (index, sub) in objects.rated_range.items():
         declared = args.rated_range
-        rated[axis] = float(default_value(member(od, index, sub))) if declared is None else declared
-    limits = DeviceLimits(int(sensor), rated)
+        if declared is None:
+            declared = (float(default_value(member(od, index, sub))) if device is None
+                        else device.rated_range_dps[axis])
+        rated[axis] = declared
+    limits = DeviceLimits(int(sensor) if device is None else device.serial, rated)
     for axis, (path, cset) in sets.items():
         problem = admission_problem(cset, axis, limits)
         if problem:
             source = ("--rated-range" if args.rated_range is not None
-                      else "the EDS's default; --rated-range sets the device's")
+                      else "the EDS's default; --rated-range sets the device's" if device is None
+                      else f"node 0x{args.node:02x}")
             raise CanicalError(f"{path}: {problem} ({source})")
     values = bank_values(objects, {a: c for a, (_, c) in sets.items()}, args.bank)
     out = Path(args.output)
@@ -97,4 +118,19 @@ def export_dcf(args: argparse.Namespace) -> int:
     write_text_atomic(out, text)
     axes = ", ".join(f"{a} set 0x{set_crc(c):08x}" for a, (_, c) in sorted(sets.items()))
     print(f"export: {out} for node 0x{args.node:02x}, serial {sensor}, bank {args.bank}: {axes}")
+    if device is None:
+        print(f"export: offline: node 0x{args.node:02x} was not asked whether it carries canical's "
+              "coefficient objects (--channel asks it)")
     return 0
+
+
+def node_limits(args: argparse.Namespace) -> DeviceLimits:
+    """The node on ``--channel`` asked as ``push`` asks it: canical's objects, serial, rated range."""
+    from canical.device.can_network import network_on, quiet_canopen_logging, sdo_client_filters
+    from canical.device.sdo_download import ImuClient
+
+    quiet_canopen_logging()
+    with network_on(args.interface, args.channel, can_filters=sdo_client_filters(args.node)) as network:
+        client = ImuClient(network, args.node, args.timeout)
+        client.require_canical_objects()
+        return client.limits()

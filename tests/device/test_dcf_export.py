@@ -186,3 +186,27 @@ def test_device_refuses_a_dcf_for_the_bank_it_runs(tmp_path: Path) -> None:
         with writer(channel, dcf) as net, pytest.raises(SdoAbortedError):
             download(net[NODE])
         assert state(imu)["ids"] == before["ids"] and "is active" in imu.store.last_refusal
+
+
+def test_export_with_a_channel_checks_the_sets_against_the_node(tmp_path: Path, capsys) -> None:
+    """--channel: the node is asked as push asks it; its serial and rated range are the checks."""
+    from dataclasses import replace
+
+    from canical.commands.cli import main
+
+    paths = []
+    for axis in AXES:
+        paths.append(str(tmp_path / f"imu-{axis}.yaml"))
+        coefficient_file.save(paths[-1], imu_set(axis))
+    other = tmp_path / "other-z.yaml"
+    coefficient_file.save(other, replace(imu_set("z"), sensor_id=str(int(imu_set("z").sensor_id) + 1)))
+    with emulated(tmp_path, "state.json") as (_imu, channel):
+        bus = ["--node", str(NODE), "--interface", "virtual", "--channel", channel, "--timeout", "2"]
+        out = tmp_path / "imu.dcf"
+        assert main(["export", "dcf", *paths, "-o", str(out), *bus]) == 0
+        printed = capsys.readouterr().out
+        assert out.exists() and "offline" not in printed
+        out.unlink()
+        assert main(["export", "dcf", str(other), "-o", str(out), *bus]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"this device is serial {SERIAL}" in err and "\n" not in err and not out.exists()

@@ -64,3 +64,21 @@ def test_serve_check_with_device_refuses_a_node_without_canicals_objects(foreign
         "axes": {a: {"coefficients": str(p)} for a, p in sets.items()}, "device": {"node": 8}}))
     assert main(["serve", "--config", str(config), "--check"]) == 2
     assert "does not carry canical's coefficient objects" in one_line(capsys)
+
+
+def test_export_dcf_asks_the_node_when_given_a_channel(foreign: str, tmp_path: Path, capsys) -> None:
+    """Offline, export dcf says the node was not asked; with --channel a vendor's node is refused."""
+    from support.imu_fixtures import imu_set
+
+    from canical.sets import coefficient_file
+
+    path = tmp_path / "imu-z.yaml"
+    coefficient_file.save(path, imu_set("z"))
+    out = tmp_path / "imu.dcf"
+    assert main(["export", "dcf", str(path), "-o", str(out), "--node", "8", "--rated-range", "0"]) == 0
+    assert "offline: node 0x08 was not asked" in capsys.readouterr().out
+    out.unlink()
+    assert main(["export", "dcf", str(path), "-o", str(out), "--node", "8", "--interface", "virtual",
+                 "--channel", foreign, "--timeout", "1"]) == 2
+    assert "does not carry canical's coefficient objects" in one_line(capsys)
+    assert not out.exists()
