@@ -119,6 +119,10 @@ class Daemon:
         self._raw_key, self._raw_inputs_at = layout.raw_key, layout.raw_inputs_at
         self._counter_at = layout.counter_at
         self._input_handlers = layout.input_handlers
+        #: J1939 groups matched beyond their exact id: the raw frame's first, then the inputs'.
+        raw_match = layout.raw_match
+        self._groups = tuple(([] if raw_match is None or raw_match.exact else [(raw_match, layout.raw_key)])
+                             + list(layout.masked_inputs))
         self._raw_values, self._raw_length = self.raw.values, self.raw.length
         # None: encode_xyz arranges the values (or no rate frame is sent: frames.rate null).
         self._encode_rate = None if self.rate is None else self.rate.encode_in_order
@@ -165,7 +169,7 @@ class Daemon:
 
     def can_filters(self) -> list[dict[str, Any]]:
         """Kernel receive filters: the raw frame and the frames that carry inputs, nothing else."""
-        return receive_filters([(self.raw.frame_id, self.raw.is_extended), *self.layout.input_frames])
+        return receive_filters(self.layout.receive_matches())
 
     def open_bus(self) -> can.BusABC:
         kwargs = dict(self.config.bus_options)
@@ -351,8 +355,11 @@ class Daemon:
         else:
             handler = self._input_handlers.get(key)
             if handler is None:
-                self.stats.unknown_ids += 1
-                return
+                known = self._group_key(key)
+                if known is None:
+                    self.stats.unknown_ids += 1
+                    return
+                handler = None if known == self._raw_key else self._input_handlers[known]
         if can_id & CAN_RTR_FLAG:
             self.stats.remote_frames += 1
             return
@@ -360,7 +367,11 @@ class Daemon:
             self.stats.fd_frames += 1
             return
         if handler is None:
-            self._on_raw(data, stamp)
+            # The generated handler (it hands over to the reference one when not its sets').
+            if len(data) == self._raw_length and self._fast[1] is self._sock:
+                self._fast[2](bytes(data), stamp)
+            else:
+                self._on_raw(data, stamp)
             return
         if len(data) != handler.length:
             self.stats.bad_length += 1
@@ -371,6 +382,17 @@ class Daemon:
             values[name] = signals[at]
             times[name] = stamp
         self.stats.inputs_in += 1
+
+    def _group_key(self, key: int) -> int | None:
+        """The key of the message a frame whose id is not a message's own belongs to: a J1939
+        group at another priority, destination or source (None: none of the daemon's)."""
+        if not key & CAN_EFF_FLAG or not self._groups:
+            return None
+        can_id = key & ~CAN_EFF_FLAG
+        for match, known in self._groups:
+            if match.matches(can_id, True):
+                return known
+        return None
 
     def _axes_plan(self, sets: ActiveSets) -> Plan:
         """What a frame needs of ``sets`` (:func:`~canical.bus.frame_handler.plan_for`), kept

@@ -21,6 +21,7 @@ from cantools.database.can import Database, Message
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.frames.dbc_files import DbcSet, dbc_label, require_sound
+from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
 from canical.yaml_text import parse_yaml
 
@@ -31,7 +32,7 @@ FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
 _TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
-             "watch_period_s", "own_layout", "bias_tracking"}
+             "watch_period_s", "own_layout", "bias_tracking", "j1939"}
 
 
 @dataclass(frozen=True)
@@ -100,6 +101,7 @@ class DaemonConfig:
     device: DeviceSource | None = None
     own_layout: OwnLayoutOutput | None = None
     bias_tracking: BiasTracking | None = None  # None: not enabled
+    j1939_source: J1939Source = None  # J1939 messages matched by PGN and this source (None: the DBC's)
 
     @property
     def coefficient_paths(self) -> dict[str, Path]:
@@ -179,7 +181,8 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     counter = _counter(content, frames, dbc)
     inputs = _inputs(content, frames, dbc)
     device = _device(content, fail)
-    own_layout = _own_layout_output(content, frames, inputs, dbc, chan)
+    j1939 = _j1939_source(content, fail)
+    own_layout = _own_layout_output(content, frames, inputs, dbc, chan, j1939)
     tracking = _bias_tracking(content, inputs, base, fail)
     return DaemonConfig(
         path=cfg_path,
@@ -199,6 +202,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         device=device,
         own_layout=own_layout,
         bias_tracking=tracking,
+        j1939_source=j1939,
     )
 
 
@@ -368,7 +372,7 @@ def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]
 
 
 def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSource], dbc: _Dbc,
-                       channel: str) -> OwnLayoutOutput | None:
+                       channel: str, j1939: J1939Source) -> OwnLayoutOutput | None:
     """``own_layout``: send each corrected frame in the raw frame's own layout too, at ``id``,
     on the sensor's bus or, with ``channel``, on another one (absent: not sent)."""
     spec = content.get("own_layout")
@@ -390,13 +394,28 @@ def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSo
     if out_channel == channel:
         out_channel = None
     if out_channel is None:  # on the sensor's bus: not an id the daemon reads or sends already
-        taken = [frames.raw, frames.rate, frames.status,
-                 *(dbc.db.get_message_by_name(s.message) for s in inputs.values())]
-        for msg in filter(None, taken):
-            if (msg.frame_id, msg.is_extended_frame) == (frame_id, extended):
-                raise dbc.fail("own_layout.id", f"{frame_id:#x} is {msg.name}'s id on the same bus "
+        read = [frames.raw, *(dbc.db.get_message_by_name(s.message) for s in inputs.values())]
+        sent = [m for m in (frames.rate, frames.status) if m is not None]
+        for msg, match in [*((m, frame_match(m, j1939)) for m in read), *((m, frame_match(m)) for m in sent)]:
+            if match.matches(frame_id, extended):
+                what = "id" if match.exact else f"group ({match.describe()})"
+                raise dbc.fail("own_layout.id", f"{frame_id:#x} is {msg.name}'s {what} on the same bus "
                                                 "(give another id, or another channel)")
     return OwnLayoutOutput(frame_id, extended, out_channel)
+
+
+def _j1939_source(content: dict, fail: Fail) -> J1939Source:
+    """``j1939``: which source address J1939 messages are matched with (absent: the DBC's)."""
+    section = content.get("j1939")
+    if section is None:
+        return None
+    if not isinstance(section, dict):
+        raise fail("j1939", "must be a mapping {source_address: any or 0..253}")
+    _no_unknown(section, {"source_address"}, "j1939.", fail)
+    try:
+        return parse_j1939_source(section.get("source_address"), "source_address")
+    except ValueError as exc:
+        raise fail("j1939.source_address", str(exc).split(": ", 1)[1]) from None
 
 
 def _device(content: dict, fail: Fail) -> DeviceSource | None:

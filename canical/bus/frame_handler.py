@@ -29,6 +29,7 @@ from canical.bus.socketcan import frame_key
 from canical.bus.socketcan_constants import FRAME_HEAD
 from canical.frames.codec import RateEncoder, RawDecoder, signal_range
 from canical.frames.compiler import NotCompilable, codec_for, decode_lines, encode_lines
+from canical.frames.frame_match import FrameMatch, frame_match
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
 
@@ -126,6 +127,19 @@ class FrameLayout:
     rate_head: bytes  # the rate frame's kernel head: key, length
     rate_pad: bytes  # zeros to the classic frame's 8 data bytes
     own: OwnLayout | None = None  # the corrected frame in the raw frame's layout, if sent
+    #: How the raw frame and the input frames are recognised (a J1939 group: by its PGN and source).
+    raw_match: FrameMatch | None = None
+    input_matches: tuple[tuple[FrameMatch, int], ...] = ()  # each input frame's match, and its key
+
+    @property
+    def masked_inputs(self) -> tuple[tuple[FrameMatch, int], ...]:
+        """The input frames matched by more than their exact id (J1939 groups)."""
+        return tuple((m, key) for m, key in self.input_matches if not m.exact)
+
+    def receive_matches(self) -> list[FrameMatch]:
+        """Every frame the daemon reads: the raw frame and the input frames."""
+        assert self.raw_match is not None
+        return [self.raw_match, *(m for m, _ in self.input_matches)]
 
 
 def _wrap_mask(message: Message, signal: str) -> int:
@@ -139,6 +153,7 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
     raw = RawDecoder(raw_msg, compiled=compiled)
     rate = None if rate_msg is None else RateEncoder(rate_msg, compiled=compiled)
     input_frames: dict[tuple[int, bool], tuple[RawDecoder, tuple[tuple[str, str], ...]]] = {}
+    matches: dict[tuple[int, bool], FrameMatch] = {}
     for source in config.inputs.values():
         if source.message == raw_msg.name:
             continue
@@ -146,15 +161,17 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
         key = (msg.frame_id, msg.is_extended_frame)
         decoder, pairs = input_frames.get(key, (RawDecoder(msg, compiled=compiled), ()))
         input_frames[key] = (decoder, (*pairs, (source.name, source.signal)))
+        matches[key] = frame_match(msg, config.j1939_source)
+    raw_match = frame_match(raw_msg, config.j1939_source)
     counter = config.counter_signal
     return FrameLayout(
         raw=raw, raw_message=raw_msg, rate=rate, rate_message=rate_msg, input_frames=input_frames,
         input_handlers={
-            frame_key(*key): InputFrame(decoder.values, decoder.length,
-                                        tuple((n, decoder.index[s]) for n, s in pairs))
+            frame_key(matches[key].usual_id, key[1]): InputFrame(
+                decoder.values, decoder.length, tuple((n, decoder.index[s]) for n, s in pairs))
             for key, (decoder, pairs) in input_frames.items()
         },
-        raw_key=frame_key(raw.frame_id, raw.is_extended),
+        raw_key=frame_key(raw_match.usual_id, raw.is_extended),
         raw_inputs_at=tuple((s.name, raw.index[s.signal]) for s in config.inputs.values()
                             if s.message == raw_msg.name),
         counter_at=None if counter is None else raw.index[counter],
@@ -164,6 +181,8 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
                                                            rate.length, 0, 0),
         rate_pad=b"" if rate is None else bytes(max(0, 8 - rate.length)),
         own=own_layout(config, raw_msg, compiled=compiled),
+        raw_match=raw_match,
+        input_matches=tuple((m, frame_key(m.usual_id, key[1])) for key, m in matches.items()),
     )
 
 

@@ -16,13 +16,10 @@ from collections.abc import Iterable
 from typing import Any
 
 import can
-from can.interfaces.socketcan.constants import (
-    CAN_EFF_FLAG,
-    EXT_ACCEPTANCE_MASK_ALL_BITS,
-    STD_ACCEPTANCE_MASK_ALL_BITS,
-)
+from can.interfaces.socketcan.constants import CAN_EFF_FLAG
 
 from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
+from canical.frames.frame_match import FrameMatch
 
 __all__ = ["TX_FULL", "BusLost", "frame_key", "raw_socket_of", "receive_filters",
            "send_message", "set_receive_timeout", "socket_frame"]
@@ -45,13 +42,10 @@ def socket_frame(frame_id: int, extended: bool, payload: bytes) -> bytes:
     return FRAME_HEAD.pack(frame_key(frame_id, extended), len(payload), 0, 0) + payload.ljust(8, b"\0")
 
 
-def receive_filters(keys: Iterable[tuple[int, bool]]) -> list[dict[str, Any]]:
-    """python-can's ``can_filters`` passing exactly these (frame id, extended) frames."""
-    return [
-        {"can_id": fid, "can_mask": EXT_ACCEPTANCE_MASK_ALL_BITS if ext else STD_ACCEPTANCE_MASK_ALL_BITS,
-         "extended": ext}
-        for fid, ext in dict.fromkeys(keys)
-    ]
+def receive_filters(matches: Iterable[FrameMatch]) -> list[dict[str, Any]]:
+    """python-can's ``can_filters`` passing exactly these frames: an id, or a J1939 group's ids."""
+    unique = dict.fromkeys(matches)
+    return [{"can_id": m.frame_id, "can_mask": m.mask, "extended": m.extended} for m in unique]
 
 
 def raw_socket_of(bus: object) -> socket.socket | None:

@@ -250,6 +250,7 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         raw_message=source.raw_message,
         raw_signal=source.raw_signals.get(cset.axis),
         sensor=sensor,
+        j1939_source=source.j1939_source,
     )
     session = log.session
     inputs = {n: session.aux[n] for n in session.aux}

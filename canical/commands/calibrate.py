@@ -273,11 +273,13 @@ def align_table_file(args: argparse.Namespace, session: Session, progress: Progr
     from canical.sessions.reference_clock import align_reference, join_reference
     from canical.sessions.table_file import read_table_trace
 
-    dbc = signal = None
+    dbc = signal = j1939 = None
     if is_canlog(args.reference):
-        dbc = canlog_source(args, args.reference).dbc
+        source = canlog_source(args, args.reference)
+        dbc, j1939 = source.dbc, source.j1939_source
         signal = parse_signal_map(args.inputs).get(REF_INPUT)
-    table = read_table_trace(args.reference, column=args.ref_column, dbc=dbc, signal=signal)
+    table = read_table_trace(args.reference, column=args.ref_column, dbc=dbc, signal=signal,
+                             j1939_source=j1939)
     progress.step(f"aligning {args.reference} ({table.time_s.size} rows) to the session by its rate changes")
     fit = align_reference(session.time_s, session.raw, table)
     joined = join_reference(session.time_s, table, fit)
@@ -315,7 +317,8 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
         axis = "z"
     if axis is None:  # the table says which axis it turns; a first pass finds out
         first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs={}, ref=None,
-                            raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"))
+                            raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"),
+                            j1939_source=source.j1939_source)
         axis = first.table_axis or "z"
     log = read_canlog(
         args.session,
@@ -326,6 +329,7 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
         raw_message=raw_message,
         raw_signal=raw_signal or source.raw_signals.get(axis),
         sensor=args.sensor or source.sensor,
+        j1939_source=source.j1939_source,
     )
     if log.table_axis and log.table_axis != axis:
         print(f"calibrate: warning: the table reports turning axis {log.table_axis}, calibrating {axis}",

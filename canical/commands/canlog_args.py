@@ -17,6 +17,7 @@ from canical.sessions.canlog_format import CANLOG_FORMATS
 
 if TYPE_CHECKING:
     from canical.frames.dbc_files import DbcSet
+    from canical.frames.frame_match import J1939Source
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,7 @@ class CanlogSource:
     raw_signals: dict[str, str]  # axis -> raw signal
     sensor: str | None
     from_config: bool
+    j1939_source: J1939Source = None  # J1939 messages: the DBC's source address (None), a given one, or any
 
 
 def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
@@ -36,12 +38,16 @@ def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--config", help="daemon configuration: its DBC, frames and input mapping")
     group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",
                        help="a channel from a signal, held at its latest value (repeatable)")
+    group.add_argument("--j1939-source", metavar="ADDR|any",
+                       help="J1939 messages are matched by parameter group; this source address, or any "
+                            "[the DBC's, or the configuration's j1939.source_address]")
 
 
 def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
     """Resolve the options; a log without a DBC is one actionable error line."""
     from canical.bus.daemon_config import load_config  # cantools: not for every command's --help
     from canical.frames.dbc_files import DbcSet
+    from canical.frames.frame_match import parse_j1939_source
     from canical.sessions.canlog import parse_signal_map
     from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE
 
@@ -50,6 +56,7 @@ def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
     raw_signals: dict[str, str] = {}
     sensor = None
     dbc = None
+    j1939: J1939Source = None
     if args.config:
         config = load_config(args.config)
         dbc = config.dbc_path
@@ -57,9 +64,15 @@ def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
         raw_message = config.raw_message
         raw_signals = {a.axis: a.raw_signal for a in config.axes}
         sensor = config.sensor
+        j1939 = config.j1939_source
+    if getattr(args, "j1939_source", None) is not None:
+        try:
+            j1939 = parse_j1939_source(args.j1939_source, "--j1939-source")
+        except ValueError as exc:
+            raise CanicalError(str(exc)) from None
     if args.dbc:
         dbc = DbcSet(Path(p) for p in args.dbc)
     if dbc is None:
         raise CanicalError(f"{log_file}: reading a CAN log needs --dbc or --config")
     inputs.update(parse_signal_map(args.inputs))
-    return CanlogSource(dbc, inputs, raw_message, raw_signals, sensor, bool(args.config))
+    return CanlogSource(dbc, inputs, raw_message, raw_signals, sensor, bool(args.config), j1939)

@@ -112,7 +112,8 @@ def _read_canlog(args: argparse.Namespace):
                            "--input NAME=MESSAGE.Signal or --config")
     log = read_canlog(args.record, dbc=source.dbc, axis=corrector.cset.axis,
                       inputs={n: source.inputs[n] for n in corrector.required_inputs}, ref=None,
-                      raw_message=source.raw_message, raw_signal=source.raw_signals.get(corrector.cset.axis))
+                      raw_message=source.raw_message, raw_signal=source.raw_signals.get(corrector.cset.axis),
+                      j1939_source=source.j1939_source)
     s = log.session
     inputs = dict(s.aux) | ({TIME_INPUT: s.time_s} if TIME_INPUT in corrector.required_inputs else {})
     rate = corrector.correct(s.raw, inputs)[0]

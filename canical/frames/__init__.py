@@ -12,5 +12,6 @@ __all__ = [
     "codec",
     "compiler",
     "dbc_files",
+    "frame_match",
     "imu_frames",
 ]

@@ -28,6 +28,7 @@ from cantools.database.can import Database, Message, Signal
 
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
+from canical.frames.frame_match import FrameMatch, FrameMatcher, J1939Source, frame_match
 from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF, require_log_support
 from canical.sessions.session import RAW_UNITS, Rail, Session
 
@@ -81,7 +82,8 @@ def default_inputs(
 
 
 FrameKey = tuple[int, bool]  # arbitration id, extended
-FrameMap = dict[FrameKey, tuple[Message, list[tuple[str, str]]]]  # the message and its (channel, signal)s
+FrameEntry = tuple[Message, list[tuple[str, str]]]  # a message and its (channel, signal)s
+FrameMap = dict[FrameKey, FrameEntry]
 
 
 @dataclass
@@ -130,12 +132,15 @@ def read_canlog(
     raw_message: str = DEFAULT_RAW_MESSAGE,
     raw_signal: str | None = None,
     sensor: str | None = None,
+    j1939_source: J1939Source = None,
 ) -> CanlogSession:
     """One axis of a CAN log as a session.
 
     ``inputs`` maps channel names to ``MESSAGE.Signal``; the name ``time_s`` becomes the
     session's time (else frame timestamps relative to the first raw frame are used).
     ``ref`` is the table's rate signal (None for field data, which has no reference).
+    J1939 messages are matched by their parameter group (:mod:`canical.frames.frame_match`)
+    and ``j1939_source``.
     """
     name = str(path)
     if not Path(path).is_file():
@@ -148,13 +153,14 @@ def read_canlog(
         raise CanicalError(f"{dbc}: message {raw.name} has no signal {raw_sig} (axis {axis})")
     wanted = _wanted_signals(db, inputs, ref)
     by_id = _frames_by_id(db, dbc, wanted)
-    raw_key = (raw.frame_id, raw.is_extended_frame)
-    raw_pairs = by_id.pop(raw_key, (raw, []))[1]
+    raw_match = frame_match(raw, j1939_source)
+    raw_pairs = by_id.pop((raw.frame_id, raw.is_extended_frame), (raw, []))[1]
+    others = FrameMatcher((frame_match(msg, j1939_source), (msg, pairs)) for msg, pairs in by_id.values())
     log = _LogRows(channels=[c for c in wanted if not c.startswith("\0")],
                    needed=[c for c in wanted if c not in ("\0axis", "\0settled")], has_ref=ref is not None)
     try:
         for frame in can.LogReader(name):
-            _take_frame(log, frame, raw, raw_sig, raw_pairs, by_id)
+            _take_frame(log, frame, raw_match, (raw, raw_pairs), raw_sig, others)
     except CanicalError:
         raise
     except Exception as exc:  # python-can's readers raise many types on a damaged file
@@ -213,16 +219,15 @@ def _frames_by_id(db: Database, dbc: str | os.PathLike[str], wanted: Mapping[str
     return by_id
 
 
-def _take_frame(log: _LogRows, frame: can.Message, raw: Message, raw_sig: str,
-                raw_pairs: list[tuple[str, str]], by_id: FrameMap) -> None:
+def _take_frame(log: _LogRows, frame: can.Message, raw_match: FrameMatch, raw: FrameEntry, raw_sig: str,
+                others: FrameMatcher[FrameEntry]) -> None:
     """One frame of the log, as the daemon takes it: dropped, a row (a raw frame), held, or ignored."""
     log.frames += 1
     if frame.is_error_frame or frame.is_remote_frame or frame.is_fd:
         log.dropped += 1
         return
-    key = (frame.arbitration_id, frame.is_extended_id)
-    is_raw = key == (raw.frame_id, raw.is_extended_frame)
-    entry = (raw, raw_pairs) if is_raw else by_id.get(key)
+    is_raw = raw_match.matches(frame.arbitration_id, frame.is_extended_id)
+    entry = raw if is_raw else others.get(frame.arbitration_id, frame.is_extended_id)
     if entry is None:
         return
     msg_def, pairs = entry
@@ -297,7 +302,7 @@ def _message(db: Database, name: str, dbc: str | os.PathLike[str]) -> Message:
 
 
 def read_signal_trace(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str],
-                      signal: str) -> tuple[np.ndarray, np.ndarray]:
+                      signal: str, j1939_source: J1939Source = None) -> tuple[np.ndarray, np.ndarray]:
     """(frame timestamps, values) of one ``MESSAGE.Signal`` in a log, on the log's own clock.
 
     For a table controller's own log: every frame of the message is a row, as recorded.
@@ -311,13 +316,14 @@ def read_signal_trace(path: str | os.PathLike[str], *, dbc: str | os.PathLike[st
     msg = _message(db, msg_name, dbc)
     if sig_name not in {s.name for s in msg.signals}:
         raise CanicalError(f"{dbc}: message {msg_name} has no signal {sig_name}")
-    key = (msg.frame_id, msg.is_extended_frame)
+    match = frame_match(msg, j1939_source)
     times: list[float] = []
     values: list[float] = []
     try:
         for frame in can.LogReader(name):
             if frame.is_error_frame or frame.is_remote_frame or frame.is_fd \
-                    or (frame.arbitration_id, frame.is_extended_id) != key or len(frame.data) != msg.length:
+                    or not match.matches(frame.arbitration_id, frame.is_extended_id) \
+                    or len(frame.data) != msg.length:
                 continue
             times.append(float(frame.timestamp))
             values.append(_number(_signals(msg, frame.data), sig_name))

@@ -11,6 +11,7 @@ import os
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.frames.frame_match import J1939Source
 from canical.sessions.canlog import read_signal_trace
 from canical.sessions.canlog_format import DEFAULT_REF, is_canlog
 from canical.sessions.csv_file import TIME_COLUMN, read_table
@@ -18,13 +19,14 @@ from canical.sessions.reference_clock import TableTrace
 
 
 def read_table_trace(path: str | os.PathLike[str], *, column: str = "ref_dps",
-                     dbc: str | os.PathLike[str] | None = None, signal: str | None = None) -> TableTrace:
+                     dbc: str | os.PathLike[str] | None = None, signal: str | None = None,
+                     j1939_source: J1939Source = None) -> TableTrace:
     """The table's rate and its own times; a CAN log needs the DBC (``signal``: TABLE_REF.TableRate)."""
     name = str(path)
     if is_canlog(path):
         if dbc is None:
             raise CanicalError(f"{name}: reading a CAN log needs --dbc or --config")
-        t, ref = read_signal_trace(path, dbc=dbc, signal=signal or DEFAULT_REF)
+        t, ref = read_signal_trace(path, dbc=dbc, signal=signal or DEFAULT_REF, j1939_source=j1939_source)
     else:
         table = read_table(path, [TIME_COLUMN, column])
         t, ref = table.columns[TIME_COLUMN], table.columns[column]

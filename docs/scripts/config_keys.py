@@ -182,6 +182,11 @@ KEYS: tuple[Key, ...] = (
         "another channel of the same interface: a one-way gateway, sensor bus in, this bus out "
         "(nothing is read from it)",
     ),
+    Key("j1939", "`null`", "a mapping",
+        "messages the DBC marks as J1939 are matched by parameter group (PGN), priority and a PDU1 "
+        "destination ignored, and by source address as below"),
+    Key("j1939.source_address", "`null` (the DBC's)", "`any`, or an address 0..253",
+        "the source address J1939 messages are matched with (the IMU's claimed address), or any"),
     Key("status_period_s", "`1.0`", "positive number of seconds", "status frames and systemd STATUS"),
     Key(
         "watch_period_s",
@@ -222,6 +227,7 @@ def base_content() -> dict[str, Any]:
     content["dbc"] = str(DBC)
     content["device"] = {"node": 0x10, "timeout_s": 1.0}
     content["own_layout"] = {"id": 0x298}
+    content["j1939"] = {"source_address": "any"}
     # off, so the example's inputs need not hold a cue; its sub-sections are probed all the same
     content["bias_tracking"] = {"enabled": False, "cue": {"input": "supply_v", "below": 0.1}}
     return content

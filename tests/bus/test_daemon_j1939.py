@@ -1,0 +1,150 @@
+"""A J1939 IMU: its rate group is corrected at whatever priority and source address it arrives.
+
+The vendor-like J1939 IMU (tests/data/vendor_imu_j1939.dbc) sends PGN 0xFF2A from source 0x10 in
+the DBC; on the vehicle its address is claimed anew and its priority may differ. The reference
+handler (python-can messages) and the generated one (stand-in raw socket) must correct every
+frame of the group alike; frames of another source are not the IMU's unless configured.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import cantools
+import numpy as np
+import pytest
+import yaml
+from support.daemon_fixtures import write_sets
+from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+from test_daemon_own_layout import vendor_stream
+
+from canical.bus.daemon import Daemon
+from canical.bus.daemon_config import load_config
+from canical.errors import CanicalError
+
+DBC = Path(__file__).resolve().parents[1] / "data" / "vendor_imu_j1939.dbc"
+MESSAGE = cantools.database.load_file(str(DBC), strict=False).get_message_by_name("ANGRATE")
+SIGNALS = ("RollRate", "PitchRate", "YawRate")
+
+
+def config_file(folder: Path, **extra) -> Path:
+    sets = write_sets(folder, terms={"x": (), "y": (), "z": ()})
+    content = {
+        "bus": {"interface": "virtual", "channel": "j1939"},
+        "dbc": str(DBC),
+        "axes": {a: {"raw": f"ANGRATE.{s}", "coefficients": str(sets[a])} for a, s in zip("xyz", SIGNALS,
+                                                                                          strict=True)},
+        **extra,
+    }
+    path = folder / "j1939.yaml"
+    path.write_text(yaml.safe_dump(content, sort_keys=False))
+    return path
+
+
+def re_addressed(msgs: list[can.Message], seed: int = 3) -> list[can.Message]:
+    """The same frames at random priorities, from source 0x10 or the claimed 0x80."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for m in msgs:
+        priority, source = int(rng.integers(0, 8)), int(rng.choice([0x10, 0x80]))
+        frame_id = (m.arbitration_id & ~(0x7 << 26) & ~0xFF) | priority << 26 | source
+        out.append(can.Message(arbitration_id=frame_id, is_extended_id=True, data=m.data,
+                               timestamp=m.timestamp))
+    return out
+
+
+def run_both(config, msgs: list[can.Message]) -> tuple[Daemon, list[can.Message], list[bytes], Daemon]:
+    reference, compiled = Daemon(config, compiled=False), Daemon(config)
+    sent: list[can.Message] = []
+
+    class RefBus:
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            sent.append(msg)
+
+    for daemon in (reference, compiled):
+        daemon.load_sets()
+    reference.bus = RefBus()  # type: ignore[assignment]
+    for m in msgs:
+        reference._dispatch(m)
+    sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in msgs])
+    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
+    compiled._next_periodic = float("inf")
+    compiled._serve_until_deadline()
+    return reference, sent, sock.sent, compiled
+
+
+def test_any_source_corrects_every_frame_of_the_group(tmp_path: Path) -> None:
+    config = load_config(config_file(tmp_path, j1939={"source_address": "any"}))
+    msgs = re_addressed(vendor_stream(MESSAGE, 200))
+    reference, sent, sock_sent, compiled = run_both(config, msgs)
+    assert reference.stats.frames_in == 200 and compiled.stats.frames_in == 200
+    assert len(sent) == 200 and sock_sent == [bytes(m.data) for m in sent]
+    assert "send" in compiled._fast[2].source  # the generated handler corrected them
+    (rate_filter,) = [f for f in reference.can_filters() if f["extended"]]
+    assert rate_filter["can_mask"] == 0x03FFFF00 and rate_filter["can_id"] == 0x00FF2A00
+
+
+def test_the_dbcs_source_by_default_and_a_configured_one(tmp_path: Path) -> None:
+    msgs = re_addressed(vendor_stream(MESSAGE, 200))
+    from_dbc = sum((m.arbitration_id & 0xFF) == 0x10 for m in msgs)
+    for extra, expected in (({}, from_dbc), ({"j1939": {"source_address": 0x80}}, 200 - from_dbc)):
+        config = load_config(config_file(tmp_path, **extra))
+        reference, sent, sock_sent, compiled = run_both(config, msgs)
+        assert reference.stats.frames_in == expected == compiled.stats.frames_in
+        assert reference.stats.unknown_ids == 200 - expected
+        assert sock_sent == [bytes(m.data) for m in sent]
+
+
+@pytest.mark.parametrize(("section", "words"), [
+    ({"source_address": 254}, "j1939.source_address: must be 'any' or a source address 0..253"),
+    ({"source": "any"}, "j1939.source: unknown key"),
+    ("any", "j1939: must be a mapping"),
+])
+def test_a_bad_j1939_section_is_one_line(tmp_path: Path, section, words: str) -> None:
+    with pytest.raises(CanicalError) as info:
+        load_config(config_file(tmp_path, j1939=section))
+    assert words in str(info.value) and "\n" not in str(info.value)
+
+
+def test_an_own_layout_id_in_the_group_the_daemon_reads_is_refused(tmp_path: Path) -> None:
+    """With any source, the IMU's group sent again from another address would be read back."""
+    with pytest.raises(CanicalError) as info:
+        load_config(config_file(tmp_path, j1939={"source_address": "any"}, own_layout={"id": 0x18FF2A20}))
+    words = "own_layout.id: 0x18ff2a20 is ANGRATE's group (J1939 PGN 0x0ff2a (65322), any source)"
+    assert words in str(info.value)
+    load_config(config_file(tmp_path, own_layout={"id": 0x18FF2A20}))  # only source 0x10 is read: fine
+
+
+def test_apply_reads_a_j1939_log_as_the_daemon_reads_the_bus(tmp_path: Path, capsys) -> None:
+    """The log's IMU claimed address 0x80: read with the configuration's j1939 section or
+    --j1939-source, the same frames and rates as the daemon; with the DBC's source, none."""
+    import csv
+
+    from canical.commands.cli import main
+
+    msgs = [m for m in re_addressed(vendor_stream(MESSAGE, 120)) if m.arbitration_id & 0xFF == 0x80]
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for m in msgs:
+            logger.on_message_received(m)
+    cfg = config_file(tmp_path, j1939={"source_address": 0x80})
+    sets = {a: str(tmp_path / f"imu-{a}.yaml") for a in "xyz"}
+    out = tmp_path / "z.csv"
+    assert main(["apply", sets["z"], str(log), "--config", str(cfg), "-o", str(out)]) == 0, \
+        capsys.readouterr().err
+    rows = list(csv.DictReader(line for line in out.read_text().splitlines() if not line.startswith("#")))
+    assert len(rows) == len(msgs)
+    reference, sent, _, _ = run_both(load_config(cfg), msgs)
+    rate_msg = reference.layout.rate_message
+    assert rate_msg is not None
+    encoded = [rate_msg.decode(m.data) for m in sent if m.arbitration_id == rate_msg.frame_id]
+    assert len(encoded) == len(rows)
+    assert [round(float(r["rate_dps"]), 2) for r in rows] == [round(d["RateZ"], 2) for d in encoded]
+
+    plain = config_file(tmp_path)
+    out.unlink()
+    assert main(["apply", sets["z"], str(log), "--config", str(plain), "-o", str(out)]) == 2
+    assert "no ANGRATE frames" in capsys.readouterr().err and not out.exists()
+    assert main(["apply", sets["z"], str(log), "--config", str(plain), "--j1939-source", "any",
+                 "-o", str(out)]) == 0
