@@ -15,6 +15,7 @@ import argparse
 import errno
 import signal
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -25,6 +26,7 @@ from canical.sessions.canlog_format import CANLOG_FORMATS, CANLOG_SUFFIXES, log_
 
 if TYPE_CHECKING:
     from canical.frames.dbc_files import DbcSet
+    from canical.frames.frame_match import FrameMatch, J1939Source
 
 # python-can and cantools are imported where used, so that `--help` answers at once.
 
@@ -39,24 +41,46 @@ def register(sub) -> None:
     p.add_argument("--dbc", action="append", help="DBC (default: the configuration's; repeatable)")
     p.add_argument("--duration", type=float, help="seconds to record")
     p.add_argument("--frames", type=int, help="stop after this many raw frames")
+    p.add_argument("--j1939-source", metavar="ADDR|any",
+                   help="J1939 messages are recorded by parameter group from this source address, or any "
+                        "[the configuration's j1939.source_address, else the DBC's]")
     p.set_defaults(run=run)
 
 
-def _frames(args: argparse.Namespace) -> tuple[str, str, DbcSet, list[str]]:
+@dataclass(frozen=True)
+class Recording:
+    """Where to record from and what: the messages (the raw frame first) and their J1939 sources."""
+
+    interface: str
+    channel: str
+    dbc: DbcSet
+    names: list[str]
+    j1939_source: J1939Source
+
+
+def _frames(args: argparse.Namespace) -> Recording:
     """Interface, channel, DBC and the names of the messages to record."""
     from canical.bus.daemon_config import load_config
     from canical.frames.codec import load_dbc
     from canical.frames.dbc_files import dbc_set
+    from canical.frames.frame_match import parse_j1939_source
     from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF
 
     interface, channel, names = args.interface, args.channel, [DEFAULT_RAW_MESSAGE]
     dbc = dbc_set(args.dbc) if args.dbc else None
+    j1939: J1939Source = None
     if args.config:
         config = load_config(args.config, channel=args.channel)
         interface = interface or config.interface
         channel = channel or config.channel
         dbc = dbc or config.dbc_path
         names = [config.raw_message, *(s.message for s in config.inputs.values())]
+        j1939 = config.j1939_source
+    if args.j1939_source is not None:
+        try:
+            j1939 = parse_j1939_source(args.j1939_source, "--j1939-source")
+        except ValueError as exc:
+            raise CanicalError(str(exc)) from None
     if not (interface and channel and dbc):
         raise CanicalError("record needs --config, or --interface, --channel and --dbc")
     db = load_dbc(dbc)
@@ -69,11 +93,12 @@ def _frames(args: argparse.Namespace) -> tuple[str, str, DbcSet, list[str]]:
     ref_message = DEFAULT_REF.split(".")[0]
     if ref_message in known:
         names.append(ref_message)
-    return interface, channel, dbc, list(dict.fromkeys(names))
+    return Recording(interface, channel, dbc, list(dict.fromkeys(names)), j1939)
 
 
 def run(args: argparse.Namespace) -> int:
     from canical.frames.codec import load_dbc
+    from canical.frames.frame_match import frame_match
 
     out = Path(args.output)
     if log_format(out) not in CANLOG_SUFFIXES:
@@ -82,20 +107,18 @@ def run(args: argparse.Namespace) -> int:
         raise CanicalError(f"{out}: record does not write .db: python-can's SQLite writer can lose the "
                            "frames still queued when recording stops; record .log, .blf or .mf4")
     require_log_support(out)
-    interface, channel, dbc, names = _frames(args)
-    db = load_dbc(dbc)
-    messages = [db.get_message_by_name(n) for n in names]
-    raw_id = messages[0].frame_id
-    filters = [{"can_id": m.frame_id, "can_mask": 0x1FFFFFFF if m.is_extended_frame else 0x7FF,
-                "extended": m.is_extended_frame} for m in messages]
+    what = _frames(args)
+    db = load_dbc(what.dbc)
+    matches = [frame_match(db.get_message_by_name(n), what.j1939_source) for n in what.names]
+    filters = [{"can_id": m.frame_id, "can_mask": m.mask, "extended": m.extended} for m in matches]
     with output_plan(out) as plan:
-        recorded = _record(plan.temp_path(out), args, interface, channel, filters, names, raw_id)
-    print(f"record: {recorded['raw']} {names[0]} frames, {recorded['all']} frames in all -> {out}")
+        recorded = _record(plan.temp_path(out), args, what, filters, matches[0])
+    print(f"record: {recorded['raw']} {what.names[0]} frames, {recorded['all']} frames in all -> {out}")
     return 0
 
 
-def _record(tmp: Path, args: argparse.Namespace, interface: str, channel: str, filters: list,
-            names: list[str], raw_id: int) -> dict[str, int]:
+def _record(tmp: Path, args: argparse.Namespace, what: Recording, filters: list,
+            raw: FrameMatch) -> dict[str, int]:
     """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts."""
     import can
 
@@ -107,6 +130,7 @@ def _record(tmp: Path, args: argparse.Namespace, interface: str, channel: str, f
 
     previous = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
     counts = {"raw": 0, "all": 0}
+    interface, channel, names = what.interface, what.channel, what.names
     try:
         with can.Bus(interface=interface, channel=channel, can_filters=filters) as bus, \
                 can.Logger(str(tmp)) as logger:
@@ -121,7 +145,7 @@ def _record(tmp: Path, args: argparse.Namespace, interface: str, channel: str, f
                     continue
                 logger.on_message_received(msg)
                 counts["all"] += 1
-                counts["raw"] += msg.arbitration_id == raw_id
+                counts["raw"] += raw.matches(msg.arbitration_id, msg.is_extended_id)
     except OSError as exc:
         if exc.filename is not None or exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):
             raise cannot_write(args.output, exc.strerror or str(exc)) from None

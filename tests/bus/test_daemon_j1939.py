@@ -148,3 +148,35 @@ def test_apply_reads_a_j1939_log_as_the_daemon_reads_the_bus(tmp_path: Path, cap
     assert "no ANGRATE frames" in capsys.readouterr().err and not out.exists()
     assert main(["apply", sets["z"], str(log), "--config", str(plain), "--j1939-source", "any",
                  "-o", str(out)]) == 0
+
+
+@pytest.mark.parametrize(("source", "expected_sources"), [(None, {0x10}), ("any", {0x10, 0x80})])
+def test_record_keeps_the_group_from_the_sources_it_is_told(tmp_path: Path, capsys, source,
+                                                            expected_sources: set[int]) -> None:
+    import threading
+    import time
+    import uuid
+
+    from canical.commands.cli import main
+
+    channel = f"j1939-{uuid.uuid4().hex}"
+    msgs = re_addressed(vendor_stream(MESSAGE, 60))
+    out = tmp_path / "rec.log"
+    args = ["record", "--config", str(config_file(tmp_path)), "--channel", channel, "--duration", "1.5",
+            "-o", str(out), *(["--j1939-source", source] if source else [])]
+
+    def send() -> None:
+        time.sleep(0.5)
+        with can.Bus(interface="virtual", channel=channel) as bus:
+            for m in msgs:
+                bus.send(m)
+
+    sender = threading.Thread(target=send)
+    sender.start()
+    try:
+        assert main(args) == 0, capsys.readouterr().err
+    finally:
+        sender.join()
+    got = list(can.LogReader(str(out)))
+    assert {m.arbitration_id & 0xFF for m in got} == expected_sources
+    assert len(got) == sum(m.arbitration_id & 0xFF in expected_sources for m in msgs)
