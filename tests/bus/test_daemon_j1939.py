@@ -180,3 +180,54 @@ def test_record_keeps_the_group_from_the_sources_it_is_told(tmp_path: Path, caps
     got = list(can.LogReader(str(out)))
     assert {m.arbitration_id & 0xFF for m in got} == expected_sources
     assert len(got) == sum(m.arbitration_id & 0xFF in expected_sources for m in msgs)
+
+
+@pytest.mark.vcan
+def test_serve_on_vcan_corrects_the_group_from_any_source_and_nothing_else(vcan_channel: str,
+                                                                          tmp_path: Path) -> None:
+    """The kernel's receive filter is the group's mask: every frame of PGN 0xFF2A is corrected,
+    whatever its priority and source, and a frame of the next group is not."""
+    import subprocess
+    import sys
+    import time
+
+    from support.daemon_fixtures import DaemonProcess, Recorder
+
+    from canical.sessions.csv_file import read_table
+
+    path = config_file(tmp_path, j1939={"source_address": "any"})
+    content = yaml.safe_load(path.read_text())
+    content["bus"] = {"interface": "socketcan", "channel": vcan_channel}
+    path.write_text(yaml.safe_dump(content, sort_keys=False))
+    msgs = re_addressed(vendor_stream(MESSAGE, 200))
+    other_group = [can.Message(arbitration_id=0x18FF2B80, is_extended_id=True, data=bytes(8))] * 20
+    rec = Recorder(vcan_channel)
+    daemon = DaemonProcess(path)
+    try:
+        with can.Bus(interface="socketcan", channel=vcan_channel) as tx:
+            for i, m in enumerate([*other_group, *msgs]):
+                tx.send(can.Message(arbitration_id=m.arbitration_id, is_extended_id=True, data=bytes(m.data)),
+                        timeout=1.0)
+                if i % 8 == 7:
+                    time.sleep(0.02)
+        out = rec.wait_count(0x110, len(msgs), timeout=60)
+        time.sleep(0.3)
+    finally:
+        code = daemon.stop()
+        seen = list(rec.messages)
+        rec.close()
+    assert code == 0, daemon.log()
+    assert len(out) == len(msgs), daemon.log()
+    log = tmp_path / "bus.log"
+    with can.Logger(str(log)) as logger:
+        for m in seen:
+            if m.arbitration_id not in (0x110, 0x111):
+                logger.on_message_received(m)
+    csv = tmp_path / "z.csv"
+    proc = subprocess.run([sys.executable, "-m", "canical", "apply", str(tmp_path / "imu-z.yaml"), str(log),
+                           "--config", str(path), "-o", str(csv)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    db = cantools.database.load_file(str(Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc"))
+    sent = np.array([db.get_message_by_name("CANICAL_RATE").decode(bytes(m.data))["RateZ"] for m in out])
+    expected = np.clip(read_table(csv).columns["rate_dps"], -327.68, 327.67)
+    assert np.max(np.abs(sent - expected)) <= 0.006
