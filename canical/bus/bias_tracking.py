@@ -20,6 +20,7 @@ from typing import Any
 from canical.bus.daemon_config import BiasTracking
 from canical.bus.status import AXIS_CODES
 from canical.tracking import state_file
+from canical.tracking.fast_step import FastStep, fast_step
 from canical.tracking.tracker import BiasTracker
 
 log = logging.getLogger("canical.serve")
@@ -37,9 +38,11 @@ class DaemonTracking:
         self.trackers: list[BiasTracker | None] = [None, None, None]
         self._t0: float | None = None
         self._saved_updates = -1
-        #: Per frame: the inputs' names (time, temperature, cue), and per axis its step and output.
+        #: Per frame: the inputs' names (time, temperature, cue), and per axis its step and the bias
+        #: it applies now (for a frame the tracking's inputs have not all reached).
         self._names = (config.time_input, config.temperature_input, config.settings.cue_input)
-        self._steps: list[tuple[Any, list[float]]] = [(None, [0.0])] * 3
+        self._fast: list[FastStep | None] = [None, None, None]
+        self._steps: list[tuple[Any, Any]] = [(None, None)] * 3
 
     def for_sets(self, combined_id: int, axes: tuple[str, ...],
                  fits: tuple[Mapping[str, Any] | None, ...]) -> None:
@@ -62,7 +65,8 @@ class DaemonTracking:
             BiasTracker((axis,), settings.tracker.for_set(fit, arw_given=settings.arw_given),
                         None if learned is None else (learned[k],))
             if fit is not None else None for k, (axis, fit) in enumerate(zip(axes, fits, strict=True))]
-        self._steps = [(None, [0.0]) if t is None else (t.step, t.applied) for t in self.trackers]
+        self._fast = [None if t is None else fast_step(t) for t in self.trackers]
+        self._steps = [(None, None) if f is None else (f.step, f.applied) for f in self._fast]
         self._saved_updates = self._updates()
 
     def __call__(self, stamp: float, r0: float, r1: float, r2: float, u0: bool, u1: bool,
@@ -81,14 +85,20 @@ class DaemonTracking:
         ready = t == t and (temp_name is None or temp == temp) and (cue_name is None or cue is not None)
         (s0, a0), (s1, a1), (s2, a2) = self._steps
         if s0 is not None and not u0:
-            r0 -= s0(t, (r0,), temp, cue)[0] if ready else a0[0]
+            r0 -= s0(t, r0, temp, cue) if ready else a0()
         if s1 is not None and not u1:
-            r1 -= s1(t, (r1,), temp, cue)[0] if ready else a1[0]
+            r1 -= s1(t, r1, temp, cue) if ready else a1()
         if s2 is not None and not u2:
-            r2 -= s2(t, (r2,), temp, cue)[0] if ready else a2[0]
+            r2 -= s2(t, r2, temp, cue) if ready else a2()
         return r0, r1, r2
 
     # -- between frames ------------------------------------------------------------------------
+    def _sync(self) -> None:
+        """The trackers brought up to date with their per-frame steps (before reading them)."""
+        for fast in self._fast:
+            if fast is not None:
+                fast.sync()
+
     def _updates(self) -> int:
         return sum(t.learned[0].updates for t in self.trackers if t is not None)
 
@@ -103,12 +113,14 @@ class DaemonTracking:
             tracker.taken.clear()
 
     def status_text(self) -> str:
+        self._sync()
         return "; ".join(s.text() for t in self.trackers if t is not None for s in t.status())
 
     def save(self) -> None:
         """Write the learned state if it changed (atomically); a failure is logged, not fatal."""
         if self.config.state_file is None or self.set_id is None or self._updates() == self._saved_updates:
             return
+        self._sync()
         learned = [t.learned[0] if t is not None else None for t in self.trackers]
         if any(s is None for s in learned):  # an uncalibrated axis: keep a fresh state in its place
             from canical.tracking.estimate import AxisBias
@@ -123,6 +135,7 @@ class DaemonTracking:
 
     def status_pages(self) -> list[dict[str, Any]]:
         """Per tracked axis: learned bias, uncertainty, age, updates (for a status page or a test)."""
+        self._sync()
         return [{"axis": s.axis, "bias_dps": s.bias_dps, "sigma_dps": s.sigma_dps, "age_s": s.age_s,
                  "updates": s.updates} for t in self.trackers if t is not None for s in t.status()]
 

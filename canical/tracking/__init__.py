@@ -17,6 +17,7 @@ __all__ = [
     "estimate",
     "events",
     "explain",
+    "fast_step",
     "replay",
     "settings",
     "state_file",

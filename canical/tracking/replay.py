@@ -15,6 +15,7 @@ import numpy as np
 from canical.tracking.config import TrackerConfig
 from canical.tracking.estimate import AxisBias
 from canical.tracking.events import StandstillEvent, TakenWindow
+from canical.tracking.fast_step import fast_step
 from canical.tracking.tracker import BiasTracker
 
 
@@ -42,9 +43,16 @@ def replay(time_s: np.ndarray, rates_dps: np.ndarray, config: TrackerConfig, *,
     rows = rates.tolist()
     temps = np.asarray(temp_c, dtype=float).tolist() if temp_c is not None else [math.nan] * len(times)
     cues = np.asarray(cue, dtype=float).tolist() if cue is not None else [None] * len(times)
-    step = tracker.step
-    for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
-        out[i] = step(t, r, temp, c)
+    if len(tracker.axes) == 1:  # the daemon's per-frame step (canical.tracking.fast_step)
+        fast = fast_step(tracker)
+        one = fast.step
+        for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
+            out[i, 0] = one(t, r[0], temp, c)
+        fast.sync()
+    else:
+        step = tracker.step
+        for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
+            out[i] = step(t, r, temp, c)
     tracker.finish()
     return Replay(out, tuple(tracker.events), tuple(tracker.taken), tuple(tracker.learned),
                   tracker.power_cycle + 1)

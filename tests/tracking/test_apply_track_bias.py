@@ -131,9 +131,10 @@ def test_apply_track_bias_on_a_can_log(tmp_path: Path, capsys: pytest.CaptureFix
     assert main(["apply", str(set_path), str(log), "--dbc", str(DBC), "--input", "temp_c=IMU_RAW.Temperature",
                  "--input", "time_s=IMU_AUX.Uptime", "--track-bias", "--arw", "0.3", "-o", str(out)]) == 0
     assert "adopted" in capsys.readouterr().out
-    header = out.read_text().splitlines()[2]
-    assert header == "time_s,raw,temp_c,rate_dps,out_of_span,bias_dps"
-    table = np.loadtxt(out, delimiter=",", skiprows=3)
+    lines = out.read_text().splitlines()
+    at = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    assert lines[at] == "time_s,raw,temp_c,rate_dps,out_of_span,bias_dps"
+    table = np.loadtxt(out, delimiter=",", skiprows=at + 1)
     again = replay(table[:, 0], table[:, 3], TrackerConfig(arw_deg_rt_h=0.3), temp_c=table[:, 2])
     assert np.max(np.abs(again.bias_dps[:, 0] - table[:, 5])) <= 1e-5
     assert abs(table[-1, 5] - 0.35 - 0.012 * (table[-1, 2] - 20.0)) < 0.03

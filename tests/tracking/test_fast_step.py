@@ -1,0 +1,72 @@
+"""The closure step (what the daemon runs per frame) equals BiasTracker.step bit for bit.
+
+Drives of stops and motion with the awkward parts a vehicle gives: timestamp jitter back in
+time, power cycles (time since power-on restarts), temperature readings missing, a cue that
+comes and goes, a learned state loaded from a previous run; over many seeds.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canical.tracking.config import TrackerConfig
+from canical.tracking.estimate import AxisBias
+from canical.tracking.fast_step import fast_step
+from canical.tracking.tracker import BiasTracker
+
+
+def drive(seed: int, n: int = 10_000) -> tuple[list[float], list[float], list[float], list[float | None]]:
+    rng = np.random.default_rng(seed)
+    t, times, rates, temps, cues = 0.0, [], [], [], []
+    bias = rng.uniform(-0.4, 0.4)
+    moving = False
+    for i in range(n):
+        if rng.random() < 0.001:
+            moving = not moving
+        if rng.random() < 0.0005:  # a power cycle: time since power-on starts again
+            t, bias = rng.uniform(0.0, 2.0), rng.uniform(-0.4, 0.4)
+        t += 0.01 if rng.random() > 0.01 else -rng.uniform(0.0, 0.05)  # jitter back, sometimes
+        times.append(t)
+        rates.append(bias + (rng.normal(0, 20) if moving else 0.0) + rng.normal(0, 0.05))
+        temps.append(math.nan if rng.random() < 0.05 else 20.0 + 0.002 * i)
+        cues.append(None if rng.random() < 0.0005 else (5.0 if moving else 0.0))
+    return times, rates, temps, cues
+
+
+def states(tracker: BiasTracker) -> str:
+    """Everything a tracker shows, as text (NaN equals NaN there)."""
+    learned = tuple(dataclasses.astuple(s) for s in tracker.learned)
+    return repr((learned, tuple(tracker.events), tuple(tracker.taken), tracker.power_cycle,
+                 tuple(tracker.status())))
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), cue=st.booleans(), loaded=st.booleans())
+def test_the_closure_steps_as_the_tracker_bit_for_bit(seed: int, cue: bool, loaded: bool) -> None:
+    times, rates, temps, cues = drive(seed)
+    config = TrackerConfig(arw_deg_rt_h=0.3, cue_threshold=0.1 if cue else None)
+    learned = [AxisBias(b0=0.2, p00=0.01, slope=0.001, p11=1e-4, updates=7)] if loaded else None
+    reference, fast = BiasTracker(("z",), config, learned), BiasTracker(("z",), config, learned)
+    step = fast_step(fast)
+    for i, (t, r, temp, c) in enumerate(zip(times, rates, temps, cues, strict=True)):
+        want = reference.step(t, [r], temp, c)[0]
+        got = step.step(t, r, temp, c)
+        assert math.copysign(1.0, got) == math.copysign(1.0, want) and got == want, i
+        if i % 997 == 0:  # a status page in between changes nothing
+            step.sync()
+            assert states(fast) == states(reference)
+    step.sync()
+    assert states(fast) == states(reference)
+    assert step.applied() == reference.applied[0]
+    assert reference.learned[0].updates > (7 if loaded else 0)  # windows were taken: decisions ran
+
+
+def test_only_one_axis() -> None:
+    with pytest.raises(ValueError, match="one axis"):
+        fast_step(BiasTracker(("x", "y"), TrackerConfig()))
