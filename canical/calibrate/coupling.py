@@ -25,7 +25,8 @@ The estimation, and why:
    (targets from C) and C through the new models lowers the error there.
 
 The standard errors count the plateaus' noise, not the per-axis models' own error (correlated
-across plateaus): on simulated triads the terms come out within about 5–7 of them, 2–4×10⁻⁴.
+across plateaus): on simulated triads the terms come out within 1×10⁻⁴ of the truth, which
+is up to 6–12 of them (tests/benchmarks/bench_triad.py).
 Pure numpy; no files.
 """
 
