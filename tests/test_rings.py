@@ -27,7 +27,7 @@ RINGS: tuple[tuple[str, ...], ...] = (
     ("closed_loop", "sim"),
     ("calibration_report",),
     ("pipeline", "report"),
-    ("evaluation",),
+    ("evaluation", "imu_pipeline"),
     ("device",),
     ("bus",),
     ("commands",),

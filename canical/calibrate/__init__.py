@@ -8,13 +8,14 @@ by cross-validation (:mod:`.cross_validation`, :mod:`.model_selection`); the sen
 its Allan deviation (:mod:`.allan`, :mod:`.noise_records`).
 
 Pure functions on numpy arrays and plain data; imports only :mod:`canical.models` and the
-ground floor.
+ground floor. :mod:`.coupling` fits the coupling between a triad's axes from plateau means.
 """
 
 # The package's public face: the submodules (and names) other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = [
     "allan",
+    "coupling",
     "cross_validation",
     "fit_points",
     "model_fit",

@@ -71,7 +71,12 @@ def apply_set(args: argparse.Namespace) -> int:
     from canical.sessions.csv_file import read_table
     from canical.sets import coefficient_file
     from canical.sets.corrector import Corrector
+    from canical.sets.imu_set import is_imu_set_file
 
+    if is_imu_set_file(args.coefficients):  # three axes and their coupling: its own module
+        from canical.commands.apply_imu import apply_imu_set
+
+        return apply_imu_set(args)
     cset = coefficient_file.load(args.coefficients)
     corrector = Corrector(cset)
     if is_canlog(args.input):

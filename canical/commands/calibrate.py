@@ -113,7 +113,10 @@ def register(sub) -> None:
     p = sub.add_parser("calibrate", help=COMMANDS["calibrate"])
     p.add_argument(
         "session",
-        help=f"session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log ({CANLOG_FORMATS})",
+        nargs="+",
+        help=f"session CSV (time_s, ref_dps, raw, auxiliary columns) or CAN log ({CANLOG_FORMATS}); "
+        "for an IMU, one CSV per axis (raw_x, raw_y, raw_z and a '# axis:' line) and optionally a "
+        "multi-axis one ('# axis: multi'), written as one IMU set",
     )
     p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
     p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
@@ -173,13 +176,18 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.commands.calibrate_imu import is_triad_input, run_imu
+
+    if is_triad_input(args):
+        return run_imu(args)
+    args.session = args.session[0]
     with output_plan(args.output, args.report, dirs=[args.report_dir]):
         return calibrate_session(args)
 
 
 def calibrate_session(args: argparse.Namespace) -> int:
     from canical.atomic_file import write_text_atomic
-    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.pipeline import calibrate
     from canical.sessions.canlog_format import is_canlog
     from canical.sessions.csv_file import read_session
     from canical.sets import coefficient_file
@@ -206,19 +214,7 @@ def calibrate_session(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         sensor = "unspecified"
-    options = CalibrateOptions(
-        model=args.model,
-        segments=args.segments,
-        order=args.order,
-        smoothness=JOINS[args.joins],
-        breakpoints_dps=args.breakpoints,
-        extend=not args.no_extend,
-        prefer=tuple(args.prefer),
-        rate_tol=args.rate_tol,
-        min_duration_s=args.min_plateau if args.min_plateau is not None else 1.0,
-        settle_s=args.settle,
-        latency_s=args.ref_latency,
-    )
+    options = calibrate_options(args)
     result = calibrate(
         session,
         options,
@@ -241,6 +237,25 @@ def calibrate_session(args: argparse.Namespace) -> int:
         print(f"calibrate: strict: the residual stays unexplained ({why})", file=sys.stderr)
         return EXIT_UNEXPLAINED
     return 0
+
+
+def calibrate_options(args: argparse.Namespace):
+    """The fitting options the command line chose (single-axis and three-axis flows alike)."""
+    from canical.pipeline import CalibrateOptions
+
+    return CalibrateOptions(
+        model=args.model,
+        segments=args.segments,
+        order=args.order,
+        smoothness=JOINS[args.joins],
+        breakpoints_dps=args.breakpoints,
+        extend=not args.no_extend,
+        prefer=tuple(args.prefer),
+        rate_tol=args.rate_tol,
+        min_duration_s=args.min_plateau if args.min_plateau is not None else 1.0,
+        settle_s=args.settle,
+        latency_s=args.ref_latency,
+    )
 
 
 def report_json(report: CalibrationReport) -> str:

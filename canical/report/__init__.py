@@ -10,6 +10,7 @@
 __all__ = [
     "allan_plot",
     "drive",
+    "imu_report",
     "markdown",
     "plots",
 ]

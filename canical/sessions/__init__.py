@@ -15,4 +15,5 @@ __all__ = [
     "reference_clock",
     "session",
     "table_file",
+    "triad_session",
 ]

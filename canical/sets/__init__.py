@@ -6,11 +6,12 @@ its outputs are finite), :mod:`.term_kinds` the registry of effect term kinds (o
 kind), :mod:`.terms` the validated term record, :mod:`.trackers` the terms' state,
 :mod:`.corrector` applies a set to samples (block and per-sample paths),
 :mod:`.fast_corrector` compiles it into straight-line code for the daemon, and
-:mod:`.admission` decides which sets a device may take. Imports only :mod:`canical.models`
+:mod:`.admission` decides which sets a device may take; :mod:`.imu_set` is the IMU set (three axes and
+their coupling, one CRC) and :mod:`.imu_corrector` applies it. Imports only :mod:`canical.models`
 and the ground floor.
 """
 
 # The package's public face: the submodules other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
-__all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "term_kinds",
-           "terms"]
+__all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "imu_corrector",
+           "imu_set", "term_kinds", "terms"]

@@ -87,6 +87,8 @@ def from_content(content: Any, source: str) -> CoefficientSet:
 
     if not isinstance(content, dict):
         raise fail("not a coefficient set (expected a mapping at the top level)")
+    if content.get("kind") == "imu-set":
+        raise fail("an IMU set (three axes and their coupling), not a single-axis coefficient set")
     schema = content.get("schema")
     if schema != SCHEMA_VERSION:
         raise fail(f"schema {schema!r} not supported (this canical reads schema {SCHEMA_VERSION})")

@@ -10,7 +10,8 @@ the ground floor; the grid trials that run calibration on it are :mod:`canical.t
 * :mod:`canical.sim.gyro` — the sensor: scale factor, smooth asymmetric nonlinearity, bias,
   bandwidth, white noise, quantisation, saturation, and pluggable *effects* the calibrator is
   not told about (:class:`canical.sim.gyro.Effect`);
-* :mod:`canical.sim.sessions` — ready-made sessions: the paper's protocol, its validation records.
+* :mod:`canical.sim.sessions` — ready-made sessions: the paper's protocol, its validation records;
+* :mod:`canical.sim.triad` — a gyro triad with coupling between its axes, single- and multi-axis tables.
 """
 
 # The package's public face: the submodules (and names) other rings and the tests import;
@@ -25,4 +26,5 @@ __all__ = [
     "scenarios",
     "sessions",
     "table_recording",
+    "triad",
 ]

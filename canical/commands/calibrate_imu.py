@@ -1,0 +1,111 @@
+"""``canical calibrate x.csv y.csv z.csv -o imu.yaml``: a triad's sessions to one IMU set.
+
+Reached from :mod:`canical.commands.calibrate` when the sessions carry ``raw_x``, ``raw_y`` and
+``raw_z`` (or more than one session is given). Writes the IMU set, and the report when asked
+(``--report`` JSON; ``--report-dir``: report.json, report.md and coupling.png).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from canical.errors import CanicalError
+from canical.output_plan import output_plan
+from canical.progress import Progress
+
+AXES = ("x", "y", "z")
+#: Options of the single-axis flow a triad calibration does not take yet, and why one line says so.
+SINGLE_AXIS_ONLY = (("reference", "--reference"), ("rail", "--rail"), ("settled_column", "--settled-column"),
+                    ("strict", "--strict"), ("axis", "--axis"))
+
+
+def is_triad_input(args: argparse.Namespace) -> bool:
+    """Several sessions, or one CSV with raw_x, raw_y, raw_z and no column named by --raw-column."""
+    from canical.sessions.canlog_format import is_canlog
+    from canical.sessions.csv_file import read_table
+    from canical.sessions.triad_session import RAW_COLUMNS
+
+    if len(args.session) > 1:
+        return True
+    path = args.session[0]
+    if is_canlog(path):
+        return False
+    try:
+        header = read_table(path, columns=[]).header
+    except CanicalError:
+        return False  # the single-axis reader says what is wrong, as it always did
+    return all(c in header for c in RAW_COLUMNS) and args.raw_column not in header
+
+
+def run_imu(args: argparse.Namespace) -> int:
+    for attr, flag in SINGLE_AXIS_ONLY:
+        if getattr(args, attr, None) not in (None, False):
+            raise CanicalError(f"{flag} is not supported with three-axis sessions")
+    with output_plan(args.output, args.report, dirs=[args.report_dir]):
+        return calibrate_triad(args)
+
+
+def calibrate_triad(args: argparse.Namespace) -> int:
+    from canical.atomic_file import write_text_atomic
+    from canical.commands.calibrate import calibrate_options
+    from canical.imu_pipeline import calibrate_imu
+    from canical.sessions.canlog_format import is_canlog
+    from canical.sessions.triad_session import read_triad_session
+    from canical.sets import imu_set
+
+    progress = Progress("calibrate", 1)
+    sessions = []
+    for path in args.session:
+        if is_canlog(path):
+            raise CanicalError(f"{path}: CAN logs of three-axis sessions are not supported yet: give CSVs")
+        progress.step(f"reading {path}")
+        sessions.append(read_triad_session(path))
+    sensors = {s.sensor_id for s in sessions if s.sensor_id}
+    if args.sensor and sensors and sensors != {args.sensor}:
+        raise CanicalError(f"--sensor {args.sensor} but the sessions were recorded from "
+                           f"{', '.join(sorted(sensors))}")
+    sensor = args.sensor or (sensors.pop() if len(sensors) == 1 else None)
+    if not sensor:
+        print("calibrate: no sensor id given (--sensor) or recorded; using 'unspecified'", file=sys.stderr)
+        sensor = "unspecified"
+    result = calibrate_imu(sessions, calibrate_options(args), sensor_id=sensor, progress=progress.step)
+    report = result.report_dict([str(p) for p in args.session], str(args.output))
+    imu_set.save(args.output, result.imu_set)
+    if args.report:
+        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
+    if args.report_dir:
+        write_report_dir(Path(args.report_dir), report)
+    print(summary(report, f"0x{imu_set.imu_set_crc(result.imu_set):08x}"))
+    return 0
+
+
+def write_report_dir(directory: Path, report: dict[str, Any]) -> None:
+    from canical.atomic_file import make_dirs, write_text_atomic
+    from canical.report.imu_report import FIGURE, render, write_coupling_plot
+
+    make_dirs(directory)
+    write_coupling_plot(report, directory / FIGURE)
+    write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
+    write_text_atomic(directory / "report.md", render(report, [FIGURE]))
+
+
+def summary(report: dict[str, Any], crc: str) -> str:
+    """A few lines: each axis's model, the coupling in % and mrad, held-out errors before/after."""
+    lines = [f"axis {a}     {report['axes'][a]['model']}, held-out rms "
+             f"{report['axes'][a]['held_out_rms_dps']:.4f} deg/s" for a in AXES]
+    c = report["coupling"]
+    lines.append(f"coupling   {c['plateaus']} plateaus; off-diagonal terms (% / mrad ± standard error %):")
+    for t in c["off_diagonal"]:
+        lines.append(f"           {t['row']} from {t['column']}  {t['percent']:+.3f} %  "
+                     f"{t['mrad']:+.2f} mrad  ± {100 * t['standard_error']:.4f} %")
+    lines.append("held-out   plateau error rms per axis x/y/z, deg/s: per-axis only -> with coupling")
+    for e in report["held_out"]:
+        b = "/".join(f"{e['before_rms_dps'][a]:.4f}" for a in AXES)
+        after = "/".join(f"{e['after_rms_dps'][a]:.4f}" for a in AXES)
+        lines.append(f"           {e['session']} ({e['axis']}, {e['plateaus']} plateaus): {b} -> {after}")
+    lines.append(f"wrote      {report['coefficients']}: IMU set 0x{crc[2:]} (three axes and their coupling)")
+    return "\n".join(lines)

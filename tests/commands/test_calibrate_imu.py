@@ -1,0 +1,123 @@
+"""`canical calibrate x.csv y.csv z.csv -o imu.yaml` and `canical apply imu.yaml drive.csv` as a user
+runs them: one IMU set and its report, three corrected rates; bad inputs one line, exit 2, nothing written."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from support.triad import write_triad_sessions
+
+from canical.commands.cli import main
+from canical.sessions.csv_file import read_table
+from canical.sets import imu_set
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    return write_triad_sessions(tmp_path_factory.mktemp("triad"), seed=2)
+
+
+@pytest.fixture(scope="module")
+def calibrated(sessions, tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    imu, rep = out / "imu.yaml", out / "rep"
+    assert main(["calibrate", *map(str, sessions), "-o", str(imu), "--report-dir", str(rep)]) == 0
+    return imu, rep
+
+
+def test_calibrate_writes_an_imu_set_and_its_report(calibrated, capsys):
+    imu, rep = calibrated
+    loaded = imu_set.load(imu)
+    assert [c.axis for c in loaded.axes] == ["x", "y", "z"]
+    assert sorted(p.name for p in rep.iterdir()) == ["coupling.png", "report.json", "report.md"]
+    report = json.loads((rep / "report.json").read_text())
+    assert len(report["coupling"]["off_diagonal"]) == 6
+    assert all({"percent", "mrad", "standard_error"} <= set(t) for t in report["coupling"]["off_diagonal"])
+    multi = report["held_out"][-1]
+    assert multi["axis"] == "multi"
+    assert max(multi["after_rms_dps"].values()) < 0.02 < min(multi["before_rms_dps"].values())
+    md = (rep / "report.md").read_text()
+    assert "## Coupling" in md and "mrad" in md and "![coupling.png](coupling.png)" in md
+
+
+def test_apply_appends_three_rates(calibrated, sessions, tmp_path):
+    imu, _ = calibrated
+    drive, out = sessions[-1], tmp_path / "out.csv"
+    assert main(["apply", str(imu), str(drive), "-o", str(out)]) == 0
+    text_in, text_out = drive.read_text().splitlines(), out.read_text().splitlines()
+    assert len(text_in) == len(text_out)
+    new = ",rate_x_dps,rate_y_dps,rate_z_dps,out_of_span_x,out_of_span_y,out_of_span_z"
+    assert text_out[2] == text_in[2] + new
+    assert all(o.startswith(i + ",") for i, o in zip(text_in[3:50], text_out[3:50], strict=True))
+    t = read_table(out).columns
+    err = np.column_stack([t[f"rate_{a}_dps"] - t[f"ref_{a}_dps"] for a in "xyz"])
+    assert np.median(np.abs(err)) < 0.2  # single samples: noise 0.08 deg/s, and the ramps
+
+
+def run(*argv):
+    return subprocess.run([sys.executable, "-m", "canical", *map(str, argv)], capture_output=True, text=True)
+
+
+def one_line_exit_2(proc, message):
+    assert proc.returncode == 2, proc.stderr
+    assert message in proc.stderr
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def edited(path, tmp_path, name, change):
+    lines = path.read_text().splitlines()
+    new = tmp_path / name
+    new.write_text("\n".join(change(lines)) + "\n")
+    return new
+
+
+def drop_column(lines, column):
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    index = lines[k].split(",").index(column)
+    return lines[:k] + [",".join(c for j, c in enumerate(line.split(",")) if j != index)
+                        for line in lines[k:]]
+
+
+def askew(lines):
+    """raw_y takes 20 % of raw_x: an axis mounted askew, not a sensor's coupling."""
+    k = next(i for i, line in enumerate(lines) if not line.startswith("#"))
+    head = lines[k].split(",")
+    x, y = head.index("raw_x"), head.index("raw_y")
+    rows = [line.split(",") for line in lines[k + 1:]]
+    for r in rows:
+        r[y] = repr(float(r[y]) + 0.2 * float(r[x]))
+    return lines[: k + 1] + [",".join(r) for r in rows]
+
+
+BAD = {
+    "two axes": (lambda s, t: [s[0], s[1]], "no session for z"),
+    "one session": (lambda s, t: [s[0]], "no session for y, z"),
+    "two sessions for x": (lambda s, t: [s[0], s[1], s[2], edited(s[0], t, "x2.csv", lambda ls: [
+        "# axis: -x" if line.startswith("# axis") else line for line in ls])], "both turn about IMU axis x"),
+    "missing raw column": (lambda s, t: [s[0], edited(s[1], t, "y.csv", lambda ls: drop_column(ls, "raw_z")),
+                                         s[2]], "missing column 'raw_z'"),
+    "no axis line": (lambda s, t: [s[0], s[1], edited(s[2], t, "z.csv", lambda ls: [
+        line for line in ls if not line.startswith("# axis")])], "no '# axis:' line"),
+    "implausible coupling": (lambda s, t: [edited(s[0], t, "x.csv", askew), s[1], s[2]], "above 10 %"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_sessions_fail_with_one_line_and_status_2(case, sessions, tmp_path):
+    pick, message = BAD[case]
+    work = tmp_path / "work"
+    work.mkdir()
+    paths = pick(sessions, work)
+    out = tmp_path / "imu.yaml"
+    one_line_exit_2(run("calibrate", *paths, "-o", out, "--report-dir", tmp_path / "rep"), message)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["work"]
+
+
+def test_apply_needs_the_three_raw_columns(calibrated, sessions, tmp_path):
+    imu, _ = calibrated
+    drive = edited(sessions[-1], tmp_path, "drive.csv", lambda ls: drop_column(ls, "raw_y"))
+    out = tmp_path / "out.csv"
+    one_line_exit_2(run("apply", imu, drive, "-o", out), "missing column 'raw_y'")
+    assert not out.exists()
