@@ -27,9 +27,9 @@ def drive(seed: int, n: int = 10_000) -> tuple[list[float], list[float], list[fl
     bias = rng.uniform(-0.4, 0.4)
     moving = False
     for i in range(n):
-        if rng.random() < 0.001:
+        if i >= 2000 and rng.random() < 0.001:  # a 20 s stop first: something is always learned
             moving = not moving
-        if rng.random() < 0.0005:  # a power cycle: time since power-on starts again
+        if i >= 2000 and rng.random() < 0.0005:  # a power cycle: time since power-on starts again
             t, bias = rng.uniform(0.0, 2.0), rng.uniform(-0.4, 0.4)
         t += 0.01 if rng.random() > 0.01 else -rng.uniform(0.0, 0.05)  # jitter back, sometimes
         times.append(t)
