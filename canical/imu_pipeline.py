@@ -123,6 +123,15 @@ class Estimate:
         return float(np.sqrt(np.mean((self.held_out_dps - self.true_dps) ** 2)))
 
 
+def model_errors(results: Sequence[CalibrationResult]) -> np.ndarray:
+    """Each axis's rate model's held-out rms (after the closed loop where it ran), deg/s."""
+    out = []
+    for r in results:
+        loop = r.report.closed_loop
+        out.append(loop.held_out_rms_after_dps if loop is not None else r.report.held_out.rms_dps)
+    return np.asarray(out, dtype=float)
+
+
 def estimate(sessions: Sequence[TriadSession], results: Sequence[CalibrationResult],
              options: CalibrateOptions) -> Estimate:
     """The coupling on the single-axis sessions' plateaus through the given per-axis models."""
@@ -131,7 +140,7 @@ def estimate(sessions: Sequence[TriadSession], results: Sequence[CalibrationResu
     single = [t for s, t in zip(sessions, tables, strict=True) if s.table_axis is not None]
     true = np.vstack([t.true_dps for t in single])
     per_axis = np.vstack([t.per_axis_dps for t in single])
-    fit = fit_coupling(true, per_axis)
+    fit = fit_coupling(true, per_axis, model_errors(results))
     check_coupling(fit.matrix, "coupling")
     held_out = held_out_corrected(true, per_axis)
     return Estimate((results[0], results[1], results[2]), tables, fit, true, held_out)

@@ -24,9 +24,9 @@ The estimation, and why:
    deg/s, where its own session has few plateaus; refitting each model with those plateaus
    (targets from C) and C through the new models lowers the error there.
 
-The standard errors count the plateaus' noise, not the per-axis models' own error (correlated
-across plateaus): on simulated triads the terms come out within 1×10⁻⁴ of the truth, which
-is up to 6–12 of them (tests/benchmarks/bench_triad.py).
+The standard errors count the plateaus' noise and the per-axis models' own error (which does not
+average out over plateaus: :func:`term_covariance`); on simulated triads every term comes out
+within 3 of them (tests/test_imu_pipeline.py, tests/benchmarks/bench_triad.py).
 Pure numpy; no files.
 """
 
@@ -50,8 +50,13 @@ class CouplingFit:
     points: int
 
 
-def fit_coupling(true_dps: np.ndarray, per_axis_dps: np.ndarray) -> CouplingFit:
-    """Least squares of the per-axis rates on the true rate vectors (see the module docstring)."""
+def fit_coupling(true_dps: np.ndarray, per_axis_dps: np.ndarray,
+                 model_error_dps: np.ndarray | None = None) -> CouplingFit:
+    """Least squares of the per-axis rates on the true rate vectors (see the module docstring).
+
+    ``model_error_dps`` (per axis: its rate model's held-out rms) adds the models' own error to
+    the standard errors: see :func:`term_covariance`.
+    """
     omega = np.asarray(true_dps, dtype=float)
     u = np.asarray(per_axis_dps, dtype=float)
     n = omega.shape[0]
@@ -62,9 +67,30 @@ def fit_coupling(true_dps: np.ndarray, per_axis_dps: np.ndarray) -> CouplingFit:
     residual = u - omega @ sensed.T
     sigma = residual.T @ residual / (n - 3)
     matrix = np.linalg.inv(sensed)
-    row = np.einsum("ai,ij,aj->a", matrix, sigma, matrix)
-    col = np.einsum("kb,kl,lb->b", matrix, design, matrix)
-    return CouplingFit(matrix, np.sqrt(np.outer(row, col)), sensed, residual, n)
+    cov = term_covariance(sigma, design, omega, model_error_dps)
+    jacobian = -np.einsum("ai,kb->abik", matrix, matrix).reshape(9, 9)  # dM = −M dC M
+    errors = np.sqrt(np.diag(jacobian @ cov @ jacobian.T)).reshape(3, 3)
+    return CouplingFit(matrix, errors, sensed, residual, n)
+
+
+def term_covariance(sigma: np.ndarray, design: np.ndarray, omega: np.ndarray,
+                    model_error_dps: np.ndarray | None) -> np.ndarray:
+    """Covariance of C's nine terms (row-major): the plateaus' noise, and the models' own error.
+
+    Noise: ``cov(C_ik, C_jl) = Σ_ij [(ΩᵀΩ)⁻¹]_kl``. A per-axis model's error is not noise: it is
+    the same at the same rate on every pass, so it does not average out over plateaus. Axis ``i``'s
+    model, wrong by about its held-out rms ``h_i`` where another session reads it, moves
+    ``C_ik`` by about ``h_i / ω_k`` with ``ω_k`` the rms table rate of the session turning axis
+    ``k``: that is added to each term, independently (a bound of the right size; the models'
+    errors at the few deg/s the other sessions read them are not known better than their held-out
+    rms). Without it, on simulated triads the terms came out up to 12 standard errors off.
+    """
+    cov = np.kron(sigma, design)
+    if model_error_dps is None:
+        return cov
+    turning = np.array([np.sqrt(np.mean(np.square(omega[omega[:, k] != 0, k]))) for k in range(3)])
+    h = np.asarray(model_error_dps, dtype=float)
+    return cov + np.diag(np.square(h[:, None] / turning[None, :]).ravel())
 
 
 def held_out_corrected(true_dps: np.ndarray, per_axis_dps: np.ndarray) -> np.ndarray:
