@@ -156,45 +156,10 @@ def tracking_columns(path: str, args: argparse.Namespace) -> list[str]:
 
 def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
                rate: np.ndarray) -> np.ndarray:
-    """The drive replayed through the tracker row by row, as the daemon would; report if asked.
+    """The drive replayed through the tracker for the set's axis (:mod:`.track_bias`)."""
+    from canical.commands.track_bias import tracked_bias
 
-    ``columns`` holds time_s (since power-on), and the cue and temperature when there are.
-    """
-    import math
-
-    import numpy as np
-
-    from canical.tracking.config import TrackerConfig
-    from canical.tracking.replay import replay
-
-    settings = getattr(args, "daemon_tracking", None)  # the daemon configuration's bias_tracking
-    if settings is not None:
-        config = settings.tracker.for_set(cset.fit, arw_given=settings.arw_given)
-    else:
-        try:
-            arw = args.arw if args.arw is not None else TrackerConfig.arw_deg_rt_h
-            cue_below = args.standstill_below if args.standstill_column else None
-            config = TrackerConfig(arw_deg_rt_h=arw, cue_threshold=cue_below)
-        except ValueError as exc:
-            raise CanicalError(f"bias tracking: {exc}") from None
-        config = config.for_set(cset.fit, arw_given=args.arw is not None)
-    time_s = columns["time_s"]
-    if not np.isfinite(time_s).all():
-        raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
-    temp = columns.get(args.temp_column)
-    cue = columns[args.standstill_column] if args.standstill_column else None
-    out = replay(time_s, rate, config, axes=(cset.axis,), temp_c=temp, cue=cue)
-    for event in out.events:
-        print(f"apply: {event.line((cset.axis,))}")
-    if args.report_dir:
-        from canical.report.drive import write_drive_report
-
-        write_drive_report(args.report_dir, time_s, rate, out, (cset.axis,))
-    bias: np.ndarray = out.bias_dps[:, 0]
-    learned = out.learned[0]
-    print(f"apply: bias tracking: {sum(e.decision == 'adopted' for e in out.events)} of {len(out.events)} "
-          f"standstills used, {learned.updates} windows; last bias {bias[-1]:+.4f} deg/s"
-          f"{'' if math.isfinite(bias[-1]) else ' (no data)'}")
+    bias: np.ndarray = tracked_bias(args, [cset.fit], (cset.axis,), columns, rate)[:, 0]
     return bias
 
 

@@ -2,8 +2,10 @@
 
 Reached from :mod:`canical.commands.apply` when the set file is an IMU set. The output is the
 input, row for row and byte for byte, with ``rate_x_dps``, ``rate_y_dps``, ``rate_z_dps`` and
-``out_of_span_x``, ``out_of_span_y``, ``out_of_span_z`` appended. Only the raw columns (and
-the inputs the axes' terms name) are parsed.
+``out_of_span_x``, ``out_of_span_y``, ``out_of_span_z`` appended, and with ``--track-bias``
+``bias_x_dps``, ``bias_y_dps``, ``bias_z_dps`` (one tracker over the three axes: a standstill
+is the vehicle's). Only the raw columns (and the inputs the axes' terms name, and the tracking's
+columns) are parsed.
 """
 
 from __future__ import annotations
@@ -17,9 +19,8 @@ from canical.progress import Progress
 AXES = ("x", "y", "z")
 RATE_COLUMNS = tuple(f"rate_{a}_dps" for a in AXES)
 FLAG_COLUMNS = tuple(f"out_of_span_{a}" for a in AXES)
+BIAS_COLUMNS = tuple(f"bias_{a}_dps" for a in AXES)
 CHUNK_ROWS = 100_000
-#: What the single-axis apply takes and an IMU set does not yet.
-SINGLE_AXIS_ONLY = (("track_bias", "--track-bias"),)
 
 
 def apply_imu_set(args: argparse.Namespace) -> int:
@@ -32,24 +33,31 @@ def apply_imu_set(args: argparse.Namespace) -> int:
     from canical.sets import imu_set
     from canical.sets.imu_corrector import ImuCorrector
 
-    for attr, flag in SINGLE_AXIS_ONLY:
-        if getattr(args, attr, None):
-            raise CanicalError(f"{flag} is not supported with an IMU set")
     imu = imu_set.load(args.coefficients)
     if is_canlog(args.input):
         raise CanicalError(f"{args.input}: applying an IMU set to a CAN log is not supported yet: give a CSV")
     corrector = ImuCorrector(imu)
-    table = read_table(args.input, columns=[*RAW_COLUMNS, *corrector.required_inputs])
+    needed = [*RAW_COLUMNS, *corrector.required_inputs]
+    if args.track_bias:
+        from canical.commands.apply import tracking_columns
+
+        needed = list(dict.fromkeys([*needed, *tracking_columns(args.input, args)]))
+    table = read_table(args.input, columns=needed)
     sensor = args.sensor or table.meta.get("sensor")
     if sensor and sensor != imu.sensor_id:
         raise CanicalError(f"{args.coefficients} is for sensor {imu.sensor_id}, {args.input} is from "
                            f"{sensor}")
-    for name in (*RATE_COLUMNS, *FLAG_COLUMNS):
+    for name in (*RATE_COLUMNS, *FLAG_COLUMNS, *(BIAS_COLUMNS if args.track_bias else ())):
         if name in table.header:
             raise CanicalError(f"{args.input} already has a {name} column")
     raw = np.column_stack([table.columns[c] for c in RAW_COLUMNS])
     rates, flags = corrector.correct(raw, {n: table.columns[n] for n in corrector.required_inputs})
-    write_rows(args.output, table, rates, flags)
+    bias = None
+    if args.track_bias:
+        from canical.commands.track_bias import tracked_bias
+
+        bias = tracked_bias(args, [c.fit for c in imu.axes], AXES, table.columns, rates)
+    write_rows(args.output, table, rates, flags, bias)
     n_out = int(np.count_nonzero(flags.any(axis=1)))
     note = f", {n_out} with an axis outside its calibrated span (flagged)" if n_out else ""
     print(f"apply: {len(table.rows)} rows corrected with IMU set 0x{corrector.set_id:08x}{note} "
@@ -57,20 +65,24 @@ def apply_imu_set(args: argparse.Namespace) -> int:
     return 0
 
 
-def write_rows(path: str, table, rates, flags) -> None:
-    """Echo the input rows with the six new columns, atomically, in chunks with progress."""
+def write_rows(path: str, table, rates, flags, bias=None) -> None:
+    """Echo the input rows with the six new columns (nine with the tracked bias), atomically, in
+    chunks with progress."""
     from canical.atomic_file import atomic_writer
 
     progress = Progress("apply", len(table.rows))
     with atomic_writer(path) as out:
         for line in table.preamble:
             out.write(line + "\n")
-        out.write(",".join([*table.header, *RATE_COLUMNS, *FLAG_COLUMNS]) + "\n")
+        out.write(",".join([*table.header, *RATE_COLUMNS, *FLAG_COLUMNS,
+                            *(BIAS_COLUMNS if bias is not None else ())]) + "\n")
         for start in range(0, len(table.rows), CHUNK_ROWS):
             stop = min(start + CHUNK_ROWS, len(table.rows))
             buf = io.StringIO()
-            for line, r, f in zip(table.rows[start:stop], rates[start:stop].tolist(),
-                                  flags[start:stop].tolist(), strict=True):
-                buf.write(f"{line},{r[0]:.6f},{r[1]:.6f},{r[2]:.6f},{int(f[0])},{int(f[1])},{int(f[2])}\n")
+            tails = ([f",{b[0]:.6f},{b[1]:.6f},{b[2]:.6f}" for b in bias[start:stop].tolist()]
+                     if bias is not None else [""] * (stop - start))
+            for line, r, f, tail in zip(table.rows[start:stop], rates[start:stop].tolist(),
+                                        flags[start:stop].tolist(), tails, strict=True):
+                buf.write(f"{line},{r[0]:.6f},{r[1]:.6f},{r[2]:.6f},{int(f[0])},{int(f[1])},{int(f[2])}{tail}\n")
             out.write(buf.getvalue())
             progress.update(stop)

@@ -121,3 +121,29 @@ def test_apply_needs_the_three_raw_columns(calibrated, sessions, tmp_path):
     out = tmp_path / "out.csv"
     one_line_exit_2(run("apply", imu, drive, "-o", out), "missing column 'raw_y'")
     assert not out.exists()
+
+
+def test_apply_track_bias_learns_each_axis_bias_at_the_vehicles_standstills(calibrated, tmp_path, capsys):
+    """A drive of the triad with a turn-on bias on every axis the table never saw: one tracker
+    over the three axes learns each at the stops (bias_x/y/z_dps), none while turning."""
+    from canical.sim.triad import random_triad
+
+    imu, _ = calibrated
+    triad = random_triad(2)
+    fs, rng = 100.0, np.random.default_rng(7)
+    t = np.arange(0.0, 90.0, 1.0 / fs)
+    turn = (t >= 30.0) & (t < 60.0)  # still 0-30 s, turning 30-60 s, still again
+    true = np.zeros((t.size, 3))
+    true[turn] = np.array([2.0, -1.5, 15.0]) + rng.normal(0.0, 3.0, (int(turn.sum()), 3))
+    bias = np.array([0.3, -0.2, 0.25])
+    raw = triad.output(t, true + bias, seed=11, fs_hz=fs)
+    drive = tmp_path / "drive.csv"
+    rows = [f"{a:.2f},{x:.0f},{y:.0f},{z:.0f},25.0" for a, (x, y, z) in zip(t, raw, strict=True)]
+    drive.write_text("\n".join(["time_s,raw_x,raw_y,raw_z,temp_c", *rows]) + "\n")
+    out = tmp_path / "out.csv"
+    assert main(["apply", str(imu), str(drive), "--track-bias", "-o", str(out)]) == 0, capsys.readouterr().err
+    assert "standstills used" in capsys.readouterr().out
+    cols = read_table(out).columns
+    learned = np.array([cols[f"bias_{a}_dps"] for a in "xyz"]).T
+    assert np.all(np.abs(learned[-1] - bias) < 0.05), learned[-1]
+    assert np.all(np.abs(learned[turn][-1] - learned[turn][0]) < 0.01)  # nothing learned while turning
