@@ -34,9 +34,9 @@ def apply_imu_set(args: argparse.Namespace) -> int:
     from canical.sets.imu_corrector import ImuCorrector
 
     imu = imu_set.load(args.coefficients)
-    if is_canlog(args.input):
-        raise CanicalError(f"{args.input}: applying an IMU set to a CAN log is not supported yet: give a CSV")
     corrector = ImuCorrector(imu)
+    if is_canlog(args.input):
+        return apply_imu_canlog(args, corrector)
     needed = [*RAW_COLUMNS, *corrector.required_inputs]
     if args.track_bias:
         from canical.commands.apply import tracking_columns
@@ -86,3 +86,77 @@ def write_rows(path: str, table, rates, flags, bias=None) -> None:
                 buf.write(f"{line},{r[0]:.6f},{r[1]:.6f},{r[2]:.6f},{int(f[0])},{int(f[1])},{int(f[2])}{tail}\n")
             out.write(buf.getvalue())
             progress.update(stop)
+
+
+def apply_imu_canlog(args: argparse.Namespace, corrector) -> int:
+    """A CAN log, read as the daemon reads the bus: one row per raw frame, the three axes' signals.
+
+    Writes time_s, raw_x, raw_y, raw_z, the inputs the sets (and the tracking) need, the three
+    rates and flags (and the three tracked biases).
+    """
+    import numpy as np
+
+    from canical.atomic_file import atomic_writer
+    from canical.commands.apply import use_daemon_tracking
+    from canical.commands.canlog_args import canlog_source
+    from canical.sessions.canlog import TIME_INPUT
+
+    imu = corrector.imu
+    source = canlog_source(args, args.input)
+    sensor = args.sensor or source.sensor
+    if sensor and sensor != imu.sensor_id:
+        raise CanicalError(f"{args.coefficients} is for sensor {imu.sensor_id}, "
+                           f"{args.input} is from {sensor}")
+    needed = list(corrector.required_inputs)
+    if args.track_bias:
+        use_daemon_tracking(args)
+        wanted = ("time_s", args.standstill_column, args.temp_column)
+        needed += [n for n in wanted if n and n in source.inputs]
+    unmapped = [n for n in dict.fromkeys(needed) if n not in source.inputs]
+    if unmapped:
+        raise CanicalError(f"the IMU set needs input(s) {', '.join(unmapped)}: map them with "
+                           "--input NAME=MESSAGE.Signal or --config")
+    sessions = [_axis_log(args, source, axis, list(dict.fromkeys(needed))) for axis in AXES]
+    session = sessions[0]
+    raw = np.column_stack([s.raw for s in sessions])
+    inputs = dict(session.aux)
+    if TIME_INPUT in corrector.required_inputs:
+        inputs[TIME_INPUT] = session.time_s
+    rates, flags = corrector.correct(raw, inputs)
+    bias = None
+    if args.track_bias:
+        from canical.commands.track_bias import tracked_bias
+
+        bias = tracked_bias(args, [c.fit for c in imu.axes], AXES, {**session.aux, "time_s": session.time_s},
+                            rates)
+    names = ["time_s", *RAW_NAMES, *session.aux, *RATE_COLUMNS, *FLAG_COLUMNS,
+             *(BIAS_COLUMNS if bias is not None else ())]
+    table = np.column_stack([session.time_s, raw, *session.aux.values(), rates, flags.astype(float),
+                             *([bias] if bias is not None else [])])
+    fmt = ["%.6f", *["%.9g"] * (3 + len(session.aux)), *["%.6f"] * 3, *["%d"] * 3,
+           *(["%.6f"] * 3 if bias is not None else [])]
+    with atomic_writer(args.output) as out:
+        for key, value in session.meta.items():
+            if key != "axis":
+                out.write(f"# {key}: {value}\n")
+        out.write(",".join(names) + "\n")
+        buf = io.StringIO()
+        np.savetxt(buf, table, delimiter=",", fmt=fmt)
+        out.write(buf.getvalue())
+    n_out = int(np.count_nonzero(flags.any(axis=1)))
+    note = f", {n_out} with an axis outside its calibrated span (flagged)" if n_out else ""
+    print(f"apply: {len(session)} {source.raw_message} frames corrected with IMU set "
+          f"0x{corrector.set_id:08x}{note} -> {args.output}")
+    return 0
+
+
+RAW_NAMES = tuple(f"raw_{a}" for a in AXES)
+
+
+def _axis_log(args: argparse.Namespace, source, axis: str, inputs: list[str]):
+    """One axis's raw signal from the log, with the inputs: the same frames for every axis."""
+    from canical.sessions.canlog import read_canlog
+
+    return read_canlog(args.input, dbc=source.dbc, axis=axis, inputs={n: source.inputs[n] for n in inputs},
+                       ref=None, raw_message=source.raw_message, raw_signal=source.raw_signals.get(axis),
+                       sensor=source.sensor, j1939_source=source.j1939_source).session

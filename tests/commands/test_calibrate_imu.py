@@ -147,3 +147,33 @@ def test_apply_track_bias_learns_each_axis_bias_at_the_vehicles_standstills(cali
     learned = np.array([cols[f"bias_{a}_dps"] for a in "xyz"]).T
     assert np.all(np.abs(learned[-1] - bias) < 0.05), learned[-1]
     assert np.all(np.abs(learned[turn][-1] - learned[turn][0]) < 0.01)  # nothing learned while turning
+
+
+def test_apply_an_imu_set_to_a_can_log_as_to_the_same_rows_of_a_csv(calibrated, sessions, tmp_path):
+    """The multi-axis session's raw values as IMU_RAW frames: the log gives the CSV's rates."""
+    from pathlib import Path
+
+    import can
+    import cantools
+
+    imu, _ = calibrated
+    table = read_table(sessions[-1]).columns
+    raw = np.column_stack([table[f"raw_{a}"] for a in "xyz"])[:2000]
+    dbc = Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc"
+    msg = cantools.database.load_file(str(dbc)).get_message_by_name("IMU_RAW")
+    log = tmp_path / "imu.log"
+    with can.Logger(str(log)) as logger:
+        for i, (x, y, z) in enumerate(raw.tolist()):
+            data = msg.encode({"GyroRawX": x, "GyroRawY": y, "GyroRawZ": z, "Temperature": 25.0,
+                               "Counter": i % 16, "SensorFault": 0})
+            logger.on_message_received(can.Message(arbitration_id=msg.frame_id, data=data,
+                                                   is_extended_id=False, timestamp=100.0 + i / 200))
+    csv = tmp_path / "rows.csv"
+    csv.write_text("raw_x,raw_y,raw_z\n" + "".join(f"{x:.0f},{y:.0f},{z:.0f}\n" for x, y, z in raw))
+    out_log, out_csv = tmp_path / "from-log.csv", tmp_path / "from-csv.csv"
+    assert main(["apply", str(imu), str(log), "--dbc", str(dbc), "-o", str(out_log)]) == 0
+    assert main(["apply", str(imu), str(csv), "-o", str(out_csv)]) == 0
+    a, b = read_table(out_log).columns, read_table(out_csv).columns
+    assert len(a["time_s"]) == 2000
+    for name in ("rate_x_dps", "rate_y_dps", "rate_z_dps", "out_of_span_x"):
+        assert np.array_equal(a[name], b[name]), name
