@@ -19,7 +19,7 @@ from canical.calibrate.cross_validation import cross_validate, prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
 from canical.calibrate.model_selection import Candidate, select_model
-from canical.calibrate.noise_records import noise_analysis, sample_interval, zero_rate_records
+from canical.calibrate.noise_records import name_a_rise, noise_analysis, sample_interval, zero_rate_records
 from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few
 from canical.calibrate.rails import RailCheck, RailLimits, rail_plateaus
 from canical.calibrate.segment_points import rate_noise
@@ -250,7 +250,12 @@ def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
         rate[a:b] = base.fitted.model.evaluate(session.raw[a:b] - base.v0)[0]
     dt = sample_interval(session.time_s)
     records = zero_rate_records(session.time_s, rate, start, stop, dt)
-    return noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
+    analysis = noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
+    temp = session.aux.get("temp_c")
+    if temp is not None:
+        inside = np.concatenate([temp[a:b] for a, b in zip(start, stop, strict=True)] or [np.zeros(0)])
+        analysis = name_a_rise(analysis, "temperature", inside[np.isfinite(inside)], "°C")
+    return analysis
 
 
 @dataclass(frozen=True)

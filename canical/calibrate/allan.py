@@ -136,6 +136,10 @@ def allan_deviation(
 POWERS = {"arw": -1.0, "bias_instability": 0.0, "rrw": 1.0}
 DOMINANT_SHARE = 0.5  # a term is seen where it makes at least this share of the variance
 MIN_SPAN = 3.0  # ... over τ spanning at least this factor: a line is not drawn through a bump
+#: Rate random walk, the slow wander, must rise as τ^+1/2 over a decade of τ that reaches its
+#: read-out τ (3 s): a rise over less, or only at shorter τ, is what a drift, a rate ramp or a
+#: change of temperature makes in a short record as well.
+RRW_MIN_SPAN = 10.0
 
 
 def fit_terms(curve: AllanCurve) -> dict[str, float]:
@@ -175,12 +179,13 @@ def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:
             f"the curve has no flat floor between tau {lo:.3g} and {hi:.3g} s: a longer record is needed"),
         "rrw": _term(curve, a, total, "rrw", "rate random walk", "deg/h/sqrt(h)",
                      lambda x: np.sqrt(RRW_TAU_S * x), 3600.0 * SQRT_HOUR,
-                     f"the curve does not rise as tau^+1/2 up to {hi:.3g} s: a longer record is needed"),
+                     f"the curve does not rise as tau^+1/2 up to {hi:.3g} s: a longer record is needed",
+                     min_span=RRW_MIN_SPAN),
     }
 
 
 def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, name: str, unit: str,
-          level: Callable[[float], float], to_unit: float, why: str) -> NoiseTerm:
+          level: Callable[[float], float], to_unit: float, why: str, min_span: float = MIN_SPAN) -> NoiseTerm:
     """Resolved where the term dominates the fitted curve over a stretch of τ; interval from there.
 
     At the most precise such point (K clusters, share s of the variance) the term's σ is
@@ -191,7 +196,12 @@ def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, n
     share = a[key] * curve.tau_s**p / total
     e = curve.rel_error
     seen = share >= DOMINANT_SHARE
-    if seen.any() and curve.tau_s[seen].max() >= MIN_SPAN * curve.tau_s[seen].min():
+    if seen.any() and key == "rrw" and not _long_enough(curve.tau_s[seen], min_span):
+        low, high = float(curve.tau_s[seen].min()), float(curve.tau_s[seen].max())
+        why = (f"the curve rises between tau {low:.3g} and {high:.3g} s only, less than a decade reaching "
+               f"{RRW_TAU_S:g} s: a drift, a rate ramp or a temperature change does that too; a longer "
+               "record is needed")
+    elif seen.any() and curve.tau_s[seen].max() >= min_span * curve.tau_s[seen].min():
         i = int(np.argmin(np.where(seen, e, np.inf)))
         value = float(level(a[key])) * to_unit
         rel = 2.0 * float(e[i] / share[i])
@@ -202,6 +212,11 @@ def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, n
     value = float(level(bound_var[i])) * to_unit
     return NoiseTerm(name, unit, False, value, value, value, float(curve.tau_s[i]), int(curve.clusters[i]),
                      why)
+
+
+def _long_enough(taus: np.ndarray, min_span: float) -> bool:
+    """The τ where rate random walk dominates: a decade of it, reaching its read-out τ."""
+    return bool(taus.max() >= min_span * taus.min() and taus.max() >= RRW_TAU_S)
 
 
 def analysis_dict(curve: AllanCurve, terms: dict[str, NoiseTerm]) -> dict[str, Any]:

@@ -55,6 +55,24 @@ def noise_analysis(records: list[np.ndarray], dt: float, source: str) -> dict[st
     return {"source": source, **analysis_dict(curve, noise_terms(curve))}
 
 
+def name_a_rise(analysis: dict[str, Any], channel: str, values: np.ndarray, unit: str) -> dict[str, Any]:
+    """A rise of the curve not claimed as rate random walk, named for what moved in the records.
+
+    When the curve rises over too short a stretch of τ to be rate random walk and ``channel``
+    (the temperature) changes across the records, the note says by how much: that rise is the
+    session's drift with it, not a noise term of the sensor.
+    """
+    rrw = analysis.get("terms", {}).get("rrw")
+    if rrw is None or rrw["resolved"] or "rises" not in rrw["note"] or values.size < 2:
+        return analysis
+    span = float(np.max(values) - np.min(values))
+    if span <= 0.0:
+        return analysis
+    note = f"{rrw['note']}; the records' {channel} spans {span:.3g} {unit}: likely that drift"
+    terms = {**analysis["terms"], "rrw": {**rrw, "note": note}}
+    return {**analysis, "terms": terms}
+
+
 def describe(analysis: dict[str, Any]) -> list[str]:
     """Lines for a terminal or a report: the τ range and each term, resolved or not."""
     if "skipped" in analysis:

@@ -17,6 +17,7 @@ from hypothesis import strategies as st
 from support.allan_noise import flicker_rate, rate_random_walk, rrw_for_crossover, white_rate
 
 from canical.calibrate.allan import allan_deviation, noise_terms
+from canical.calibrate.noise_records import name_a_rise
 
 
 @settings(max_examples=10, deadline=None)
@@ -86,3 +87,42 @@ def test_pooled_curve_equals_one_record_cut_in_pieces_up_to_the_lost_joins() -> 
     a = whole.adev[np.isin(whole.tau_s, common)][:5]
     b = cut.adev[np.isin(cut.tau_s, common)][:5]
     np.testing.assert_allclose(a, b, rtol=0.02)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_a_rise_over_less_than_a_decade_is_not_claimed_as_rate_random_walk(seed: int) -> None:
+    """Short zero-rate records whose rate drifts (the session's temperature, a ramp): the curve
+    rises at τ of a second or so, over less than a decade; nothing is claimed there."""
+    rng = np.random.default_rng(seed)
+    fs = 200.0
+    records = []
+    for _ in range(4):
+        t = np.arange(1000) / fs  # 5 s
+        drift = rng.uniform(0.05, 0.2) * rng.choice([-1.0, 1.0]) * t  # deg/s per s: a thermal drift
+        records.append(white_rate(rng, t.size, fs, 0.3) + drift)
+    terms = noise_terms(allan_deviation(records, fs))
+    assert not terms["rrw"].resolved
+    assert "less than a decade" in terms["rrw"].note
+
+
+def test_the_calibration_names_the_temperature_behind_a_rise() -> None:
+    """The demo's turntable session (temperature stepping with the chamber, an effect of it on
+    the rate): its report claims no rate random walk from the zero-rate plateaus' seconds, and
+    the note names the temperature change behind the rise."""
+    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.sim.scenarios import SCENARIOS
+
+    scenario = next(s for s in SCENARIOS if s.name.startswith("temperature bias + scale"))
+    result = calibrate(scenario.session(0), CalibrateOptions(extend=False), sensor_id="SIM", axis="z")
+    rrw = result.report.allan["terms"]["rrw"]
+    assert not rrw["resolved"]
+    assert "less than a decade" in rrw["note"] and "temperature spans" in rrw["note"], rrw["note"]
+
+
+def test_a_rise_is_named_only_when_the_channel_moved() -> None:
+    analysis = {"terms": {"rrw": {"resolved": False, "note": "the curve rises between tau 1 and 3 s only"}}}
+    named = name_a_rise(analysis, "temperature", np.array([20.0, 21.5, 23.0]), "°C")
+    assert named["terms"]["rrw"]["note"].endswith("the records' temperature spans 3 °C: likely that drift")
+    assert name_a_rise(analysis, "temperature", np.array([20.0, 20.0]), "°C") == analysis
+    resolved = {"terms": {"rrw": {"resolved": True, "note": ""}}}
+    assert name_a_rise(resolved, "temperature", np.array([20.0, 23.0]), "°C") == resolved
