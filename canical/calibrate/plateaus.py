@@ -85,6 +85,7 @@ class Plateaus:
     n_not_settled: int = 0  # steady samples the table flagged as not settled
     rate_sem_dps: np.ndarray | None = None  # per plateau: standard error of its rate
     n_short: int = 0  # steady stretches left out as shorter than the minimum
+    sweep_dps2: float = 0.0  # median net change of the reference per second, window to window
 
     def rate_uncertainty(self) -> np.ndarray:
         """Per plateau: the standard error of its reference rate (0 for a noiseless reference)."""
@@ -263,6 +264,7 @@ def detect_plateaus(
         n_not_settled=n_flagged,
         rate_sem_dps=np.array(sems, dtype=float),
         n_short=cut.n_short,
+        sweep_dps2=sweep_rate(t, ref, window),
     )
 
 
@@ -487,6 +489,25 @@ def _robust_mean(values: np.ndarray, tol: float) -> float:
     return float(np.mean(values[near]))
 
 
+#: A reference whose net change over one window exceeds this many times its own noise (and the
+#: tolerance) is sweeping: a jittering one's net change is about its noise whatever the window.
+SWEEP_NOISES = 5.0
+
+
+def sweep_rate(t: np.ndarray, ref: np.ndarray, window_s: float) -> float:
+    """The reference's median net change per second over successive windows (deg/s²).
+
+    A noisy reference jitters about a level, so its net change over a window is about its
+    noise whatever the window; a sweep's grows with the window. Compared with the reference's
+    noise it tells a session that never stands still from one whose reference is noisy.
+    """
+    if t.size < 2 or window_s <= 0 or t[-1] - t[0] < 2 * window_s:
+        return 0.0
+    edges = np.arange(t[0], t[-1], window_s)
+    at = np.clip(np.searchsorted(t, edges), 0, t.size - 1)
+    return float(np.median(np.abs(np.diff(ref[at])))) / window_s
+
+
 def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
     """One line for a session where too little was found: what was seen, which option helps."""
     seen = (
@@ -495,7 +516,12 @@ def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
     )
     if p.n_not_settled:
         seen += f", {p.n_not_settled} steady rows flagged not settled by the table"
-    if p.longest_steady_s < p.window_s:
+    sweeping = p.sweep_dps2 * p.window_s > max(SWEEP_NOISES * p.ref_noise_dps, p.rate_tol_dps)
+    if p.longest_steady_s < p.window_s and sweeping:
+        hint = (f"the reference never stands still: it moves {p.sweep_dps2:.3g} deg/s every second, window "
+                f"after window (a continuous sweep, not a noisy reference); calibration takes plateaus: "
+                f"record the rates as steps, each held for at least {p.window_s + DEFAULT_SETTLE_S:.3g} s")
+    elif p.longest_steady_s < p.window_s:
         hint = f"a larger --rate-tol than {p.rate_tol_dps:.3g} deg/s would accept a noisier reference"
     elif p.n_short:
         hint = f"--min-plateau below {min_duration_s:g} s would accept {p.n_short} shorter stretches"

@@ -149,3 +149,21 @@ def test_the_report_says_what_plateau_finding_estimated(tmp_path, capsys):
     assert found["reference_update_s"] == pytest.approx(0.1, rel=0.05)
     assert found["end_guard_s"] >= 0.1
     assert "- plateau finding: reference noise 0.0" in (tmp_path / "rep" / "report.md").read_text()
+
+
+@pytest.mark.parametrize(("accel", "ref_hz"), [(0.5, 100.0), (2.0, 10.0)])
+def test_a_continuous_sweep_is_told_apart_from_a_noisy_reference(tmp_path, capsys, accel: float,
+                                                                 ref_hz: float) -> None:
+    """A table sweeping slowly and continuously (its encoder's rate, exact): refused with advice
+    for a sweep (record steps), not a larger --rate-tol (the reference is not noisy)."""
+    fs = 100.0
+    t = np.arange(0.0, 240.0, 1.0 / fs)
+    ref = 60.0 - np.abs((accel * t) % 240.0 - 120.0)  # -60 up to 60 and back, at ``accel``
+    held = ref[(np.floor(t * ref_hz) / ref_hz * fs).astype(int)]  # the encoder's updates, held
+    gyro = GyroModel()
+    raw = np.round(gyro.output(t, ref, rng=np.random.default_rng(1), fs_hz=fs))
+    path = write_session(tmp_path / "sweep.csv", Session(time_s=t, raw=raw, ref_dps=held,
+                                                          meta={"sensor": "SIM-1", "axis": "z"}))
+    err = _calibrate_error(capsys, path)
+    assert "the reference never stands still" in err and "continuous sweep, not a noisy reference" in err
+    assert "--rate-tol" not in err
