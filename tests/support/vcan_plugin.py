@@ -25,6 +25,12 @@ after ``multi-user.target``. Before it boots, the host builds the canical wheel 
 dependencies' wheels (the guest has no network) for the install test; see
 ``tests/support/systemd_guest.py``.
 
+The guests run **beside the host's tests**: once collection has decided what goes to them, one
+background thread boots the vcan guest, then the systemd guest, while the host runs its own
+tests; the proxies are moved to the end of the run and wait there for their guest's results
+(the guests take one CPU, the host's tests the other). ``CANICAL_GUESTS_IN_BACKGROUND=0`` runs
+each guest at its first proxy instead, as before.
+
 ``CANICAL_VCAN_MODE=native|uml`` forces a mode (e.g. to exercise the UML path on a machine
 that has vcan). ``CANICAL_UML_TIMEOUT`` bounds the guest run (seconds, default 1800);
 ``CANICAL_UML_KEEP=1`` keeps the guest's run dir even when everything passed.
@@ -38,6 +44,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -58,6 +65,7 @@ ENV_ALLOW_NO_VCAN = "CANICAL_ALLOW_NO_VCAN"
 ENV_MODE = "CANICAL_VCAN_MODE"
 ENV_TIMEOUT = "CANICAL_UML_TIMEOUT"
 ENV_KEEP = "CANICAL_UML_KEEP"
+ENV_BACKGROUND = "CANICAL_GUESTS_IN_BACKGROUND"
 #: Set for the guest's pytest: where this plugin appends one JSON line per test report.
 ENV_REPORT = "CANICAL_UML_REPORT"
 
@@ -188,6 +196,7 @@ class VcanState:
     result: harness.GuestResult | None = None
     error: str | None = None
     outcomes: dict[str, list[dict[str, Any]]] = field(default_factory=dict)
+    done: threading.Event | None = None  # set when a background run has finished (None: no background run)
 
     def decide_mode(self) -> str:
         """Pick native/uml/missing once; probing may create vcan0 on a capable root host."""
@@ -252,6 +261,8 @@ class VcanState:
 
     def outcome_for(self, nodeid: str) -> GuestOutcome:
         """The guest's verdict for ``nodeid``; guest-level trouble becomes a failure."""
+        if self.done is not None:
+            self.done.wait()
         self.ensure_guest_ran()
         if self.error is not None:
             return GuestOutcome("failed", self.error)
@@ -368,13 +379,34 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
         sd_state.nodeids = [i.nodeid for i in systemd_items]
         items[:] = [GuestProxyItem.wrap(i, sd_state) if needs_systemd(i) else i for i in items]
     vcan_items = [i for i in items if needs_vcan(i) and not isinstance(i, GuestProxyItem)]
-    if not vcan_items:
-        return  # no vcan tests selected: no probing, no guest
     state = config.stash[_STATE_KEY]
-    if state.decide_mode() == "native":
+    if vcan_items and state.decide_mode() != "native":
+        state.nodeids = [i.nodeid for i in vcan_items]
+        items[:] = [GuestProxyItem.wrap(i, state) if i in vcan_items else i for i in items]
+    if os.environ.get(ENV_BACKGROUND, "1") != "0":
+        run_guests_in_background(items, [s for s in (state, config.stash[_SYSTEMD_STATE_KEY])
+                                         if s.nodeids and s.mode == "uml"])
+
+
+def run_guests_in_background(items: list[pytest.Item], states: list[VcanState]) -> None:
+    """Boot the guests one after the other in a thread while the host runs its own tests; the
+    proxies go last, so the host reaches them when the guests are (nearly) done."""
+    if not states:
         return
-    state.nodeids = [i.nodeid for i in vcan_items]
-    items[:] = [GuestProxyItem.wrap(i, state) if i in vcan_items else i for i in items]
+    items[:] = ([i for i in items if not isinstance(i, GuestProxyItem)]
+                + [i for i in items if isinstance(i, GuestProxyItem)])
+    for state in states:
+        state.done = threading.Event()
+
+    def run_all() -> None:
+        for state in states:
+            try:
+                state.ensure_guest_ran()
+            finally:
+                assert state.done is not None
+                state.done.set()
+
+    threading.Thread(target=run_all, name="uml-guests", daemon=True).start()
 
 
 def pytest_runtest_logreport(report: pytest.TestReport) -> None:
