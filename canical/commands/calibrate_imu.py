@@ -60,10 +60,8 @@ def calibrate_triad(args: argparse.Namespace) -> int:
     progress = Progress("calibrate", 1)
     sessions = []
     for path in args.session:
-        if is_canlog(path):
-            raise CanicalError(f"{path}: CAN logs of three-axis sessions are not supported yet: give CSVs")
         progress.step(f"reading {path}")
-        sessions.append(read_triad_session(path))
+        sessions.append(read_triad_log_args(args, path) if is_canlog(path) else read_triad_session(path))
     sensors = {s.sensor_id for s in sessions if s.sensor_id}
     if args.sensor and sensors and sensors != {args.sensor}:
         raise CanicalError(f"--sensor {args.sensor} but the sessions were recorded from "
@@ -81,6 +79,22 @@ def calibrate_triad(args: argparse.Namespace) -> int:
         write_report_dir(Path(args.report_dir), report)
     print(summary(report, f"0x{imu_set.imu_set_crc(result.imu_set):08x}"))
     return 0
+
+
+def read_triad_log_args(args: argparse.Namespace, path: str):
+    """A triad session from a CAN log, with the DBC and mapping the options give (as the
+    single-axis flow: --dbc/--config, --input ref_dps=MESSAGE.Signal, else TABLE_REF)."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.sessions.canlog import default_inputs
+    from canical.sessions.canlog_format import DEFAULT_REF
+    from canical.sessions.triad_session import read_triad_log
+
+    source = canlog_source(args, path)
+    inputs = dict(source.inputs) if (source.inputs or source.from_config) else default_inputs(source.dbc)
+    inputs.pop("raw", None)
+    ref = inputs.pop("ref_dps", None) or DEFAULT_REF
+    return read_triad_log(path, dbc=source.dbc, inputs=inputs, ref=ref, raw_message=source.raw_message,
+                          raw_signals=source.raw_signals, j1939_source=source.j1939_source)
 
 
 def write_report_dir(directory: Path, report: dict[str, Any]) -> None:

@@ -113,9 +113,11 @@ class ImuFrames:
         )
 
     def table(self, rate_dps: float, axis: str, settled: bool, counter: int) -> tuple[int, bytes]:
+        """The table's frame; ``axis`` ``-x``... when the IMU's axis points against the table's."""
         return self.encode(
             TABLE_MESSAGE,
-            {"TableRate": rate_dps, "TableAxis": AXES.index(axis), "TableSettled": int(settled),
+            {"TableRate": rate_dps, "TableAxis": AXES.index(axis.lstrip("-")), "TableSettled": int(settled),
+             "TableAxisInverted": int(axis.startswith("-")),
              "TableCounter": counter & self._masks[TABLE_MESSAGE]["TableCounter"]},
         )
 

@@ -34,6 +34,7 @@ from canical.sessions.session import RAW_UNITS, Rail, Session
 
 TIME_INPUT = "time_s"
 TABLE_AXIS = "TABLE_REF.TableAxis"
+TABLE_INVERTED = "TABLE_REF.TableAxisInverted"
 TABLE_SETTLED = "TABLE_REF.TableSettled"
 
 
@@ -46,6 +47,7 @@ class CanlogSession:
     skipped: int  # raw frames before every needed signal had a value
     dropped: int  # frames the daemon would drop: error, remote, FD, wrong length
     table_axis: str | None  # the axis the rate table reports turning, if it says
+    table_inverted: bool = False  # ... and that the IMU's axis points against it (mounted upside down)
 
 
 def parse_signal_map(items: list[str] | None) -> dict[str, str]:
@@ -157,7 +159,8 @@ def read_canlog(
     raw_pairs = by_id.pop((raw.frame_id, raw.is_extended_frame), (raw, []))[1]
     others = FrameMatcher((frame_match(msg, j1939_source), (msg, pairs)) for msg, pairs in by_id.values())
     log = _LogRows(channels=[c for c in wanted if not c.startswith("\0")],
-                   needed=[c for c in wanted if c not in ("\0axis", "\0settled")], has_ref=ref is not None)
+                   needed=[c for c in wanted if c not in ("\0axis", "\0settled", "\0inverted")],
+                   has_ref=ref is not None)
     try:
         for frame in can.LogReader(name):
             _take_frame(log, frame, raw_match, (raw, raw_pairs), raw_sig, others)
@@ -168,7 +171,8 @@ def read_canlog(
     signal = raw.get_signal_by_name(raw_sig)
     rail = signal_rail(signal, f"DBC signal {raw.name}.{raw_sig}")
     session = _session(log, name, raw.name, axis, sensor, rail, signal.unit or None)
-    return CanlogSession(session, log.frames, log.skipped, log.dropped, _table_axis(log.held))
+    return CanlogSession(session, log.frames, log.skipped, log.dropped, _table_axis(log.held),
+                         bool(log.held.get("\0inverted", 0.0)))
 
 
 def signal_rail(signal: Signal, where: str) -> Rail | None:
@@ -198,6 +202,8 @@ def _wanted_signals(db: Database, inputs: Mapping[str, str], ref: str | None) ->
     if TABLE_AXIS.split(".")[0] in {m.name for m in db.messages}:
         wanted.setdefault("\0axis", TABLE_AXIS)
         table_signals = {sg.name for sg in db.get_message_by_name(TABLE_AXIS.split(".")[0]).signals}
+        if TABLE_INVERTED.split(".")[1] in table_signals:
+            wanted.setdefault("\0inverted", TABLE_INVERTED)
         if ref == DEFAULT_REF and TABLE_SETTLED.split(".")[1] in table_signals:
             wanted.setdefault("\0settled", TABLE_SETTLED)  # the table's own flag goes with its rate
     return wanted

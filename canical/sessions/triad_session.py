@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.frames.frame_match import J1939Source
 from canical.sessions.csv_file import TIME_COLUMN, read_table
 from canical.sessions.session import Session
 
@@ -110,6 +111,33 @@ def read_triad_session(path: str | os.PathLike[str]) -> TriadSession:
         rate = np.zeros_like(raw)
         rate[:, axis.index] = axis.sign * table.columns[REF_COLUMN]
     return TriadSession(time_s, raw, rate, axis, aux, dict(table.meta), name)
+
+
+def read_triad_log(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str], inputs: dict[str, str],
+                   ref: str, raw_message: str, raw_signals: dict[str, str],
+                   j1939_source: J1939Source = None) -> TriadSession:
+    """A triad session recorded on the bus: the three raw signals of the raw frame, the table's
+    rate, and the IMU axis it turns about from the table's frame (``TableAxis``, with
+    ``TableAxisInverted`` for an IMU mounted upside down); one line when the log has none."""
+    from canical.sessions.canlog import read_canlog
+
+    name = str(path)
+    logs = [read_canlog(path, dbc=dbc, axis=a, inputs=inputs, ref=ref, raw_message=raw_message,
+                        raw_signal=raw_signals.get(a), j1939_source=j1939_source) for a in AXES]
+    first = logs[0]
+    if first.table_axis is None:
+        raise CanicalError(f"{name}: the log has no TableAxis (the table's frame names the IMU axis it "
+                           "turns about): a three-axis session needs it")
+    sessions = [log.session for log in logs]
+    if any(len(s) != len(sessions[0]) for s in sessions):  # the same frames give every axis
+        raise CanicalError(f"{name}: the three axes' signals gave different rows")
+    axis = TableAxis(AXES.index(first.table_axis), -1.0 if first.table_inverted else 1.0)
+    session = sessions[0]
+    raw = np.column_stack([s.raw for s in sessions])
+    rate = np.zeros_like(raw, dtype=float)
+    rate[:, axis.index] = axis.sign * session.reference()
+    meta = {k: v for k, v in session.meta.items() if k != "axis"}
+    return TriadSession(session.time_s, raw, rate, axis, dict(session.aux), meta, name)
 
 
 def is_triad_csv(path: str | os.PathLike[str]) -> bool:

@@ -105,7 +105,8 @@ def test_time_backwards_in_a_can_log_names_the_frame(tmp_path, capsys):
         for i, stamp in enumerate(stamps):
             logger.on_message_received(can.Message(
                 timestamp=stamp, arbitration_id=ref.frame_id, is_extended_id=False,
-                data=ref.encode({"TableRate": 0.0, "TableAxis": 2, "TableSettled": 1, "TableCounter": i})))
+                data=ref.encode({"TableRate": 0.0, "TableAxis": 2, "TableSettled": 1, "TableAxisInverted": 0,
+                                 "TableCounter": i})))
             logger.on_message_received(can.Message(
                 timestamp=stamp, arbitration_id=aux.frame_id, is_extended_id=False,
                 data=aux.encode({"SupplyVoltage": 5.0, "Uptime": stamp, "AuxCounter": 0})))

@@ -4,6 +4,7 @@ runs them: one IMU set and its report, three corrected rates; bad inputs one lin
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +13,8 @@ from support.triad import write_triad_sessions
 from canical.commands.cli import main
 from canical.sessions.csv_file import read_table
 from canical.sets import imu_set
+
+DBC = Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc"
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +154,6 @@ def test_apply_track_bias_learns_each_axis_bias_at_the_vehicles_standstills(cali
 
 def test_apply_an_imu_set_to_a_can_log_as_to_the_same_rows_of_a_csv(calibrated, sessions, tmp_path):
     """The multi-axis session's raw values as IMU_RAW frames: the log gives the CSV's rates."""
-    from pathlib import Path
 
     import can
     import cantools
@@ -177,3 +179,74 @@ def test_apply_an_imu_set_to_a_can_log_as_to_the_same_rows_of_a_csv(calibrated, 
     assert len(a["time_s"]) == 2000
     for name in ("rate_x_dps", "rate_y_dps", "rate_z_dps", "out_of_span_x"):
         assert np.array_equal(a[name], b[name]), name
+
+
+def write_triad_log(csv_path, log_path) -> None:
+    """A triad session CSV as the bus carries it: IMU_RAW with the three raw signals, TABLE_REF
+    with the table's rate, axis and mounting, IMU_AUX now and then."""
+    import can
+    import cantools
+
+    from canical.sessions.triad_session import read_triad_session
+
+    session = read_triad_session(csv_path)
+    db = cantools.database.load_file(str(DBC))
+    raw_msg, ref_msg, aux_msg = (db.get_message_by_name(n) for n in ("IMU_RAW", "TABLE_REF", "IMU_AUX"))
+    axis = session.table_axis
+    with can.Logger(str(log_path)) as logger:
+        rows = zip(session.time_s, session.raw.tolist(), session.rate_dps, strict=True)
+        for i, (t, raw, rate) in enumerate(rows):
+            stamp = 1000.0 + float(t)
+            table = ref_msg.encode({"TableRate": float(axis.sign * rate[axis.index]), "TableAxis": axis.index,
+                                    "TableSettled": 1, "TableAxisInverted": int(axis.sign < 0),
+                                    "TableCounter": i & 0xF})
+            logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=ref_msg.frame_id,
+                                                   is_extended_id=False, data=table))
+            if i % 10 == 0:
+                aux = aux_msg.encode({"SupplyVoltage": 12.0, "Uptime": float(t),
+                                      "AuxCounter": (i // 10) & 0xF})
+                logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=aux_msg.frame_id,
+                                                       is_extended_id=False, data=aux))
+            data = raw_msg.encode({"GyroRawX": raw[0], "GyroRawY": raw[1], "GyroRawZ": raw[2],
+                                   "Temperature": 25.0, "Counter": i & 0xF, "SensorFault": 0})
+            logger.on_message_received(can.Message(timestamp=stamp + 1e-4, arbitration_id=raw_msg.frame_id,
+                                                   is_extended_id=False, data=data))
+
+
+def test_calibrate_from_the_bus_as_from_the_csvs(calibrated, sessions, tmp_path, capsys):
+    """The same three sessions (one mounted upside down) as CAN logs: the same IMU set, within
+    the last digits; a log whose table does not say its axis is one line, exit 2."""
+    imu, _ = calibrated
+    logs = []
+    for path in sessions[:3]:
+        logs.append(tmp_path / f"{path.stem}.log")
+        write_triad_log(path, logs[-1])
+    out = tmp_path / "from-logs.yaml"
+    assert main(["calibrate", *map(str, logs), "--dbc", str(DBC), "-o", str(out)]) == 0, \
+        capsys.readouterr().err
+    from_logs, from_csvs = imu_set.load(out), imu_set.load(imu)
+    assert np.allclose(from_logs.matrix(), from_csvs.matrix(), atol=2e-5)
+    assert [c.model["kind"] for c in from_logs.axes] == [c.model["kind"] for c in from_csvs.axes]
+
+    # The table's rate from a table controller's own frame, which says nothing of the axis.
+    dbc = tmp_path / "table.dbc"
+    dbc.write_text('VERSION ""\n\nNS_ :\n\nBS_:\n\nBU_: TABLE\n\nBO_ 1536 MYTABLE: 4 TABLE\n'
+                   ' SG_ Rate : 0|32@1- (0.0001,0) [-214748.3648|214748.3647] "deg/s" Vector__XXX\n')
+    import can
+    import cantools
+
+    ref = cantools.database.load_file(str(DBC)).get_message_by_name("TABLE_REF")
+    bare = tmp_path / "bare.log"
+    with can.Logger(str(bare)) as logger:
+        for m in can.LogReader(str(logs[0])):
+            if m.arbitration_id == ref.frame_id:
+                rate = ref.decode(bytes(m.data))["TableRate"]
+                m = can.Message(timestamp=m.timestamp, arbitration_id=1536, is_extended_id=False,
+                                data=round(rate / 1e-4).to_bytes(4, "little", signed=True))
+            logger.on_message_received(m)
+    capsys.readouterr()
+    bad = tmp_path / "bad.yaml"
+    assert main(["calibrate", str(bare), *map(str, logs[1:]), "--dbc", str(dbc), "--input",
+                 "ref_dps=MYTABLE.Rate", "-o", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no TableAxis" in err[0] and not bad.exists(), err

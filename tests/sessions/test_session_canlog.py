@@ -40,7 +40,7 @@ def turntable(tmp_path_factory: pytest.TempPathFactory):
         stamp = T0 + float(t)
         msgs.append(can.Message(timestamp=stamp, arbitration_id=ref.frame_id, is_extended_id=False,
                                 data=ref.encode({"TableRate": float(w), "TableAxis": 2, "TableSettled": 1,
-                                                 "TableCounter": i & 0xF})))
+                                                 "TableAxisInverted": 0, "TableCounter": i & 0xF})))
         if i % 10 == 0:
             msgs.append(can.Message(timestamp=stamp, arbitration_id=aux.frame_id, is_extended_id=False,
                                     data=aux.encode({"SupplyVoltage": 5.0, "Uptime": 60.0 + float(t),
