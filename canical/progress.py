@@ -15,8 +15,9 @@ from typing import TextIO
 class Progress:
     """A throttled ``label: done/total (pct)`` line for one long task."""
 
-    def __init__(self, label: str, total: int, stream: TextIO | None = None) -> None:
+    def __init__(self, label: str, total: int, stream: TextIO | None = None, unit: str = "") -> None:
         self.label = label
+        self.unit = f" {unit}" if unit else ""
         self.total = max(int(total), 1)
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = os.environ.get("CANICAL_PROGRESS") == "1" or self.stream.isatty()
@@ -31,7 +32,7 @@ class Progress:
             return
         self._last = now
         pct = 100.0 * done / self.total
-        self.stream.write(f"\r{self.label}: {done}/{self.total} ({pct:.0f}%)")
+        self.stream.write(f"\r{self.label}: {done}/{self.total}{self.unit} ({pct:.0f}%)")
         if done >= self.total:
             self.stream.write("\n")
         self.stream.flush()

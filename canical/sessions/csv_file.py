@@ -76,11 +76,11 @@ def read_table(path: str | os.PathLike[str], columns: list[str] | None = None) -
     for column in wanted:
         if column not in header:
             raise CanicalError(f"{name}: missing column {column!r} (columns: {', '.join(header)})")
-    parsed = _parse_numeric(name, header, rows, first, [header.index(c) for c in wanted])
+    parsed = parse_numeric(name, header, rows, first, [header.index(c) for c in wanted])
     return CsvTable(name, meta, preamble, header, rows, parsed, first)
 
 
-def _parse_numeric(
+def parse_numeric(
     name: str, header: list[str], rows: list[str], first: int, usecols: list[int]
 ) -> dict[str, np.ndarray]:
     """Parse the chosen cells as floats with numpy's fast reader; on failure, find the bad cell."""

@@ -31,7 +31,10 @@ def gate_one(dv: float, knee_raw: float) -> float:
 
 
 def direction_state(raw: np.ndarray, threshold: float, state: DirectionTracker | None = None) -> np.ndarray:
-    """+1/−1/0 per sample: the direction of the last change of ``raw`` larger than ``threshold``."""
+    """+1/−1/0 per sample: the direction of the last change of ``raw`` larger than ``threshold``.
+
+    ``state`` carries on a stream from its previous block (fresh when None).
+    """
     tracker = state or DirectionTracker(threshold)
     out = np.empty(len(raw))
     for i, v in enumerate(np.asarray(raw, dtype=float).tolist()):
@@ -64,9 +67,13 @@ class DirectionTracker:
         return self.state
 
 
-def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Smoothed d(raw)/dt per sample, as :class:`SlopeTracker` computes it one sample at a time."""
-    tracker = SlopeTracker(tau_s)
+def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float,
+                state: SlopeTracker | None = None) -> np.ndarray:
+    """Smoothed d(raw)/dt per sample, as :class:`SlopeTracker` computes it one sample at a time.
+
+    ``state`` carries on a stream from its previous block (fresh when None).
+    """
+    tracker = state or SlopeTracker(tau_s)
     return np.array([tracker.update(r, t) for r, t in zip(raw.tolist(), time_s.tolist(), strict=True)])
 
 
