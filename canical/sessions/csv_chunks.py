@@ -12,6 +12,7 @@ a block with anything else (a carriage return, a blank row, a non-ASCII byte) is
 from __future__ import annotations
 
 import csv
+import io
 import os
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -152,18 +153,29 @@ def _blocks(f: BinaryIO, chunk_bytes: int) -> Iterator[bytes]:
 def _chunk(head: CsvHead, block: bytes, usecols: list[int], first_row: int) -> CsvChunk:
     """A block as bytes when its rows are plain lines and its cells parse at once; else as rows."""
     buf = np.frombuffer(block, dtype=np.uint8)
-    if _PLAIN[buf].all():
-        ends = np.flatnonzero(buf == _NEWLINE)
-        starts = np.concatenate([[0], ends[:-1] + 1])
-        filled = np.concatenate([[0], np.cumsum((buf != 32) & (buf != 9) & (buf != _NEWLINE))])
-        if (filled[ends] > filled[starts]).all():  # no blank row
-            columns = _parse_plain(head, block, usecols, len(ends))
-            if columns is not None:
-                return CsvChunk(first_row, len(ends), len(block), columns, text=block)
+    if _PLAIN[buf].all() and not _has_blank_row(block, buf):
+        n_rows = block.count(b"\n")
+        columns = _parse_plain(head, block, usecols, n_rows)
+        if columns is not None:
+            return CsvChunk(first_row, n_rows, len(block), columns, text=block)
     text = _decode(head.path, block)
     rows = [line for line in text.splitlines() if line.strip()]
     columns = parse_numeric(head.path, head.header, rows, head.first_data_line + first_row, usecols)
     return CsvChunk(first_row, len(rows), len(block), columns, rows=rows)
+
+
+def _has_blank_row(block: bytes, buf: np.ndarray) -> bool:
+    """Whether a plain block has a row of nothing but spaces and tabs (read_table drops those).
+
+    Such a row starts with a space, a tab or its newline: when no row does, there is none.
+    """
+    if not (block.startswith((b" ", b"\t", b"\n")) or b"\n\n" in block or b"\n " in block
+            or b"\n\t" in block):
+        return False
+    ends = np.flatnonzero(buf == _NEWLINE)
+    starts = np.concatenate([[0], ends[:-1] + 1])
+    filled = np.concatenate([[0], np.cumsum((buf != 32) & (buf != 9) & (buf != _NEWLINE))])
+    return bool((filled[ends] == filled[starts]).any())
 
 
 def _parse_plain(head: CsvHead, block: bytes, usecols: list[int],
@@ -172,7 +184,7 @@ def _parse_plain(head: CsvHead, block: bytes, usecols: list[int],
     if not usecols:
         return {}
     try:
-        data = np.loadtxt(block.splitlines(), delimiter=",", ndmin=2, dtype=float, usecols=usecols)
+        data = np.loadtxt(io.BytesIO(block), delimiter=",", ndmin=2, dtype=float, usecols=usecols)
     except (ValueError, IndexError):
         return None
     if data.shape[0] != n_rows or not np.isfinite(data).all():
