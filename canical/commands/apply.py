@@ -197,9 +197,9 @@ def _chunk_text(rows: list[str], rate: np.ndarray, oos: np.ndarray, extra: list[
 
 def tracking_columns(path: str, args: argparse.Namespace) -> list[str]:
     """time_s, the cue if asked for, and the temperature column if the file has one."""
-    from canical.sessions.csv_file import read_table
+    from canical.sessions.csv_chunks import read_header
 
-    header = read_table(path, columns=[]).header
+    header = read_header(path)
     if "time_s" not in header:
         raise CanicalError(f"{path}: --track-bias needs a time_s column (time since power-on)")
     if args.standstill_column and args.standstill_column not in header:

@@ -77,24 +77,40 @@ def characterise(args: argparse.Namespace) -> int:
 
 
 def _read_csv(args: argparse.Namespace):
-    """time_s and the rate of a CSV; rows are named by their line in the file."""
-    from canical.sessions.csv_file import TIME_COLUMN, read_table
+    """time_s and the rate of a CSV, its columns read block by block; rows are named by their
+    line in the file."""
+    from canical.sessions.csv_chunks import read_columns, read_header
+    from canical.sessions.csv_file import TIME_COLUMN
 
+    on_block = _reading_progress(args.record)
     if args.coefficients:
         corrector = _corrector(args.coefficients)
         inputs = [n for n in corrector.required_inputs if n != TIME_COLUMN]
-        table = read_table(args.record, columns=[TIME_COLUMN, args.raw_column, *inputs])
+        table = read_columns(args.record, [TIME_COLUMN, args.raw_column, *inputs], on_block)
         values = {n: table.columns[n] for n in inputs} | {TIME_COLUMN: table.columns[TIME_COLUMN]}
         rate = corrector.correct(table.columns[args.raw_column], values)[0]
     else:
         column = args.column or RATE_COLUMN
-        header = read_table(args.record, columns=[]).header
-        if column not in header:
+        if column not in read_header(args.record):
             raise CanicalError(f"{args.record}: no {column} column: name the rate column (deg/s) with "
                                "--column, or convert the raw column with --coefficients SET.yaml")
-        table = read_table(args.record, columns=[TIME_COLUMN, column])
+        table = read_columns(args.record, [TIME_COLUMN, column], on_block)
         rate = table.columns[column]
     return table.columns[TIME_COLUMN], rate, lambda i: f"line {table.first_data_line + i}"
+
+
+def _reading_progress(path: str):
+    """Reading a long record takes a while: a progress line in MB read."""
+    import os
+
+    from canical.progress import Progress
+
+    try:
+        size = os.path.getsize(path)
+    except OSError:  # the reader says what is wrong with it
+        size = 0
+    progress = Progress("noise: reading", max(size >> 20, 1), unit="MB")
+    return lambda done: progress.update(done >> 20)
 
 
 def _read_canlog(args: argparse.Namespace):

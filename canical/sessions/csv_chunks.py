@@ -14,14 +14,15 @@ from __future__ import annotations
 import csv
 import io
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import BinaryIO
 
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.sessions.csv_file import parse_numeric
+from canical.sessions.csv_cells import parse_numeric
+from canical.sessions.csv_file import CsvTable, read_table
 
 #: Bytes read per block: some 200,000 rows of a three-column session.
 CHUNK_BYTES = 4 << 20
@@ -104,6 +105,35 @@ def read_chunks(head: CsvHead, columns: list[str], chunk_bytes: int | None = Non
             if chunk.n_rows:
                 first_row += chunk.n_rows
                 yield chunk
+
+
+def read_columns(path: str | os.PathLike[str], columns: list[str] | None = None,
+                 on_block: Callable[[int], None] | None = None) -> CsvTable:
+    """``read_table`` without the rows' text (``rows`` is empty): the columns parsed block by
+    block, so memory holds the numbers, not the file. ``on_block`` hears the bytes read so far."""
+    head = read_head(path)
+    if head is None:
+        table = read_table(path, columns)
+        return CsvTable(table.path, table.meta, table.preamble, table.header, [], table.columns,
+                        table.first_data_line)
+    wanted = head.header if columns is None else columns
+    parts: list[dict[str, np.ndarray]] = []
+    done = head.data_offset
+    for chunk in read_chunks(head, wanted):
+        parts.append(chunk.columns)
+        done += chunk.size
+        if on_block is not None:
+            on_block(done)
+    parsed = {}
+    for name in dict.fromkeys(wanted):  # one column at a time: the blocks' copies go as it is made
+        parsed[name] = np.concatenate([p.pop(name) for p in parts])
+    return CsvTable(head.path, head.meta, head.preamble, head.header, [], parsed, head.first_data_line)
+
+
+def read_header(path: str | os.PathLike[str]) -> list[str]:
+    """The header's column names, reading no further than the head when it can."""
+    head = read_head(path)
+    return head.header if head is not None else read_table(path, columns=[]).header
 
 
 def check_columns(head: CsvHead, columns: list[str]) -> None:
@@ -189,4 +219,5 @@ def _parse_plain(head: CsvHead, block: bytes, usecols: list[int],
         return None
     if data.shape[0] != n_rows or not np.isfinite(data).all():
         return None
-    return {head.header[c]: data[:, i] for i, c in enumerate(usecols)}
+    # Each column its own array, so that a column gathered from the blocks frees theirs.
+    return {head.header[c]: np.ascontiguousarray(data[:, i]) for i, c in enumerate(usecols)}
