@@ -85,8 +85,9 @@ def measure(name: str, argv: list[str], pythonpath: str) -> Step:
     env.pop("CANICAL_PROGRESS", None)
     with tempfile.NamedTemporaryFile("r", suffix=".rss") as rss:
         t0 = time.perf_counter()
+        # cwd away from any tree: ``python -m`` puts the working directory before PYTHONPATH
         proc = subprocess.run([TIME, "-f", "%M", "-o", rss.name, *argv], env=env, capture_output=True,
-                              text=True, check=False)
+                              text=True, check=False, cwd=tempfile.gettempdir())
         wall = time.perf_counter() - t0
         if proc.returncode != 0:
             sys.exit(f"{name} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
