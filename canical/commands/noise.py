@@ -96,7 +96,8 @@ def _read_csv(args: argparse.Namespace):
                                "--column, or convert the raw column with --coefficients SET.yaml")
         table = read_columns(args.record, [TIME_COLUMN, column], on_block)
         rate = table.columns[column]
-    return table.columns[TIME_COLUMN], rate, lambda i: f"line {table.first_data_line + i}"
+    first = table.first_data_line  # not the table: its raw column would stay in memory
+    return table.columns[TIME_COLUMN], rate, lambda i: f"line {first + i}"
 
 
 def _reading_progress(path: str):

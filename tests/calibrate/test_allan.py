@@ -86,3 +86,20 @@ def test_pooled_curve_equals_one_record_cut_in_pieces_up_to_the_lost_joins() -> 
     a = whole.adev[np.isin(whole.tau_s, common)][:5]
     b = cut.adev[np.isin(cut.tau_s, common)][:5]
     np.testing.assert_allclose(a, b, rtol=0.02)
+
+
+@pytest.mark.parametrize("n", [12, 1000, 200_000])
+def test_overlapping_adev_in_blocks_is_allantools(n, monkeypatch):
+    import allantools
+
+    from canical.calibrate import allan
+
+    monkeypatch.setattr(allan, "OADEV_BLOCK", 777)
+    rng = np.random.default_rng(n)
+    record = 0.02 + rng.normal(0, 0.1, n) + np.cumsum(rng.normal(0, 1e-4, n))
+    m = np.unique(np.round(np.logspace(0, np.log10(n // 2), 30)).astype(int))
+    got_m, devs, ns = allan.overlapping_adev(record, 1000.0, m)
+    taus, want, _errs, want_ns = allantools.oadev(record, rate=1000.0, data_type="freq", taus=m / 1000.0)
+    np.testing.assert_array_equal(got_m, np.round(taus * 1000.0).astype(int))
+    np.testing.assert_allclose(devs, want, rtol=1e-12)
+    np.testing.assert_array_equal(ns, want_ns)
