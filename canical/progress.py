@@ -22,10 +22,11 @@ class Progress:
         self.stream = stream if stream is not None else sys.stderr
         self.enabled = os.environ.get("CANICAL_PROGRESS") == "1" or self.stream.isatty()
         self._last = 0.0
+        self._finished = False
 
     def update(self, done: int) -> None:
         """Report that ``done`` units of ``total`` are finished."""
-        if not self.enabled:
+        if not self.enabled or self._finished:
             return
         now = time.monotonic()
         if now - self._last < 0.25 and done < self.total:
@@ -35,6 +36,7 @@ class Progress:
         self.stream.write(f"\r{self.label}: {done}/{self.total}{self.unit} ({pct:.0f}%)")
         if done >= self.total:
             self.stream.write("\n")
+            self._finished = True  # the line is ended: a later update would start a new one
         self.stream.flush()
 
     def step(self, message: str) -> None:

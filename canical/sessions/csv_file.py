@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -124,12 +125,14 @@ def read_session(
     raw_column: str = "raw",
     ref_column: str | None = "ref_dps",
     settled_column: str | None = None,
+    on_block: Callable[[int], None] | None = None,
 ) -> Session:
-    """Read a session CSV file (its columns only, block by block: no row text is kept)."""
+    """Read a session CSV file (its columns only, block by block: no row text is kept);
+    ``on_block`` hears the bytes read so far."""
     from canical.sessions.csv_chunks import read_columns  # it reads its head with this module
 
-    return session_from_table(read_columns(path), raw_column=raw_column, ref_column=ref_column,
-                              settled_column=settled_column)
+    return session_from_table(read_columns(path, on_block=on_block), raw_column=raw_column,
+                              ref_column=ref_column, settled_column=settled_column)
 
 
 def format_session(session: Session, *, float_format: str = "%.9g") -> str:
