@@ -13,6 +13,7 @@ from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 
 RATE_COLUMN = "rate_dps"
+CORRECT_BLOCK = 1 << 20  # samples corrected at a time
 DESCRIPTION = (
     "Angle random walk (deg/sqrt(h)), bias instability (deg/h) and rate random walk (deg/h/sqrt(h)) "
     "of a static record, with their intervals, from its Allan deviation (IEEE Std 952); a term the "
@@ -88,7 +89,7 @@ def _read_csv(args: argparse.Namespace):
         inputs = [n for n in corrector.required_inputs if n != TIME_COLUMN]
         table = read_columns(args.record, [TIME_COLUMN, args.raw_column, *inputs], on_block)
         values = {n: table.columns[n] for n in inputs} | {TIME_COLUMN: table.columns[TIME_COLUMN]}
-        rate = corrector.correct(table.columns[args.raw_column], values)[0]
+        rate = _corrected(corrector, table.columns[args.raw_column], values)
     else:
         column = args.column or RATE_COLUMN
         if column not in read_header(args.record):
@@ -132,8 +133,22 @@ def _read_canlog(args: argparse.Namespace):
                       raw_message=source.raw_message, raw_signal=source.raw_signals.get(corrector.cset.axis))
     s = log.session
     inputs = dict(s.aux) | ({TIME_INPUT: s.time_s} if TIME_INPUT in corrector.required_inputs else {})
-    rate = corrector.correct(s.raw, inputs)[0]
+    rate = _corrected(corrector, s.raw, inputs)
     return s.time_s, rate, lambda i: f"{source.raw_message} frame {i + 1}"
+
+
+def _corrected(corrector, raw, inputs):
+    """The rate of a long record, corrected a block at a time so that the model's temporaries
+    stay small (the same values: a piecewise model evaluates each sample on its own)."""
+    import numpy as np
+
+    if not corrector.elementwise_model:
+        return corrector.correct(raw, inputs)[0]
+    rate = np.empty(len(raw))
+    for a in range(0, len(raw), CORRECT_BLOCK):
+        b = a + CORRECT_BLOCK
+        rate[a:b] = corrector.correct_next(raw[a:b], {k: v[a:b] for k, v in inputs.items()})[0]
+    return rate
 
 
 def _corrector(path: str):
