@@ -184,12 +184,31 @@ def reference_latency(time_s: np.ndarray, ref_dps: np.ndarray, raw: np.ndarray, 
     x, y = np.convolve(x, kernel, mode="same"), np.convolve(y, kernel, mode="same")
     if not (np.any(x) and np.any(y)):
         return 0.0
-    c = correlate(x, y, mode="full", method="fft")
-    lags = correlation_lags(x.size, y.size)
-    near = np.abs(lags) <= round(max_lag_s / step)
-    lag = float(lags[near][np.argmax(np.abs(c[near]))]) * step  # the sensor may count either way
+    reach = min(round(max_lag_s / step), x.size - 1)
+    c = near_correlation(x, y, reach)
+    lag = float(np.argmax(np.abs(c)) - reach) * step  # the sensor may count either way
     held = update_s if update_s > 1.5 * step else 0.0
     return max(0.0, lag - held / 2)
+
+
+def near_correlation(x: np.ndarray, y: np.ndarray, reach: int, block: int = 1 << 16) -> np.ndarray:
+    """``correlate(x, y)`` (full, same lengths) at the lags −reach…reach only, a block of x at a time.
+
+    Why: the full correlation of a session of millions of samples takes a transform twice its
+    length and gigabytes; the lags wanted are a second's worth. Each block of x meets only the
+    part of y within ``reach`` of it, and the blocks' correlations add up to the whole's (equal
+    within rounding).
+    """
+    n = x.size
+    out = np.zeros(2 * reach + 1)
+    for start in range(0, n, block):
+        stop = min(start + block, n)
+        lo, hi = max(0, start - reach), min(n, stop + reach)
+        c = correlate(x[start:stop], y[lo:hi], mode="full", method="fft")
+        lags = correlation_lags(stop - start, hi - lo) + (start - lo)
+        near = np.abs(lags) <= reach
+        out[lags[near] + reach] += c[near]
+    return out
 
 
 def detect_plateaus(

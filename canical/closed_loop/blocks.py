@@ -26,7 +26,8 @@ from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.plateaus import Plateaus
 from canical.sessions.session import Session
 from canical.sets.term_kinds import CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_LAG
-from canical.sets.terms import Term, direction_state, lag_filter, rate_gate, slope_state
+from canical.sets.terms import Term, lag_filter, rate_gate
+from canical.sets.trackers import direction_steps, slope_filter
 
 BLOCK_S = 2.0
 SLOPE_TAU_S = 0.5
@@ -89,7 +90,7 @@ class ChannelSamples:
         """Block means of the sign of the channel's last change larger than ``threshold``."""
         key = (CHANNEL_DIRECTION, channel, float(threshold))
         if key not in self.cache:
-            self.cache[key] = self.means(direction_state(self.values[channel], threshold))
+            self.cache[key] = self.means(direction_steps(self.values[channel], threshold))
         return self.cache[key]
 
 
@@ -180,7 +181,7 @@ def make_blocks(
     sd = np.sqrt(np.maximum(means(raw * raw) - mean_raw**2, 0.0) * n / np.maximum(n - 1, 1))
     rate = session.reference()
     points = FitPoints(means(rate), mean_raw - v0, n, sd / np.sqrt(n))
-    direction = direction_state(raw, direction_threshold_raw)
+    direction = direction_steps(raw, direction_threshold_raw)
     return Blocks(
         points=points,
         plateau=owner,
@@ -188,6 +189,6 @@ def make_blocks(
         aux={name: means(values) for name, values in session.aux.items()},
         direction=means(direction),
         direction_threshold_raw=direction_threshold_raw,
-        slope=means(slope_state(raw, session.time_s, SLOPE_TAU_S)),
+        slope=means(slope_filter(raw, session.time_s, SLOPE_TAU_S)),
         samples=ChannelSamples(session.time_s, dict(session.aux), starts, stops, dv=raw - v0),
     )

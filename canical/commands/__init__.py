@@ -9,6 +9,7 @@ dependencies (scipy, matplotlib, canopen) would make every start, and every
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = [
     "COMMANDS",
+    "apply",
     "canlog_args",
     "cli",
     "demo_bus",

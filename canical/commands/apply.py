@@ -21,6 +21,7 @@ from canical.sessions.canlog_format import CANLOG_FORMATS
 if TYPE_CHECKING:  # the rest is imported where used: `--help` needs none of it
     import numpy as np
 
+    from canical.sessions.csv_chunks import CsvHead
     from canical.sets.corrector import Corrector
 
 CHUNK_ROWS = 100_000
@@ -65,10 +66,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def apply_set(args: argparse.Namespace) -> int:
-    import numpy as np
-
     from canical.sessions.canlog_format import is_canlog
-    from canical.sessions.csv_file import read_table
+    from canical.sessions.csv_chunks import read_head
     from canical.sets import coefficient_file
     from canical.sets.corrector import Corrector
     from canical.sets.imu_set import is_imu_set_file
@@ -81,31 +80,91 @@ def apply_set(args: argparse.Namespace) -> int:
     corrector = Corrector(cset)
     if is_canlog(args.input):
         return run_canlog(args, corrector)
+    head = None if args.track_bias or not corrector.elementwise_model else read_head(args.input)
+    if head is None:
+        return apply_table(args, corrector)
+    return apply_stream(args, corrector, head)
+
+
+def apply_table(args: argparse.Namespace, corrector: Corrector) -> int:
+    """The whole file in memory: for the bias tracker's replay (it looks at the whole drive), a
+    rate model whose result depends on the block (the forward polynomial's Newton), and a file
+    whose head :func:`~canical.sessions.csv_chunks.read_head` leaves to ``read_table``."""
+    import numpy as np
+
+    from canical.sessions.csv_file import read_table
+
+    cset = corrector.cset
     needed = [args.raw_column, *corrector.required_inputs]
     if args.track_bias:
         needed = list(dict.fromkeys([*needed, *tracking_columns(args.input, args)]))
     table = read_table(args.input, columns=needed)
-    sensor = args.sensor or table.meta.get("sensor")
-    if sensor and sensor != cset.sensor_id:
-        raise CanicalError(
-            f"{args.coefficients} is for sensor {cset.sensor_id}, {args.input} is from {sensor}"
-        )
-    axis = table.meta.get("axis")
-    if axis and axis != cset.axis:
-        raise CanicalError(f"{args.coefficients} is for axis {cset.axis}, {args.input} is axis {axis}")
-    for name in ("rate_dps", "out_of_span", *(["bias_dps"] if args.track_bias else [])):
-        if name in table.header:
-            raise CanicalError(f"{args.input} already has a {name} column")
+    check_input(args, cset, table.meta, table.header)
     inputs = {name: table.columns[name] for name in corrector.required_inputs}
     rate, oos = corrector.correct(table.columns[args.raw_column], inputs)
     extra: dict[str, np.ndarray] = {}
     if args.track_bias:
         extra["bias_dps"] = track_bias(args, cset, table.columns, rate)
     write_rows(args.output, table, rate, oos, extra)
-    n_out = int(np.count_nonzero(oos))
-    note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
-    print(f"apply: {len(table.rows)} rows corrected with set 0x{corrector.set_id:08x}{note} -> {args.output}")
+    print_applied(args, corrector, len(table.rows), int(np.count_nonzero(oos)))
     return 0
+
+
+def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) -> int:
+    """Read, correct and write block by block, in memory bounded by the block.
+
+    The set's state (direction, slope, lag, derivative) is carried from block to block
+    (``Corrector.correct_next``), so the output is, byte for byte, what the whole file at once
+    gives (:func:`apply_table`).
+    """
+    import os
+
+    import numpy as np
+
+    from canical.atomic_file import atomic_writer
+    from canical.sessions.csv_chunks import read_chunks
+    from canical.sessions.fixed_cells import append_cells, fixed6_cells, flag_cells
+
+    check_input(args, corrector.cset, head.meta, head.header)
+    progress = Progress("apply", max(os.path.getsize(args.input) >> 20, 1), unit="MB")
+    done = head.data_offset
+    n_rows = n_out = 0
+    with atomic_writer(args.output, "wb") as out:
+        out.write("".join(line + "\n" for line in head.preamble).encode("utf-8"))
+        out.write((",".join([*head.header, "rate_dps", "out_of_span"]) + "\n").encode("utf-8"))
+        for chunk in read_chunks(head, [args.raw_column, *corrector.required_inputs]):
+            inputs = {name: chunk.columns[name] for name in corrector.required_inputs}
+            rate, oos = corrector.correct_next(chunk.columns[args.raw_column], inputs)
+            if chunk.text is not None:
+                out.write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos)]))
+            else:
+                out.write(_chunk_text(chunk.rows or [], rate, oos, []).encode("utf-8"))
+            n_rows += chunk.n_rows
+            n_out += int(np.count_nonzero(oos))
+            done += chunk.size
+            progress.update(done >> 20)
+    print_applied(args, corrector, n_rows, n_out)
+    return 0
+
+
+def check_input(args: argparse.Namespace, cset, meta: dict[str, str], header: list[str]) -> None:
+    """The file is from the set's sensor and axis, and has none of the columns apply adds."""
+    sensor = args.sensor or meta.get("sensor")
+    if sensor and sensor != cset.sensor_id:
+        raise CanicalError(
+            f"{args.coefficients} is for sensor {cset.sensor_id}, {args.input} is from {sensor}"
+        )
+    axis = meta.get("axis")
+    if axis and axis != cset.axis:
+        raise CanicalError(f"{args.coefficients} is for axis {cset.axis}, {args.input} is axis {axis}")
+    for name in ("rate_dps", "out_of_span", *(["bias_dps"] if args.track_bias else [])):
+        if name in header:
+            raise CanicalError(f"{args.input} already has a {name} column")
+
+
+def print_applied(args: argparse.Namespace, corrector: Corrector, n_rows: int, n_out: int) -> None:
+    note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
+    print(f"apply: {n_rows} rows corrected with set 0x{corrector.set_id:08x}{note} -> {args.output}")
 
 
 def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray,
@@ -143,9 +202,9 @@ def _chunk_text(rows: list[str], rate: np.ndarray, oos: np.ndarray, extra: list[
 
 def tracking_columns(path: str, args: argparse.Namespace) -> list[str]:
     """time_s, the cue if asked for, and the temperature column if the file has one."""
-    from canical.sessions.csv_file import read_table
+    from canical.sessions.csv_chunks import read_header
 
-    header = read_table(path, columns=[]).header
+    header = read_header(path)
     if "time_s" not in header:
         raise CanicalError(f"{path}: --track-bias needs a time_s column (time since power-on)")
     if args.standstill_column and args.standstill_column not in header:

@@ -199,7 +199,7 @@ def calibrate_session(args: argparse.Namespace) -> int:
     else:
         session = read_session(args.session, raw_column=args.raw_column,
                                ref_column=None if args.reference else args.ref_column,
-                               settled_column=args.settled_column)
+                               settled_column=args.settled_column, on_block=reading_progress(args.session))
     clock = None
     if args.reference:
         session, clock = align_table_file(args, session, progress)
@@ -277,6 +277,18 @@ def write_report_dir(directory: Path, report: CalibrationReport, loop: LoopResul
                                       "Allan deviation, zero-rate plateaus").name)
     write_text_atomic(directory / "report.json", report_json(report))
     write_text_atomic(directory / "report.md", render(report, plots))
+
+
+def reading_progress(path: str):
+    """A session of hours takes seconds to read: a progress line in MB read."""
+    import os
+
+    try:
+        size = os.path.getsize(path)
+    except OSError:  # the reader says what is wrong with it
+        size = 0
+    reading = Progress("calibrate: reading", max(size >> 20, 1), unit="MB")
+    return lambda done: reading.update(done >> 20)
 
 
 def align_table_file(args: argparse.Namespace, session: Session, progress: Progress

@@ -13,6 +13,7 @@ from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 
 RATE_COLUMN = "rate_dps"
+CORRECT_BLOCK = 1 << 20  # samples corrected at a time
 DESCRIPTION = (
     "Angle random walk (deg/sqrt(h)), bias instability (deg/h) and rate random walk (deg/h/sqrt(h)) "
     "of a static record, with their intervals, from its Allan deviation (IEEE Std 952); a term the "
@@ -77,24 +78,41 @@ def characterise(args: argparse.Namespace) -> int:
 
 
 def _read_csv(args: argparse.Namespace):
-    """time_s and the rate of a CSV; rows are named by their line in the file."""
-    from canical.sessions.csv_file import TIME_COLUMN, read_table
+    """time_s and the rate of a CSV, its columns read block by block; rows are named by their
+    line in the file."""
+    from canical.sessions.csv_chunks import read_columns, read_header
+    from canical.sessions.csv_file import TIME_COLUMN
 
+    on_block = _reading_progress(args.record)
     if args.coefficients:
         corrector = _corrector(args.coefficients)
         inputs = [n for n in corrector.required_inputs if n != TIME_COLUMN]
-        table = read_table(args.record, columns=[TIME_COLUMN, args.raw_column, *inputs])
+        table = read_columns(args.record, [TIME_COLUMN, args.raw_column, *inputs], on_block)
         values = {n: table.columns[n] for n in inputs} | {TIME_COLUMN: table.columns[TIME_COLUMN]}
-        rate = corrector.correct(table.columns[args.raw_column], values)[0]
+        rate = _corrected(corrector, table.columns[args.raw_column], values)
     else:
         column = args.column or RATE_COLUMN
-        header = read_table(args.record, columns=[]).header
-        if column not in header:
+        if column not in read_header(args.record):
             raise CanicalError(f"{args.record}: no {column} column: name the rate column (deg/s) with "
                                "--column, or convert the raw column with --coefficients SET.yaml")
-        table = read_table(args.record, columns=[TIME_COLUMN, column])
+        table = read_columns(args.record, [TIME_COLUMN, column], on_block)
         rate = table.columns[column]
-    return table.columns[TIME_COLUMN], rate, lambda i: f"line {table.first_data_line + i}"
+    first = table.first_data_line  # not the table: its raw column would stay in memory
+    return table.columns[TIME_COLUMN], rate, lambda i: f"line {first + i}"
+
+
+def _reading_progress(path: str):
+    """Reading a long record takes a while: a progress line in MB read."""
+    import os
+
+    from canical.progress import Progress
+
+    try:
+        size = os.path.getsize(path)
+    except OSError:  # the reader says what is wrong with it
+        size = 0
+    progress = Progress("noise: reading", max(size >> 20, 1), unit="MB")
+    return lambda done: progress.update(done >> 20)
 
 
 def _read_canlog(args: argparse.Namespace):
@@ -116,8 +134,22 @@ def _read_canlog(args: argparse.Namespace):
                       j1939_source=source.j1939_source)
     s = log.session
     inputs = dict(s.aux) | ({TIME_INPUT: s.time_s} if TIME_INPUT in corrector.required_inputs else {})
-    rate = corrector.correct(s.raw, inputs)[0]
+    rate = _corrected(corrector, s.raw, inputs)
     return s.time_s, rate, lambda i: f"{source.raw_message} frame {i + 1}"
+
+
+def _corrected(corrector, raw, inputs):
+    """The rate of a long record, corrected a block at a time so that the model's temporaries
+    stay small (the same values: a piecewise model evaluates each sample on its own)."""
+    import numpy as np
+
+    if not corrector.elementwise_model:
+        return corrector.correct(raw, inputs)[0]
+    rate = np.empty(len(raw))
+    for a in range(0, len(raw), CORRECT_BLOCK):
+        b = a + CORRECT_BLOCK
+        rate[a:b] = corrector.correct_next(raw[a:b], {k: v[a:b] for k, v in inputs.items()})[0]
+    return rate
 
 
 def _corrector(path: str):

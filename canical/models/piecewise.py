@@ -51,21 +51,23 @@ class PiecewisePoly:
         return np.searchsorted(self.knots, dv, side="right")
 
     def _horner(self, seg: np.ndarray, u: np.ndarray) -> np.ndarray:
-        c = self.coeffs[seg]
-        out: np.ndarray = c[..., -1].copy()
+        # One coefficient gathered per sample at a time, not each sample's whole row at once
+        # (order + 1 times the samples' memory): the same operations, the same values.
+        c = self.coeffs
+        out: np.ndarray = c[seg, -1]
         for k in range(self.order - 1, -1, -1):
-            out = out * u + c[..., k]
+            out = out * u + c[seg, k]
         return out
 
     def _slope(self, seg: np.ndarray, u: np.ndarray) -> np.ndarray:
         """dω/dΔV."""
-        c = self.coeffs[seg]
+        c = self.coeffs
         m = self.order
         if m == 0:
             return np.zeros_like(u)
-        out: np.ndarray = m * c[..., m]
+        out: np.ndarray = m * c[seg, m]
         for k in range(m - 1, 0, -1):
-            out = out * u + k * c[..., k]
+            out = out * u + k * c[seg, k]
         return out / self.scale
 
     def slope(self, dv: np.ndarray) -> np.ndarray:

@@ -1,7 +1,8 @@
 """A calibration session as data, and the files it is read from.
 
 :class:`.session.Session` holds time, table rate, raw counts and auxiliary channels;
-:mod:`.csv_file` reads and writes the CSV format, :mod:`.canlog` decodes any CAN log
+:mod:`.csv_file` reads and writes the CSV format (:mod:`.csv_chunks` reads it block by block,
+:mod:`.fixed_cells` appends cells to rows held as bytes), :mod:`.canlog` decodes any CAN log
 python-can reads (names of the formats in the light :mod:`.canlog_format`). Imports only
 :mod:`canical.frames` and the ground floor.
 """
@@ -11,7 +12,9 @@ python-can reads (names of the formats in the light :mod:`.canlog_format`). Impo
 __all__ = [
     "canlog",
     "canlog_format",
+    "csv_chunks",
     "csv_file",
+    "fixed_cells",
     "reference_clock",
     "session",
     "table_file",

@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import csv
 import io
-import math
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.sessions.csv_cells import parse_numeric
 from canical.sessions.session import Session, parse_rail
 
 TIME_COLUMN = "time_s"
@@ -76,49 +77,8 @@ def read_table(path: str | os.PathLike[str], columns: list[str] | None = None) -
     for column in wanted:
         if column not in header:
             raise CanicalError(f"{name}: missing column {column!r} (columns: {', '.join(header)})")
-    parsed = _parse_numeric(name, header, rows, first, [header.index(c) for c in wanted])
+    parsed = parse_numeric(name, header, rows, first, [header.index(c) for c in wanted])
     return CsvTable(name, meta, preamble, header, rows, parsed, first)
-
-
-def _parse_numeric(
-    name: str, header: list[str], rows: list[str], first: int, usecols: list[int]
-) -> dict[str, np.ndarray]:
-    """Parse the chosen cells as floats with numpy's fast reader; on failure, find the bad cell."""
-    if not usecols:
-        return {}
-    try:
-        data = np.loadtxt(io.StringIO("\n".join(rows)), delimiter=",", ndmin=2, dtype=float, usecols=usecols)
-    except (ValueError, IndexError):
-        data = None
-    if data is None or data.shape[0] != len(rows):
-        _locate_bad_cell(name, header, rows, first, usecols)
-        raise CanicalError(f"{name}: malformed CSV")  # pragma: no cover - locate raises
-    finite = np.isfinite(data)
-    if not finite.all():
-        row, col = np.argwhere(~finite)[0]
-        raise CanicalError(
-            f"{name}: line {first + row}, column {header[usecols[col]]}: "
-            f"value is not finite ({data[row, col]})"
-        )
-    return {header[c]: data[:, i] for i, c in enumerate(usecols)}
-
-
-def _locate_bad_cell(name: str, header: list[str], rows: list[str], first: int, usecols: list[int]) -> None:
-    """Walk the rows to name the first cell that is not a number."""
-    for offset, cells in enumerate(csv.reader(rows)):
-        if len(cells) != len(header):
-            raise CanicalError(f"{name}: line {first + offset}: {len(cells)} cells, header has {len(header)}")
-        for column, cell in ((header[c], cells[c]) for c in usecols):
-            try:
-                value = float(cell)
-            except ValueError:
-                raise CanicalError(
-                    f"{name}: line {first + offset}, column {column}: {cell.strip()!r} is not a number"
-                ) from None
-            if not math.isfinite(value):
-                raise CanicalError(
-                    f"{name}: line {first + offset}, column {column}: value is not finite ({cell.strip()})"
-                )
 
 
 def session_from_table(
@@ -138,10 +98,10 @@ def session_from_table(
         if column not in table.columns:
             have = ", ".join(table.header)
             raise CanicalError(f"{table.path}: missing column {column!r} (columns: {have})")
-    n = len(table.rows)
     time_s = table.columns.get(TIME_COLUMN)
     if time_s is None:
         raise CanicalError(f"{table.path}: missing column {TIME_COLUMN!r}")
+    n = len(time_s)
     if n > 1 and np.any(np.diff(time_s) < 0):
         bad = int(np.argmax(np.diff(time_s) < 0)) + 1
         raise CanicalError(f"{table.path}: line {table.first_data_line + bad}: time_s goes backwards")
@@ -165,10 +125,14 @@ def read_session(
     raw_column: str = "raw",
     ref_column: str | None = "ref_dps",
     settled_column: str | None = None,
+    on_block: Callable[[int], None] | None = None,
 ) -> Session:
-    """Read a session CSV file."""
-    return session_from_table(read_table(path), raw_column=raw_column, ref_column=ref_column,
-                              settled_column=settled_column)
+    """Read a session CSV file (its columns only, block by block: no row text is kept);
+    ``on_block`` hears the bytes read so far."""
+    from canical.sessions.csv_chunks import read_columns  # it reads its head with this module
+
+    return session_from_table(read_columns(path, on_block=on_block), raw_column=raw_column,
+                              ref_column=ref_column, settled_column=settled_column)
 
 
 def format_session(session: Session, *, float_format: str = "%.9g") -> str:

@@ -14,4 +14,4 @@ and the ground floor.
 # The package's public face: the submodules other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "imu_corrector",
-           "imu_set", "term_kinds", "terms"]
+           "imu_set", "term_kinds", "terms", "trackers"]

@@ -10,7 +10,8 @@ direction or slope term, and a channel's lag, derivative or direction term, has
 state, so one Corrector
 serves one stream of samples in time order; ``correct`` on a block starts from
 a fresh state, exactly as ``correct_one`` does on a new Corrector, so the two
-agree sample for sample.
+agree sample for sample. ``correct_next`` carries that state from one block to the next, so a
+long stream corrected block by block gives, bit for bit, what one ``correct`` of it gives.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.models.piecewise import PiecewisePoly
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.term_kinds import TermKind
@@ -59,6 +61,36 @@ class Corrector:
             features = np.column_stack([feature_values(t, inputs, raw, dv) for t in self.terms])
             dv = dv - raw_shift(self.terms, features, dv)
         return self.model.evaluate(dv)
+
+    def correct_next(
+        self, raw: np.ndarray, inputs: Mapping[str, np.ndarray] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`correct` for the next block of the stream, its state carried from the previous
+        block (the stream starts at construction or :meth:`reset`).
+
+        Bit for bit what one :meth:`correct` of the blocks joined gives, for a rate model that
+        evaluates each sample on its own (``elementwise_model``).
+        """
+        raw = np.asarray(raw, dtype=float)
+        inputs = inputs or {}
+        missing = [n for n in self.required_inputs if n not in inputs]
+        if missing:
+            raise CanicalError(f"the coefficient set needs input(s) {', '.join(missing)}")
+        dv = raw - self.v0
+        if self.terms:
+            features = np.column_stack([
+                spec.values_from(t, tracker, inputs, raw, dv)
+                for t, spec, tracker in zip(self.terms, self.kinds, self._trackers, strict=True)
+            ])
+            dv = dv - raw_shift(self.terms, features, dv)
+        return self.model.evaluate(dv)
+
+    @property
+    def elementwise_model(self) -> bool:
+        """Whether the rate model evaluates each sample on its own (a piecewise polynomial); the
+        forward polynomial's Newton iterates until the whole block has converged, so its result
+        for a sample depends on the block it is in."""
+        return isinstance(self.model, PiecewisePoly)
 
     def correct_one(self, raw: float, inputs: Mapping[str, float] | None = None) -> tuple[float, bool]:
         """Calibrated rate and out-of-span flag for the next sample of the stream."""

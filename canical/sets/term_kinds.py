@@ -128,6 +128,15 @@ class TermKind:
         """x for a block of samples in time order, from a fresh state."""
         raise NotImplementedError
 
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray:
+        """x for the next block of the stream whose state ``tracker`` holds (left at the block's end).
+
+        Why: ``canical apply`` corrects a long file block by block, and every split of a stream
+        into blocks must give what one block gives. A stateless kind ignores ``tracker``.
+        """
+        return self.values(term, inputs, raw, dv)
+
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         """x for the next sample of the stream whose state ``tracker`` holds."""
         raise NotImplementedError
@@ -242,10 +251,14 @@ class ChannelLagged(ChannelKind):
         return ChannelTracker(term.tau_s or 1.0, term.reference, self.derivative)
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return self.values_from(term, self.tracker(term), inputs, raw, dv)
+
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray:
         values = _column(inputs, term.channel)
-        tracker = self.tracker(term)
         time_s = np.asarray(inputs[TIME_INPUT], dtype=float)
-        return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
+        return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)],
+                        dtype=float)
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         x: float = tracker.update(float(inputs[term.channel]), float(inputs[TIME_INPUT]))  # type: ignore[index]
@@ -292,6 +305,10 @@ class ChannelDirection(ChannelKind):
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         return direction_state(_column(inputs, term.channel), term.threshold_raw or 1.0)
+
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray:
+        return direction_state(_column(inputs, term.channel), term.threshold_raw or 1.0, tracker)
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         x: float = tracker.update(float(inputs[term.channel]))  # type: ignore[index]
@@ -419,6 +436,10 @@ class DirectionSign(TermKind):
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         return direction_state(raw, term.threshold_raw or 1.0)
 
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray:
+        return direction_state(raw, term.threshold_raw or 1.0, tracker)
+
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         x: float = tracker.update(raw)
         return x
@@ -448,6 +469,10 @@ class DirectionSlope(TermKind):
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0)
+
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray:
+        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0, tracker)
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         x: float = tracker.update(raw, float(inputs[TIME_INPUT]))

@@ -31,12 +31,67 @@ def gate_one(dv: float, knee_raw: float) -> float:
 
 
 def direction_state(raw: np.ndarray, threshold: float, state: DirectionTracker | None = None) -> np.ndarray:
-    """+1/−1/0 per sample: the direction of the last change of ``raw`` larger than ``threshold``."""
+    """+1/−1/0 per sample: the direction of the last change of ``raw`` larger than ``threshold``.
+
+    ``state`` carries on a stream from its previous block (fresh when None).
+    """
     tracker = state or DirectionTracker(threshold)
     out = np.empty(len(raw))
     for i, v in enumerate(np.asarray(raw, dtype=float).tolist()):
         out[i] = tracker.update(v)
     return out
+
+
+def direction_steps(values: np.ndarray, threshold: float) -> np.ndarray:
+    """:func:`direction_state` from a fresh state, the same values, found a flip at a time.
+
+    Why: the per-sample tracker costs half a microsecond a sample, seconds on a session of
+    millions; between flips the state is constant and the next flip is the first sample that
+    moves ``threshold`` from the extreme since the last flip, which numpy finds on a window.
+    The comparisons are the tracker's, on the same floats, so the result is the same bit for bit.
+    """
+    v = np.asarray(values, dtype=float)
+    out = np.empty(len(v))
+    threshold = float(threshold)
+    start, state = 0, 0.0
+    while start < len(v):
+        flip, new_state = _next_flip(v, start, state, threshold)
+        out[start:flip] = state
+        if flip == len(v):
+            break
+        out[flip] = new_state
+        start, state = flip + 1, new_state
+    return out
+
+
+def _next_flip(v: np.ndarray, start: int, state: float, threshold: float) -> tuple[int, float]:
+    """The index of the first flip at or after ``start`` and the state it flips to (len(v): none).
+
+    From rest both extremes run from the first sample (a rise is looked for first); after a flip
+    only the extreme since the flip sample ``start - 1`` counts, and only the way back.
+    """
+    low = math.inf if state >= 0.0 else float(v[start - 1])
+    high = -math.inf if state <= 0.0 else float(v[start - 1])
+    width = 256
+    while start < len(v):
+        w = v[start : start + width]
+        if state <= 0.0:
+            lows = np.fmin.accumulate(np.concatenate(([low], w)))[1:]
+            up = w - lows > threshold
+        if state >= 0.0:
+            highs = np.fmax.accumulate(np.concatenate(([high], w)))[1:]
+            down = highs - w > threshold
+        hits = up | down if state == 0.0 else (up if state < 0.0 else down)
+        if hits.any():
+            i = int(np.argmax(hits))
+            return start + i, (1.0 if state < 0.0 or (state == 0.0 and up[i]) else -1.0)
+        if state <= 0.0:
+            low = float(lows[-1])
+        if state >= 0.0:
+            high = float(highs[-1])
+        start += len(w)
+        width = min(width * 2, 1 << 20)
+    return len(v), state
 
 
 class DirectionTracker:
@@ -64,9 +119,13 @@ class DirectionTracker:
         return self.state
 
 
-def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Smoothed d(raw)/dt per sample, as :class:`SlopeTracker` computes it one sample at a time."""
-    tracker = SlopeTracker(tau_s)
+def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float,
+                state: SlopeTracker | None = None) -> np.ndarray:
+    """Smoothed d(raw)/dt per sample, as :class:`SlopeTracker` computes it one sample at a time.
+
+    ``state`` carries on a stream from its previous block (fresh when None).
+    """
+    tracker = state or SlopeTracker(tau_s)
     return np.array([tracker.update(r, t) for r, t in zip(raw.tolist(), time_s.tolist(), strict=True)])
 
 
@@ -88,6 +147,31 @@ class SlopeTracker:
             self.value += alpha * ((raw - self.last_raw) / dt - self.value)
         self.last_raw, self.last_t = raw, t
         return self.value
+
+
+def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """:func:`slope_state` for a whole record, vectorised when the samples are evenly spaced.
+
+    Why: the closed loop's blocks need the slope of sessions of millions of samples, where the
+    per-sample tracker takes tens of seconds. The same first-order smoothing of the same
+    differences, with the smoothing factor of the median spacing (as :func:`lag_filter`), so
+    equal to the tracker's within rounding, not bit for bit; the run-time corrector keeps the
+    tracker. Sample by sample when the spacing is uneven.
+    """
+    raw = np.asarray(raw, dtype=float)
+    time_s = np.asarray(time_s, dtype=float)
+    if raw.size < 3:
+        return slope_state(raw, time_s, tau_s)
+    dt = np.diff(time_s)
+    step = float(np.median(dt))
+    if not (step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step)):
+        return slope_state(raw, time_s, tau_s)
+    from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
+
+    a = 1.0 - math.exp(-step / tau_s)
+    out = np.zeros_like(raw)
+    out[1:] = lfilter([a], [1.0, a - 1.0], np.diff(raw) / dt)
+    return out
 
 
 class ChannelTracker:

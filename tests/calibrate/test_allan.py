@@ -126,3 +126,20 @@ def test_a_rise_is_named_only_when_the_channel_moved() -> None:
     assert name_a_rise(analysis, "temperature", np.array([20.0, 20.0]), "°C") == analysis
     resolved = {"terms": {"rrw": {"resolved": True, "note": ""}}}
     assert name_a_rise(resolved, "temperature", np.array([20.0, 23.0]), "°C") == resolved
+
+
+@pytest.mark.parametrize("n", [12, 1000, 200_000])
+def test_overlapping_adev_in_blocks_is_allantools(n, monkeypatch):
+    import allantools
+
+    from canical.calibrate import allan
+
+    monkeypatch.setattr(allan, "OADEV_BLOCK", 777)
+    rng = np.random.default_rng(n)
+    record = 0.02 + rng.normal(0, 0.1, n) + np.cumsum(rng.normal(0, 1e-4, n))
+    m = np.unique(np.round(np.logspace(0, np.log10(n // 2), 30)).astype(int))
+    got_m, devs, ns = allan.overlapping_adev(record, 1000.0, m)
+    taus, want, _errs, want_ns = allantools.oadev(record, rate=1000.0, data_type="freq", taus=m / 1000.0)
+    np.testing.assert_array_equal(got_m, np.round(taus * 1000.0).astype(int))
+    np.testing.assert_allclose(devs, want, rtol=1e-12)
+    np.testing.assert_array_equal(ns, want_ns)

@@ -191,3 +191,19 @@ def test_ranged_medians_equal_one_median_per_range(data) -> None:
     stops = np.asarray([data.draw(st.integers(0, n)) for _ in starts])
     want = np.array([np.median(x[a:b]) if b > a else np.nan for a, b in zip(starts, stops, strict=True)])
     assert np.array_equal(ranged_medians(x, starts, stops), want, equal_nan=True)
+
+
+@pytest.mark.parametrize(("n", "reach", "block"),
+                         [(1000, 50, 64), (70_000, 1000, 1 << 14), (20, 19, 4), (500, 7, 500)])
+def test_near_correlation_is_the_full_correlation_near_zero_lag(n, reach, block):
+    from scipy.signal import correlate, correlation_lags
+
+    from canical.calibrate.plateaus import near_correlation
+
+    rng = np.random.default_rng(n)
+    x = rng.normal(size=n)
+    y = np.roll(x, 3) + rng.normal(size=n) * 0.1
+    full = correlate(x, y, mode="full", method="fft")
+    near = np.abs(correlation_lags(n, n)) <= reach
+    np.testing.assert_allclose(near_correlation(x, y, reach, block), full[near], rtol=0,
+                               atol=1e-12 * np.abs(full).max())

@@ -188,3 +188,29 @@ def test_gated_block_and_per_sample_paths_are_identical(seed, knee, form):
     pairs = [one.correct_one(raw[i], {"temp_c": temp[i]}) for i in range(n)]
     np.testing.assert_array_equal([p[0] for p in pairs], block)
     np.testing.assert_array_equal([p[1] for p in pairs], flags)
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.01, 50.0), st.integers(1, 5000), st.booleans())
+def test_direction_found_a_flip_at_a_time_is_the_tracker_bit_for_bit(seed, threshold, n, plateaus):
+    from canical.sets.trackers import direction_state, direction_steps
+
+    rng = np.random.default_rng(seed)
+    values = np.cumsum(rng.normal(0, 1, n))
+    if plateaus:  # long stretches without a flip, then a step
+        values = np.repeat(rng.normal(0, 30, n // 500 + 1), 500)[:n] + rng.normal(0, 0.1, n)
+    if n > 10 and seed % 3 == 0:
+        values[rng.integers(0, n, 3)] = np.nan
+    assert direction_steps(values, threshold).tobytes() == direction_state(values, threshold).tobytes()
+
+
+@pytest.mark.parametrize("even", [True, False])
+def test_vectorised_slope_equals_the_tracker(even):
+    from canical.sets.trackers import slope_filter, slope_state
+
+    rng = np.random.default_rng(4)
+    n = 20_000
+    time_s = np.arange(n) / 1000.0 if even else np.cumsum(rng.uniform(0.0005, 0.0015, n))
+    raw = np.cumsum(rng.normal(0, 5, n))
+    np.testing.assert_allclose(slope_filter(raw, time_s, 0.5), slope_state(raw, time_s, 0.5),
+                               rtol=1e-9, atol=1e-9 * np.abs(np.diff(raw)).max() * 1000)

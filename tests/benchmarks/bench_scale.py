@@ -1,0 +1,164 @@
+"""Benchmark: calibrate, apply and noise on sessions of millions of rows, beside numpy.loadtxt.
+
+Generates a session CSV of ``--rows`` rows at 1 kHz (the simulator's sweeps up and down the
+paper's 41 rates, 30 s plateaus; written one sweep at a time, so generating is bounded too) and a
+static record of ``--noise-rows`` rows, then runs each step in its own process, so that its peak
+resident memory (``ru_maxrss`` of that child) is its own: ``numpy.loadtxt`` of the same file
+(the I/O floor), ``canical calibrate`` (the default, closed loop), ``canical apply`` of the set
+to the session, and ``canical noise`` of the static record through the set. Prints a table:
+step, wall seconds, peak MB, multiple of the floor. ``--baseline DIR`` runs the canical steps
+with that tree on PYTHONPATH too (before/after in one run). Files go to a temporary folder
+(``--tmp``, default the system's), deleted at the end.
+
+Run: python tests/benchmarks/bench_scale.py [--rows N] [--noise-rows N] [--baseline DIR] [--quick]
+Prints figures; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(ROOT))
+
+from canical.sessions.csv_file import format_session  # noqa: E402
+from canical.sessions.session import Session  # noqa: E402
+from canical.sim.gyro import GyroModel  # noqa: E402
+from canical.sim.rate_table import step_profile  # noqa: E402
+from canical.sim.sessions import paper_rates  # noqa: E402
+
+FS_HZ = 1000.0
+DWELL_S = 30.0
+TIME = "/usr/bin/time"  # GNU time: the peak RSS of the process it runs
+
+
+@dataclass(frozen=True)
+class Step:
+    """One measured process: what it ran, its wall time and peak resident memory."""
+
+    name: str
+    wall_s: float
+    peak_mb: float
+
+
+def write_session(path: Path, rows: int, *, static: bool, dwell_s: float = DWELL_S, seed: int = 0) -> None:
+    """``rows`` rows at 1 kHz, one sweep (or one static stretch) generated and written at a time."""
+    gyro = GyroModel()
+    rng = np.random.default_rng(seed)
+    written, sweep, t0 = 0, 0, 0.0
+    with path.open("w") as out:
+        while written < rows:
+            if static:
+                n = min(rows - written, 1_000_000)
+                t, w = t0 + np.arange(n) / FS_HZ, np.zeros(n)
+            else:
+                rates = paper_rates() if sweep % 2 == 0 else paper_rates()[::-1]
+                t, w = step_profile(rates, dwell_s=dwell_s, fs_hz=FS_HZ, t0_s=t0)
+                t, w = t[: rows - written], w[: rows - written]
+            raw = gyro.output(t, w, rng=rng, fs_hz=FS_HZ)
+            text = format_session(Session(t, raw, w, {}, {"sensor": "BENCH", "axis": "z"}))
+            if written:  # metadata and header once
+                text = text.split("\n", 3)[3]
+            out.write(text)
+            written += len(t)
+            t0 = float(t[-1]) + 1.0 / FS_HZ
+            sweep += 1
+
+
+def measure(name: str, argv: list[str], pythonpath: str) -> Step:
+    """Run ``argv`` in a child process; its wall time and its own peak RSS.
+
+    Through ``/usr/bin/time``: a child forked from this process would count this process's
+    memory in its ``ru_maxrss`` (Linux keeps the high-water mark across exec).
+    """
+    env = {**os.environ, "PYTHONPATH": pythonpath, "OPENBLAS_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    env.pop("CANICAL_PROGRESS", None)
+    with tempfile.NamedTemporaryFile("r", suffix=".rss") as rss:
+        t0 = time.perf_counter()
+        # cwd away from any tree: ``python -m`` puts the working directory before PYTHONPATH
+        proc = subprocess.run([TIME, "-f", "%M", "-o", rss.name, *argv], env=env, capture_output=True,
+                              text=True, check=False, cwd=tempfile.gettempdir())
+        wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            sys.exit(f"{name} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
+        peak_kb = float(rss.read().split()[-1])
+    return Step(name, wall, peak_kb / 1024.0)
+
+
+def loadtxt_argv(path: Path) -> list[str]:
+    """numpy.loadtxt of every column of ``path`` (metadata lines are comments, the header skipped)."""
+    code = ("import sys, numpy; numpy.loadtxt(sys.argv[1], delimiter=',', comments='#', "
+            "skiprows=int(sys.argv[2]))")
+    skip = 0
+    with path.open() as f:
+        for line in f:
+            skip += 1
+            if not line.startswith("#"):
+                break
+    return [sys.executable, "-c", code, str(path), str(skip)]
+
+
+def canical_steps(tmp: Path, session: Path, static: Path, tag: str) -> list[tuple[str, list[str]]]:
+    """calibrate, apply and noise as the command line runs them, outputs in ``tmp`` named by ``tag``."""
+    cset = tmp / f"set-{tag}.yaml"
+    py = [sys.executable, "-m", "canical"]
+    return [
+        ("calibrate", [*py, "calibrate", str(session), "-o", str(cset)]),
+        ("apply", [*py, "apply", str(cset), str(session), "-o", str(tmp / f"applied-{tag}.csv")]),
+        ("noise", [*py, "noise", str(static), "--coefficients", str(cset)]),
+    ]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rows", type=int, default=10_000_000, help="session rows (1 kHz) [10,000,000]")
+    parser.add_argument("--noise-rows", type=int, default=18_000_000,
+                        help="static record rows for noise (1 kHz) [18,000,000]")
+    parser.add_argument("--baseline", metavar="DIR", help="another tree to run the canical steps with too")
+    parser.add_argument("--tmp", metavar="DIR", help="where the generated files go [system temp]")
+    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    args = parser.parse_args()
+    rows, noise_rows = (100_000, 60_000) if args.quick else (args.rows, args.noise_rows)
+    trees = [("", str(ROOT))]
+    if args.baseline:
+        trees.append((" (baseline)", str(Path(args.baseline).resolve())))
+    tmp = Path(tempfile.mkdtemp(prefix="bench_scale_", dir=args.tmp))
+    try:
+        session, static = tmp / "session.csv", tmp / "static.csv"
+        t0 = time.perf_counter()
+        write_session(session, rows, static=False, dwell_s=2.0 if args.quick else DWELL_S)
+        write_session(static, noise_rows, static=True, seed=1)
+        print(f"session {rows:,} rows ({session.stat().st_size / 1e6:.0f} MB), static record "
+              f"{noise_rows:,} rows ({static.stat().st_size / 1e6:.0f} MB), generated in "
+              f"{time.perf_counter() - t0:.0f} s")
+        floors = {"session": measure("loadtxt session", loadtxt_argv(session), str(ROOT)),
+                  "static": measure("loadtxt static", loadtxt_argv(static), str(ROOT))}
+        steps: list[tuple[Step, Step]] = []
+        for tag, path in trees:
+            for name, argv in canical_steps(tmp, session, static, "base" if tag else "this"):
+                floor = floors["static" if name == "noise" else "session"]
+                steps.append((measure(name + tag, argv, path), floor))
+        print(f"\n{'step':24s} {'wall s':>8s} {'peak MB':>8s} {'x floor':>8s}")
+        for floor in floors.values():
+            print(f"{floor.name:24s} {floor.wall_s:8.2f} {floor.peak_mb:8.0f} {1.0:8.2f}")
+        for step, floor in steps:
+            print(f"{step.name:24s} {step.wall_s:8.2f} {step.peak_mb:8.0f} {step.wall_s / floor.wall_s:8.2f}")
+        if args.baseline:
+            same = (tmp / "applied-this.csv").read_bytes() == (tmp / "applied-base.csv").read_bytes()
+            print(f"\napply output identical to the baseline's: {'yes' if same else 'NO'}")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,61 @@
+"""Columns read block by block are the columns ``read_table`` reads, and fail alike."""
+
+from __future__ import annotations
+
+import pytest
+
+from canical.errors import CanicalError
+from canical.sessions import csv_chunks
+from canical.sessions.csv_file import read_session, read_table
+
+TEXT = "# sensor: S\n# axis: z\ntime_s,ref_dps,raw,temp_c\n" + "".join(
+    f"{i / 100:.2f},{(i // 50) * 3.0 - 30:g},{i * 7 % 101 - 50},{20 + i / 1000:.3f}\n" for i in range(700))
+
+
+@pytest.fixture(autouse=True)
+def small_blocks(monkeypatch):
+    monkeypatch.setattr(csv_chunks, "CHUNK_BYTES", 257)
+
+
+@pytest.mark.parametrize("text", [
+    pytest.param(TEXT, id="plain"),
+    pytest.param(TEXT.replace("\n", "\r\n"), id="crlf"),
+    pytest.param(TEXT.replace("\n", "\n\n", 30), id="blank rows"),
+    pytest.param(TEXT.replace("\n", "\r", 1), id="lone carriage return"),
+    pytest.param(TEXT.rstrip("\n"), id="no last newline"),
+])
+def test_same_columns_as_read_table(tmp_path, text):
+    path = tmp_path / "s.csv"
+    path.write_bytes(text.encode())
+    whole = read_table(path)
+    blocks = csv_chunks.read_columns(path)
+    assert blocks.meta == whole.meta and blocks.header == whole.header
+    assert blocks.first_data_line == whole.first_data_line
+    assert list(blocks.columns) == list(whole.columns)
+    for name, values in whole.columns.items():
+        assert blocks.columns[name].tobytes() == values.tobytes()
+    assert csv_chunks.read_header(path) == whole.header
+    assert read_session(path).raw.tobytes() == whole.columns["raw"].tobytes()
+
+
+@pytest.mark.parametrize("change", [
+    lambda t: t.replace("\n4.0", "\n4.x", 1),
+    lambda t: t.replace("\n5.00,", "\n5.00,,", 1),
+    lambda t: t.replace("\n6.00,", "\ninf,", 1),
+    lambda t: t.split("time_s")[0] + "time_s,raw,raw\n1,2,3\n",
+    lambda t: "\n".join(t.split("\n")[:3]) + "\n",
+    lambda t: "",
+])
+def test_same_errors_as_read_table(tmp_path, change):
+    path = tmp_path / "s.csv"
+    path.write_text(change(TEXT))
+    with pytest.raises(CanicalError) as whole:
+        read_table(path)
+    with pytest.raises(CanicalError) as blocks:
+        csv_chunks.read_columns(path)
+    assert str(blocks.value) == str(whole.value)
+
+
+def test_a_missing_file(tmp_path):
+    with pytest.raises(CanicalError, match="file not found"):
+        csv_chunks.read_columns(tmp_path / "none.csv")
