@@ -26,7 +26,7 @@ SINGLE_AXIS_ONLY = (("reference", "--reference"), ("rail", "--rail"), ("settled_
 def is_triad_input(args: argparse.Namespace) -> bool:
     """Several sessions, or one CSV with raw_x, raw_y, raw_z and no column named by --raw-column."""
     from canical.sessions.canlog_format import is_canlog
-    from canical.sessions.csv_file import read_table
+    from canical.sessions.csv_chunks import read_header
     from canical.sessions.triad_session import RAW_COLUMNS
 
     if len(args.session) > 1:
@@ -35,7 +35,7 @@ def is_triad_input(args: argparse.Namespace) -> bool:
     if is_canlog(path):
         return False
     try:
-        header = read_table(path, columns=[]).header
+        header = read_header(path)  # the head only: a session may be millions of rows
     except CanicalError:
         return False  # the single-axis reader says what is wrong, as it always did
     return all(c in header for c in RAW_COLUMNS) and args.raw_column not in header

@@ -22,6 +22,7 @@ import numpy as np
 
 from canical.errors import CanicalError
 from canical.frames.frame_match import J1939Source
+from canical.sessions.csv_chunks import read_head, read_header
 from canical.sessions.csv_file import TIME_COLUMN, read_table
 from canical.sessions.session import Session
 
@@ -90,7 +91,7 @@ class TriadSession:
 def read_triad_session(path: str | os.PathLike[str]) -> TriadSession:
     """Read a triad session CSV (see the module's docstring)."""
     name = str(path)
-    header = read_table(path, columns=[])
+    header = read_head(path) or read_table(path, columns=[])
     if "axis" not in header.meta:
         raise CanicalError(f"{name}: no '# axis:' line naming the IMU axis the table turns about "
                            f"({AXIS_VALUES})")
@@ -142,7 +143,7 @@ def read_triad_log(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str],
 
 def is_triad_csv(path: str | os.PathLike[str]) -> bool:
     """Whether a CSV has the three raw columns of a triad (read: header only)."""
-    return all(c in read_table(path, columns=[]).header for c in RAW_COLUMNS)
+    return all(c in read_header(path) for c in RAW_COLUMNS)
 
 
 def format_triad_session(session: TriadSession, *, float_format: str = "%.9g") -> str:
