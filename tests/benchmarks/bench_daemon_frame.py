@@ -147,6 +147,8 @@ def main() -> None:
     only_own = {"raw": "IMU_RAW", "rate": None, "status": "CANICAL_STATUS"}
     config_only = load_config(write_config(folder, "bench-only", own_layout={"id": 0x298}, frames=only_own,
                                            **tracking))
+    # Bias tracking on three axes (one tracker per axis, fed every frame).
+    config_track = load_config(write_config(folder, "bench-track", bias_tracking={"enabled": True}))
     stream = imu_stream(args.frames, rate_limit_dps=args.rate_limit)
     msgs = [can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=i * 0.0005)
             for i, (fid, data) in enumerate(stream.frames)]
@@ -202,6 +204,13 @@ def main() -> None:
     assert ref_only_feed.sent == new_only_feed.sent and len(new_only_feed.sent) == n, "own layout only"
     assert "send_own" in new_only._fast[2].source
     new_only_feed.send = {}.get  # type: ignore[method-assign]
+    _, ref_track_feed, ref_track_whole = daemon_for(False, config_track)
+    new_track, new_track_feed, new_track_whole = daemon_for(True, config_track)
+    ref_track_whole()
+    new_track_whole()
+    assert ref_track_feed.sent == new_track_feed.sent and len(new_track_feed.sent) == n, "tracking differs"
+    assert "track(" in new_track._fast[2].source
+    new_track_feed.send = {}.get  # type: ignore[method-assign]
 
     payloads = [bytes(m.data) for m in msgs if m.arbitration_id == ref.raw.frame_id]
     inputs = {"temp_c": 25.0, "time_s": 100.0, "supply_v": 5.0}
@@ -228,9 +237,9 @@ def main() -> None:
         return decode_only, correct_only, encode_only
 
     rows = ["decode", "correct 3 axes", "encode", "whole loop: receive..send", "whole loop + own layout",
-            "whole loop, own layout only"]
-    fns_ref = [*parts(ref), ref_whole, ref_own_whole, ref_only_whole]
-    fns_new = [*parts(new), new_whole, new_own_whole, new_only_whole]
+            "whole loop, own layout only", "whole loop + bias tracking"]
+    fns_ref = [*parts(ref), ref_whole, ref_own_whole, ref_only_whole, ref_track_whole]
+    fns_new = [*parts(new), new_whole, new_own_whole, new_only_whole, new_track_whole]
     best = best_of([f for pair in zip(fns_ref, fns_new, strict=True) for f in pair], args.repeats)
     if args.json:
         print(json.dumps({label: [best[2 * i] / n * 1e6, best[2 * i + 1] / n * 1e6]

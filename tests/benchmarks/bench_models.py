@@ -1,9 +1,17 @@
 """Benchmark: run-time cost of the calibration models, and calibrate time for 1M samples.
 
 Prints figures; asserts nothing. Run: python tests/benchmarks/bench_models.py [--quick]
+
+BLAS runs on one thread (``OPENBLAS_NUM_THREADS=1`` unless set): the closed loop's many small
+least squares gain nothing from threads, and on a shared machine threads make them several
+times slower and the figure meaningless.
 """
 
 from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads its BLAS
 
 import argparse
 import contextlib
