@@ -17,8 +17,6 @@ from canical.models import MODEL_KINDS
 from canical.output_plan import output_plan
 from canical.progress import Progress
 from canical.sessions.canlog_format import CANLOG_FORMATS
-from canical.sessions.session import RAW_UNITS
-from canical.sets.coefficients import DEFAULT_RAW_UNITS
 
 if TYPE_CHECKING:
     from canical.closed_loop.search import LoopResult
@@ -190,7 +188,9 @@ def calibrate_session(args: argparse.Namespace) -> int:
     from canical.pipeline import calibrate
     from canical.sessions.canlog_format import is_canlog
     from canical.sessions.csv_file import read_session
+    from canical.sessions.session import RAW_UNITS
     from canical.sets import coefficient_file
+    from canical.sets.coefficients import DEFAULT_RAW_UNITS
 
     progress = Progress("calibrate", 1)
     progress.step(f"reading {args.session}")
