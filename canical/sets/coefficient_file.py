@@ -62,16 +62,20 @@ def save(path: str | os.PathLike[str], cset: CoefficientSet) -> None:
     write_text_atomic(path, text)
 
 
-def load(path: str | os.PathLike[str]) -> CoefficientSet:
+def read_text(path: str | os.PathLike[str], what: str) -> str:
+    """A set file's text; missing or unreadable is one line naming the file and ``what`` it is."""
     name = str(path)
     try:
         with open(path, encoding="utf-8") as handle:
-            text = handle.read()
+            return handle.read()
     except FileNotFoundError:
-        raise CanicalError(f"{name}: coefficient file not found") from None
+        raise CanicalError(f"{name}: {what} not found") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise CanicalError(f"{name}: cannot read coefficient file ({exc})") from None
-    return loads(text, name)
+        raise CanicalError(f"{name}: cannot read {what} ({exc})") from None
+
+
+def load(path: str | os.PathLike[str]) -> CoefficientSet:
+    return loads(read_text(path, "coefficient file"), str(path))
 
 
 def loads(text: str, source: str = "<coefficients>") -> CoefficientSet:

@@ -103,15 +103,9 @@ def is_imu_set_file(path: str | os.PathLike[str]) -> bool:
 
 
 def load(path: str | os.PathLike[str]) -> ImuSet:
-    name = str(path)
-    try:
-        with open(path, encoding="utf-8") as handle:
-            text = handle.read()
-    except FileNotFoundError:
-        raise CanicalError(f"{name}: IMU set file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CanicalError(f"{name}: cannot read IMU set file ({exc})") from None
-    return loads(text, name)
+    from canical.sets.coefficient_file import read_text
+
+    return loads(read_text(path, "IMU set file"), str(path))
 
 
 def loads(text: str, source: str = "<imu set>") -> ImuSet:
