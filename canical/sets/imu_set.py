@@ -103,9 +103,7 @@ def is_imu_set_file(path: str | os.PathLike[str]) -> bool:
 
 
 def load(path: str | os.PathLike[str]) -> ImuSet:
-    from canical.sets.coefficient_file import read_text
-
-    return loads(read_text(path, "IMU set file"), str(path))
+    return loads(coefficient_file.read_text(path, "IMU set file"), str(path))
 
 
 def loads(text: str, source: str = "<imu set>") -> ImuSet:
