@@ -92,6 +92,40 @@ class DaemonTracking:
             r2 -= s2(t, r2, temp, cue) if ready else a2()
         return r0, r1, r2
 
+    def inline_lines(self, flags: list[str]) -> tuple[list[str], dict[str, Any]]:
+        """The per-frame work of :meth:`__call__` as statements for the generated raw-frame handler
+        (:func:`canical.bus.frame_handler.generate_raw_handler`), on its rates ``r0``..``r2``;
+        ``flags[k]`` is ``"True"`` where axis ``k`` is uncalibrated in that handler's sets.
+
+        The same steps on the same values in the same order as the call, without the call: the
+        inputs are read once, each tracked axis's step is called straight. Only for the trackers
+        of now: the handler is made anew with each generation of sets."""
+        time_name, temp_name, cue_name = self._names
+        names: dict[str, Any] = {"TRK": self, "NAN": NAN}
+        if time_name is None:  # time since the first frame of this run
+            lines = ["    trk_t = TRK._t0", "    if trk_t is None:", "        trk_t = TRK._t0 = stamp",
+                     "    trk_t = stamp - trk_t"]
+        else:
+            lines = [f"    trk_t = values.get({time_name!r}, NAN)"]
+        ready = ["trk_t == trk_t"]
+        temp = "NAN" if temp_name is None else f"values.get({temp_name!r}, NAN)"
+        lines.append(f"    trk_temp = {temp}")
+        if temp_name is not None:
+            ready.append("trk_temp == trk_temp")
+        lines.append("    trk_cue = None" if cue_name is None else f"    trk_cue = values.get({cue_name!r})")
+        if cue_name is not None:
+            ready.append("trk_cue is not None")
+        tracked = [k for k, (step, _) in enumerate(self._steps) if step is not None and flags[k] != "True"]
+        if not tracked:
+            return [], {}
+        lines.append(f"    if {' and '.join(ready)}:")
+        lines.extend(f"        r{k} -= TRK_STEP{k}(trk_t, r{k}, trk_temp, trk_cue)" for k in tracked)
+        lines.append("    else:")
+        lines.extend(f"        r{k} -= TRK_APPLIED{k}()" for k in tracked)
+        for k in tracked:
+            names[f"TRK_STEP{k}"], names[f"TRK_APPLIED{k}"] = self._steps[k]
+        return lines, names
+
     # -- between frames ------------------------------------------------------------------------
     def _sync(self) -> None:
         """The trackers brought up to date with their per-frame steps (before reading them)."""

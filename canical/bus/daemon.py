@@ -424,10 +424,8 @@ class Daemon:
                 ax.corrector is None or compiled.get(ax.corrector) is not None for ax in sets.axes):
             names = {"stats": self.stats, "values": self.values, "times": self.times, "encode": encode,
                      "send": sock.send, "send_own": send_own, "send_failed": self._send_failed}
-            if self.tracking is not None:
-                names["track"] = self.tracking
             handler = generate_raw_handler(self.layout, sets, plan, owner=self, general=self._on_raw,
-                                           names=names)
+                                           names=names, tracking=self.tracking)
         self._fast = (sets, sock, handler)
         return handler
 

@@ -24,6 +24,7 @@ from typing import Any
 from cantools.database.can import Database, Message
 
 from canical.bus.active_sets import ActiveSets
+from canical.bus.bias_tracking import DaemonTracking
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.socketcan import frame_key
 from canical.bus.socketcan_constants import FRAME_HEAD
@@ -249,14 +250,15 @@ class _Source:
 
 
 def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, owner: object,
-                         general: RawHandler, names: dict[str, Any]) -> RawHandler:
+                         general: RawHandler, names: dict[str, Any],
+                         tracking: DaemonTracking | None = None) -> RawHandler:
     """The raw frame's handler for ``sets`` as one generated function.
 
     ``owner`` is the daemon (the code reads its ``sets`` and keeps its ``_prev_counter`` and
     ``_tx_counter``), ``general`` its reference handler, ``names`` what else the code calls:
     ``stats``, ``values``, ``times``, ``encode`` (the rate frame's codec), ``send`` (the
-    socket's), ``send_failed`` and, with bias tracking on, ``track``. Only for three axes on
-    compiled correctors and a rate frame whose signals come in
+    socket's) and ``send_failed``; ``tracking`` is the bias tracking when it is on. Only for
+    three axes on compiled correctors and a rate frame whose signals come in
     :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
     """
     carried = {name for name, _ in layout.raw_inputs_at}
@@ -290,8 +292,8 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
         src.add(*corrector_lines(ax.corrector, f"s{axis.at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
                                  held=held, cached=slow, state=state))
         flags.append("False")
-    if "track" in names:  # the bias learned at standstills, less (canical.bus.bias_tracking)
-        src.lines.append(f"    r0, r1, r2 = track(stamp, r0, r1, r2, {', '.join(flags)})")
+    if tracking is not None:  # the bias learned at standstills, less (canical.bus.bias_tracking)
+        src.add(*tracking.inline_lines(flags))
     src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
     if layout.own is not None:
         _encode_and_send_own(src, layout.own, plan, flags)

@@ -209,7 +209,7 @@ def main() -> None:
     ref_track_whole()
     new_track_whole()
     assert ref_track_feed.sent == new_track_feed.sent and len(new_track_feed.sent) == n, "tracking differs"
-    assert "track(" in new_track._fast[2].source
+    assert "TRK_STEP" in new_track._fast[2].source
     new_track_feed.send = {}.get  # type: ignore[method-assign]
 
     payloads = [bytes(m.data) for m in msgs if m.arbitration_id == ref.raw.frame_id]
