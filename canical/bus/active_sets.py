@@ -24,9 +24,10 @@ import numpy as np
 from canical.bus.daemon_config import DaemonConfig
 from canical.errors import CanicalError
 from canical.frames.imu_frames import SET_TAG_MASK
-from canical.sets import coefficient_file
+from canical.sets import coefficient_file, imu_set
 from canical.sets.coefficients import DEFAULT_RAW_UNITS, CoefficientSet
 from canical.sets.corrector import Corrector
+from canical.sets.imu_set import AXES, ImuSet, Matrix, imu_set_crc
 
 SOURCE_NONE = 0
 SOURCE_FILE = 1
@@ -55,19 +56,25 @@ class AxisSet:
 
 @dataclass(frozen=True)
 class ActiveSets:
-    """The three axes in x, y, z order, and the identifier of the combination."""
+    """The three axes in x, y, z order, and the identifier of the combination.
+
+    From an IMU set (config ``imu_set``) the axes come with ``coupling``, the matrix their
+    corrected rates go through (``None``: per-axis sets, no coupling), and ``combined_id`` is the
+    IMU set's own id (its CRC), the one ``calibrate`` and ``apply`` print."""
 
     axes: tuple[AxisSet, ...]
     combined_id: int
     tag: int  # the low bits of combined_id (SET_TAG_MASK): sent in every corrected frame
     inputs: tuple[str, ...]  # union of the inputs the sets need
+    coupling: Matrix | None = None
 
     @property
     def complete(self) -> bool:
         return all(a.corrector is not None for a in self.axes)
 
     def describe(self) -> str:
-        return " ".join(f"{a.axis}={a.set_id:08x}" if a.corrector else f"{a.axis}=none" for a in self.axes)
+        axes = " ".join(f"{a.axis}={a.set_id:08x}" if a.corrector else f"{a.axis}=none" for a in self.axes)
+        return axes if self.coupling is None else f"imu set {self.combined_id:08x} ({axes}, coupled)"
 
 
 def file_stamp(path: Path | None) -> FileStamp:
@@ -86,11 +93,15 @@ def files_changed(current: ActiveSets) -> bool:
     return any(ax.path is not None and file_stamp(ax.path) != ax.stamp for ax in current.axes)
 
 
-def build(axes: tuple[AxisSet, ...]) -> ActiveSets:
-    """Combine per-axis sets into the value the loop reads."""
-    combined = zlib.crc32(struct.pack(">" + "I" * len(axes), *(a.set_id for a in axes))) & 0xFFFFFFFF
+def build(axes: tuple[AxisSet, ...], imu: ImuSet | None = None) -> ActiveSets:
+    """Combine per-axis sets (or the axes of ``imu``, with its coupling) into the value the loop reads."""
+    if imu is not None:
+        combined = imu_set_crc(imu)
+    else:
+        combined = zlib.crc32(struct.pack(">" + "I" * len(axes), *(a.set_id for a in axes))) & 0xFFFFFFFF
     names = tuple(dict.fromkeys(n for a in axes for n in a.required_inputs))
-    return ActiveSets(axes=axes, combined_id=combined, tag=combined & SET_TAG_MASK, inputs=names)
+    return ActiveSets(axes=axes, combined_id=combined, tag=combined & SET_TAG_MASK, inputs=names,
+                      coupling=None if imu is None else imu.coupling)
 
 
 def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:
@@ -131,7 +142,7 @@ def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path 
 
 def initial(config: DaemonConfig) -> tuple[ActiveSets, list[str]]:
     """The sets at start; problems are returned as messages (the axis starts uncalibrated)."""
-    empty = tuple(AxisSet(a.axis, a.raw_signal, path=a.coefficients) for a in config.axes)
+    empty = tuple(AxisSet(a.axis, a.raw_signal, path=config.imu_set or a.coefficients) for a in config.axes)
     if config.device is not None:
         return from_device(config, build(empty))
     return reload(config, build(empty), force=True)
@@ -195,6 +206,8 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
     The result is either ``current`` itself (nothing changed) or a new value built from
     fully validated sets; a file that fails validation leaves its axis as it was.
     """
+    if config.imu_set is not None:
+        return reload_imu(config, current, config.imu_set, force=force)
     messages: list[str] = []
     axes = list(current.axes)
     changed = False
@@ -231,3 +244,43 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
         return current, messages
     return build(tuple(axes)), messages
 
+
+
+def load_imu(config: DaemonConfig, path: Path) -> tuple[ImuSet, tuple[Corrector, ...]]:
+    """Load an IMU set and validate each of its axes as a single-axis set is validated (the
+    coupling is checked by the loader); any defect is one CanicalError line."""
+    imu = imu_set.load(path)
+    configured = tuple(a.axis for a in config.axes)
+    if configured != AXES:
+        raise CanicalError(f"{path}: an IMU set corrects axes x, y and z; the configuration has "
+                           f"{', '.join(configured)}")
+    return imu, tuple(check_set(config, axis, cset, f"{path}: axes.{axis}")
+                      for axis, cset in zip(AXES, imu.axes, strict=True))
+
+
+def reload_imu(config: DaemonConfig, current: ActiveSets, path: Path, *,
+               force: bool) -> tuple[ActiveSets, list[str]]:
+    """:func:`reload` for an IMU set: the three axes and the coupling replaced together, or not at all.
+
+    An axis whose model is the one running keeps its corrector (and the state of its terms)."""
+    stamp = file_stamp(path)
+    if not force and all(ax.stamp == stamp for ax in current.axes):
+        return current, []
+    restamped = tuple(replace(ax, stamp=stamp) for ax in current.axes)
+    keep = "keeping " + (f"IMU set 0x{current.combined_id:08x}" if current.complete else "no set")
+    try:
+        imu, correctors = load_imu(config, path)
+    except CanicalError as exc:
+        same_file = all(ax.stamp == stamp for ax in current.axes)
+        return current if same_file else replace(current, axes=restamped), [f"imu set: {exc}; {keep}"]
+    imu_id = imu_set_crc(imu)
+    if current.complete and current.coupling is not None and imu_id == current.combined_id:
+        return replace(current, axes=restamped), []
+    axes = []
+    for old, corrector in zip(current.axes, correctors, strict=True):
+        same = old.corrector is not None and old.set_id == corrector.set_id
+        axes.append(replace(old, corrector=old.corrector if same else corrector, set_id=corrector.set_id,
+                            source=SOURCE_FILE, stamp=stamp,
+                            reloads=old.reloads + (1 if old.corrector is not None and not same else 0)))
+    was = f"0x{current.combined_id:08x}" if current.complete else "none"
+    return build(tuple(axes), imu), [f"imu set 0x{imu_id:08x} from {path} replaces {was}"]

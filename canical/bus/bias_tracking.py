@@ -1,9 +1,12 @@
-"""The bias learned at standstills, on the bus: one tracker per calibrated axis, fed per raw frame.
+"""The bias learned at standstills, on the bus: one tracker per calibrated axis, fed per raw frame,
+or one over the three axes for an IMU set.
 
 Why per axis: ``canical apply SET LOG --track-bias`` replays one axis's set, so the daemon tracks
 each axis on its own with exactly the same steps (:meth:`canical.tracking.tracker.BiasTracker.step`
 on the same corrected rate, time, temperature and cue), and the two give the same bias bit for
-bit. A tracker steps only on frames where its axis is calibrated and the tracking's inputs have
+bit. An IMU set is applied as one (``apply imu.yaml --track-bias``: one tracker, a standstill is
+the vehicle's), so with one the daemon runs one tracker over its three coupled rates. A
+tracker steps only on frames where its axis is calibrated and the tracking's inputs have
 arrived (the frames ``apply`` keeps). Between frames the daemon logs each standstill adopted or
 refused, puts each axis's learned bias in systemd's STATUS, and keeps the learned state in the
 state file (:mod:`canical.tracking.state_file`), keyed by the sets' combined id: new sets start
@@ -20,7 +23,7 @@ from typing import Any
 from canical.bus.daemon_config import BiasTracking
 from canical.bus.status import AXIS_CODES
 from canical.tracking import state_file
-from canical.tracking.fast_step import FastStep, fast_step
+from canical.tracking.fast_step import FastStep, FastStep3, fast_step, fast_step3
 from canical.tracking.tracker import BiasTracker
 
 log = logging.getLogger("canical.serve")
@@ -43,14 +46,16 @@ class DaemonTracking:
         self._names = (config.time_input, config.temperature_input, config.settings.cue_input)
         self._fast: list[FastStep | None] = [None, None, None]
         self._steps: list[tuple[Any, Any]] = [(None, None)] * 3
+        self._joint: FastStep3 | None = None  # an IMU set's one tracker over three axes
 
     def for_sets(self, combined_id: int, axes: tuple[str, ...],
-                 fits: tuple[Mapping[str, Any] | None, ...]) -> None:
+                 fits: tuple[Mapping[str, Any] | None, ...], *, joint: bool = False) -> None:
         """New sets: save what was learned for the old ones, load (or start) the new ones' state.
 
         ``fits`` holds each axis's set's ``fit`` section (None: the axis is not calibrated); each
         tracker tells a standstill by its own set's angle random walk unless the configuration
-        gives one."""
+        gives one. ``joint`` (an IMU set, every axis calibrated): one tracker over the three
+        axes, telling a standstill by the noisiest axis's, as ``apply`` does."""
         if combined_id == self.set_id:
             return
         self.save()
@@ -61,6 +66,14 @@ class DaemonTracking:
             log.info("%s", loaded.note)
             learned = loaded.learned
         settings = self.config.settings
+        if joint:
+            tracker = BiasTracker(axes, settings.tracker.for_sets([f for f in fits if f is not None],
+                                                                  arw_given=settings.arw_given), learned)
+            self.trackers, self._fast, self._steps = [tracker], [None, None, None], [(None, None)] * 3
+            self._joint = fast_step3(tracker)
+            self._saved_updates = self._updates()
+            return
+        self._joint = None
         self.trackers = [
             BiasTracker((axis,), settings.tracker.for_set(fit, arw_given=settings.arw_given),
                         None if learned is None else (learned[k],))
@@ -83,6 +96,12 @@ class DaemonTracking:
         temp = NAN if temp_name is None else values.get(temp_name, NAN)
         cue = None if cue_name is None else values.get(cue_name)
         ready = t == t and (temp_name is None or temp == temp) and (cue_name is None or cue is not None)
+        joint = self._joint
+        if joint is not None:
+            if u0:  # an IMU set's axes are calibrated together, or none is
+                return r0, r1, r2
+            b0, b1, b2 = joint.step(t, r0, r1, r2, temp, cue) if ready else joint.applied()
+            return r0 - b0, r1 - b1, r2 - b2
         (s0, a0), (s1, a1), (s2, a2) = self._steps
         if s0 is not None and not u0:
             r0 -= s0(t, r0, temp, cue) if ready else a0()
@@ -115,6 +134,14 @@ class DaemonTracking:
         lines.append("    trk_cue = None" if cue_name is None else f"    trk_cue = values.get({cue_name!r})")
         if cue_name is not None:
             ready.append("trk_cue is not None")
+        if self._joint is not None:
+            if flags[0] == "True":
+                return [], {}
+            names.update(TRK_STEP3=self._joint.step, TRK_APPLIED3=self._joint.applied)
+            return [*lines, f"    if {' and '.join(ready)}:",
+                    "        b0, b1, b2 = TRK_STEP3(trk_t, r0, r1, r2, trk_temp, trk_cue)",
+                    "    else:", "        b0, b1, b2 = TRK_APPLIED3()",
+                    "    r0, r1, r2 = r0 - b0, r1 - b1, r2 - b2"], names
         tracked = [k for k, (step, _) in enumerate(self._steps) if step is not None and flags[k] != "True"]
         if not tracked:
             return [], {}
@@ -132,9 +159,11 @@ class DaemonTracking:
         for fast in self._fast:
             if fast is not None:
                 fast.sync()
+        if self._joint is not None:
+            self._joint.sync()
 
     def _updates(self) -> int:
-        return sum(t.learned[0].updates for t in self.trackers if t is not None)
+        return sum(s.updates for t in self.trackers if t is not None for s in t.learned)
 
     def log_events(self) -> None:
         for tracker in self.trackers:
@@ -155,7 +184,8 @@ class DaemonTracking:
         if self.config.state_file is None or self.set_id is None or self._updates() == self._saved_updates:
             return
         self._sync()
-        learned = [t.learned[0] if t is not None else None for t in self.trackers]
+        learned = ([*self.trackers[0].learned] if self._joint is not None and self.trackers[0] is not None
+                   else [t.learned[0] if t is not None else None for t in self.trackers])
         if any(s is None for s in learned):  # an uncalibrated axis: keep a fresh state in its place
             from canical.tracking.estimate import AxisBias
 

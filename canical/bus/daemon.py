@@ -87,6 +87,7 @@ from canical.bus.status import (
 )
 from canical.bus_outage import Outage
 from canical.frames.codec import StatusEncoder, load_dbc
+from canical.sets.imu_corrector import couple
 
 __all__ = ["BusFactory", "Daemon"]
 
@@ -401,7 +402,8 @@ class Daemon:
         if self.tracking is not None:
             self.tracking.for_sets(sets.combined_id, tuple(ax.axis for ax in sets.axes),
                                    tuple(None if ax.corrector is None else ax.corrector.cset.fit
-                                         for ax in sets.axes))
+                                         for ax in sets.axes),
+                                   joint=sets.coupling is not None and sets.complete)
         return self._plan
 
     def _raw_handler(self, sock: socket.socket) -> RawHandler:
@@ -460,7 +462,8 @@ class Daemon:
             self.stats.tx_dropped += 1
 
     def _on_raw(self, data: bytes | bytearray, stamp: float) -> None:
-        """Decode, correct three axes, encode, send: once per raw frame (the reference handler)."""
+        """Decode, correct three axes (and couple them, from an IMU set), encode, send: once per raw
+        frame (the reference handler)."""
         stats = self.stats
         if len(data) != self._raw_length:
             stats.bad_length += 1
@@ -508,6 +511,11 @@ class Daemon:
             rz, oz, uz = 0.0, False, True
         else:
             (rz, oz), uz = fz(signals[pz.at], values), False
+        if sets.coupling is not None:  # an IMU set: its axes' rates are coupled, all three or none
+            if ux or uy or uz:
+                rx, ry, rz, ux, uy, uz = 0.0, 0.0, 0.0, True, True, True
+            else:
+                rx, ry, rz = couple(sets.coupling, rx, ry, rz)
         if self.tracking is not None:
             rx, ry, rz = self.tracking(stamp, rx, ry, rz, ux, uy, uz)
         if stale:

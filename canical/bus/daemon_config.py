@@ -32,7 +32,7 @@ FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
 _TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
-             "watch_period_s", "own_layout", "bias_tracking", "j1939"}
+             "watch_period_s", "own_layout", "bias_tracking", "j1939", "imu_set"}
 
 
 @dataclass(frozen=True)
@@ -102,6 +102,7 @@ class DaemonConfig:
     own_layout: OwnLayoutOutput | None = None
     bias_tracking: BiasTracking | None = None  # None: not enabled
     j1939_source: J1939Source = None  # J1939 messages matched by PGN and this source (None: the DBC's)
+    imu_set: Path | None = None  # one IMU set for the three axes and their coupling (not per-axis files)
 
     @property
     def coefficient_paths(self) -> dict[str, Path]:
@@ -177,10 +178,13 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     except CanicalError as exc:
         raise fail("dbc", str(exc)) from None
     frames = _frames(content, dbc)
-    axes = _axes(content, frames, dbc, base)
+    imu_set = _imu_set(content, base, fail)
+    axes = _axes(content, frames, dbc, base, imu_set=imu_set is not None)
     counter = _counter(content, frames, dbc)
     inputs = _inputs(content, frames, dbc)
     device = _device(content, fail)
+    if device is not None and imu_set is not None:
+        raise fail("imu_set", "not read from a device (device:): the daemon corrects with the IMU set's file")
     j1939 = _j1939_source(content, fail)
     own_layout = _own_layout_output(content, frames, inputs, dbc, chan, j1939)
     tracking = _bias_tracking(content, inputs, base, fail)
@@ -203,7 +207,14 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         own_layout=own_layout,
         bias_tracking=tracking,
         j1939_source=j1939,
+        imu_set=imu_set,
     )
+
+
+def _imu_set(content: dict, base: Path, fail: Fail) -> Path | None:
+    """``imu_set``: one IMU set file (three axes and their coupling) instead of a file per axis."""
+    value = content.get("imu_set")
+    return None if value is None else _path(value, base, "imu_set", fail)
 
 
 def _dbc_files(value: Any, base: Path, fail: Fail) -> DbcSet:
@@ -282,8 +293,9 @@ def _rate_frame(content: dict, frames: dict, dbc: _Dbc) -> Message | None:
     return rate_msg
 
 
-def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisConfig, ...]:
-    """``axes``: per axis its raw signal and coefficients file; at least one axis has a file."""
+def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: bool) -> tuple[AxisConfig, ...]:
+    """``axes``: per axis its raw signal and coefficients file; at least one axis has a file, or
+    ``imu_set`` names one file for all three (then no axis names its own)."""
     axes_in = _section(content, "axes", dbc.fail)
     _no_unknown(axes_in, set(AXES), "axes.", dbc.fail)
     axes = []
@@ -298,11 +310,13 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path) -> tuple[AxisCo
             for prefix in RATE_SIGNALS.values():
                 dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
         coeff = entry.get("coefficients")
+        if coeff is not None and imu_set:
+            raise dbc.fail(f"{key}.coefficients", "not with imu_set: the IMU set holds every axis's model")
         coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
         units = frames.raw.get_signal_by_name(raw_sig).unit or ""
         axes.append(AxisConfig(axis, raw_sig, coeff_path, units))
-    if not any(a.coefficients for a in axes):
-        raise dbc.fail("axes", "no axis has a coefficients file")
+    if not imu_set and not any(a.coefficients for a in axes):
+        raise dbc.fail("axes", "no axis has a coefficients file (nor is an imu_set configured)")
     return tuple(axes)
 
 

@@ -6,7 +6,8 @@ function per axis, per codec and per check; at a few µs per frame those calls a
 as much as the work. So, per generation of sets (and socket), it is written out here as one
 function: the decode's fields as locals, the three axes' corrections inline
 (:func:`~canical.sets.fast_corrector.corrector_lines`, the same statements as the compiled
-correctors), the staleness checks and constants written in, one ``send``. The generated
+correctors) and an IMU set's coupling (:func:`~canical.sets.imu_corrector.coupling_lines`),
+the staleness checks and constants written in, one ``send``. The generated
 handler hands a frame to the reference one when the sets are not its own or an input the sets
 need has not arrived yet, so both always send the same frames.
 """
@@ -33,6 +34,7 @@ from canical.frames.compiler import NotCompilable, codec_for, decode_lines, enco
 from canical.frames.frame_match import FrameMatch, frame_match
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import CorrectOne, compile_corrector, corrector_lines, why_not, with_state
+from canical.sets.imu_corrector import coupling_lines
 
 __all__ = ["NO_PLAN", "AxisPlan", "CompiledAxes", "FrameLayout", "InputFrame", "OwnLayout", "Plan",
            "RawHandler", "frame_layout", "generate_raw_handler", "own_layout", "plan_for"]
@@ -292,6 +294,8 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
         src.add(*corrector_lines(ax.corrector, f"s{axis.at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
                                  held=held, cached=slow, state=state))
         flags.append("False")
+    if sets.coupling is not None:  # an IMU set: complete (its three axes load together), coupled
+        src.lines.extend(coupling_lines(sets.coupling, ("r0", "r1", "r2")))
     if tracking is not None:  # the bias learned at standstills, less (canical.bus.bias_tracking)
         src.add(*tracking.inline_lines(flags))
     src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])

@@ -74,10 +74,15 @@ def run(args: argparse.Namespace) -> int:
     from canical.bus import active_sets
     from canical.bus.daemon import Daemon
     from canical.bus.daemon_config import load_config
+    from canical.sets.imu_set import imu_set_crc
 
     config = load_config(args.config, channel=args.channel)
     if args.check:
-        for axis in config.axes:
+        if config.imu_set is not None:
+            imu, correctors = active_sets.load_imu(config, config.imu_set)
+            print(f"imu set 0x{imu_set_crc(imu):08x} from {config.imu_set}: axes "
+                  + ", ".join(f"{c.cset.axis} 0x{c.set_id:08x}" for c in correctors) + ", coupling checked")
+        for axis in config.axes if config.imu_set is None else ():
             if axis.coefficients is None:
                 print(f"axis {axis.axis}: no coefficients configured (sent uncalibrated)")
                 continue

@@ -23,22 +23,16 @@ def tracker_config(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]]):
     tracker decides for all: the noisiest axis's angle random walk tells a standstill."""
     from canical.tracking.config import TrackerConfig
 
-    fit = max(fits, key=_arw)
     settings = getattr(args, "daemon_tracking", None)  # the daemon configuration's bias_tracking
     if settings is not None:
-        return settings.tracker.for_set(fit, arw_given=settings.arw_given)
+        return settings.tracker.for_sets(fits, arw_given=settings.arw_given)
     try:
         arw = args.arw if args.arw is not None else TrackerConfig.arw_deg_rt_h
         cue_below = args.standstill_below if args.standstill_column else None
         config = TrackerConfig(arw_deg_rt_h=arw, cue_threshold=cue_below)
     except ValueError as exc:
         raise CanicalError(f"bias tracking: {exc}") from None
-    return config.for_set(fit, arw_given=args.arw is not None)
-
-
-def _arw(fit: Mapping[str, Any]) -> float:
-    value = fit.get("arw_deg_rt_h")
-    return float(value) if isinstance(value, int | float) and math.isfinite(value) else 0.0
+    return config.for_sets(fits, arw_given=args.arw is not None)
 
 
 def tracked_bias(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]], axes: tuple[str, ...],

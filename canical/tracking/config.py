@@ -7,7 +7,7 @@ same settings, and the tracker reads nothing else, so the same settings give the
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -65,7 +65,17 @@ class TrackerConfig:
             return self
         return replace(self, arw_deg_rt_h=float(arw))
 
+    def for_sets(self, fits: Sequence[Mapping[str, Any]], *, arw_given: bool) -> TrackerConfig:
+        """These settings for one tracker over several axes' sets (an IMU set: a standstill is
+        the vehicle's): the noisiest axis's angle random walk tells a standstill."""
+        return self.for_set(max(fits, key=_arw), arw_given=arw_given)
+
     @property
     def white_dps_rt_hz(self) -> float:
         """N in deg/s/√Hz: a τ-average of white noise has σ = N/√τ."""
         return self.arw_deg_rt_h / SQRT_HOUR
+
+
+def _arw(fit: Mapping[str, Any]) -> float:
+    value = fit.get("arw_deg_rt_h")
+    return float(value) if isinstance(value, int | float) and math.isfinite(value) else 0.0

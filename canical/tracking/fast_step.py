@@ -103,3 +103,124 @@ def fast_step(tracker: BiasTracker) -> FastStep:
         return applied
 
     return FastStep(step, applied_now, push)
+
+
+Bias3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class FastStep3:
+    """:class:`FastStep` for one tracker over three axes (an IMU set: a standstill is the
+    vehicle's): ``step(t_s, r0, r1, r2, temp_c, cue)`` returns the three biases to subtract."""
+
+    step: Callable[[float, float, float, float, float, float | None], Bias3]
+    applied: Callable[[], Bias3]
+    sync: Callable[[], None]
+
+
+def fast_step3(tracker: BiasTracker) -> FastStep3:
+    """The step of a three-axis tracker (ValueError for another count), continuing from its state.
+
+    :func:`fast_step` written out for three axes: the same operations in the tracker's order
+    (each axis's sums, one window for all, each axis's slew and one ``settled`` for all)."""
+    if len(tracker.axes) != 3:
+        raise ValueError(f"fast_step3 steps three axes, the tracker has {len(tracker.axes)}")
+    cfg = tracker.config
+    window_s, slew_rate, below = cfg.window_s, cfg.slew_dps_per_s, cfg.cue_threshold
+    sums = tracker._sums
+    last_t, temp = tracker._last_t, tracker._temp
+    n, start, temp_sum, cue_moving = sums.n, sums.start_s, sums.temp_sum, sums.cue_moving
+    (ref0, ref1, ref2), (s10, s11, s12), (s20, s21, s22) = sums.ref, sums.s1, sums.s2
+    a0, a1, a2 = tracker.applied
+    g0, g1, g2 = tracker._target
+    settled = tracker._settled
+
+    def push() -> None:
+        """The closure's state into the tracker, as if it had stepped itself."""
+        sums.n, sums.start_s, sums.temp_sum, sums.cue_moving = n, start, temp_sum, cue_moving
+        sums.ref, sums.s1, sums.s2 = [ref0, ref1, ref2], [s10, s11, s12], [s20, s21, s22]
+        tracker._temp, tracker._last_t = temp, last_t
+        tracker.applied[:] = [a0, a1, a2]
+        tracker._settled = settled
+
+    def pull() -> None:
+        """What a decision changed: the window restarts, the target may move."""
+        nonlocal n, g0, g1, g2, settled
+        n, settled = sums.n, tracker._settled
+        g0, g1, g2 = tracker._target
+
+    def step(t_s: float, r0: float, r1: float, r2: float, temp_c: float = NAN,
+             cue: float | None = None) -> Bias3:
+        nonlocal last_t, temp, n, start, temp_sum, cue_moving, ref0, ref1, ref2, s10, s11, s12
+        nonlocal s20, s21, s22, a0, a1, a2, settled
+        last = last_t
+        if t_s < last:
+            if t_s < last - POWER_ON_STEP_S:
+                push()
+                tracker._power_on()
+                pull()
+                last = NAN
+            else:  # jitter: time does not run back within a power-on
+                t_s = last
+        if temp_c == temp_c:
+            temp = temp_c
+        if n == 0:
+            ref0, ref1, ref2, n, start, temp_sum, cue_moving = r0, r1, r2, 0, t_s, 0.0, False
+            s10 = s11 = s12 = s20 = s21 = s22 = 0.0
+        d = r0 - ref0
+        s10 += d
+        s20 += d * d
+        d = r1 - ref1
+        s11 += d
+        s21 += d * d
+        d = r2 - ref2
+        s12 += d
+        s22 += d * d
+        n += 1
+        temp_sum += temp
+        if below is not None and not (cue is not None and cue < below):
+            cue_moving = True
+        if t_s - start >= window_s:
+            push()
+            tracker._close_window(t_s)
+            tracker._retarget()
+            pull()
+        if last != last:
+            a0, a1, a2, settled = g0, g1, g2, True
+        elif not settled:
+            limit = slew_rate * (t_s - last)
+            settled = True
+            delta = g0 - a0
+            if delta > limit:
+                a0 += limit
+                settled = False
+            elif delta < -limit:
+                a0 -= limit
+                settled = False
+            else:
+                a0 = g0
+            delta = g1 - a1
+            if delta > limit:
+                a1 += limit
+                settled = False
+            elif delta < -limit:
+                a1 -= limit
+                settled = False
+            else:
+                a1 = g1
+            delta = g2 - a2
+            if delta > limit:
+                a2 += limit
+                settled = False
+            elif delta < -limit:
+                a2 -= limit
+                settled = False
+            else:
+                a2 = g2
+        last_t = t_s
+        return a0, a1, a2
+
+    def applied_now() -> Bias3:
+        return a0, a1, a2
+
+    return FastStep3(step, applied_now, push)

@@ -15,7 +15,7 @@ import numpy as np
 from canical.tracking.config import TrackerConfig
 from canical.tracking.estimate import AxisBias
 from canical.tracking.events import StandstillEvent, TakenWindow
-from canical.tracking.fast_step import fast_step
+from canical.tracking.fast_step import fast_step, fast_step3
 from canical.tracking.tracker import BiasTracker
 
 
@@ -49,6 +49,12 @@ def replay(time_s: np.ndarray, rates_dps: np.ndarray, config: TrackerConfig, *,
         for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
             out[i, 0] = one(t, r[0], temp, c)
         fast.sync()
+    elif len(tracker.axes) == 3:  # an IMU set: the daemon's step over three axes
+        fast3 = fast_step3(tracker)
+        three = fast3.step
+        for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
+            out[i] = three(t, r[0], r[1], r[2], temp, c)
+        fast3.sync()
     else:
         step = tracker.step
         for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):

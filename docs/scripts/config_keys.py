@@ -108,7 +108,7 @@ KEYS: tuple[Key, ...] = (
     Key(
         "axes",
         "required",
-        "a mapping with at least one axis that has `coefficients`",
+        "a mapping with at least one axis that has `coefficients`, or every axis without them and `imu_set`",
         "the raw signal and coefficient set of each axis",
     ),
     Key("axes.AXIS", "`{}`", "a mapping", "one axis; an axis left out is sent uncalibrated"),
@@ -125,6 +125,14 @@ KEYS: tuple[Key, ...] = (
         "`null` (axis uncalibrated: rate 0, flag Uncalibrated)",
         "a file path; the set is loaded and checked at start and on every reload",
         "the axis's coefficient set (YAML)",
+    ),
+    Key(
+        "imu_set",
+        "`null` (a set file per axis)",
+        "a file path to an IMU set (`canical calibrate x.csv y.csv z.csv`); no axis names its own "
+        "`coefficients`; not with `device`",
+        "the three axes' models and the coupling between them, loaded, checked and reloaded as one: "
+        "the corrected frame carries the coupled rates",
     ),
     Key(
         "counter",

@@ -82,6 +82,33 @@ def write_sets(folder: Path, *, variant: int = 0, terms: dict | None = None) -> 
     return paths
 
 
+#: A triad's coupling (1–2 % cross-axis terms, scale errors on the diagonal) for the IMU sets below.
+COUPLING = ((1.004, 0.012, -0.008), (0.015, 0.997, 0.004), (-0.02, 0.006, 1.002))
+
+
+def write_imu_set(folder: Path, *, variant: int = 0, terms: dict | None = None,
+                  coupling=COUPLING) -> Path:
+    """imu-set.yaml: the sets of :func:`write_sets` (same ``variant`` and ``terms``) and ``coupling``,
+    as one IMU set."""
+    from canical.sets import imu_set
+
+    sub = folder / f".axes-{variant}"
+    sub.mkdir(exist_ok=True)
+    paths = write_sets(sub, variant=variant, terms=terms)
+    axes = tuple(coefficient_file.load(paths[a]) for a in AXES)
+    imu = imu_set.ImuSet(SENSOR, axes, imu_set.as_matrix(coupling),  # type: ignore[arg-type]
+                         imu_set.as_matrix(np.full((3, 3), 1e-4)), {}, "2026-01-01T00:00:00Z")
+    path = folder / "imu-set.yaml"
+    imu_set.save(path, imu)
+    return path
+
+
+def imu_set_config(folder: Path, channel: str, **overrides) -> Path:
+    """:func:`write_config` correcting with ``folder``/imu-set.yaml (``imu_set``), no per-axis files."""
+    axes = {a: {"raw": f"GyroRaw{a.upper()}"} for a in AXES}
+    return write_config(folder, channel, axes=axes, imu_set=str(folder / "imu-set.yaml"), **overrides)
+
+
 def write_config(folder: Path, channel: str, *, interface: str = "socketcan", **overrides) -> Path:
     """The deployable example, pointed at ``folder`` (DBC copied there) and ``channel``."""
     text = EXAMPLE_CONFIG.read_text().replace("/etc/canical/", f"{folder}/")

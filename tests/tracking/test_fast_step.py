@@ -70,3 +70,43 @@ def test_the_closure_steps_as_the_tracker_bit_for_bit(seed: int, cue: bool, load
 def test_only_one_axis() -> None:
     with pytest.raises(ValueError, match="one axis"):
         fast_step(BiasTracker(("x", "y"), TrackerConfig()))
+
+
+Drive3 = tuple[list[float], list[list[float]], list[float], list[float | None]]
+
+
+def drive3(seed: int, n: int = 8_000) -> Drive3:
+    """:func:`drive` on three axes: each its own bias and noise, moving together."""
+    times, rates, temps, cues = drive(seed, n)
+    rng = np.random.default_rng(seed + 1)
+    offsets = rng.uniform(-0.4, 0.4, 2)
+    three = [[r, r * 0.3 + offsets[0] + rng.normal(0, 0.05), -r * 0.2 + offsets[1] + rng.normal(0, 0.05)]
+             for r in rates]
+    return times, three, temps, cues
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), cue=st.booleans(), loaded=st.booleans())
+def test_the_three_axis_closure_steps_as_the_tracker_bit_for_bit(seed: int, cue: bool, loaded: bool) -> None:
+    from canical.tracking.fast_step import fast_step3
+
+    times, rates, temps, cues = drive3(seed)
+    config = TrackerConfig(arw_deg_rt_h=0.3, cue_threshold=0.1 if cue else None)
+    learned = ([AxisBias(b0=0.1 * k, p00=0.01, slope=0.001, p11=1e-4, updates=7) for k in range(3)]
+               if loaded else None)
+    axes = ("x", "y", "z")
+    reference, fast = BiasTracker(axes, config, learned), BiasTracker(axes, config, learned)
+    step = fast_step3(fast)
+    adopted = 0
+    for i, (t, r, temp, c) in enumerate(zip(times, rates, temps, cues, strict=True)):
+        want = tuple(reference.step(t, r, temp, c))
+        got = step.step(t, r[0], r[1], r[2], temp, c)
+        assert all(math.copysign(1.0, g) == math.copysign(1.0, w) for g, w in zip(got, want, strict=True))
+        assert got == want, i
+        assert step.applied() == want
+    step.sync()
+    reference.finish()
+    fast.finish()
+    assert states(fast) == states(reference)
+    adopted = sum(e.decision == "adopted" for e in reference.events)
+    assert adopted >= 1  # the drive's first stop is learned: the comparison covered decisions
