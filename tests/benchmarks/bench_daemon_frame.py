@@ -6,11 +6,12 @@ python-can messages, cantools decode and encode, ``Corrector.correct_one``, a bu
 ``send`` does nothing) against the compiled path (frames as the raw socket delivers them,
 generated codecs, generated correctors, a socket whose ``send`` does nothing). Effect terms
 on all three axes, every kind once. Both paths' outputs are checked to be the same frames.
-Prints CPU µs per raw frame for the whole loop and its parts, least of several alternating
-runs, and how many times a classic 1 Mbit/s bus full of 8-byte frames (8,900 frames/s) one
-core keeps up with. Once the outputs are checked, the compiled path's stand-in ``send`` is a
-C no-op (``dict.get``), so the figure is the daemon's and not the stand-in's; its stand-in
-``recvmsg`` (a Python method, about 0.15 µs) stays in.
+The same with an IMU set (the three axes coupled), without and with bias tracking (one tracker
+over the three axes). Prints CPU µs per raw frame for the whole loop and its parts, least of
+several alternating runs, and how many times a classic 1 Mbit/s bus full of 8-byte frames
+(8,900 frames/s) one core keeps up with. Once the outputs are checked, the compiled path's
+stand-in ``send`` is a C no-op (``dict.get``), so the figure is the daemon's and not the
+stand-in's; its stand-in ``recvmsg`` (a Python method, about 0.15 µs) stays in.
 
 With ``--baseline DIR`` (a worktree of another commit, e.g. ``git worktree add /tmp/base
 main``) this script runs ``--rounds`` times under each tree's ``canical`` in turn, in child
@@ -39,7 +40,14 @@ import can
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from support.daemon_fixtures import ALL_TERMS, imu_stream, write_config, write_sets
+from support.daemon_fixtures import (
+    ALL_TERMS,
+    imu_set_config,
+    imu_stream,
+    write_config,
+    write_imu_set,
+    write_sets,
+)
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
@@ -149,6 +157,10 @@ def main() -> None:
                                            **tracking))
     # Bias tracking on three axes (one tracker per axis, fed every frame).
     config_track = load_config(write_config(folder, "bench-track", bias_tracking={"enabled": True}))
+    # An IMU set (the same axes' sets, coupled), without and with its one tracker over three axes.
+    write_imu_set(folder, terms=ALL_TERMS)
+    config_imu = load_config(imu_set_config(folder, "bench-imu"))
+    config_imu_track = load_config(imu_set_config(folder, "bench-imu-track", bias_tracking={"enabled": True}))
     stream = imu_stream(args.frames, rate_limit_dps=args.rate_limit)
     msgs = [can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=i * 0.0005)
             for i, (fid, data) in enumerate(stream.frames)]
@@ -183,34 +195,27 @@ def main() -> None:
 
         return daemon, feed, whole
 
-    ref, ref_feed, ref_whole = daemon_for(False)
-    new, new_feed, new_whole = daemon_for(True)
-    n = sum(1 for m in msgs if m.arbitration_id == ref.raw.frame_id)
-    ref_whole()
-    new_whole()
-    assert ref_feed.sent == new_feed.sent and len(new_feed.sent) == n, "the two paths sent different frames"
-    new_feed.send = {}.get  # type: ignore[method-assign]  # outputs checked: from now on a C no-op
-    _, ref_own_feed, ref_own_whole = daemon_for(False, config_own)
-    new_own, new_own_feed, new_own_whole = daemon_for(True, config_own)
-    ref_own_whole()
-    new_own_whole()
-    assert ref_own_feed.sent == new_own_feed.sent and len(new_own_feed.sent) == 2 * n, "own layout differs"
-    assert "send_own" in new_own._fast[2].source  # the generated handler, not the reference one
-    new_own_feed.send = {}.get  # type: ignore[method-assign]
-    _, ref_only_feed, ref_only_whole = daemon_for(False, config_only)
-    new_only, new_only_feed, new_only_whole = daemon_for(True, config_only)
-    ref_only_whole()
-    new_only_whole()
-    assert ref_only_feed.sent == new_only_feed.sent and len(new_only_feed.sent) == n, "own layout only"
-    assert "send_own" in new_only._fast[2].source
-    new_only_feed.send = {}.get  # type: ignore[method-assign]
-    _, ref_track_feed, ref_track_whole = daemon_for(False, config_track)
-    new_track, new_track_feed, new_track_whole = daemon_for(True, config_track)
-    ref_track_whole()
-    new_track_whole()
-    assert ref_track_feed.sent == new_track_feed.sent and len(new_track_feed.sent) == n, "tracking differs"
-    assert "TRK_STEP" in new_track._fast[2].source
-    new_track_feed.send = {}.get  # type: ignore[method-assign]
+    def paired(config, per_frame: int, marker: str, what: str):
+        """The reference and the compiled daemon on ``config``: the same frames sent (``per_frame``
+        per raw frame) by the generated handler (its source has ``marker``); then the compiled
+        path's send made a C no-op."""
+        ref, ref_feed, ref_whole = daemon_for(False, config)
+        new, new_feed, new_whole = daemon_for(True, config)
+        ref_whole()
+        new_whole()
+        assert ref_feed.sent == new_feed.sent and len(new_feed.sent) == per_frame * n, f"{what} differs"
+        assert marker in new._fast[2].source, f"{what}: not the generated handler"
+        new_feed.send = {}.get  # type: ignore[method-assign]  # outputs checked: from now on a C no-op
+        return ref, new, ref_whole, new_whole
+
+    n = len(stream.raw_index)
+    ref, new, ref_whole, new_whole = paired(config, 1, "send(", "the corrected frame")
+    _, _, ref_own_whole, new_own_whole = paired(config_own, 2, "send_own", "own layout")
+    _, _, ref_only_whole, new_only_whole = paired(config_only, 1, "send_own", "own layout only")
+    _, _, ref_track_whole, new_track_whole = paired(config_track, 1, "TRK_STEP", "tracking")
+    _, _, ref_imu_whole, new_imu_whole = paired(config_imu, 1, "r0, r1, r2 = ", "IMU set")
+    _, _, ref_imu_track_whole, new_imu_track_whole = paired(config_imu_track, 1, "TRK_STEP3",
+                                                            "IMU set tracking")
 
     payloads = [bytes(m.data) for m in msgs if m.arbitration_id == ref.raw.frame_id]
     inputs = {"temp_c": 25.0, "time_s": 100.0, "supply_v": 5.0}
@@ -237,9 +242,12 @@ def main() -> None:
         return decode_only, correct_only, encode_only
 
     rows = ["decode", "correct 3 axes", "encode", "whole loop: receive..send", "whole loop + own layout",
-            "whole loop, own layout only", "whole loop + bias tracking"]
-    fns_ref = [*parts(ref), ref_whole, ref_own_whole, ref_only_whole, ref_track_whole]
-    fns_new = [*parts(new), new_whole, new_own_whole, new_only_whole, new_track_whole]
+            "whole loop, own layout only", "whole loop + bias tracking", "IMU set (coupled): whole loop",
+            "IMU set + bias tracking"]
+    fns_ref = [*parts(ref), ref_whole, ref_own_whole, ref_only_whole, ref_track_whole, ref_imu_whole,
+               ref_imu_track_whole]
+    fns_new = [*parts(new), new_whole, new_own_whole, new_only_whole, new_track_whole, new_imu_whole,
+               new_imu_track_whole]
     best = best_of([f for pair in zip(fns_ref, fns_new, strict=True) for f in pair], args.repeats)
     if args.json:
         print(json.dumps({label: [best[2 * i] / n * 1e6, best[2 * i + 1] / n * 1e6]
