@@ -36,13 +36,15 @@ FS = 100.0
 SETTINGS = {"enabled": True, "arw_deg_rt_h": 0.5, "state_file": "bias.json"}
 
 
-def drive_frames(seconds: float = 45.0, seed: int = 5) -> list[can.Message]:
-    """Standstill 20 s, a steady turn on z for 12 s, standstill again; aux before every 10th raw."""
+def drive_frames(seconds: float = 45.0, seed: int = 5, turns: tuple[float, float, float] = (0.0, 0.0, 15.0)
+                 ) -> list[can.Message]:
+    """Standstill 20 s, a steady turn for 12 s (``turns``: deg/s about x, y, z; on z alone unless
+    given), standstill again; aux before every 10th raw."""
     db = load_dbc(DBC)
     raw_msg, aux_msg = db.get_message_by_name("IMU_RAW"), db.get_message_by_name("IMU_AUX")
     rng = np.random.default_rng(seed)
     t = np.arange(int(seconds * FS)) / FS
-    turn = np.where((t > 20) & (t < 32), 15.0, 0.0)
+    turning = (t > 20) & (t < 32)
     msgs = []
     for i, ti in enumerate(t):
         stamp = 1000.0 + ti
@@ -50,8 +52,8 @@ def drive_frames(seconds: float = 45.0, seed: int = 5) -> list[can.Message]:
             msgs.append(can.Message(timestamp=stamp, arbitration_id=aux_msg.frame_id, is_extended_id=False,
                                     data=aux_msg.encode({"SupplyVoltage": 5.0, "Uptime": round(3.0 + ti, 3),
                                                          "AuxCounter": (i // 10) & 0xF})))
-        counts = {a: int(37 + 400 * (b + (turn[i] if a == "z" else 0.0) + 0.05 * rng.standard_normal()))
-                  for a, b in (("x", 0.2), ("y", -0.1), ("z", 0.3))}
+        counts = {a: int(37 + 400 * (b + (turn if turning[i] else 0.0) + 0.05 * rng.standard_normal()))
+                  for a, b, turn in zip("xyz", (0.2, -0.1, 0.3), turns, strict=True)}
         msgs.append(can.Message(timestamp=stamp, arbitration_id=raw_msg.frame_id, is_extended_id=False,
                                 data=raw_msg.encode({"GyroRawX": counts["x"], "GyroRawY": counts["y"],
                                                      "GyroRawZ": counts["z"],
