@@ -502,15 +502,15 @@ class Daemon:
         if fx is None or (missing and any(n in missing for n in px.needs)):
             rx, ox, ux = 0.0, False, True
         else:
-            (rx, ox), ux = fx(signals[px.at], values), False
+            (rx, ox), ux = fx(signals[px.at] if px.held is None else values[px.held], values), False
         if fy is None or (missing and any(n in missing for n in py.needs)):
             ry, oy, uy = 0.0, False, True
         else:
-            (ry, oy), uy = fy(signals[py.at], values), False
+            (ry, oy), uy = fy(signals[py.at] if py.held is None else values[py.held], values), False
         if fz is None or (missing and any(n in missing for n in pz.needs)):
             rz, oz, uz = 0.0, False, True
         else:
-            (rz, oz), uz = fz(signals[pz.at], values), False
+            (rz, oz), uz = fz(signals[pz.at] if pz.held is None else values[pz.held], values), False
         if sets.coupling is not None:  # an IMU set: its axes' rates are coupled, all three or none
             if ux or uy or uz:
                 rx, ry, rz, ux, uy, uz = 0.0, 0.0, 0.0, True, True, True

@@ -22,6 +22,7 @@ from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.frames.dbc_files import DbcSet, dbc_label, require_sound
 from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
+from canical.sessions.canlog_format import HELD_AXIS_PREFIX
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
 from canical.yaml_text import parse_yaml
 
@@ -45,12 +46,24 @@ class InputSource:
     max_age_s: float
 
 
+HELD_AXIS_MAX_AGE_S = 0.1
+
+
 @dataclass(frozen=True)
 class AxisConfig:
     axis: str
     raw_signal: str
     coefficients: Path | None  # None: the axis is sent uncalibrated
     raw_units: str = ""  # the raw signal's unit as its DBC gives it ("": none given)
+    #: The message the raw signal is in, when not the raw frame: its latest value is held (an
+    #: input named ``held``) and corrected with the raw frame's axes when the raw frame comes.
+    message: str | None = None
+    max_age_s: float = HELD_AXIS_MAX_AGE_S
+
+    @property
+    def held(self) -> str | None:
+        """The input name its latest raw value is held under (None: in the raw frame itself)."""
+        return None if self.message is None else HELD_AXIS_PREFIX + self.axis
 
 
 @dataclass(frozen=True)
@@ -182,6 +195,8 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     axes = _axes(content, frames, dbc, base, imu_set=imu_set is not None)
     counter = _counter(content, frames, dbc)
     inputs = _inputs(content, frames, dbc)
+    inputs.update({a.held: InputSource(a.held, a.message, a.raw_signal, a.max_age_s)
+                   for a in axes if a.held is not None and a.message is not None})
     device = _device(content, fail)
     if device is not None and imu_set is not None:
         raise fail("imu_set", "not read from a device (device:): the daemon corrects with the IMU set's file")
@@ -304,8 +319,12 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: boo
         key = f"axes.{axis}"
         if not isinstance(entry, dict):
             raise dbc.fail(key, "must be a mapping (raw, coefficients)")
-        _no_unknown(entry, {"raw", "coefficients"}, f"{key}.", dbc.fail)
-        raw_sig = _axis_raw_signal(entry.get("raw", f"GyroRaw{axis.upper()}"), f"{key}.raw", frames.raw, dbc)
+        _no_unknown(entry, {"raw", "coefficients", "max_age_s"}, f"{key}.", dbc.fail)
+        message, raw_sig = _axis_raw_signal(entry.get("raw", f"GyroRaw{axis.upper()}"), f"{key}.raw",
+                                            frames, dbc)
+        if "max_age_s" in entry and message is None:
+            raise dbc.fail(f"{key}.max_age_s", f"only for an axis in another message than {frames.raw.name}")
+        max_age = _positive(entry.get("max_age_s", HELD_AXIS_MAX_AGE_S), f"{key}.max_age_s", dbc.fail)
         if frames.rate is not None:
             for prefix in RATE_SIGNALS.values():
                 dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
@@ -313,37 +332,43 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: boo
         if coeff is not None and imu_set:
             raise dbc.fail(f"{key}.coefficients", "not with imu_set: the IMU set holds every axis's model")
         coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
-        units = frames.raw.get_signal_by_name(raw_sig).unit or ""
-        axes.append(AxisConfig(axis, raw_sig, coeff_path, units))
+        msg = frames.raw if message is None else dbc.db.get_message_by_name(message)
+        units = msg.get_signal_by_name(raw_sig).unit or ""
+        axes.append(AxisConfig(axis, raw_sig, coeff_path, units, message, max_age))
     if not imu_set and not any(a.coefficients for a in axes):
         raise dbc.fail("axes", "no axis has a coefficients file (nor is an imu_set configured)")
     return tuple(axes)
 
 
 def _raw_message_of_axes(content: dict, fail: Fail) -> str | None:
-    """The message the axes name as ``MESSAGE.Signal`` (None: they name signals of ``frames.raw``).
-
-    All axes come from one message: the daemon corrects one frame into one frame."""
+    """The raw frame the axes imply when they name ``MESSAGE.Signal`` (None: they name signals of
+    ``frames.raw``): their message, or with several, the last axis's (x, y, z order; an IMU
+    sends its gyro messages in a burst, the last completes a sample)."""
     axes_in = content.get("axes")
     if not isinstance(axes_in, dict):
         return None
-    named = {str(e["raw"]).split(".")[0] for e in axes_in.values()
-             if isinstance(e, dict) and isinstance(e.get("raw"), str) and "." in e["raw"]}
-    if len(named) > 1:
-        raise fail("axes", f"raw signals in several messages ({', '.join(sorted(named))}): "
-                           "the axes the daemon corrects must come from one message")
-    return named.pop() if named else None
+    named = [str(axes_in[a]["raw"]).split(".")[0] for a in AXES
+             if isinstance(axes_in.get(a), dict) and isinstance(axes_in[a].get("raw"), str)
+             and "." in axes_in[a]["raw"]]
+    return named[-1] if named else None
 
 
-def _axis_raw_signal(value: Any, key: str, raw: Message, dbc: _Dbc) -> str:
-    """``axes.AXIS.raw``: ``Signal`` of the raw frame, or ``MESSAGE.Signal`` naming the raw frame."""
+def _axis_raw_signal(value: Any, key: str, frames: _Frames, dbc: _Dbc) -> tuple[str | None, str]:
+    """``axes.AXIS.raw``: ``Signal`` of the raw frame, or ``MESSAGE.Signal`` of the raw frame or of
+    another message (then held: the message's name is returned beside the signal's)."""
     if not isinstance(value, str) or not value or value.count(".") > 1:
         raise dbc.fail(key, "must name a signal of the raw frame, or be MESSAGE.Signal")
     message, _, signal = value.rpartition(".")
-    if message and message != raw.name:
-        raise dbc.fail(key, f"message {message} is not the raw frame {raw.name} (frames.raw)")
-    dbc.need_signal(key, raw, signal)
-    return signal
+    if not message or message == frames.raw.name:
+        dbc.need_signal(key, frames.raw, signal)
+        return None, signal
+    msg = dbc.message(key, message)
+    dbc.need_signal(key, msg, signal)
+    if msg.is_multiplexed() or msg.is_fd:
+        raise dbc.fail(key, f"message {message} must be a classic, unmultiplexed frame")
+    if msg.frame_id in {m.frame_id for m in (frames.rate, frames.status) if m is not None}:
+        raise dbc.fail(key, "cannot come from a frame the daemon sends")
+    return message, signal
 
 
 def _counter(content: dict, frames: _Frames, dbc: _Dbc) -> str | None:
@@ -365,6 +390,8 @@ def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]
     inputs: dict[str, InputSource] = {}
     for name, spec in inputs_in.items():
         key = f"inputs.{name}"
+        if str(name).startswith(HELD_AXIS_PREFIX):
+            raise dbc.fail(key, f"an input name cannot start with {HELD_AXIS_PREFIX!r}")
         if isinstance(spec, str):
             spec = {"signal": spec}
         if not isinstance(spec, dict):
@@ -392,6 +419,11 @@ def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSo
     spec = content.get("own_layout")
     if spec is None:
         return None
+    held = sorted({s.message for n, s in inputs.items() if n.startswith(HELD_AXIS_PREFIX)})
+    if held:
+        raise dbc.fail("own_layout", f"the axes come from several messages ({frames.raw.name}, "
+                                     f"{', '.join(held)}): the own layout re-encodes the raw frame's "
+                                     "message alone, so it needs every axis in it")
     if not isinstance(spec, dict):
         raise dbc.fail("own_layout", "must be a mapping {id: CAN id, extended: bool, channel: name}")
     _no_unknown(spec, {"id", "extended", "channel"}, "own_layout.", dbc.fail)

@@ -133,6 +133,8 @@ class FrameLayout:
     #: How the raw frame and the input frames are recognised (a J1939 group: by its PGN and source).
     raw_match: FrameMatch | None = None
     input_matches: tuple[tuple[FrameMatch, int], ...] = ()  # each input frame's match, and its key
+    #: Axes whose raw signal is in another message: the input their latest value is held under.
+    held_axes: tuple[tuple[str, str], ...] = ()
 
     @property
     def masked_inputs(self) -> tuple[tuple[FrameMatch, int], ...]:
@@ -186,6 +188,7 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
         own=own_layout(config, raw_msg, compiled=compiled),
         raw_match=raw_match,
         input_matches=tuple((m, frame_key(m.usual_id, key[1])) for key, m in matches.items()),
+        held_axes=tuple((a.axis, a.held) for a in config.axes if a.held is not None),
     )
 
 
@@ -193,9 +196,10 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
 class AxisPlan:
     """One axis of a generation of sets, as a frame needs it."""
 
-    at: int  # its raw signal's position in the decoded frame
+    at: int  # its raw signal's position in the decoded frame (-1: held, from another message)
     correct: CorrectOne | None  # None: no set, the axis goes out uncalibrated
-    needs: tuple[str, ...]  # the inputs its set reads
+    needs: tuple[str, ...]  # the inputs its set reads (and its held raw value's)
+    held: str | None = None  # the input its raw value is held under, when in another message
 
 
 @dataclass(frozen=True, slots=True)
@@ -223,6 +227,8 @@ def plan_for(sets: ActiveSets, layout: FrameLayout, max_age: dict[str, float], c
     that keep it (``cache``); one with terms the compiler does not know keeps ``correct_one``.
     """
     axes = []
+    held = dict(layout.held_axes)
+    ages = [(name, max_age[name]) for name in sets.inputs]
     for ax in sets.axes:
         corrector = ax.corrector
         correct: CorrectOne | None = None
@@ -235,8 +241,14 @@ def plan_for(sets: ActiveSets, layout: FrameLayout, max_age: dict[str, float], c
                 # and the entry would outlive it (one leaked set per reload).
                 cache[corrector] = fast
             correct = cache[corrector] or corrector.correct_one
-        axes.append(AxisPlan(layout.raw.index[ax.raw_signal], correct, ax.required_inputs))
-    return Plan(sets, tuple((name, max_age[name]) for name in sets.inputs), tuple(axes))
+        name = held.get(ax.axis)
+        if name is None:
+            axes.append(AxisPlan(layout.raw.index[ax.raw_signal], correct, ax.required_inputs))
+            continue
+        axes.append(AxisPlan(-1, correct, (*ax.required_inputs, name), name))
+        if correct is not None:  # its raw value must have come, and be recent
+            ages.append((name, max_age[name]))
+    return Plan(sets, tuple(ages), tuple(axes))
 
 
 @dataclass(frozen=True)
@@ -291,7 +303,8 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
             src.lines.append(f"    r{k}, o{k} = 0.0, False")
             flags.append("True")
             continue
-        src.add(*corrector_lines(ax.corrector, f"s{axis.at}", "values", f"r{k}", f"o{k}", tag=f"A{k}_",
+        raw = f"s{axis.at}" if axis.held is None else held[axis.held]
+        src.add(*corrector_lines(ax.corrector, raw, "values", f"r{k}", f"o{k}", tag=f"A{k}_",
                                  held=held, cached=slow, state=state))
         flags.append("False")
     if sets.coupling is not None:  # an IMU set: complete (its three axes load together), coupled

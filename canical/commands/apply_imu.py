@@ -116,6 +116,8 @@ def apply_imu_canlog(args: argparse.Namespace, corrector) -> int:
     if unmapped:
         raise CanicalError(f"the IMU set needs input(s) {', '.join(unmapped)}: map them with "
                            "--input NAME=MESSAGE.Signal or --config")
+    # Axes held from other messages: every axis's read needs them all, so the rows are the same.
+    needed += [r for r in source.raw_signals.values() if r in source.inputs]
     sessions = [_axis_log(args, source, axis, list(dict.fromkeys(needed))) for axis in AXES]
     session = sessions[0]
     raw = np.column_stack([s.raw for s in sessions])

@@ -17,6 +17,7 @@ signal has been seen once are left out (and counted), as there is nothing to hol
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -29,7 +30,12 @@ from cantools.database.can import Database, Message, Signal
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.frames.frame_match import FrameMatch, FrameMatcher, J1939Source, frame_match
-from canical.sessions.canlog_format import DEFAULT_RAW_MESSAGE, DEFAULT_REF, require_log_support
+from canical.sessions.canlog_format import (
+    DEFAULT_RAW_MESSAGE,
+    DEFAULT_REF,
+    HELD_AXIS_PREFIX,
+    require_log_support,
+)
 from canical.sessions.session import RAW_UNITS, Rail, Session
 
 TIME_INPUT = "time_s"
@@ -151,8 +157,15 @@ def read_canlog(
     db = load_dbc(dbc)
     raw = _message(db, raw_message, dbc)
     raw_sig = raw_signal or f"GyroRaw{axis.upper()}"
-    if raw_sig not in {s.name for s in raw.signals}:
+    if raw_sig.startswith(HELD_AXIS_PREFIX):  # in another message: held, taken at each raw frame
+        if raw_sig not in inputs:
+            raise CanicalError(f"axis {axis}: its raw signal ({raw_sig}) is not among the inputs")
+        held_msg, _, held_sig = inputs[raw_sig].partition(".")
+        signal_msg, signal_name = _message(db, held_msg, dbc), held_sig
+    elif raw_sig not in {s.name for s in raw.signals}:
         raise CanicalError(f"{dbc}: message {raw.name} has no signal {raw_sig} (axis {axis})")
+    else:
+        signal_msg, signal_name = raw, raw_sig
     wanted = _wanted_signals(db, inputs, ref)
     by_id = _frames_by_id(db, dbc, wanted)
     raw_match = frame_match(raw, j1939_source)
@@ -168,9 +181,11 @@ def read_canlog(
         raise
     except Exception as exc:  # python-can's readers raise many types on a damaged file
         raise CanicalError(f"{name}: cannot read CAN log after {log.frames} frames ({exc})") from None
-    signal = raw.get_signal_by_name(raw_sig)
-    rail = signal_rail(signal, f"DBC signal {raw.name}.{raw_sig}")
+    signal = signal_msg.get_signal_by_name(signal_name)
+    rail = signal_rail(signal, f"DBC signal {signal_msg.name}.{signal_name}")
     session = _session(log, name, raw.name, axis, sensor, rail, signal.unit or None)
+    for channel in [c for c in session.aux if c.startswith(HELD_AXIS_PREFIX)]:
+        del session.aux[channel]  # axes' raw values, not inputs
     return CanlogSession(session, log.frames, log.skipped, log.dropped, _table_axis(log.held),
                          bool(log.held.get("\0inverted", 0.0)))
 
@@ -243,7 +258,8 @@ def _take_frame(log: _LogRows, frame: can.Message, raw_match: FrameMatch, raw: F
     values = _signals(msg_def, frame.data)
     log.hold(values, pairs)
     if is_raw:
-        log.add(float(frame.timestamp), _number(values, raw_sig))
+        held = raw_sig.startswith(HELD_AXIS_PREFIX)
+        log.add(float(frame.timestamp), log.held.get(raw_sig, math.nan) if held else _number(values, raw_sig))
 
 
 def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | None,

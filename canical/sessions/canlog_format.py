@@ -20,6 +20,9 @@ CANLOG_FORMATS = ".log, .asc, .blf, .trc, .csv, .db, .mf4, each also .gz"
 PYTHON_CAN_CSV_HEADER = "timestamp,arbitration_id,extended,remote,error,dlc,data"
 DEFAULT_RAW_MESSAGE = "IMU_RAW"
 DEFAULT_REF = "TABLE_REF.TableRate"
+#: An axis whose raw signal comes in another message than the raw frame is held like an input,
+#: under this prefix and the axis's name ("@x"): a name no input of a configuration can have.
+HELD_AXIS_PREFIX = "@"
 
 
 def log_format(path: str | os.PathLike[str]) -> str:

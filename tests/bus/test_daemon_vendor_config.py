@@ -64,10 +64,10 @@ def test_a_vendor_imu_on_an_extended_id_with_motorola_signals(tmp_path, sets) ->
     ("change", "key", "words"),
     [
         ({"inputs": {"hud": {"signal": "HUD_ODD.HudTemp"}}}, "inputs.hud.signal", "HUD_ODD is broken"),
-        ({"axes": {"x": {"raw": "GYRO_TPDO2.GyroX"}, "y": {"raw": "ANGRATE.YawRate"}}}, "axes",
-         "several messages"),
+        ({"axes": {"x": {"raw": "CANICAL_RATE.RateX", "coefficients": "x.yaml"},
+                   "y": {"raw": "GYRO_TPDO2.GyroY"}, "z": {"raw": "GYRO_TPDO2.GyroZ"}}}, "axes.x.raw",
+         "cannot come from a frame the daemon sends"),
         ({"axes": {"x": {"raw": "GYRO_TPDO2.GyroQ", "coefficients": "x.yaml"}}}, "axes.x.raw", "GyroQ"),
-        ({"frames": {"raw": "ANGRATE"}}, "axes.x.raw", "not the raw frame ANGRATE"),
         ({"dbc": []}, "dbc", "empty list"),
         ({"dbc": [str(VENDOR), "missing.dbc"]}, "dbc[1]", "not found"),
         ({"counter": "Counter"}, "counter", "signal Counter not in message GYRO_TPDO2"),

@@ -1,0 +1,162 @@
+"""A vendor's IMU that sends each gyro axis in its own message (standard and extended ids, Intel
+and Motorola, no counter): the daemon holds each axis's latest value and corrects all three when
+the raw frame (the last axis's message) comes; ``apply --config`` on a log of the same frames
+gives the same rates.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+import yaml
+from support.daemon_fixtures import DBC, TERMS, write_sets
+from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+
+from canical.bus.daemon import Daemon
+from canical.bus.daemon_config import load_config
+from canical.commands.cli import main
+from canical.errors import CanicalError
+from canical.frames.codec import load_dbc
+from canical.sessions.csv_file import read_table
+from canical.sets import coefficient_file
+from canical.sets.corrector import Corrector
+
+SPLIT = Path(__file__).resolve().parents[1] / "data" / "vendor_imu_split.dbc"
+FS = 200.0
+AXIS_SIGNALS = {"x": "ROLL_RATE.RollRaw", "y": "PITCH_RATE.PitchRaw", "z": "YAW_RATE.YawRaw"}
+HALF_LSB = 0.005 + 1e-9
+
+
+@pytest.fixture
+def sets(tmp_path: Path) -> dict[str, Path]:
+    """A temperature term on x: its input comes from the z axis's message."""
+    return write_sets(tmp_path, terms={"x": TERMS["x"][:1], "y": (), "z": TERMS["y"]})
+
+
+def split_config(folder: Path, sets: dict[str, Path], **changes) -> Path:
+    content = {
+        "bus": {"interface": "socketcan", "channel": "split"},
+        "dbc": str(SPLIT),
+        "axes": {a: {"raw": AXIS_SIGNALS[a], "coefficients": str(sets[a])} for a in "xyz"},
+        "inputs": {"temp_c": {"signal": "YAW_RATE.ChipTemp", "max_age_s": 1.0}},
+    }
+    content.update(changes)
+    path = folder / "split.yaml"
+    path.write_text(yaml.safe_dump(content, sort_keys=False))
+    return path
+
+
+def split_stream(n: int, seed: int = 4, gap: tuple[int, int] = (0, 0)) -> list[can.Message]:
+    """``n`` samples, each as ROLL, PITCH, YAW frames 0.2 ms apart; the ROLL frames of samples
+    in ``gap`` are lost (the x axis's value goes stale)."""
+    db = load_dbc(SPLIT)
+    roll, pitch, yaw = (db.get_message_by_name(m) for m in ("ROLL_RATE", "PITCH_RATE", "YAW_RATE"))
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / FS
+    counts = np.column_stack([24000 * np.sin(2 * np.pi * (t / t[-1] + k / 3)) + rng.normal(0, 30, n)
+                              for k in range(3)]).astype(int)
+    temp = 25.0 + 5.0 * np.sin(2 * np.pi * t / t[-1])
+    msgs = []
+    for i in range(n):
+        stamp = 50.0 + t[i]
+        if not gap[0] <= i < gap[1]:
+            msgs.append(can.Message(timestamp=stamp, arbitration_id=roll.frame_id, is_extended_id=False,
+                                    data=roll.encode({"RollRaw": int(counts[i, 0]), "RollQuality": 1})))
+        msgs.append(can.Message(timestamp=stamp + 0.0002, arbitration_id=pitch.frame_id, is_extended_id=True,
+                                data=pitch.encode({"PitchRaw": int(counts[i, 1]), "PitchQuality": 1})))
+        msgs.append(can.Message(timestamp=stamp + 0.0004, arbitration_id=yaw.frame_id, is_extended_id=False,
+                                data=yaw.encode({"YawRaw": int(counts[i, 2]), "ChipTemp": round(float(temp[i]), 2),
+                                                 "YawQuality": 1})))
+    return msgs
+
+
+def held_rows(msgs: list[can.Message]) -> list[dict[str, float]]:
+    """Per YAW frame, the latest of every message's signals (as the daemon holds them)."""
+    db = load_dbc(SPLIT)
+    held: dict[str, float] = {}
+    rows = []
+    for m in msgs:
+        held.update(db.get_message_by_frame_id(m.arbitration_id).decode(m.data))
+        if m.arbitration_id == 0x1A2:
+            rows.append(dict(held))
+    return rows
+
+
+def run(config_path: Path, msgs: list[can.Message]) -> tuple[Daemon, list[bytes], list[bytes]]:
+    """The compiled daemon on a stand-in raw socket and the reference one: what each sent."""
+    config = load_config(config_path)
+    compiled, reference = Daemon(config), Daemon(config, compiled=False)
+    sent_ref: list[bytes] = []
+    reference.bus = type("Bus", (), {  # type: ignore[assignment]
+        "send": lambda self, msg, timeout=None: sent_ref.append(bytes(msg.data))})()
+    for daemon in (compiled, reference):
+        daemon.load_sets()
+    for m in msgs:
+        reference._dispatch(m)
+    sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in msgs])
+    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
+    compiled._next_periodic = float("inf")
+    compiled._serve_until_deadline()
+    return compiled, sock.sent, sent_ref
+
+
+def test_axes_from_three_messages_are_held_and_corrected_at_the_raw_frame(tmp_path: Path, sets) -> None:
+    config = load_config(split_config(tmp_path, sets))
+    assert config.raw_message == "YAW_RATE" and config.counter_signal is None
+    assert [(a.message, a.raw_signal) for a in config.axes] == [
+        ("ROLL_RATE", "RollRaw"), ("PITCH_RATE", "PitchRaw"), (None, "YawRaw")]
+    msgs = split_stream(600, gap=(300, 340))  # 40 samples (0.2 s) without ROLL: x stale
+    compiled, sent, sent_ref = run(tmp_path / "split.yaml", msgs)
+    assert sent == sent_ref and len(sent) == 600
+    assert "values['@x']" in compiled._fast[2].source  # the generated handler, with x held
+    rate_msg = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
+    got = [rate_msg.decode(p) for p in sent]
+    stale = [g["Stale"] for g in got]
+    # ROLL lost from sample 300: stale once its last value is older than 0.1 s, until 340.
+    assert not any(stale[:300]) and all(stale[321:340]) and not any(stale[341:])
+    rows = held_rows(msgs)
+    for axis, signal in (("x", "RollRaw"), ("y", "PitchRaw"), ("z", "YawRaw")):
+        corrector = Corrector(coefficient_file.load(sets[axis]))
+        want = np.array([corrector.correct_one(r[signal], {"temp_c": r["ChipTemp"]})[0] for r in rows])
+        sent_rates = np.array([g[f"Rate{axis.upper()}"] for g in got])
+        inside = np.abs(want) < 327.0
+        assert inside.sum() > 300
+        assert np.max(np.abs(sent_rates - want)[inside]) <= HALF_LSB, axis
+    assert compiled.stats.stale_frames == sum(stale) and compiled.stats.inputs_in == 560 + 600  # ROLL and PITCH frames
+
+
+def test_apply_on_a_log_of_the_frames_gives_the_daemons_rates(tmp_path: Path, sets) -> None:
+    msgs = split_stream(400)
+    _, sent, _ = run(split_config(tmp_path, sets), msgs)
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for m in msgs:
+            logger.on_message_received(m)
+    rate_msg = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
+    got = [rate_msg.decode(p) for p in sent]
+    for axis in "xyz":
+        out = tmp_path / f"apply-{axis}.csv"
+        assert main(["apply", str(sets[axis]), str(log), "--config", str(tmp_path / "split.yaml"),
+                     "-o", str(out)]) == 0
+        table = read_table(out).columns
+        assert "@x" not in table and len(table["rate_dps"]) == len(got)
+        want = np.clip(table["rate_dps"], -327.68, 327.67)
+        assert np.max(np.abs(np.array([g[f"Rate{axis.upper()}"] for g in got]) - want)) <= HALF_LSB, axis
+
+
+@pytest.mark.parametrize(("change", "words"), [
+    ({"own_layout": {"id": 0x2A2}}, "own_layout: the axes come from several messages"),
+    ({"axes": {"x": {"raw": "ROLL_RATE.Nope"}}}, "axes.x.raw: signal Nope not in message ROLL_RATE"),
+    ({"axes": {"x": {"raw": "YAW_RATE.YawRaw", "max_age_s": 0.5}, "y": {"raw": "PITCH_RATE.PitchRaw"}}},
+     "axes.x.max_age_s: only for an axis in another message"),
+    ({"inputs": {"@x": "YAW_RATE.ChipTemp"}}, "inputs.@x: an input name cannot start with '@'"),
+])
+def test_bad_split_configurations_are_one_line(tmp_path: Path, sets, change: dict, words: str) -> None:
+    if "axes" in change:
+        change = {"axes": {**{a: {"raw": AXIS_SIGNALS[a], "coefficients": str(sets[a])} for a in "xyz"},
+                           **{a: {**v, "coefficients": str(sets[a])} for a, v in change["axes"].items()}}}
+    with pytest.raises(CanicalError, match=words.replace("(", r"\(").replace("'", ".")):
+        load_config(split_config(tmp_path, sets, **change))
