@@ -176,7 +176,13 @@ def on_grid(values: np.ndarray, step: float) -> np.ndarray:
 def imu_every_term_set(seed: int = 0) -> ImuSet:
     """An IMU set whose three axes carry every term kind (the z set of :func:`term_set`, as each
     axis) and whose coupling undoes a random triad's (:mod:`canical.sim.triad`, 0.4–2 %)."""
-    axes = tuple(replace(term_set(tuple(TERMS)), axis=a) for a in "xyz")
+    return imu_set_of(term_set(tuple(TERMS)), seed)
+
+
+def imu_set_of(cset: CoefficientSet, seed: int = 0) -> ImuSet:
+    """An IMU set with ``cset`` as each of its three axes and the coupling that undoes a random
+    triad's (:mod:`canical.sim.triad`, 0.4–2 %)."""
+    axes = tuple(replace(cset, axis=a) for a in "xyz")
     matrix = np.linalg.inv(random_triad(seed).coupling)
     return ImuSet(SENSOR, axes, as_matrix(matrix), as_matrix(np.full((3, 3), 1e-4)),  # type: ignore[arg-type]
                   {"coupling_plateaus": 0}, "2026-01-01T00:00:00Z")
