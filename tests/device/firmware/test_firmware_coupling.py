@@ -138,3 +138,46 @@ def test_sets_that_are_not_the_couplings_are_refused_per_sample(lib: Library) ->
     assert code == CODES["CE_ERR_IMU_SET"]
     with pytest.raises(FirmwareRefusal, match="CE_ERR_SENSOR"):
         FirmwareImuCorrector(imu_triad_set(0), serial=SERIAL + 1, lib=lib)
+
+
+def test_fuzz_coupling_banks_under_sanitizers(sanitized_driver, tmp_path) -> None:
+    """30,000 random mutations of a coupling bank (CRC recomputed for most), loaded with its three
+    axis banks: no sanitizer report, the bank as given accepted, and the C library's verdict
+    canical's own (canical.device.bank_payload: decode_coupling, then join_imu_set)."""
+    import struct
+    import subprocess
+
+    from canical.device.bank_payload import decode_coupling, join_imu_set
+
+    imu = imu_triad_set(0)
+    p = encode_coupling(imu)
+    records = tmp_path / "records.bin"
+    banks = [*(encode_set(c) for c in imu.axes), (p.content, p.crc)]
+    records.write_bytes(b"".join(struct.pack("<II", len(c), crc) + c for c, crc in banks))
+    n = 30_000
+    done = subprocess.run(
+        [str(sanitized_driver), "coupling", str(records), str(n), "77", str(p.imu_set_id), str(SERIAL), "x",
+         "0", "temp_c", "supply_v"],
+        capture_output=True, text=True, check=False, timeout=600,
+        env={"ASAN_OPTIONS": "abort_on_error=0:exitcode=99", "UBSAN_OPTIONS": "exitcode=99",
+             "CE_SAMPLE_EVERY": "10"},
+    )
+    assert done.returncode == 0 and "Sanitizer" not in done.stderr and "runtime error" not in done.stderr, (
+        done.stderr[-3000:])
+    *lines, summary = done.stdout.splitlines()
+    assert summary.startswith(f"cases {n} accepted ")
+    rows = [(int(code), int(crc, 16), bytes.fromhex(hexed)) for code, crc, hexed in
+            ([*ln.split(" "), ""][:3] for ln in lines)]
+    assert rows[0] == (0, p.crc, p.content)
+    refused = [r for r in rows if r[0] != 0]
+    assert len(refused) > 1000
+
+    def python_accepts(content: bytes, crc: int) -> bool:
+        try:
+            join_imu_set(decode_coupling(content, crc, "bank"), imu.axes, p.imu_set_id, "bank")
+        except CanicalError:
+            return False
+        return True
+
+    for code, crc, content in rows:
+        assert python_accepts(content, crc) == (code == 0), (code, content)
