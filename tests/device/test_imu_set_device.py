@@ -35,6 +35,7 @@ from canical.imu_dictionary import (
     STATUS_REFUSED,
     STATUS_VALID,
     imu_objects,
+    object_dictionary,
     pack_active,
     unpack_active,
     unpack_coupling,
@@ -78,8 +79,27 @@ def with_matrix(imu, matrix) -> CouplingPayload:
 
 
 # --------------------------------------------------------------------------------------------
-# The selector and the coupling bank's bytes
+# The object dictionary, the selector and the coupling bank's bytes
 # --------------------------------------------------------------------------------------------
+
+
+def test_coupling_objects_are_in_the_eds_apart_from_every_other() -> None:
+    from canopen.objectdictionary import DOMAIN, UNSIGNED32
+
+    od = object_dictionary(NODE)
+    o = imu_objects()
+    used = {(b.index, s) for b in o.banks.values() for s in (b.content, b.crc, b.status, b.size)}
+    used |= {o.active_banks, o.stored_state, *o.active_set_id.values()}
+    for bank, index in (("A", 0x2216), ("B", 0x2217)):
+        ref = o.coupling_bank(bank)
+        keys = {(ref.index, s) for s in (ref.content, ref.crc, ref.status, ref.size, ref.imu_set_id)}
+        assert ref.index == index and len(keys) == 5 and not keys & used
+        assert od[index][ref.content].data_type == DOMAIN and od[index][ref.content].writable
+        assert od[index][ref.imu_set_id].data_type == UNSIGNED32 and od[index][ref.imu_set_id].writable
+        assert not od[index][ref.status].writable
+        used |= keys
+    assert o.active_imu_set_id == (0x2225, 0) and o.active_imu_set_id not in used
+    assert not od[0x2225].writable
 
 
 @pytest.mark.parametrize("coupling", [None, "A", "B"])
