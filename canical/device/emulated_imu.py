@@ -256,10 +256,12 @@ class EmulatedImu:
         if not self.send(0x700 + self.config.node_id, b"\x00"):
             return
         active = unpack_active(self.store.active_value())
+        coupling = self.store.active_coupling
         log.info(
-            "node 0x%02x serial %d up; active %s",
+            "node 0x%02x serial %d up; active %s coupling=%s:0x%08x",
             self.config.node_id, self.config.serial,
             " ".join(f"{a}={b or 'none'}:0x{self.store.active_id(a):08x}" for a, b in active.items()),
+            coupling or "none", self.store.active_imu_set_id(),
         )
 
     def run(self, duration_s: float | None = None) -> None:
