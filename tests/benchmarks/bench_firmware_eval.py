@@ -9,6 +9,8 @@ axes and their coupling, ``ce_eval3``: each axis's set, then corrected = M @ the
 * floating-point operations per sample (add, subtract, multiply, divide, compare, int/float
   conversion), counted from the source along the path each sample takes (inside the span,
   beyond it, and the worst case the library's limits allow);
+* for the IMU set rows, the largest difference from ``canical apply imu.yaml`` (ImuCorrector) over
+  the samples timed;
 * with ``arm-none-eabi-gcc`` (Debian ``gcc-arm-none-eabi``): code size of a Cortex-M4F build
   (-mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard, freestanding) at -O2 and -Os, and of
   the functions a sample runs through.
@@ -26,6 +28,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from support.firmware_cases import (
@@ -41,6 +45,7 @@ from support.firmware_cases import (
 from canical.device.firmware_eval import FirmwareCorrector, FirmwareImuCorrector
 from canical.sets import term_kinds
 from canical.sets.corrector import Corrector
+from canical.sets.imu_corrector import ImuCorrector
 from canical.sets.term_kinds import TermKind
 from canical.sets.terms import term_from_dict
 
@@ -159,6 +164,7 @@ def main() -> None:
                 segments, coeffs, [t.spec for t in terms], sum(t.form == "scale" for t in terms)
             )
         print(f"{name:34s} {segments:4d} {coeffs:4d} {c_ns:7.1f} {py_us:17.2f} {ops[0]:9d} / {ops[1]:<7d}")
+    agreement = []
     for name, cset, ops in imu_rows(cases):
         imu = imu_set_of(cset)
         raw, inputs = imu_stream(imu, args.samples)
@@ -177,8 +183,14 @@ def main() -> None:
 
         py_us = best_of(python3, min(repeats, 3)) / n_py * 1e6
         print(f"{name:34s} {'':4s} {'':4s} {c_ns * 1e9:7.1f} {py_us:17.2f} {ops[0]:9d} / {ops[1]:<7d}")
+        expected, flags = ImuCorrector(imu).correct(raw, inputs)
+        rates, oos = fw3.correct(raw, inputs)
+        agreement.append((float(np.max(np.abs(rates - expected))), int(np.sum(oos != flags))))
     print("(three axes: ns per three-axis sample, ce_eval3_block; operations those of the three sets plus")
     print(f" the coupling's {COUPLING_OPS})")
+    print(f"IMU set rows against `canical apply imu.yaml` (ImuCorrector) over {args.samples:,} samples: "
+          "largest difference " + " / ".join(f"{d:.1e}" for d, _ in agreement) + " deg/s, out-of-span "
+          "flags differing " + " / ".join(str(f) for _, f in agreement))
     lags = [term_kinds.CHANNEL_LAG] * LIMITS["terms"]
     worst = operations(LIMITS["segments"], LIMITS["coeffs"], lags, LIMITS["terms"])
     fwd = forward_operations(LIMITS["coeffs"], LIMITS["newton"])
