@@ -410,3 +410,22 @@ def test_dcf_of_an_imu_set_carries_the_coupling_and_activates_it(tmp_path: Path)
         finally:
             net.disconnect()
         assert dev.store.active_imu_set() == imu and dev.store.active_value() == all_on("B", "B")
+
+
+def test_command_line_mistakes_are_one_line_and_write_nothing(tmp_path: Path, capsys) -> None:
+    imu = tmp_path / "imu.yaml"
+    imu_file.save(imu, imu_triad_set(0))
+    from canical.sets import coefficient_file
+
+    single = tmp_path / "x.yaml"
+    coefficient_file.save(single, imu_set("x"))
+    with emulated(tmp_path) as (dev, channel):
+        assert main(["push", str(imu), str(single), *bus(channel)]) == 2
+        assert "is an IMU set (three axes and their coupling): give it alone" in one_line(capsys)
+        out = tmp_path / "out.yaml"
+        assert main(["pull", *bus(channel), "--imu-set", "--axis", "x", "-o", str(out)]) == 2
+        assert "no --axis with it" in one_line(capsys)
+        assert main(["pull", *bus(channel), "--imu-set", "-o", str(tmp_path / "o-{axis}.yaml")]) == 2
+        assert "writes one file" in one_line(capsys)
+        assert dev.store.activation_count == 0 and sorted(p.name for p in tmp_path.iterdir()) == [
+            "imu.yaml", "x.yaml"]
