@@ -27,6 +27,9 @@ AXES = ("x", "y", "z")
 BANKS = ("A", "B")
 BANK_NONE = 0  # selector value: no set active for the axis
 BITS_PER_AXIS = 2
+#: The coupling's two bits in the selector, above the three axes' (bits 6-7): 0 none
+#: (identity), 1 coupling bank A, 2 coupling bank B.
+COUPLING_SHIFT = BITS_PER_AXIS * len(AXES)
 
 #: CiA 301 signatures: "save" / "load" as little-endian UNSIGNED32.
 STORE_SIGNATURE = int.from_bytes(b"save", "little")
@@ -109,6 +112,19 @@ class BankRef:
 
 
 @dataclass(frozen=True)
+class CouplingBankRef:
+    """Where one coupling bank lives: an axis bank's entries plus the IMU set id it belongs to."""
+
+    bank: str
+    index: int
+    content: int
+    crc: int
+    status: int
+    size: int
+    imu_set_id: int
+
+
+@dataclass(frozen=True)
 class ImuObjects:
     """The (index, sub-index) of every object the tools use, resolved from the EDS by name."""
 
@@ -118,7 +134,9 @@ class ImuObjects:
     capacity: tuple[int, int]
     rated_range: dict[str, tuple[int, int]]
     banks: dict[tuple[str, str], BankRef]
+    coupling_banks: dict[str, CouplingBankRef]
     active_banks: tuple[int, int]
+    active_imu_set_id: tuple[int, int]
     active_set_id: dict[str, tuple[int, int]]
     activation_count: tuple[int, int]
     last_refusal: tuple[int, int]
@@ -129,6 +147,9 @@ class ImuObjects:
 
     def bank(self, axis: str, bank: str) -> BankRef:
         return self.banks[(axis, bank)]
+
+    def coupling_bank(self, bank: str) -> CouplingBankRef:
+        return self.coupling_banks[bank]
 
 
 def _var(od: canopen.ObjectDictionary, name: str, entry: str | None = None) -> tuple[int, int]:
@@ -163,6 +184,15 @@ def imu_objects() -> ImuObjects:
                 member(od, record, "Status").subindex,
                 member(od, record, "Size").subindex,
             )
+    coupling = {}
+    for bank in BANKS:
+        record = f"Coupling bank {bank}"
+        coupling[bank] = CouplingBankRef(
+            bank,
+            od[record].index,
+            *(member(od, record, entry).subindex
+              for entry in ("Content", "CRC32", "Status", "Size", "IMU set id")),
+        )
     return ImuObjects(
         serial=_var(od, "Identity object", "Serial number"),
         store=_var(od, "Store parameters", "Save all parameters"),
@@ -170,7 +200,9 @@ def imu_objects() -> ImuObjects:
         capacity=_var(od, "Coefficient bank capacity"),
         rated_range={a: _var(od, "Rated range", f"Rated range {a.upper()}") for a in AXES},
         banks=banks,
+        coupling_banks=coupling,
         active_banks=_var(od, "Active banks"),
+        active_imu_set_id=_var(od, "Active IMU set id"),
         active_set_id={a: _var(od, "Active set id", f"Active set id {a.upper()}") for a in AXES},
         activation_count=_var(od, "Activation count"),
         last_refusal=_var(od, "Last refusal"),
@@ -182,27 +214,37 @@ def imu_objects() -> ImuObjects:
     )
 
 
-def pack_active(selection: dict[str, str | None]) -> int:
-    """Active-bank selector value: ``{"x": "A", "y": None, ...}`` → one UNSIGNED8."""
+def pack_active(selection: dict[str, str | None], coupling: str | None = None) -> int:
+    """Active-bank selector value: ``{"x": "A", "y": None, ...}`` and the coupling bank → one UNSIGNED8."""
     value = 0
     for i, axis in enumerate(AXES):
-        bank = selection.get(axis)
-        code = BANK_NONE if bank is None else BANKS.index(bank) + 1
-        value |= code << (BITS_PER_AXIS * i)
-    return value
+        value |= _code(selection.get(axis)) << (BITS_PER_AXIS * i)
+    return value | _code(coupling) << COUPLING_SHIFT
+
+
+def _code(bank: str | None) -> int:
+    return BANK_NONE if bank is None else BANKS.index(bank) + 1
+
+
+def _bank(value: int, shift: int, what: str) -> str | None:
+    code = (value >> shift) & ((1 << BITS_PER_AXIS) - 1)
+    if code > len(BANKS):
+        raise ValueError(f"active-bank value 0x{value:02x}: {what} code {code} names no bank")
+    return None if code == BANK_NONE else BANKS[code - 1]
 
 
 def unpack_active(value: int) -> dict[str, str | None]:
-    """Inverse of :func:`pack_active`; raises ValueError on a code that names no bank."""
-    if value >> (BITS_PER_AXIS * len(AXES)):
-        raise ValueError(f"active-bank value 0x{value:02x} has bits beyond the three axes")
-    out: dict[str, str | None] = {}
-    for i, axis in enumerate(AXES):
-        code = (value >> (BITS_PER_AXIS * i)) & ((1 << BITS_PER_AXIS) - 1)
-        if code > len(BANKS):
-            raise ValueError(f"active-bank value 0x{value:02x}: axis {axis} code {code} names no bank")
-        out[axis] = None if code == BANK_NONE else BANKS[code - 1]
-    return out
+    """The axes' banks of a selector value (:func:`unpack_coupling` gives its coupling bank);
+    raises ValueError on a code that names no bank, the coupling's included."""
+    if value >> (COUPLING_SHIFT + BITS_PER_AXIS):
+        raise ValueError(f"active-bank value 0x{value:02x} has bits beyond the three axes and the coupling")
+    unpack_coupling(value)
+    return {axis: _bank(value, BITS_PER_AXIS * i, f"axis {axis}") for i, axis in enumerate(AXES)}
+
+
+def unpack_coupling(value: int) -> str | None:
+    """The coupling bank a selector value names (None: no coupling, the identity)."""
+    return _bank(value, COUPLING_SHIFT, "coupling")
 
 
 def other_bank(bank: str | None) -> str:

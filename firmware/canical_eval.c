@@ -68,19 +68,30 @@ static const uint32_t CRC_NIBBLE[16] = {
     0x4DB26158u, 0x5005713Cu, 0xEDB88320u, 0xF00F9344u, 0xD6D6A3E8u, 0xCB61B38Cu,
     0x9B64C2B0u, 0x86D3D2D4u, 0xA00AE278u, 0xBDBDF21Cu};
 
-uint32_t ce_crc32(const uint8_t *data, uint32_t length)
+/* The running register over more bytes (start from 0xFFFFFFFF, invert at the end): one CRC over
+ * pieces, as the IMU set id is over its axis banks and its coupling bank. */
+static uint32_t crc_update(uint32_t crc, const uint8_t *data, uint32_t length)
 {
-    uint32_t crc = 0xFFFFFFFFu;
     uint32_t i;
-    if (data == NULL) {
-        return 0u;
-    }
     for (i = 0; i < length; i++) {
         crc ^= data[i];
         crc = (crc >> 4) ^ CRC_NIBBLE[crc & 15u];
         crc = (crc >> 4) ^ CRC_NIBBLE[crc & 15u];
     }
-    return ~crc;
+    return crc;
+}
+
+static uint32_t crc_text(uint32_t crc, const char *text)
+{
+    return crc_update(crc, (const uint8_t *)text, (uint32_t)text_length(text));
+}
+
+uint32_t ce_crc32(const uint8_t *data, uint32_t length)
+{
+    if (data == NULL) {
+        return 0u;
+    }
+    return ~crc_update(0xFFFFFFFFu, data, length);
 }
 
 /* ------------------------------------------------------------------------------------------
@@ -1692,6 +1703,359 @@ int ce_load(ce_set *set, const uint8_t *content, uint32_t length, uint32_t decla
 }
 
 /* ------------------------------------------------------------------------------------------
+ * An IMU set's coupling: parse, check (canical.sets.imu_set.check_coupling), apply.
+ * ---------------------------------------------------------------------------------------- */
+
+typedef struct {
+    double m[3][3];
+    int have_matrix, have_kind, have_schema, schema_ok, kind_ok;
+    const uint8_t *sensor_id;
+    uint32_t sensor_id_n;
+} coupling_reading;
+
+static int parse_matrix(cur *c, coupling_reading *r)
+{
+    int started = 0, rows = 0, more;
+    while ((more = next_element(c, &started)) == 1) {
+        int count;
+        if (rows == 3) {
+            return fail(c, CE_ERR_FIELD);
+        }
+        if (number_list(c, r->m[rows], 3, &count)) {
+            return c->err == CE_ERR_LIMIT ? (c->err = CE_ERR_FIELD) : c->err;
+        }
+        if (count != 3) {
+            return fail(c, CE_ERR_FIELD);
+        }
+        rows++;
+    }
+    if (more < 0) {
+        return more;
+    }
+    if (rows != 3) {
+        return fail(c, CE_ERR_FIELD);
+    }
+    r->have_matrix = 1;
+    return 0;
+}
+
+static int parse_coupling_top(cur *c, coupling_reading *r)
+{
+    members it = {NULL, 0, 0};
+    int more;
+    while ((more = next_member(c, &it)) == 1) {
+        if (key_is(&it, "crc32")) {
+            return fail(c, CE_ERR_NOT_CANONICAL);
+        } else if (key_is(&it, "axes")) {
+            return fail(c, CE_ERR_FIELD); /* the axes are in their own banks */
+        } else if (key_is(&it, "coupling")) {
+            members in = {NULL, 0, 0};
+            int more_in;
+            while ((more_in = next_member(c, &in)) == 1) {
+                if (key_is(&in, "matrix")) {
+                    if (parse_matrix(c, r)) {
+                        return c->err;
+                    }
+                } else if (skip_value(c)) {
+                    return c->err; /* applied_to, standard_errors */
+                }
+            }
+            if (more_in < 0) {
+                return more_in;
+            }
+        } else if (key_is(&it, "kind")) {
+            const uint8_t *s;
+            uint32_t n;
+            if (string_value(c, &s, &n)) {
+                return c->err;
+            }
+            r->have_kind = 1;
+            r->kind_ok = bytes_are(s, n, "imu-set");
+        } else if (key_is(&it, "schema")) {
+            int b = tok(c);
+            double d = 0.0;
+            r->have_schema = 1;
+            if (b == '-' || is_digit(b)) {
+                if (parse_number(c, &d)) {
+                    return c->err;
+                }
+                r->schema_ok = d == 1.0;
+            } else if (skip_value(c)) {
+                return c->err;
+            }
+        } else if (key_is(&it, "sensor")) {
+            members in = {NULL, 0, 0};
+            int more_in;
+            while ((more_in = next_member(c, &in)) == 1) {
+                if (key_is(&in, "id")) {
+                    if (string_value(c, &r->sensor_id, &r->sensor_id_n)) {
+                        return c->err;
+                    }
+                } else if (skip_value(c)) {
+                    return c->err;
+                }
+            }
+            if (more_in < 0) {
+                return more_in;
+            }
+        } else if (skip_value(c)) {
+            return c->err; /* created, fit */
+        }
+    }
+    if (more < 0) {
+        return more;
+    }
+    if (c->p != c->end) {
+        return fail(c, CE_ERR_SYNTAX);
+    }
+    return 0;
+}
+
+/* Square root by Newton's method (no libm): x scaled into [0.25, 4) by powers of 4 first. */
+static double sqrt_d(double x)
+{
+    double scale = 1.0, y;
+    int i;
+    if (!(x > 0.0)) {
+        return 0.0;
+    }
+    while (x >= 4.0) {
+        x *= 0.25;
+        scale *= 2.0;
+    }
+    while (x < 0.25) {
+        x *= 4.0;
+        scale *= 0.5;
+    }
+    y = 1.0;
+    for (i = 0; i < 8; i++) {
+        y = 0.5 * (y + x / y);
+    }
+    return y * scale;
+}
+
+/* 2-norm condition number of M, squared: the eigenvalue ratio of the symmetric MᵀM, its
+ * eigenvalues found by cyclic Jacobi rotations (load time only). Returns -1 for a singular M. */
+static double condition_squared(const double m[3][3])
+{
+    double a[3][3];
+    double lo, hi;
+    int i, j, k, sweep;
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < 3; j++) {
+            a[i][j] = m[0][i] * m[0][j] + m[1][i] * m[1][j] + m[2][i] * m[2][j];
+        }
+    }
+    for (sweep = 0; sweep < 50; sweep++) {
+        double off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+        double diag = a[0][0] * a[0][0] + a[1][1] * a[1][1] + a[2][2] * a[2][2];
+        if (off <= 1e-32 * diag) {
+            break;
+        }
+        for (i = 0; i < 2; i++) {
+            for (j = i + 1; j < 3; j++) {
+                double theta, t, c, s;
+                if (a[i][j] == 0.0) {
+                    continue;
+                }
+                theta = (a[j][j] - a[i][i]) / (2.0 * a[i][j]);
+                t = 1.0 / ((theta < 0.0 ? -theta : theta) + sqrt_d(theta * theta + 1.0));
+                if (theta < 0.0) {
+                    t = -t;
+                }
+                c = 1.0 / sqrt_d(t * t + 1.0);
+                s = t * c;
+                for (k = 0; k < 3; k++) { /* A <- A J: columns i and j */
+                    double aki = a[k][i], akj = a[k][j];
+                    a[k][i] = c * aki - s * akj;
+                    a[k][j] = s * aki + c * akj;
+                }
+                for (k = 0; k < 3; k++) { /* A <- Jᵀ A: rows i and j */
+                    double aik = a[i][k], ajk = a[j][k];
+                    a[i][k] = c * aik - s * ajk;
+                    a[j][k] = s * aik + c * ajk;
+                }
+            }
+        }
+    }
+    lo = hi = a[0][0];
+    for (i = 1; i < 3; i++) {
+        lo = a[i][i] < lo ? a[i][i] : lo;
+        hi = a[i][i] > hi ? a[i][i] : hi;
+    }
+    if (!(lo > 0.0) || !(hi - hi == 0.0)) {
+        return -1.0;
+    }
+    return hi / lo;
+}
+
+static int check_coupling_matrix(const double m[3][3])
+{
+    double cond2 = condition_squared(m);
+    int i, j;
+    if (cond2 < 0.0 || cond2 > CE_COUPLING_MAX_CONDITION * CE_COUPLING_MAX_CONDITION) {
+        return CE_ERR_COUPLING;
+    }
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < 3; j++) {
+            double v = m[i][j] < 0.0 ? -m[i][j] : m[i][j];
+            if (i != j && v > CE_COUPLING_MAX_OFF_DIAGONAL) {
+                return CE_ERR_COUPLING;
+            }
+        }
+    }
+    return CE_OK;
+}
+
+/* The IMU set's CRC32 from its axis banks and its coupling bank (see canical_eval.h). */
+static uint32_t imu_set_crc(const uint8_t *const axis_content[3], const uint32_t axis_length[3],
+                            const uint8_t *content, uint32_t length)
+{
+    static const char *const HEADS[3] = {"{\"axes\":{\"x\":", ",\"y\":", ",\"z\":"};
+    uint32_t crc = 0xFFFFFFFFu;
+    int i;
+    for (i = 0; i < 3; i++) {
+        crc = crc_text(crc, HEADS[i]);
+        crc = crc_update(crc, axis_content[i], axis_length[i]);
+    }
+    crc = crc_text(crc, "},");
+    return ~crc_update(crc, content + 1, length - 1);
+}
+
+int ce_coupling_load(ce_coupling *coupling, const uint8_t *content, uint32_t length, uint32_t declared_crc,
+                     uint32_t imu_set_id, const uint8_t *const axis_content[3], const uint32_t axis_length[3],
+                     const ce_device *device)
+{
+    cur c;
+    coupling_reading r;
+    int code, i, j;
+    if (coupling == NULL) {
+        return CE_ERR_ARG;
+    }
+    zero(coupling, sizeof *coupling);
+    if (content == NULL || device == NULL || axis_content == NULL || axis_length == NULL) {
+        return CE_ERR_ARG;
+    }
+    for (i = 0; i < 3; i++) {
+        if (axis_content[i] == NULL) {
+            return CE_ERR_ARG;
+        }
+    }
+    if (ce_crc32(content, length) != declared_crc) {
+        return CE_ERR_CRC;
+    }
+    zero(&r, sizeof r);
+    c.base = c.p = content;
+    c.end = content + length;
+    c.err = 0;
+    c.err_at = 0;
+    if (tok(&c) != '{') {
+        fail(&c, CE_ERR_SYNTAX);
+    } else {
+        parse_coupling_top(&c, &r);
+    }
+    code = c.err;
+    if (code == CE_OK && !(r.have_schema && r.schema_ok)) {
+        code = r.have_schema ? CE_ERR_SCHEMA : CE_ERR_FIELD;
+    }
+    if (code == CE_OK && !(r.have_kind && r.kind_ok && r.have_matrix && r.sensor_id != NULL)) {
+        code = CE_ERR_FIELD;
+    }
+    if (code == CE_OK && !serial_matches(device->serial, r.sensor_id, r.sensor_id_n)) {
+        code = CE_ERR_SENSOR;
+    }
+    if (code == CE_OK) {
+        code = check_coupling_matrix((const double(*)[3])r.m);
+    }
+    if (code == CE_OK && imu_set_crc(axis_content, axis_length, content, length) != imu_set_id) {
+        code = CE_ERR_IMU_SET;
+    }
+    if (code != CE_OK) {
+        uint32_t at = c.err ? c.err_at : length;
+        zero(coupling, sizeof *coupling);
+        coupling->error_at = at;
+        return code;
+    }
+    for (i = 0; i < 3; i++) {
+        for (j = 0; j < 3; j++) {
+            coupling->delta[i][j] = (float)(r.m[i][j] - (i == j ? 1.0 : 0.0));
+        }
+        coupling->axis_crc[i] = ce_crc32(axis_content[i], axis_length[i]);
+    }
+    coupling->crc = declared_crc;
+    coupling->imu_set_id = imu_set_id;
+    coupling->loaded = 1;
+    return CE_OK;
+}
+
+int ce_eval3(ce_set *const axes[3], const ce_coupling *coupling, const ce_sample3 *sample, float rate_dps[3],
+             uint8_t out_of_span[3])
+{
+    float r[3];
+    int i;
+    if (axes == NULL || sample == NULL || rate_dps == NULL || out_of_span == NULL) {
+        return CE_ERR_ARG;
+    }
+    if (coupling != NULL) {
+        if (!coupling->loaded) {
+            return CE_ERR_ARG;
+        }
+        for (i = 0; i < 3; i++) {
+            if (axes[i] == NULL || axes[i]->crc != coupling->axis_crc[i]) {
+                return axes[i] == NULL ? CE_ERR_ARG : CE_ERR_IMU_SET;
+            }
+        }
+    }
+    for (i = 0; i < 3; i++) {
+        ce_sample one;
+        int code;
+        one.raw = sample->raw[i];
+        one.time_ms = sample->time_ms;
+        one.inputs = sample->inputs;
+        code = ce_eval(axes[i], &one, &r[i]);
+        if (code < 0) {
+            return code;
+        }
+        out_of_span[i] = (uint8_t)code;
+    }
+    if (coupling == NULL) {
+        rate_dps[0] = r[0];
+        rate_dps[1] = r[1];
+        rate_dps[2] = r[2];
+        return CE_OK;
+    }
+    for (i = 0; i < 3; i++) {
+        const float *d = coupling->delta[i];
+        rate_dps[i] = r[i] + (d[0] * r[0] + d[1] * r[1] + d[2] * r[2]);
+    }
+    return CE_OK;
+}
+
+int ce_eval3_block(ce_set *const axes[3], const ce_coupling *coupling, uint32_t n, const float *raw,
+                   const uint32_t *time_ms, const float *inputs, uint8_t n_inputs, float *rate_dps,
+                   uint8_t *out_of_span)
+{
+    uint32_t k;
+    if (raw == NULL || rate_dps == NULL || out_of_span == NULL) {
+        return CE_ERR_ARG;
+    }
+    for (k = 0; k < n; k++) {
+        ce_sample3 s;
+        int code;
+        s.raw[0] = raw[3 * (size_t)k];
+        s.raw[1] = raw[3 * (size_t)k + 1];
+        s.raw[2] = raw[3 * (size_t)k + 2];
+        s.time_ms = time_ms != NULL ? time_ms[k] : 0u;
+        s.inputs = inputs != NULL ? inputs + (size_t)k * n_inputs : NULL;
+        code = ce_eval3(axes, coupling, &s, rate_dps + 3 * (size_t)k, out_of_span + 3 * (size_t)k);
+        if (code < 0) {
+            return code;
+        }
+    }
+    return CE_OK;
+}
+
+/* ------------------------------------------------------------------------------------------
  * Fixed point: integer decisions (raw counts are integers) and Q16/Q30 Horner in int64.
  * ---------------------------------------------------------------------------------------- */
 
@@ -1841,6 +2205,8 @@ uint32_t ce_sizeof_set(void) { return (uint32_t)sizeof(ce_set); }
 
 uint32_t ce_sizeof_fixed(void) { return (uint32_t)sizeof(ce_fixed); }
 
+uint32_t ce_sizeof_coupling(void) { return (uint32_t)sizeof(ce_coupling); }
+
 uint32_t ce_error_offset(const ce_set *set) { return set != NULL ? set->error_at : 0u; }
 
 const char *ce_strerror(int code)
@@ -1874,6 +2240,10 @@ const char *ce_strerror(int code)
         return "span does not cover the rated range";
     case CE_ERR_INPUT:
         return "a term needs a channel the device does not have";
+    case CE_ERR_COUPLING:
+        return "coupling matrix singular or an off-diagonal term above 10 %";
+    case CE_ERR_IMU_SET:
+        return "coupling belongs to another IMU set (not these axes)";
     default:
         return "unknown code";
     }

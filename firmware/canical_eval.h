@@ -84,7 +84,10 @@ typedef enum ce_result {
     CE_ERR_SENSOR = -10,       /* sensor.id is not this device's serial number */
     CE_ERR_AXIS = -11,         /* sensor.axis is not the bank's axis */
     CE_ERR_SPAN = -12,         /* the span does not reach +-rated range */
-    CE_ERR_INPUT = -13         /* a term reads a channel the device does not offer */
+    CE_ERR_INPUT = -13,        /* a term reads a channel the device does not offer */
+    CE_ERR_COUPLING = -14,     /* coupling matrix singular (condition above CE_COUPLING_MAX_CONDITION)
+                                  or an off-diagonal term above CE_COUPLING_MAX_OFF_DIAGONAL */
+    CE_ERR_IMU_SET = -15       /* the coupling belongs to another IMU set: the axes given are not its */
 } ce_result;
 
 /* What the device says about itself; what a set must fit. */
@@ -147,6 +150,69 @@ typedef struct {
     ce_term terms[CE_MAX_TERMS];
     uint32_t error_at;      /* byte offset where ce_load refused (for the log) */
 } ce_set;
+
+/* ------------------------------------------------------------------------------------------
+ * An IMU set's coupling (coupling banks 0x2216/0x2217): corrected = M @ (x, y, z per-axis rates).
+ *
+ * The coupling bank holds the IMU set's canonical JSON without its "axes" (the matrix, its standard
+ * errors, sensor, created, fit) and the IMU set's id: the CRC32 of the whole IMU set, which is the
+ * CRC32 of '{"axes":{"x":' X ',"y":' Y ',"z":' Z '},' followed by the coupling content after its
+ * '{' (X, Y, Z: the three axis banks' contents; canonical JSON sorts "axes" first). So the device
+ * checks, with the bytes it holds, that a coupling belongs to the axes it is activated with.
+ * ---------------------------------------------------------------------------------------- */
+
+/* The rules of canical.sets.imu_set.check_coupling: the 2-norm condition number of M at most
+ * this, every off-diagonal term's magnitude at most this. */
+#define CE_COUPLING_MAX_CONDITION 1e3
+#define CE_COUPLING_MAX_OFF_DIAGONAL 0.10
+
+/* A loaded coupling. Built by ce_coupling_load() only; read-only to the caller (its size:
+ * ce_sizeof_coupling()). */
+typedef struct {
+    uint32_t crc;           /* the coupling bank's CRC32 */
+    uint32_t imu_set_id;    /* the IMU set's CRC32 */
+    uint32_t axis_crc[3];   /* the x, y, z sets it belongs to (ce_set.crc) */
+    uint8_t loaded;
+    /* M as the identity plus a small part, so the coupled rate is r + (small part @ r): the
+     * float32 rounding is that of a small correction, not of a product the rate's size */
+    float delta[3][3];      /* M - I, row-major */
+    uint32_t error_at;      /* byte offset where ce_coupling_load refused (for the log) */
+} ce_coupling;
+
+/* Three axes' raw outputs of one sample. */
+typedef struct {
+    float raw[3];           /* x, y, z, counts */
+    uint32_t time_ms;       /* time since power-on, milliseconds */
+    const float *inputs;    /* ce_device.n_inputs channel values (NULL if there are none); the three
+                               sets must have been loaded with the same ce_device.inputs */
+} ce_sample3;
+
+/* Validate a coupling bank (content + declared CRC + the IMU set id it declares) for `device`
+ * (its serial; axis and rated range are not used) against the three axis banks it is to run
+ * with (axis_content[i], axis_length[i]: x, y, z), and build `coupling`. Checks: CRC, canonical
+ * JSON, schema 1, kind "imu-set", no "axes" key, sensor.id the device's serial, coupling.matrix
+ * 3 rows of 3 finite numbers within the CE_COUPLING_* limits, and that the axis banks and this
+ * content make the IMU set `imu_set_id` names (else CE_ERR_IMU_SET). Returns CE_OK or a negative
+ * CE_ERR_*; on refusal `coupling` is marked not loaded. */
+int ce_coupling_load(ce_coupling *coupling, const uint8_t *content, uint32_t length, uint32_t declared_crc,
+                     uint32_t imu_set_id, const uint8_t *const axis_content[3], const uint32_t axis_length[3],
+                     const ce_device *device);
+
+/* Correct one three-axis sample: each axis with its set (ce_eval), then the coupling (NULL: the
+ * identity, a device without a coupling). rate_dps[i] in deg/s, out_of_span[i] 1 when axis i's
+ * raw value lies outside its set's span. Returns CE_OK, CE_ERR_ARG (a NULL pointer, a set or the
+ * coupling not loaded) or CE_ERR_IMU_SET (the sets are not the ones the coupling belongs to). */
+int ce_eval3(ce_set *const axes[3], const ce_coupling *coupling, const ce_sample3 *sample, float rate_dps[3],
+             uint8_t out_of_span[3]);
+
+/* ce_eval3 over n samples in time order: raw, rate_dps and out_of_span hold 3 values per sample
+ * (x, y, z), inputs n_inputs per sample (NULL: none), time_ms may be NULL (time 0). */
+int ce_eval3_block(ce_set *const axes[3], const ce_coupling *coupling, uint32_t n, const float *raw,
+                   const uint32_t *time_ms, const float *inputs, uint8_t n_inputs, float *rate_dps,
+                   uint8_t *out_of_span);
+
+/* sizeof(ce_coupling), for bindings that treat it as opaque bytes. */
+uint32_t ce_sizeof_coupling(void);
 
 /* zlib's CRC32 (the bank CRC) of `length` bytes; 0 for a NULL `data`. */
 uint32_t ce_crc32(const uint8_t *data, uint32_t length);

@@ -11,6 +11,12 @@
  *       reached). Writes "code crc hex" for each accepted payload and, with environment
  *       CE_SAMPLE_EVERY=k, for every k-th refused one past the CRC check; then
  *       "cases N accepted A".
+ *   fuzz_driver coupling FILE N SEED IMU_SET_ID SERIAL AXIS RANGE INPUTS...
+ *       FILE holds the x, y, z axis banks and an IMU set's coupling bank (four records). The
+ *       first case is the coupling bank as given, then N - 1 random mutations of it (as mutate
+ *       does); each is loaded by ce_coupling_load with the three axis banks and IMU_SET_ID (each
+ *       from an exactly sized heap block) and, when accepted, runs a few three-axis samples.
+ *       Output as mutate's.
  *
  * Exit status 0 unless an argument or file is bad; a sanitizer report aborts the process.
  */
@@ -109,6 +115,64 @@ static int try_load(const uint8_t *data, uint32_t len, uint32_t crc, const ce_de
     return code;
 }
 
+/* A coupling bank loaded with the three axis banks (exactly sized heap copies, all of them); an
+ * accepted one runs a few three-axis samples through ce_eval3. */
+static int try_coupling(const uint8_t *data, uint32_t len, uint32_t crc, uint32_t imu_set_id, const record *axes,
+                        const ce_device *device)
+{
+    static ce_coupling coupling;
+    static ce_set sets[3];
+    ce_set *ptrs[3];
+    uint8_t *copies[3];
+    uint32_t lengths[3];
+    const uint8_t *contents[3];
+    uint8_t *copy = malloc(len ? len : 1);
+    float inputs[CE_MAX_INPUTS] = {25.0f, 12.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    int code, i, k;
+    if (copy == NULL) {
+        exit(3);
+    }
+    memcpy(copy, data, len);
+    for (k = 0; k < 3; k++) {
+        copies[k] = malloc(axes[k].len ? axes[k].len : 1);
+        if (copies[k] == NULL) {
+            exit(3);
+        }
+        memcpy(copies[k], axes[k].data, axes[k].len);
+        contents[k] = copies[k];
+        lengths[k] = axes[k].len;
+    }
+    code = ce_coupling_load(&coupling, copy, len, crc, imu_set_id, contents, lengths, device);
+    if (code == CE_OK) {
+        for (k = 0; k < 3; k++) {
+            ce_device d = *device;
+            d.axis = (char)('x' + k);
+            if (ce_load(&sets[k], copies[k], lengths[k], axes[k].crc, &d) != CE_OK) {
+                exit(5); /* the axis banks given must be valid */
+            }
+            ptrs[k] = &sets[k];
+        }
+        for (i = 0; i < 64; i++) {
+            ce_sample3 s;
+            float rate[3];
+            uint8_t oos[3];
+            for (k = 0; k < 3; k++) {
+                s.raw[k] = (float)((int32_t)(next_u32() % 80000u) - 40000);
+            }
+            s.time_ms = (uint32_t)i * 100u;
+            s.inputs = inputs;
+            if (ce_eval3(ptrs, &coupling, &s, rate, oos) < 0) {
+                exit(4);
+            }
+        }
+    }
+    for (k = 0; k < 3; k++) {
+        free(copies[k]);
+    }
+    free(copy);
+    return code;
+}
+
 static void mutate(uint8_t *buf, uint32_t *len, uint32_t cap)
 {
     uint32_t op = next_u32() % 8u, pos = *len ? next_u32() % *len : 0, k;
@@ -175,12 +239,13 @@ int main(int argc, char **argv)
     ce_device device;
     record *recs;
     uint32_t n_recs = 0, i;
-    int first_dev, mode_mutate;
+    int first_dev, mode_mutate, mode_coupling;
     if (argc < 2) {
         return 2;
     }
     mode_mutate = strcmp(argv[1], "mutate") == 0;
-    first_dev = mode_mutate ? 5 : 3;
+    mode_coupling = strcmp(argv[1], "coupling") == 0;
+    first_dev = mode_coupling ? 6 : mode_mutate ? 5 : 3;
     if (argc < first_dev + 3 || argc - (first_dev + 3) > CE_MAX_INPUTS) {
         fprintf(stderr, "usage: see the comment at the top of fuzz_driver.c\n");
         return 2;
@@ -197,7 +262,38 @@ int main(int argc, char **argv)
     if (recs == NULL || n_recs == 0) {
         return 2;
     }
-    if (!mode_mutate) {
+    if (mode_coupling) {
+        uint32_t n = (uint32_t)strtoul(argv[3], NULL, 10), accepted = 0, j, cap = 32768;
+        uint32_t imu_set_id = (uint32_t)strtoul(argv[5], NULL, 10);
+        uint32_t sample_every = getenv("CE_SAMPLE_EVERY") ? (uint32_t)strtoul(getenv("CE_SAMPLE_EVERY"), NULL, 10) : 0u;
+        uint8_t *buf = malloc(cap);
+        rng_state ^= strtoull(argv[4], NULL, 10) * 0x9E3779B97F4A7C15ull;
+        if (buf == NULL || n_recs != 4 || recs[3].len > cap) {
+            return 2;
+        }
+        for (i = 0; i < n; i++) {
+            uint32_t len = recs[3].len, crc = recs[3].crc, rounds = i == 0 ? 0 : 1 + next_u32() % 4u;
+            int code;
+            memcpy(buf, recs[3].data, len);
+            for (j = 0; j < rounds; j++) {
+                mutate(buf, &len, cap);
+            }
+            if (rounds) {
+                crc = next_u32() % 8u ? ce_crc32(buf, len) : next_u32();
+            }
+            code = try_coupling(buf, len, crc, imu_set_id, recs, &device);
+            if (code == CE_OK || (sample_every != 0u && i % sample_every == 0u && code != CE_ERR_CRC)) {
+                accepted += code == CE_OK;
+                printf("%d %08x ", code, crc);
+                for (j = 0; j < len; j++) {
+                    printf("%02x", buf[j]);
+                }
+                printf("\n");
+            }
+        }
+        printf("cases %u accepted %u\n", n, accepted);
+        free(buf);
+    } else if (!mode_mutate) {
         for (i = 0; i < n_recs; i++) {
             printf("%d\n", try_load(recs[i].data, recs[i].len, recs[i].crc, &device));
         }

@@ -2,6 +2,7 @@
 
     canical export dcf imu-x.yaml imu-y.yaml imu-z.yaml -o imu.dcf [--node 0x10] [--bank A]
                        [--channel can0 [--interface socketcan]]
+    canical export dcf imu.yaml -o imu.dcf ...      (an IMU set: its three axes and its coupling)
 
 The sets are checked as ``canical push`` checks them before writing (one per axis, one
 sensor whose id is a serial number, span covering the EDS's rated range); the DCF is
@@ -28,7 +29,8 @@ def register(sub) -> None:
     p = sub.add_parser("export", help=COMMANDS["export"])
     kinds = p.add_subparsers(dest="format", metavar="FORMAT", required=True)
     d = kinds.add_parser("dcf", help="the IMU's EDS with the sets' bank values filled (CiA 306 DCF)")
-    d.add_argument("coefficients", nargs="+", help="coefficient set YAML, one per axis")
+    d.add_argument("coefficients", nargs="+",
+                   help="coefficient set YAML, one per axis, or one IMU set (three axes and their coupling)")
     d.add_argument("-o", "--output", required=True, help="DCF file to write")
     d.add_argument("--node", type=lambda s: int(s, 0), default=0x10, help="node id to commission [0x10]")
     d.add_argument(
@@ -71,7 +73,8 @@ def export_dcf(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from canical.atomic_file import write_text_atomic
-    from canical.commands.push import load_sets
+    from canical.commands.push import load_imu_set, load_sets
+    from canical.device.bank_payload import encode_coupling
     from canical.device.dcf_export import bank_values, dcf_text
     from canical.errors import CanicalError
     from canical.imu_dictionary import (
@@ -87,8 +90,14 @@ def export_dcf(args: argparse.Namespace) -> int:
 
     if not 1 <= args.node <= 127:
         raise CanicalError(f"--node {args.node}: a CANopen node id is 1..127")
-    sets = load_sets(args.coefficients)
+    imu = load_imu_set(args.coefficients)
+    if imu is None:
+        sets = load_sets(args.coefficients)
+    else:
+        sets = {c.axis: (f"{imu[0]} axes.{c.axis}", c) for c in imu[1].axes}
     sensor = next(iter(sets.values()))[1].sensor_id
+    if imu is not None and imu[1].sensor_id != sensor:
+        raise CanicalError(f"{imu[0]}: sensor.id {imu[1].sensor_id!r} is not its axes' {sensor!r}")
     if not sensor.isdigit() or sensor_id_for_serial(int(sensor)) != sensor:
         raise CanicalError(
             f"sensor.id {sensor!r} is not an IMU serial number (decimal text, as in 0x1018 sub 4)"
@@ -111,12 +120,15 @@ def export_dcf(args: argparse.Namespace) -> int:
                       else "the EDS's default; --rated-range sets the device's" if device is None
                       else f"node 0x{args.node:02x}")
             raise CanicalError(f"{path}: {problem} ({source})")
-    values = bank_values(objects, {a: c for a, (_, c) in sets.items()}, args.bank)
+    coupling = None if imu is None else encode_coupling(imu[1])
+    values = bank_values(objects, {a: c for a, (_, c) in sets.items()}, args.bank, coupling)
     out = Path(args.output)
     text = dcf_text(eds_path().read_text(encoding="utf-8"), values, node_id=args.node,
                     bitrate_kbit=args.bitrate, name=out.name)  # fmt: skip
     write_text_atomic(out, text)
     axes = ", ".join(f"{a} set 0x{set_crc(c):08x}" for a, (_, c) in sorted(sets.items()))
+    if coupling is not None:
+        axes += f", coupling of IMU set 0x{coupling.imu_set_id:08x}"
     print(f"export: {out} for node 0x{args.node:02x}, serial {sensor}, bank {args.bank}: {axes}")
     if device is None:
         print(f"export: offline: node 0x{args.node:02x} was not asked whether it carries canical's "

@@ -1,7 +1,8 @@
 """``canical push``: download coefficient sets to an IMU over CANopen SDO and activate them.
 
 Each set goes to its axis's inactive bank, is read back and compared, then all
-are activated with one write and stored (0x1010). ``--dry-run`` prints what
+are activated with one write and stored (0x1010). An IMU set (``canical push imu.yaml``)
+goes as its three axes and its coupling, activated together by that one write. ``--dry-run`` prints what
 would be written and writes nothing. See :mod:`canical.device.sdo_download`.
 """
 
@@ -23,6 +24,7 @@ from canical.errors import CanicalError
 
 if TYPE_CHECKING:  # canopen and the set files are imported where used: not for `--help`
     from canical.sets.coefficients import CoefficientSet
+    from canical.sets.imu_set import ImuSet
 
 
 def add_node_arguments(parser: argparse.ArgumentParser) -> None:
@@ -34,7 +36,8 @@ def add_node_arguments(parser: argparse.ArgumentParser) -> None:
 
 def register(sub) -> None:
     p = sub.add_parser("push", help=COMMANDS["push"])
-    p.add_argument("coefficients", nargs="+", help="coefficient set YAML, one per axis")
+    p.add_argument("coefficients", nargs="+",
+                   help="coefficient set YAML, one per axis, or one IMU set (three axes and their coupling)")
     add_node_arguments(p)
     p.add_argument("--dry-run", action="store_true", help="show what would be written, write nothing")
     p.set_defaults(run=run)
@@ -56,16 +59,29 @@ def load_sets(paths: list[str]) -> dict[str, tuple[str, CoefficientSet]]:
     return sets
 
 
+def load_imu_set(paths: list[str]) -> tuple[str, ImuSet] | None:
+    """The IMU set when the files are one (given alone), else None: they are single-axis sets."""
+    from canical.sets import imu_set
+
+    found = [p for p in paths if imu_set.is_imu_set_file(p)]
+    if not found:
+        return None
+    if len(paths) > 1:
+        raise CanicalError(f"{found[0]} is an IMU set (three axes and their coupling): give it alone")
+    return paths[0], imu_set.load(paths[0])
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.device.sdo_download import ImuClient, PushPlan, push_sets
 
-    sets = load_sets(args.coefficients)
+    imu = load_imu_set(args.coefficients)
+    sets = {} if imu is not None else load_sets(args.coefficients)
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
     with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:
         client = ImuClient(network, args.node, args.timeout)
         client.require_canical_objects()
-        result = push_sets(client, sets, dry_run=args.dry_run)
+        result = push_sets(client, sets, imu=imu, dry_run=args.dry_run)
     if isinstance(result, PushPlan):
         where = f"node 0x{args.node:02x} serial {result.serial} on {args.interface} {args.channel}"
         print(f"push (dry run): {where}")

@@ -15,6 +15,14 @@ CRC32, and one selector naming the active bank of every axis. The rules:
   mid-store boots with the old state or the new one, never a mix; at boot
   every active bank is checked again and an axis whose bank fails is dropped
   to "none" (logged), never run on a damaged set;
+* an IMU set's coupling has two banks of its own (:func:`~canical.device.bank_payload.encode_coupling`:
+  the IMU set without its axes, and the IMU set's id), selected by the selector's bits 6-7 in
+  the same single write. Activating one checks it alone (CRC, fields, the matrix by
+  :func:`canical.sets.imu_set.check_coupling`, sensor) and that it belongs to the three axes
+  selected with it (they and it make the IMU set its id names); no coupling is the identity,
+  so a device without one corrects as a single-axis device always has. An active coupling,
+  like a calibrated axis, cannot be switched to none, and axes it does not belong to cannot
+  be activated under it: a new IMU set replaces it whole;
 * an optional cooperative lock (a token) stops a second honest download tool
   from interleaving with a running one; it expires after :data:`LOCK_LEASE_S`
   without activity, so a tool that died does not lock the device forever.
@@ -37,7 +45,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from canical.atomic_file import write_text_atomic
-from canical.device.bank_payload import decode_set
+from canical.device.bank_payload import decode_coupling, decode_set, join_imu_set
 from canical.errors import CanicalError
 from canical.imu_dictionary import (
     ABORT_DEVICE_STATE,
@@ -51,10 +59,13 @@ from canical.imu_dictionary import (
     STATUS_REFUSED,
     STATUS_VALID,
     pack_active,
+    sensor_id_for_serial,
     unpack_active,
+    unpack_coupling,
 )
 from canical.sets.admission import DeviceLimits, admission_problem
 from canical.sets.coefficients import CoefficientSet
+from canical.sets.imu_set import ImuSet
 
 STATE_FORMAT = "canical-imu-banks 1"
 LOCK_LEASE_S = 5.0
@@ -75,6 +86,16 @@ class BankRefusal(Exception):
 class Bank:
     content: bytes = b""
     crc: int = 0
+    imu_set_id: int = 0  # coupling banks only: the IMU set the content belongs to
+
+
+@dataclass(frozen=True)
+class CouplingCheck:
+    """A coupling bank checked on its own: status, its parsed content when valid, the reason when not."""
+
+    status: int
+    envelope: dict | None = None
+    reason: str = ""
 
 
 @dataclass(frozen=True)
@@ -97,6 +118,9 @@ class BankStore:
     banks: dict[tuple[str, str], Bank] = field(default_factory=dict)
     active: dict[str, str | None] = field(default_factory=lambda: dict.fromkeys(AXES))
     stored_active: dict[str, str | None] = field(default_factory=lambda: dict.fromkeys(AXES))
+    coupling: dict[str, Bank] = field(default_factory=lambda: {b: Bank() for b in BANKS})
+    active_coupling: str | None = None
+    stored_coupling: str | None = None
     activation_count: int = 0
     last_refusal: str = "none"
     lock_token: int = 0
@@ -106,6 +130,8 @@ class BankStore:
     def __post_init__(self) -> None:
         self._lock = threading.RLock()
         self._checks: dict[tuple[str, str], tuple[bytes, int, BankCheck]] = {}
+        self._coupling_checks: dict[str, tuple[bytes, int, CouplingCheck]] = {}
+        self._active_imu: tuple[tuple[object, ...], ImuSet | None] = ((), None)
         for key in ((a, b) for a in AXES for b in BANKS):
             self.banks.setdefault(key, Bank())
 
@@ -143,6 +169,72 @@ class BankStore:
             return BankCheck(STATUS_REFUSED, reason=f"{where}: {problem}")
         return BankCheck(STATUS_VALID, cset)
 
+    def check_coupling(self, bank: str) -> CouplingCheck:
+        """A coupling bank on its own (cached per content and CRC); membership is checked at activation."""
+        with self._lock:
+            b = self.coupling[bank]
+            cached = self._coupling_checks.get(bank)
+            if cached and cached[0] is b.content and cached[1] == b.crc:
+                return cached[2]
+            result = self._check_coupling(bank, b)
+            self._coupling_checks[bank] = (b.content, b.crc, result)
+            return result
+
+    def _check_coupling(self, bank: str, b: Bank) -> CouplingCheck:
+        where = f"coupling bank {bank}"
+        if not b.content:
+            return CouplingCheck(STATUS_EMPTY, reason=f"{where} is empty")
+        actual = zlib.crc32(b.content) & 0xFFFFFFFF
+        if actual != b.crc:
+            return CouplingCheck(
+                STATUS_CRC_MISMATCH,
+                reason=f"{where}: CRC mismatch (declared 0x{b.crc:08x}, content gives 0x{actual:08x})",
+            )
+        try:
+            envelope = decode_coupling(b.content, b.crc, where)
+        except CanicalError as exc:
+            return CouplingCheck(STATUS_REFUSED, reason=str(exc))
+        serial = sensor_id_for_serial(self.limits.serial)
+        if envelope["sensor"]["id"] != serial:
+            return CouplingCheck(STATUS_REFUSED, reason=f"{where}: IMU set for sensor "
+                                 f"{envelope['sensor']['id']!r}, this device is serial {serial}")
+        return CouplingCheck(STATUS_VALID, envelope)
+
+    def _joined(self, bank: str, axes: dict[str, str | None]) -> ImuSet:
+        """The IMU set coupling bank ``bank`` makes with the axis banks ``axes``, or the reason
+        why not (CanicalError): the coupling is valid, every axis selected and valid, and
+        together they make the IMU set the coupling bank's id names."""
+        result = self.check_coupling(bank)
+        if result.envelope is None:
+            raise CanicalError(result.reason)
+        missing = [a for a in AXES if axes[a] is None]
+        if missing:
+            raise CanicalError(f"coupling bank {bank} needs all three axes; no set for {', '.join(missing)}")
+        sets = []
+        for axis in AXES:
+            checked = self.check(axis, axes[axis])  # type: ignore[arg-type]
+            if checked.cset is None:
+                raise CanicalError(checked.reason)
+            sets.append(checked.cset)
+        return join_imu_set(result.envelope, tuple(sets), self.coupling[bank].imu_set_id,
+                            f"coupling bank {bank}")
+
+    def active_imu_set(self) -> ImuSet | None:
+        """The IMU set the device runs (its coupling applied), or None: no coupling, identity."""
+        with self._lock:
+            if self.active_coupling is None:
+                return None
+            key = (self.active_coupling, self.coupling[self.active_coupling].content,
+                   *(self.active[a] for a in AXES), *(self.active_id(a) for a in AXES))
+            if self._active_imu[0] != key:
+                self._active_imu = (key, self._joined(self.active_coupling, self.active))
+            return self._active_imu[1]
+
+    def active_imu_set_id(self) -> int:
+        with self._lock:
+            bank = self.active_coupling
+            return 0 if bank is None else self.coupling[bank].imu_set_id
+
     def active_sets(self) -> dict[str, CoefficientSet]:
         """The sets the device runs now, by axis (valid by construction)."""
         with self._lock:
@@ -161,11 +253,11 @@ class BankStore:
 
     def active_value(self) -> int:
         with self._lock:
-            return pack_active(self.active)
+            return pack_active(self.active, self.active_coupling)
 
     def stored_value(self) -> int:
         with self._lock:
-            return pack_active(self.stored_active)
+            return pack_active(self.stored_active, self.stored_coupling)
 
     def current_lock(self) -> int:
         with self._lock:
@@ -208,6 +300,31 @@ class BankStore:
             self._writable(axis, bank).crc = int(crc) & 0xFFFFFFFF
             self._touch()
 
+    def _writable_coupling(self, bank: str) -> Bank:
+        if self.active_coupling == bank:
+            raise self._refuse(ABORT_DEVICE_STATE, f"coupling bank {bank} is active: write the other bank")
+        return self.coupling[bank]
+
+    def write_coupling_content(self, bank: str, data: bytes) -> None:
+        with self._lock:
+            b = self._writable_coupling(bank)
+            if len(data) > self.capacity:
+                raise self._refuse(
+                    ABORT_TOO_LONG, f"coupling bank {bank}: {len(data)} bytes, capacity {self.capacity}"
+                )
+            b.content = bytes(data)
+            self._touch()
+
+    def write_coupling_crc(self, bank: str, crc: int) -> None:
+        with self._lock:
+            self._writable_coupling(bank).crc = int(crc) & 0xFFFFFFFF
+            self._touch()
+
+    def write_imu_set_id(self, bank: str, imu_set_id: int) -> None:
+        with self._lock:
+            self._writable_coupling(bank).imu_set_id = int(imu_set_id) & 0xFFFFFFFF
+            self._touch()
+
     def take_lock(self, token: int) -> None:
         """Nonzero token: take (or renew) the lock; 0: release it."""
         with self._lock:
@@ -220,10 +337,12 @@ class BankStore:
             self.lock_seen = self.clock()
 
     def activate(self, value: int) -> None:
-        """One write of the whole selector: validate every newly selected bank, then switch all."""
+        """One write of the whole selector: validate every newly selected bank (and a selected
+        coupling against the axes selected with it), then switch all."""
         with self._lock:
             try:
                 wanted = unpack_active(value)
+                coupling = unpack_coupling(value)
             except ValueError as exc:
                 raise self._refuse(ABORT_VALUE_RANGE, str(exc)) from None
             changes = {a: b for a, b in wanted.items() if b != self.active[a]}
@@ -236,11 +355,24 @@ class BankStore:
                 result = self.check(axis, bank)
                 if result.status != STATUS_VALID:
                     raise self._refuse(ABORT_REFUSED, f"activation refused: {result.reason}")
+            coupling_changes = coupling != self.active_coupling
+            if coupling_changes and coupling is None:
+                raise self._refuse(
+                    ABORT_VALUE_RANGE,
+                    "the coupling of an IMU set is active: it cannot be switched to none (restore defaults)",
+                )
+            if coupling is not None and (changes or coupling_changes):
+                try:
+                    self._joined(coupling, {**self.active, **changes})
+                except CanicalError as exc:
+                    raise self._refuse(ABORT_REFUSED, f"activation refused: {exc}") from None
             self._touch()
-            if not changes:
+            if not changes and not coupling_changes:
                 return
             before = {a: self.active_id(a) for a in changes}
+            before_imu = self.active_imu_set_id()
             self.active.update(changes)
+            self.active_coupling = coupling
             self.activation_count += 1
             self.generation += 1
             for axis, bank in changes.items():
@@ -248,6 +380,9 @@ class BankStore:
                     "activation %d: axis %s bank %s set 0x%08x (was 0x%08x), serial %d",
                     self.activation_count, axis, bank, self.active_id(axis), before[axis], self.limits.serial,
                 )
+            if coupling_changes or (coupling is not None and changes):
+                log.info("activation %d: coupling bank %s IMU set 0x%08x (was 0x%08x)", self.activation_count,
+                         coupling, self.active_imu_set_id(), before_imu)
 
     def store(self, signature_ok: bool) -> None:
         """CiA 301 store: persist banks and selector (atomically) to the state file."""
@@ -257,6 +392,7 @@ class BankStore:
             if self.state_path is not None:
                 write_text_atomic(self.state_path, self._state_text())
             self.stored_active = dict(self.active)
+            self.stored_coupling = self.active_coupling
             self._touch()
             log.info("stored: active banks %s", _describe(self.active))
 
@@ -270,6 +406,7 @@ class BankStore:
                 empty.activation_count = self.activation_count
                 write_text_atomic(self.state_path, empty._state_text())
             self.stored_active = dict.fromkeys(AXES)
+            self.stored_coupling = None
             log.info("restore defaults: no coefficient sets after the next power cycle")
 
     # ---------------------------------------------------------------------------------------
@@ -281,12 +418,18 @@ class BankStore:
             {
                 "format": STATE_FORMAT,
                 "serial": self.limits.serial,
-                "active": pack_active(self.active),
+                "active": pack_active(self.active, self.active_coupling),
                 "activation_count": self.activation_count,
                 "banks": {
                     f"{a}.{b}": {"content": base64.b64encode(bank.content).decode(), "crc": bank.crc}
                     for (a, b), bank in self.banks.items()
                     if bank.content or bank.crc
+                },
+                "coupling": {
+                    b: {"content": base64.b64encode(bank.content).decode(), "crc": bank.crc,
+                        "imu_set_id": bank.imu_set_id}
+                    for b, bank in self.coupling.items()
+                    if bank.content or bank.crc or bank.imu_set_id
                 },
             },
             indent=1,
@@ -309,7 +452,13 @@ class BankStore:
             for key, entry in content["banks"].items():
                 axis, bank = key.split(".")
                 store.banks[(axis, bank)] = Bank(base64.b64decode(entry["content"]), int(entry["crc"]))
+            for bank, entry in content.get("coupling", {}).items():
+                if bank not in BANKS:
+                    raise ValueError(f"coupling bank {bank!r}")
+                store.coupling[bank] = Bank(base64.b64decode(entry["content"]), int(entry["crc"]),
+                                            int(entry["imu_set_id"]))
             selected = unpack_active(int(content["active"]))
+            coupling = unpack_coupling(int(content["active"]))
             store.activation_count = int(content.get("activation_count", 0))
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             log.error("stored state %s unreadable (%s): starting without coefficient sets", state_path, exc)
@@ -322,8 +471,18 @@ class BankStore:
                 store.active[axis] = bank
             else:
                 log.error("boot: axis %s left without a set: %s", axis, result.reason)
+        if coupling is not None:
+            try:
+                store._joined(coupling, store.active)
+                store.active_coupling = coupling
+            except CanicalError as exc:
+                log.error("boot: coupling left out (identity): %s", exc)
         store.stored_active = dict(store.active)
+        store.stored_coupling = store.active_coupling
         log.info("boot: active banks %s", _describe(store.active, store))
+        if store.active_coupling is not None:
+            log.info("boot: coupling bank %s, IMU set 0x%08x", store.active_coupling,
+                     store.active_imu_set_id())
         return store
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import re
 
-from canical.device.bank_payload import encode_set
+from canical.device.bank_payload import CouplingPayload, encode_set
 from canical.imu_dictionary import BANKS, ImuObjects, pack_active
 from canical.sets.coefficients import CoefficientSet
 
@@ -30,8 +30,10 @@ def section_name(index: int, subindex: int | None) -> str:
     return f"{index:04X}" if subindex is None else f"{index:04X}sub{subindex:X}"
 
 
-def bank_values(objects: ImuObjects, sets: dict[str, CoefficientSet], bank: str) -> dict[str, str]:
-    """ParameterValue per EDS section: each set in ``bank`` of its axis, and the selector."""
+def bank_values(objects: ImuObjects, sets: dict[str, CoefficientSet], bank: str,
+                coupling: CouplingPayload | None = None) -> dict[str, str]:
+    """ParameterValue per EDS section: each set in ``bank`` of its axis, an IMU set's ``coupling``
+    in coupling bank ``bank``, and the selector."""
     if bank not in BANKS:
         raise ValueError(f"bank {bank!r}: A or B")
     values: dict[str, str] = {}
@@ -40,8 +42,13 @@ def bank_values(objects: ImuObjects, sets: dict[str, CoefficientSet], bank: str)
         content, crc = encode_set(cset)
         values[section_name(ref.index, ref.content)] = content.hex().upper()
         values[section_name(ref.index, ref.crc)] = f"0x{crc:08X}"
+    if coupling is not None:
+        cref = objects.coupling_bank(bank)
+        values[section_name(cref.index, cref.content)] = coupling.content.hex().upper()
+        values[section_name(cref.index, cref.crc)] = f"0x{coupling.crc:08X}"
+        values[section_name(cref.index, cref.imu_set_id)] = f"0x{coupling.imu_set_id:08X}"
     index, sub = objects.active_banks
-    selector = pack_active({axis: bank for axis in sets})
+    selector = pack_active({axis: bank for axis in sets}, None if coupling is None else bank)
     values[section_name(index, sub if sub else None)] = f"0x{selector:02X}"
     return values
 

@@ -58,7 +58,8 @@ from canical.sets.corrector import Corrector
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from canical.device.firmware_eval import FirmwareCorrector
+    from canical.device.firmware_eval import FirmwareCorrector, FirmwareImuCorrector
+    from canical.sets.imu_set import Matrix
 
 log = logging.getLogger("canical.imu")
 
@@ -114,8 +115,14 @@ class EmulatedImu:
         self._status_at = {(b.index, b.status): k for k, b in o.banks.items()}
         self._size_at = {(b.index, b.size): k for k, b in o.banks.items()}
         self._id_at = {v: a for a, v in o.active_set_id.items()}
+        self._coupling_at = {(c.index, sub): (c.bank, what) for c in o.coupling_banks.values()
+                             for sub, what in ((c.content, "content"), (c.crc, "crc"), (c.status, "status"),
+                                               (c.size, "size"), (c.imu_set_id, "imu_set_id"))}
         self.stop_event = threading.Event()
         self.frames_sent = 0
+        #: the active IMU set's coupling as the device runs it: the C evaluator's three-axis
+        #: sample, or the matrix applied in Python (where the C library cannot); None: identity
+        self.coupled: FirmwareImuCorrector | Matrix | None = None
         network.add_node(self.node)
 
     # ---------------------------------------------------------------------------------------
@@ -184,7 +191,15 @@ class EmulatedImu:
             return len(s.banks[self._size_at[key]].content)
         if key in self._id_at:
             return s.active_id(self._id_at[key])
+        if key in self._coupling_at:
+            bank, what = self._coupling_at[key]
+            b = s.coupling[bank]
+            if what == "status":
+                return s.check_coupling(bank).status
+            values = {"content": b.content, "crc": b.crc, "size": len(b.content), "imu_set_id": b.imu_set_id}
+            return values[what]
         simple = {
+            o.active_imu_set_id: s.active_imu_set_id,
             o.active_banks: s.active_value,
             o.activation_count: lambda: s.activation_count,
             o.last_refusal: lambda: s.last_refusal,
@@ -203,6 +218,8 @@ class EmulatedImu:
                 s.write_content(*self._bank_at[key], bytes(data))
             elif key in self._crc_at:
                 s.write_crc(*self._crc_at[key], int.from_bytes(data, "little"))
+            elif key in self._coupling_at:
+                self._write_coupling(*self._coupling_at[key], bytes(data))
             elif key == o.active_banks:
                 s.activate(data[0])
             elif key == o.store:
@@ -219,6 +236,17 @@ class EmulatedImu:
         except BankRefusal as exc:
             raise SdoAbortedError(exc.code) from None
 
+    def _write_coupling(self, bank: str, what: str, data: bytes) -> None:
+        s = self.store
+        if what == "content":
+            s.write_coupling_content(bank, data)
+        elif what == "crc":
+            s.write_coupling_crc(bank, int.from_bytes(data, "little"))
+        elif what == "imu_set_id":
+            s.write_imu_set_id(bank, int.from_bytes(data, "little"))
+        else:  # Status and Size are read-only in the EDS: canopen refuses them before this
+            raise BankRefusal(ABORT_VALUE_RANGE, f"coupling bank {bank}: {what} is read-only")
+
     # ---------------------------------------------------------------------------------------
     # Transmit loop
     # ---------------------------------------------------------------------------------------
@@ -228,10 +256,12 @@ class EmulatedImu:
         if not self.send(0x700 + self.config.node_id, b"\x00"):
             return
         active = unpack_active(self.store.active_value())
+        coupling = self.store.active_coupling
         log.info(
-            "node 0x%02x serial %d up; active %s",
+            "node 0x%02x serial %d up; active %s coupling=%s:0x%08x",
             self.config.node_id, self.config.serial,
             " ".join(f"{a}={b or 'none'}:0x{self.store.active_id(a):08x}" for a, b in active.items()),
+            coupling or "none", self.store.active_imu_set_id(),
         )
 
     def run(self, duration_s: float | None = None) -> None:
@@ -299,6 +329,7 @@ class EmulatedImu:
                 if self.store.generation != generation:
                     generation = self.store.generation
                     correctors = self.device_correctors()
+                    self.coupled = self.device_coupling()
                     tag = set_tag({a: self.store.active_id(a) for a in AXES})
                 if not send(*self._corrected(correctors, tag, raw_id, raw_data, aux_id, aux_data, k)):
                     return
@@ -334,11 +365,35 @@ class EmulatedImu:
             out[axis] = c
         return out
 
+    def device_coupling(self) -> FirmwareImuCorrector | Matrix | None:
+        """The active IMU set's coupling as the device applies it to the three corrected rates:
+        in the C evaluator with its three sets (``ce_eval3``), or the matrix for Python (logged
+        there); None when no coupling is active (the identity)."""
+        imu = self.store.active_imu_set()
+        if imu is None:
+            return None
+        from canical.device.firmware_eval import FirmwareImuCorrector  # ctypes only when correcting
+
+        try:  # spans were checked per axis on activation: not again here
+            coupled: FirmwareImuCorrector | Matrix = FirmwareImuCorrector(imu, serial=self.config.serial)
+            engine = "the firmware evaluator (C)"
+        except CanicalError as exc:
+            log.warning("IMU set coupling: applied in Python, not with the firmware evaluator: %s", exc)
+            coupled, engine = imu.coupling, "Python"
+        log.info("IMU set 0x%08x: coupling applied on the device with %s", self.store.active_imu_set_id(),
+                 engine)
+        return coupled
+
     def _corrected(self, correctors, tag, raw_id, raw_data, aux_id, aux_data, k):
         """IMU_RATE for one sample, from the frames exactly as a receiver decodes them."""
         rv = self.frames.decode(raw_id, raw_data).values
         av = self.frames.decode(aux_id, aux_data).values
         inputs = {CHANNELS[n]: float(v) for n, v in (*rv.items(), *av.items()) if n in CHANNELS}
+        coupled = self.coupled
+        if coupled is not None and not isinstance(coupled, tuple):
+            raw3 = [float(rv[f"GyroRaw{a.upper()}"]) for a in AXES]
+            rates3, oos3 = coupled.correct_one(raw3, inputs)
+            return self.frames.rate(rates3, oos3, [False] * 3, tag, k)
         rates, oos, unc = [], [], []
         for a in AXES:
             c = correctors.get(a)
@@ -351,6 +406,8 @@ class EmulatedImu:
             rates.append(r)
             oos.append(o)
             unc.append(False)
+        if coupled is not None:  # the Python fallback: an active coupling means all three axes have sets
+            rates = [sum(m * r for m, r in zip(row, rates, strict=True)) for row in coupled]
         return self.frames.rate(rates, oos, unc, tag, k)
 
 

@@ -28,10 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from canical.device.bank_payload import encode_set
+from canical.device.bank_payload import encode_coupling, encode_set
 from canical.errors import CanicalError
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
+from canical.sets.imu_corrector import ImuCorrector
+from canical.sets.imu_set import AXES, ImuSet
 from canical.sets.terms import TIME_INPUT
 
 log = logging.getLogger("canical.firmware")
@@ -52,6 +54,8 @@ ERROR_NAMES = {
     -11: "CE_ERR_AXIS",
     -12: "CE_ERR_SPAN",
     -13: "CE_ERR_INPUT",
+    -14: "CE_ERR_COUPLING",
+    -15: "CE_ERR_IMU_SET",
 }
 
 
@@ -181,7 +185,34 @@ class Library:
         lib.ce_fixed_from.restype = ctypes.c_int
         lib.ce_fixed_eval.argtypes = [ctypes.c_void_p, ctypes.c_int32, ctypes.POINTER(ctypes.c_int32)]
         lib.ce_fixed_eval.restype = ctypes.c_int
+        sets3 = ctypes.c_void_p * 3
+        lib.ce_coupling_load.argtypes = [
+            ctypes.c_void_p,
+            ctypes.c_char_p,
+            ctypes.c_uint32,
+            ctypes.c_uint32,
+            ctypes.c_uint32,
+            ctypes.c_char_p * 3,
+            ctypes.c_uint32 * 3,
+            ctypes.POINTER(Device),
+        ]
+        lib.ce_coupling_load.restype = ctypes.c_int
+        lib.ce_eval3_block.argtypes = [
+            sets3,
+            ctypes.c_void_p,
+            ctypes.c_uint32,
+            f32p,
+            ctypes.POINTER(ctypes.c_uint32),
+            f32p,
+            ctypes.c_uint8,
+            f32p,
+            u8p,
+        ]
+        lib.ce_eval3_block.restype = ctypes.c_int
+        lib.ce_sizeof_coupling.argtypes = []
+        lib.ce_sizeof_coupling.restype = ctypes.c_uint32
         self.lib = lib
+        self.coupling_size = int(lib.ce_sizeof_coupling())
         self.set_size = int(lib.ce_sizeof_set())
         self.fixed_size = int(lib.ce_sizeof_fixed())
 
@@ -222,15 +253,19 @@ class FirmwareCorrector:
         serial: int | None = None,
         axis: str | None = None,
         rated_range_dps: float = 0.0,
+        channels: Sequence[str] | None = None,
         lib: Library | None = None,
     ) -> None:
+        """``channels``: the run-time channels the device offers, in sample order (default: the
+        set's own); a superset lets three axes' sets share one sample's inputs."""
         self.lib = lib or library()
         self.cset = cset
         content, crc = encode_set(cset)
         self.set_id = crc
         reference = Corrector(cset)  # names the inputs exactly as the Python evaluator does
         self.required_inputs = reference.required_inputs
-        self.channels = tuple(n for n in self.required_inputs if n != TIME_INPUT)
+        own = tuple(n for n in self.required_inputs if n != TIME_INPUT)
+        self.channels = own if channels is None else tuple(channels)
         if serial is None:
             serial = int(cset.sensor_id) if cset.sensor_id.isdigit() else 0
         self.device = make_device(serial, axis or cset.axis, rated_range_dps, self.channels)
@@ -297,6 +332,111 @@ class FirmwareCorrector:
         self.reset()
         if code < 0:
             raise CanicalError(f"firmware evaluator: {self.lib.strerror(code)}")
+        return rate.astype(float), oos.astype(bool)
+
+
+class FirmwareImuCorrector:
+    """An IMU set in the C evaluator: its three sets and its coupling (``ce_coupling_load``), a
+    three-axis sample at a time (``ce_eval3``); the :class:`ImuCorrector` interface, in C.
+
+    The coupling is loaded from the very bytes the device holds (the axis banks and the coupling
+    bank), so the C library checks that it belongs to the three sets, as the device does.
+    ``coupling=False`` runs the three sets alone (identity: a device without a coupling).
+    """
+
+    def __init__(self, imu: ImuSet, *, serial: int | None = None, rated_range_dps: float = 0.0,
+                 coupling: bool = True, lib: Library | None = None) -> None:
+        self.lib = lib or library()
+        self.imu = imu
+        reference = ImuCorrector(imu)
+        self.required_inputs = reference.required_inputs
+        self.channels = tuple(n for n in self.required_inputs if n != TIME_INPUT)
+        if serial is None:
+            serial = int(imu.sensor_id) if imu.sensor_id.isdigit() else 0
+        self.axes = tuple(
+            FirmwareCorrector(cset, serial=serial, axis=axis, rated_range_dps=rated_range_dps,
+                              channels=self.channels, lib=self.lib)
+            for axis, cset in zip(AXES, imu.axes, strict=True)
+        )
+        self._sets = (ctypes.c_void_p * 3)(*(ctypes.addressof(a._set) for a in self.axes))
+        payload = encode_coupling(imu)
+        self.set_id = payload.imu_set_id
+        self._coupling: ctypes.Array[ctypes.c_char] | None = None
+        if coupling:
+            contents = [encode_set(c)[0] for c in imu.axes]
+            buffer = ctypes.create_string_buffer(self.lib.coupling_size)
+            device = make_device(serial, "x", rated_range_dps, self.channels)
+            code = self.lib.lib.ce_coupling_load(
+                buffer, payload.content, len(payload.content), payload.crc, payload.imu_set_id,
+                (ctypes.c_char_p * 3)(*contents), (ctypes.c_uint32 * 3)(*map(len, contents)),
+                ctypes.byref(device),
+            )
+            if code != 0:
+                raise FirmwareRefusal(
+                    f"IMU set 0x{payload.imu_set_id:08x}: the firmware evaluator refuses its coupling: "
+                    f"{self.lib.strerror(code)} ({ERROR_NAMES.get(code, code)})",
+                    code,
+                )
+            self._coupling = buffer
+        self._one = {k: np.zeros(3, dtype=np.float32) for k in ("raw", "rate")}
+
+    def reset(self) -> None:
+        for a in self.axes:
+            a.reset()
+
+    def _run(self, raw32: np.ndarray, t: np.ndarray, chan: np.ndarray | None
+             ) -> tuple[np.ndarray, np.ndarray]:
+        n = raw32.shape[0]
+        rate = np.empty((n, 3), dtype=np.float32)
+        oos = np.empty((n, 3), dtype=np.uint8)
+        f32p = ctypes.POINTER(ctypes.c_float)
+        code = self.lib.lib.ce_eval3_block(
+            self._sets,
+            self._coupling,
+            n,
+            raw32.ctypes.data_as(f32p),
+            t.ctypes.data_as(ctypes.POINTER(ctypes.c_uint32)),
+            chan.ctypes.data_as(f32p) if chan is not None else None,
+            len(self.channels),
+            rate.ctypes.data_as(f32p),
+            oos.ctypes.data_as(ctypes.POINTER(ctypes.c_uint8)),
+        )
+        if code < 0:
+            raise CanicalError(f"firmware evaluator: {self.lib.strerror(code)}")
+        return rate, oos
+
+    def correct_one(self, raw: Sequence[float], inputs: Mapping[str, float] | None = None
+                    ) -> tuple[list[float], list[bool]]:
+        """The next three-axis sample of the stream (the sets keep their state between calls)."""
+        inputs = inputs or {}
+        raw32 = np.asarray(raw, dtype=np.float32).reshape(1, 3)
+        t = np.asarray([time_ms(float(inputs[TIME_INPUT])) if TIME_INPUT in inputs else 0], dtype=np.uint32)
+        chan = np.asarray([[inputs[c] for c in self.channels]], dtype=np.float32) if self.channels else None
+        rate, oos = self._run(raw32, t, chan)
+        return [float(v) for v in rate[0]], [bool(v) for v in oos[0]]
+
+    def correct(self, raw: np.ndarray, inputs: Mapping[str, np.ndarray] | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+        """Raw (n, 3) → rates (n, 3) and out-of-span flags (n, 3), from a fresh state, like
+        :meth:`ImuCorrector.correct`."""
+        inputs = inputs or {}
+        missing = [n for n in self.required_inputs if n not in inputs]
+        if missing:
+            raise CanicalError(f"the IMU set needs input(s) {', '.join(missing)}")
+        raw32 = np.ascontiguousarray(np.asarray(raw, dtype=float).reshape(-1, 3), dtype=np.float32)
+        n = raw32.shape[0]
+        t = np.zeros(n, dtype=np.uint32)
+        if TIME_INPUT in inputs:
+            t = np.ascontiguousarray(np.rint(np.asarray(inputs[TIME_INPUT], dtype=float) * 1000.0), np.uint32)
+        chan = None
+        if self.channels:
+            columns = [np.asarray(inputs[c], dtype=float) for c in self.channels]
+            chan = np.ascontiguousarray(np.column_stack(columns), dtype=np.float32)
+        self.reset()
+        try:
+            rate, oos = self._run(raw32, t, chan)
+        finally:
+            self.reset()
         return rate.astype(float), oos.astype(bool)
 
 

@@ -13,10 +13,18 @@ A push, for the sets given (one per axis):
 5. stores (CiA 301 "save" to 0x1010) so the new sets survive a power cycle;
 6. reads back what the device runs and stores, and checks it is what was pushed.
 
+An IMU set pushes its three axes as above and its coupling into the inactive
+coupling bank (content, CRC32 and the IMU set's id), read back and compared like
+the axes, and the one selector write activates axes and coupling together (the
+device checks the coupling belongs to the axes). A device running an IMU set
+refuses single-axis sets under its coupling: the tool says so before writing.
+
 Any failure stops the push with one line naming the node, the step and the
 device's reason; the device keeps the set it ran before (an interrupted
 download only ever touched an inactive bank). A pull uploads the active banks
-and accepts them only if CRC, fields and the device's "Active set id" agree.
+and accepts them only if CRC, fields and the device's "Active set id" agree; an
+IMU set pull also uploads the active coupling bank and rebuilds the IMU set,
+accepted only if it is the one the device's "Active IMU set id" names.
 """
 
 from __future__ import annotations
@@ -32,7 +40,14 @@ import can
 import canopen
 from canopen.sdo import SdoAbortedError, SdoCommunicationError
 
-from canical.device.bank_payload import decode_set, encode_set
+from canical.device.bank_payload import (
+    CouplingPayload,
+    decode_coupling,
+    decode_set,
+    encode_coupling,
+    encode_set,
+    join_imu_set,
+)
 from canical.device.can_network import DEFAULT_SDO_TIMEOUT_S
 from canical.errors import CanicalError
 from canical.imu_dictionary import (
@@ -48,10 +63,13 @@ from canical.imu_dictionary import (
     object_dictionary,
     other_bank,
     pack_active,
+    sensor_id_for_serial,
     unpack_active,
+    unpack_coupling,
 )
 from canical.sets.admission import DeviceLimits, admission_problem
 from canical.sets.coefficients import CoefficientSet
+from canical.sets.imu_set import ImuSet
 
 DEFAULT_TIMEOUT_S = DEFAULT_SDO_TIMEOUT_S
 #: Abort codes after which the device's "Last refusal" text says why.
@@ -171,6 +189,17 @@ class ImuClient:
         except ValueError as exc:
             raise CanicalError(f"node 0x{self.node_id:02x}: {exc}") from None
 
+    def active_coupling(self) -> str | None:
+        """The active coupling bank (None: no coupling, the identity)."""
+        value = self.read_uint(self.objects.active_banks, "reading the active banks")
+        try:
+            return unpack_coupling(value)
+        except ValueError as exc:
+            raise CanicalError(f"node 0x{self.node_id:02x}: {exc}") from None
+
+    def active_imu_set_id(self) -> int:
+        return self.read_uint(self.objects.active_imu_set_id, "reading the active IMU set id")
+
     def active_ids(self) -> dict[str, int]:
         return {
             a: self.read_uint(key, f"reading the active set id of axis {a}")
@@ -178,12 +207,16 @@ class ImuClient:
         }
 
     def status(self) -> DeviceStatus:
+        stored = self.read_uint(self.objects.stored_state, "reading the stored state")
         return DeviceStatus(
             serial=self.serial(),
             active=self.active(),
             active_ids=self.active_ids(),
-            stored=unpack_active(self.read_uint(self.objects.stored_state, "reading the stored state")),
+            stored=unpack_active(stored),
             activations=self.read_uint(self.objects.activation_count, "reading the activation count"),
+            coupling=self.active_coupling(),
+            imu_set_id=self.active_imu_set_id(),
+            stored_coupling=unpack_coupling(stored),
         )
 
     def bank(self, axis: str, bank: str) -> tuple[bytes, int, int]:
@@ -195,6 +228,16 @@ class ImuClient:
         crc = self.read_uint((ref.index, ref.crc), f"reading the CRC of {name}")
         return content, crc, status
 
+    def coupling_bank(self, bank: str) -> tuple[CouplingPayload, int]:
+        """(content, CRC, IMU set id) and status of one coupling bank."""
+        ref = self.objects.coupling_bank(bank)
+        name = f"coupling bank {bank}"
+        status = self.read_uint((ref.index, ref.status), f"reading the status of {name}")
+        content = b"" if status == 0 else self.upload((ref.index, ref.content), f"uploading {name}")
+        crc = self.read_uint((ref.index, ref.crc), f"reading the CRC of {name}")
+        imu_set_id = self.read_uint((ref.index, ref.imu_set_id), f"reading the IMU set id of {name}")
+        return CouplingPayload(content, crc, imu_set_id), status
+
 
 @dataclass(frozen=True)
 class DeviceStatus:
@@ -203,6 +246,9 @@ class DeviceStatus:
     active_ids: dict[str, int]
     stored: dict[str, str | None]
     activations: int
+    coupling: str | None = None
+    imu_set_id: int = 0
+    stored_coupling: str | None = None
 
     def describe(self) -> str:
         parts = []
@@ -210,7 +256,10 @@ class DeviceStatus:
             bank = self.active[axis]
             ident = f"0x{self.active_ids[axis]:08x} (bank {bank})"
             parts.append(f"{axis} none" if bank is None else f"{axis} {ident}")
-        same = "stored for power-up" if self.stored == self.active else "NOT stored: a power cycle reverts"
+        if self.coupling is not None:
+            parts.append(f"coupling of IMU set 0x{self.imu_set_id:08x} (bank {self.coupling})")
+        stored = self.stored == self.active and self.stored_coupling == self.coupling
+        same = "stored for power-up" if stored else "NOT stored: a power cycle reverts"
         return ", ".join(parts) + f"; {same}"
 
 
@@ -232,15 +281,43 @@ class AxisPlan:
 
 
 @dataclass(frozen=True)
+class CouplingPlan:
+    """What a push of an IMU set does with its coupling."""
+
+    source: str
+    payload: CouplingPayload
+    bank: str
+    was_bank: str | None
+    was_id: int
+
+    @property
+    def imu_set_id(self) -> int:
+        return self.payload.imu_set_id
+
+    @property
+    def unchanged(self) -> bool:
+        return self.was_bank is not None and self.was_id == self.imu_set_id
+
+
+@dataclass(frozen=True)
 class PushPlan:
     node_id: int
     serial: int
     axes: tuple[AxisPlan, ...]
     selector_before: int
     selector_after: int
+    coupling: CouplingPlan | None = None
 
     def describe(self) -> list[str]:
         lines = []
+        c = self.coupling
+        if c is not None:
+            was = "no coupling" if c.was_bank is None else f"bank {c.was_bank} IMU set 0x{c.was_id:08x}"
+            if c.unchanged:
+                lines.append(f"  IMU set 0x{c.imu_set_id:08x} already active (coupling bank {c.was_bank})")
+            else:
+                lines.append(f"  IMU set 0x{c.imu_set_id:08x}: coupling {len(c.payload.content):5d} bytes -> "
+                             f"coupling bank {c.bank} (active now: {was})  from {c.source}")
         for p in self.axes:
             was = "no set" if p.was_bank is None else f"bank {p.was_bank} 0x{p.was_id:08x}"
             if p.unchanged:
@@ -252,16 +329,27 @@ class PushPlan:
         return lines
 
 
+@dataclass(frozen=True)
+class DeviceCoupling:
+    """The device's coupling state a push plans against: the active bank (None: identity) and id."""
+
+    bank: str | None = None
+    imu_set_id: int = 0
+
+
 def plan_push(
     sets: Mapping[str, tuple[str, CoefficientSet]],
     limits: DeviceLimits,
     active: Mapping[str, str | None],
     active_ids: Mapping[str, int],
     node_id: int,
+    imu: tuple[str, ImuSet] | None = None,
+    coupling: DeviceCoupling = DeviceCoupling(),
 ) -> PushPlan:
     """Which bank each set goes to, and the selector that activates them; refuses inadmissible sets.
 
-    ``sets`` maps axis → (where the set came from, the set). Pure: the device's state is passed in.
+    ``sets`` maps axis → (where the set came from, the set); ``imu`` (where from, the IMU set) adds
+    its coupling (``sets`` then holds its three axes). Pure: the device's state is passed in.
     """
     axes = []
     after = dict(active)
@@ -278,7 +366,24 @@ def plan_push(
         if not plan.unchanged:
             after[axis] = plan.bank
         axes.append(plan)
-    return PushPlan(node_id, limits.serial, tuple(axes), pack_active(dict(active)), pack_active(after))
+    coupling_after = coupling.bank
+    coupling_plan = None
+    if imu is not None:
+        source, imu_set = imu
+        serial = sensor_id_for_serial(limits.serial)
+        if imu_set.sensor_id != serial:
+            raise CanicalError(f"{source}: not for this device (node 0x{node_id:02x}): IMU set for sensor "
+                               f"{imu_set.sensor_id!r}, the device is serial {serial}")
+        coupling_plan = CouplingPlan(source, encode_coupling(imu_set), other_bank(coupling.bank),
+                                     coupling.bank, coupling.imu_set_id)
+        if not coupling_plan.unchanged:
+            coupling_after = coupling_plan.bank
+    elif coupling.bank is not None and any(not p.unchanged for p in axes):
+        raise CanicalError(f"node 0x{node_id:02x} runs IMU set 0x{coupling.imu_set_id:08x}: its coupling "
+                           "belongs to its three axes, so one axis cannot be replaced under it; push an "
+                           "IMU set (canical push imu.yaml)")
+    return PushPlan(node_id, limits.serial, tuple(axes), pack_active(dict(active), coupling.bank),
+                    pack_active(after, coupling_after), coupling_plan)
 
 
 @dataclass
@@ -296,13 +401,20 @@ def push_sets(
     client: ImuClient,
     sets: Mapping[str, tuple[str, CoefficientSet]],
     *,
+    imu: tuple[str, ImuSet] | None = None,
     dry_run: bool = False,
     progress: Progress = lambda _: None,
 ) -> PushResult | PushPlan:
-    """Push sets to the device (see module doc); with ``dry_run`` only the plan, nothing written."""
+    """Push sets, or an IMU set (``imu``: where from, the set; ``sets`` then empty), to the device
+    (see module doc); with ``dry_run`` only the plan, nothing written."""
     t0 = time.perf_counter()
     limits = client.limits()
-    plan = plan_push(sets, limits, client.active(), client.active_ids(), client.node_id)
+    if imu is not None:
+        if sets:
+            raise CanicalError("an IMU set is pushed alone: its three axes are in it")
+        sets = {c.axis: (f"{imu[0]} axes.{c.axis}", c) for c in imu[1].axes}
+    coupling = DeviceCoupling(client.active_coupling(), client.active_imu_set_id())
+    plan = plan_push(sets, limits, client.active(), client.active_ids(), client.node_id, imu, coupling)
     if dry_run:
         return plan
     timings: dict[str, float] = {"read_state": time.perf_counter() - t0}
@@ -322,6 +434,7 @@ def push_sets(
             client.download((ref.index, ref.content), p.content, f"downloading {name}")
             client.write_uint((ref.index, ref.crc), p.set_id, 4, f"writing the CRC of {name}")
             written += len(p.content) + 4
+        written += _download_coupling(client, plan.coupling, progress)
         timings["download"] = time.perf_counter() - t
         t = time.perf_counter()
         for p in plan.axes:
@@ -335,6 +448,7 @@ def push_sets(
             if bank_status != STATUS_VALID:
                 raise CanicalError(f"node 0x{client.node_id:02x}: device reports {name} "
                                    f"{STATUS_TEXT.get(bank_status, bank_status)}; nothing activated")
+        _verify_coupling(client, plan.coupling)
         timings["verify"] = time.perf_counter() - t
         t = time.perf_counter()
         if plan.selector_after != plan.selector_before:
@@ -357,7 +471,38 @@ def push_sets(
         if status.active_ids[p.axis] != p.set_id:
             raise CanicalError(f"node 0x{client.node_id:02x}: after the push axis {p.axis} runs "
                                f"0x{status.active_ids[p.axis]:08x}, not 0x{p.set_id:08x} (another writer?)")
+    if plan.coupling is not None and status.imu_set_id != plan.coupling.imu_set_id:
+        raise CanicalError(f"node 0x{client.node_id:02x}: after the push the device applies the coupling of "
+                           f"IMU set 0x{status.imu_set_id:08x}, not 0x{plan.coupling.imu_set_id:08x} "
+                           "(another writer?)")
     return PushResult(plan, status, timings, written)
+
+
+def _download_coupling(client: ImuClient, plan: CouplingPlan | None, progress: Progress) -> int:
+    """Write an IMU set's coupling bank (inactive: nothing the device runs changes); bytes written."""
+    if plan is None or plan.unchanged:
+        return 0
+    ref = client.objects.coupling_bank(plan.bank)
+    name = f"coupling bank {plan.bank}"
+    progress(f"downloading {len(plan.payload.content)} bytes to {name}")
+    client.download((ref.index, ref.content), plan.payload.content, f"downloading {name}")
+    client.write_uint((ref.index, ref.crc), plan.payload.crc, 4, f"writing the CRC of {name}")
+    client.write_uint((ref.index, ref.imu_set_id), plan.imu_set_id, 4, f"writing the IMU set id of {name}")
+    return len(plan.payload.content) + 8
+
+
+def _verify_coupling(client: ImuClient, plan: CouplingPlan | None) -> None:
+    """Read the coupling bank back: the bytes written, and valid on its own as the device sees it."""
+    if plan is None or plan.unchanged:
+        return
+    back, bank_status = client.coupling_bank(plan.bank)
+    name = f"coupling bank {plan.bank}"
+    if back != plan.payload:
+        raise CanicalError(f"node 0x{client.node_id:02x}: read-back of {name} differs from what was "
+                           f"written (another writer on the bus?); nothing activated")
+    if bank_status != STATUS_VALID:
+        raise CanicalError(f"node 0x{client.node_id:02x}: device reports {name} "
+                           f"{STATUS_TEXT.get(bank_status, bank_status)}; nothing activated")
 
 
 def pull_sets(client: ImuClient, axes: tuple[str, ...] = AXES) -> dict[str, CoefficientSet]:
@@ -379,6 +524,29 @@ def pull_sets(client: ImuClient, axes: tuple[str, ...] = AXES) -> dict[str, Coef
             raise CanicalError(f"{where}: holds a set for axis {cset.axis}")
         out[axis] = cset
     return out
+
+
+def pull_imu_set(client: ImuClient) -> ImuSet:
+    """The IMU set the device runs: its three active axes and its active coupling bank, accepted
+    only if together they make the IMU set the device's "Active IMU set id" names."""
+    client.require_canical_objects()
+    bank = client.active_coupling()
+    where = f"node 0x{client.node_id:02x}"
+    if bank is None:
+        raise CanicalError(f"{where}: runs no IMU set (no coupling active); `canical pull` without "
+                           "--imu-set reads its single-axis sets")
+    imu_set_id = client.active_imu_set_id()
+    sets = pull_sets(client)
+    missing = [a for a in AXES if a not in sets]
+    if missing:
+        raise CanicalError(f"{where}: coupling active but no set for axis {', '.join(missing)}")
+    payload, _ = client.coupling_bank(bank)
+    source = f"{where} coupling bank {bank}"
+    if payload.imu_set_id != imu_set_id:
+        raise CanicalError(f"{source}: IMU set id 0x{payload.imu_set_id:08x} is not the active one "
+                           f"0x{imu_set_id:08x}")
+    envelope = decode_coupling(payload.content, payload.crc, source)
+    return join_imu_set(envelope, tuple(sets[a] for a in AXES), imu_set_id, source)
 
 
 def pull_active_sets(

@@ -1,6 +1,7 @@
 """Cost of the firmware evaluator (firmware/canical_eval.c) per sample, here and on a Cortex-M4F.
 
-Prints, for a set of every model kind and one with every term kind:
+Prints, for a set of every model kind and one with every term kind, and for an IMU set (three
+axes and their coupling, ``ce_eval3``: each axis's set, then corrected = M @ the three rates):
 
 * nanoseconds per sample of the C library on this machine (``ce_eval_block`` over 1,000,000
   samples through ctypes, -O2; best of 5), beside canical's Python evaluator per sample
@@ -8,6 +9,8 @@ Prints, for a set of every model kind and one with every term kind:
 * floating-point operations per sample (add, subtract, multiply, divide, compare, int/float
   conversion), counted from the source along the path each sample takes (inside the span,
   beyond it, and the worst case the library's limits allow);
+* for the IMU set rows, the largest difference from ``canical apply imu.yaml`` (ImuCorrector) over
+  the samples timed;
 * with ``arm-none-eabi-gcc`` (Debian ``gcc-arm-none-eabi``): code size of a Cortex-M4F build
   (-mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard, freestanding) at -O2 and -Os, and of
   the functions a sample runs through.
@@ -25,13 +28,24 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from support.firmware_cases import MODELS, TERMS, model_set, stream, term_set
+from support.firmware_cases import (
+    MODELS,
+    TERMS,
+    imu_set_of,
+    imu_stream,
+    model_set,
+    stream,
+    term_set,
+)
 
-from canical.device.firmware_eval import FirmwareCorrector
+from canical.device.firmware_eval import FirmwareCorrector, FirmwareImuCorrector
 from canical.sets import term_kinds
 from canical.sets.corrector import Corrector
+from canical.sets.imu_corrector import ImuCorrector
 from canical.sets.term_kinds import TermKind
 from canical.sets.terms import term_from_dict
 
@@ -51,6 +65,7 @@ PER_SAMPLE = (
     "channel_lag_gap",
 )
 LIMITS = {"segments": 16, "coeffs": 10, "terms": 12, "newton": 40}
+COUPLING_OPS = 18  # per axis r + (d0 r0 + d1 r1 + d2 r2): three multiplies, three adds
 
 # Operations counted from canical_eval.c along each path (see firmware/README.md, "Cost per
 # sample"): float add, subtract, multiply, divide, negate, compare and int<->float conversion
@@ -86,6 +101,22 @@ def forward_operations(coeffs: int, newton: int) -> tuple[int, int]:
     """Forward polynomial: (inside, beyond) for ``newton`` Newton steps from the chord."""
     inside = 12 + 3 + newton * (4 * (coeffs - 1) + 11) + 1
     return inside, inside + 4 * coeffs - 1
+
+
+def imu_rows(cases: dict) -> list[tuple[str, object, tuple[int, int]]]:
+    """The IMU-set rows: a three-axis sample with coupling, each axis a segmented-inverse set
+    without terms (what `canical calibrate x.csv y.csv z.csv` writes) and with every term."""
+    plain = cases["segmented-inverse"]
+    segments, coeffs = len(plain.model["coefficients"]), len(plain.model["coefficients"][0])
+    every = cases["segmented-inverse + every term"]
+    terms = [term_from_dict(t) for t in every.terms]
+    rows = []
+    for name, cset, features, scale in (("IMU set: 3 x segmented-inverse + M", plain, [], 0),
+                                        ("IMU set: 3 x every term + M", every, [t.spec for t in terms],
+                                         sum(t.form == "scale" for t in terms))):
+        inside, beyond = operations(segments, coeffs, features, scale)
+        rows.append((name, cset, (3 * inside + COUPLING_OPS, 3 * beyond + COUPLING_OPS)))
+    return rows
 
 
 def best_of(fn, repeats: int = 5) -> float:
@@ -133,6 +164,33 @@ def main() -> None:
                 segments, coeffs, [t.spec for t in terms], sum(t.form == "scale" for t in terms)
             )
         print(f"{name:34s} {segments:4d} {coeffs:4d} {c_ns:7.1f} {py_us:17.2f} {ops[0]:9d} / {ops[1]:<7d}")
+    agreement = []
+    for name, cset, ops in imu_rows(cases):
+        imu = imu_set_of(cset)
+        raw, inputs = imu_stream(imu, args.samples)
+        fw3 = FirmwareImuCorrector(imu)
+        c_s = best_of(lambda fw3=fw3, raw=raw, inputs=inputs: fw3.correct(raw, inputs), repeats)
+        c_ns = c_s / args.samples
+        py3 = [Corrector(c) for c in imu.axes]
+        m = imu.coupling
+        n_py = min(20_000, args.samples)
+        rows3 = [{k: float(v[i]) for k, v in inputs.items()} for i in range(n_py)]
+
+        def python3(py3=py3, rows3=rows3, raw=raw, m=m):
+            for i, r in enumerate(rows3):
+                per = [c.correct_one(raw[i, k], r)[0] for k, c in enumerate(py3)]
+                [m[j][0] * per[0] + m[j][1] * per[1] + m[j][2] * per[2] for j in range(3)]
+
+        py_us = best_of(python3, min(repeats, 3)) / n_py * 1e6
+        print(f"{name:34s} {'':4s} {'':4s} {c_ns * 1e9:7.1f} {py_us:17.2f} {ops[0]:9d} / {ops[1]:<7d}")
+        expected, flags = ImuCorrector(imu).correct(raw, inputs)
+        rates, oos = fw3.correct(raw, inputs)
+        agreement.append((float(np.max(np.abs(rates - expected))), int(np.sum(oos != flags))))
+    print("(three axes: ns per three-axis sample, ce_eval3_block; operations those of the three sets plus")
+    print(f" the coupling's {COUPLING_OPS})")
+    print(f"IMU set rows against `canical apply imu.yaml` (ImuCorrector) over {args.samples:,} samples: "
+          "largest difference " + " / ".join(f"{d:.1e}" for d, _ in agreement) + " deg/s, out-of-span "
+          "flags differing " + " / ".join(str(f) for _, f in agreement))
     lags = [term_kinds.CHANNEL_LAG] * LIMITS["terms"]
     worst = operations(LIMITS["segments"], LIMITS["coeffs"], lags, LIMITS["terms"])
     fwd = forward_operations(LIMITS["coeffs"], LIMITS["newton"])

@@ -434,3 +434,35 @@ def test_daemon_takes_its_sets_from_the_device_and_falls_back_to_files(vcan_chan
                    for m in messages)
     finally:
         node10.stop()
+
+
+@pytest.mark.vcan
+def test_imu_set_push_pull_round_trip_survives_power_cycle(vcan_channel: str, tmp_path: Path) -> None:
+    """An IMU set (three axes and their coupling) pushed to the device process over SocketCAN:
+    activated in one write, applied by the firmware evaluator, stored, and pulled back after a
+    power cut as the very set pushed."""
+    from canical.sets import imu_set as imu_file
+
+    try:
+        from support.imu_fixtures import imu_triad_set
+    except ImportError:  # pragma: no cover
+        from tests.imu_fixtures import imu_triad_set  # type: ignore[no-redef]
+
+    imu = imu_triad_set(0)
+    path, back = tmp_path / "imu.yaml", tmp_path / "back.yaml"
+    imu_file.save(path, imu)
+    with device(vcan_channel, tmp_path, "--rate", "50", "--correct") as dev:
+        pushed = canical("push", str(path), *bus_args(vcan_channel))
+        assert pushed.returncode == 0, pushed.stderr
+        assert f"coupling of IMU set 0x{imu_file.imu_set_crc(imu):08x}" in pushed.stdout
+        assert "stored for power-up" in pushed.stdout
+        deadline = time.monotonic() + 20.0
+        while "coupling applied on the device with the firmware evaluator (C)" not in dev.log.read_text():
+            assert time.monotonic() < deadline, dev.log.read_text()[-2000:]
+            time.sleep(0.2)
+        dev.kill()  # power cut: the stored IMU set must come back
+        dev.start()
+        pulled = canical("pull", *bus_args(vcan_channel), "--imu-set", "-o", str(back))
+        assert pulled.returncode == 0, pulled.stderr
+    again = imu_file.load(back)
+    assert again == imu and imu_file.imu_set_crc(again) == imu_file.imu_set_crc(imu)

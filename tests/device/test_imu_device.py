@@ -126,7 +126,7 @@ def test_selector_packs_and_unpacks(banks: list) -> None:
     assert unpack_active(pack_active(selection)) == selection
 
 
-@pytest.mark.parametrize("value", [0x03, 0x0C, 0x30, 0x40, 0xFF])
+@pytest.mark.parametrize("value", [0x03, 0x0C, 0x30, 0xC0, 0xFF, 0x100])
 def test_selector_rejects_codes_naming_no_bank(value: int) -> None:
     with pytest.raises(ValueError):
         unpack_active(value)

@@ -15,9 +15,11 @@ import numpy as np
 from canical.pipeline import CalibrateOptions, calibrate
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
+from canical.sets.imu_set import ImuSet, as_matrix
 from canical.sets.terms import term_from_dict
 from canical.sim.imu_stream import default_gyros
 from canical.sim.sessions import paper_session
+from canical.sim.triad import random_triad
 
 SERIAL = 4711
 SENSOR = str(SERIAL)
@@ -169,3 +171,25 @@ def stream(cset: CoefficientSet, n: int, seed: int = 0) -> tuple[np.ndarray, dic
 
 def on_grid(values: np.ndarray, step: float) -> np.ndarray:
     return np.round(values / step) * step
+
+
+def imu_every_term_set(seed: int = 0) -> ImuSet:
+    """An IMU set whose three axes carry every term kind (the z set of :func:`term_set`, as each
+    axis) and whose coupling undoes a random triad's (:mod:`canical.sim.triad`, 0.4–2 %)."""
+    return imu_set_of(term_set(tuple(TERMS)), seed)
+
+
+def imu_set_of(cset: CoefficientSet, seed: int = 0) -> ImuSet:
+    """An IMU set with ``cset`` as each of its three axes and the coupling that undoes a random
+    triad's (:mod:`canical.sim.triad`, 0.4–2 %)."""
+    axes = tuple(replace(cset, axis=a) for a in "xyz")
+    matrix = np.linalg.inv(random_triad(seed).coupling)
+    return ImuSet(SENSOR, axes, as_matrix(matrix), as_matrix(np.full((3, 3), 1e-4)),  # type: ignore[arg-type]
+                  {"coupling_plateaus": 0}, "2026-01-01T00:00:00Z")
+
+
+def imu_stream(imu: ImuSet, n: int, seed: int = 0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """n three-axis samples: each axis's raw from :func:`stream` of its own set (its own seed),
+    the inputs (time, temperature, supply) shared, as one IMU's frames carry them."""
+    streams = [stream(cset, n, seed=3 * seed + i) for i, cset in enumerate(imu.axes)]
+    return np.column_stack([raw for raw, _ in streams]), streams[0][1]

@@ -10,10 +10,13 @@ from __future__ import annotations
 import functools
 
 from canical.imu_dictionary import AXES
+from canical.imu_pipeline import calibrate_imu
 from canical.pipeline import CalibrateOptions, calibrate
 from canical.sets.coefficients import CoefficientSet
+from canical.sets.imu_set import ImuSet
 from canical.sim.imu_stream import default_gyros
 from canical.sim.sessions import paper_session
+from canical.sim.triad import axis_session, random_triad
 
 SERIAL = 4711
 SENSOR = str(SERIAL)
@@ -35,3 +38,18 @@ def _imu_set(axis: str, family: int, sensor: str) -> CoefficientSet:
 
 def imu_sets(family: int = 0, sensor: str = SENSOR) -> dict[str, CoefficientSet]:
     return {a: imu_set(a, family, sensor) for a in AXES}
+
+
+def imu_triad_set(seed: int = 0, sensor: str = SENSOR) -> ImuSet:
+    """A realistic IMU set for the emulated IMU: a simulated triad (:mod:`canical.sim.triad`, its
+    coupling 0.4–2 %) calibrated from one short session per table axis; the same arguments give
+    the very same set (and CRC) for the whole test session."""
+    return _imu_triad_set(seed, sensor)
+
+
+@functools.cache
+def _imu_triad_set(seed: int, sensor: str) -> ImuSet:
+    triad = random_triad(seed)
+    sessions = [axis_session(triad, axis, dwell_s=1.5, seed=100 * seed + k, sensor=sensor)
+                for k, axis in enumerate(AXES)]
+    return calibrate_imu(sessions, FAST, sensor_id=sensor).imu_set
