@@ -115,10 +115,18 @@ KEYS: tuple[Key, ...] = (
     Key(
         "axes.AXIS.raw",
         "`GyroRawX`, `GyroRawY`, `GyroRawZ`",
-        "a signal of the raw frame, or `MESSAGE.Signal` (every axis from the same message, "
-        "which is then the raw frame)",
+        "a signal of the raw frame, or `MESSAGE.Signal` of any classic, unmultiplexed message; "
+        "with several messages the last axis's is the raw frame (unless `frames.raw` says) and the "
+        "others are held at their latest value",
         "the axis's raw signal: the physical value the DBC gives (its scale and offset applied), "
         "the same value a session's `raw` column holds",
+    ),
+    Key(
+        "axes.AXIS.max_age_s",
+        "`0.1`",
+        "positive number of seconds; only for an axis in another message than the raw frame",
+        "older than this when the raw frame comes sets the corrected frame's Stale flag; never "
+        "received: the axis is Uncalibrated",
     ),
     Key(
         "axes.AXIS.coefficients",

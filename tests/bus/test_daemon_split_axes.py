@@ -68,8 +68,8 @@ def split_stream(n: int, seed: int = 4, gap: tuple[int, int] = (0, 0)) -> list[c
         msgs.append(can.Message(timestamp=stamp + 0.0002, arbitration_id=pitch.frame_id, is_extended_id=True,
                                 data=pitch.encode({"PitchRaw": int(counts[i, 1]), "PitchQuality": 1})))
         msgs.append(can.Message(timestamp=stamp + 0.0004, arbitration_id=yaw.frame_id, is_extended_id=False,
-                                data=yaw.encode({"YawRaw": int(counts[i, 2]), "ChipTemp": round(float(temp[i]), 2),
-                                                 "YawQuality": 1})))
+                                data=yaw.encode({"YawRaw": int(counts[i, 2]), "YawQuality": 1,
+                                                 "ChipTemp": round(float(temp[i]), 2)})))
     return msgs
 
 
@@ -125,7 +125,8 @@ def test_axes_from_three_messages_are_held_and_corrected_at_the_raw_frame(tmp_pa
         inside = np.abs(want) < 327.0
         assert inside.sum() > 300
         assert np.max(np.abs(sent_rates - want)[inside]) <= HALF_LSB, axis
-    assert compiled.stats.stale_frames == sum(stale) and compiled.stats.inputs_in == 560 + 600  # ROLL and PITCH frames
+    assert compiled.stats.stale_frames == sum(stale)
+    assert compiled.stats.inputs_in == 560 + 600  # the ROLL and PITCH frames
 
 
 def test_apply_on_a_log_of_the_frames_gives_the_daemons_rates(tmp_path: Path, sets) -> None:
