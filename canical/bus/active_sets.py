@@ -158,24 +158,34 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
     device again. A set whose id is already running keeps its corrector (and its state).
     """
     from canical.device.can_network import open_network, sdo_client_filters
-    from canical.device.sdo_download import pull_active_sets
+    from canical.device.sdo_download import pull_active
 
     device = config.device
     assert device is not None
     where = f"device node 0x{device.node:02x}"
     pulled: dict[str, CoefficientSet] = {}
+    pulled_imu: ImuSet | None = None
     messages: list[str] = []
     try:
         network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
                                **config.bus_options)
         try:
-            pulled = pull_active_sets(network, device.node, tuple(a.axis for a in current.axes),
-                                      device.timeout_s)
+            got = pull_active(network, device.node, tuple(a.axis for a in current.axes), device.timeout_s)
+            pulled, pulled_imu = got.sets, got.imu
         finally:
             network.disconnect()
     except CanicalError as exc:
         messages.append(f"{where}: {exc}; using the coefficient files")
+    if pulled_imu is not None:
+        try:
+            return _device_imu(config, current, pulled_imu, where)
+        except CanicalError as exc:
+            messages.append(f"imu set: {exc}; using the coefficient files")
     files, file_messages = reload(config, current, force=True)
+    if config.imu_set is not None:  # the device runs no IMU set: the configured file
+        if pulled:
+            messages.append(f"{where}: runs single-axis sets, not an IMU set; using {config.imu_set}")
+        return files, messages + file_messages
     axes = list(files.axes)
     for i, ax in enumerate(axes):
         cset = pulled.get(ax.axis)
@@ -198,6 +208,27 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
                           reloads=old.reloads + (1 if old.corrector is not None else 0),
                           stamp=file_stamp(ax.path))
     return build(tuple(axes)), messages
+
+
+def _device_imu(config: DaemonConfig, current: ActiveSets, imu: ImuSet,
+                where: str) -> tuple[ActiveSets, list[str]]:
+    """The IMU set a device runs, each axis checked as a file's is (the coupling was, on pulling)."""
+    if tuple(a.axis for a in config.axes) != AXES:
+        raise CanicalError(f"{where}: runs an IMU set; the configuration has axes "
+                           f"{', '.join(a.axis for a in config.axes)}, not x, y and z")
+    correctors = [check_set(config, axis, cset, f"{where}: axes.{axis}")
+                  for axis, cset in zip(AXES, imu.axes, strict=True)]
+    imu_id = imu_set_crc(imu)
+    axes = []
+    for old, corrector in zip(current.axes, correctors, strict=True):
+        same = old.corrector is not None and old.set_id == corrector.set_id
+        axes.append(replace(old, corrector=old.corrector if same else corrector, set_id=corrector.set_id,
+                            source=SOURCE_DEVICE, stamp=file_stamp(old.path),
+                            reloads=old.reloads + (1 if old.corrector is not None and not same else 0)))
+    if current.coupling is not None and current.combined_id == imu_id:
+        return build(tuple(axes), imu), []
+    was = f"0x{current.combined_id:08x}" if current.complete else "none"
+    return build(tuple(axes), imu), [f"imu set 0x{imu_id:08x} from {where} replaces {was}"]
 
 
 def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:

@@ -198,8 +198,6 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     inputs.update({a.held: InputSource(a.held, a.message, a.raw_signal, a.max_age_s)
                    for a in axes if a.held is not None and a.message is not None})
     device = _device(content, fail)
-    if device is not None and imu_set is not None:
-        raise fail("imu_set", "not read from a device (device:): the daemon corrects with the IMU set's file")
     j1939 = _j1939_source(content, fail)
     own_layout = _own_layout_output(content, frames, inputs, dbc, chan, j1939)
     tracking = _bias_tracking(content, inputs, base, fail)

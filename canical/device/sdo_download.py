@@ -549,6 +549,28 @@ def pull_imu_set(client: ImuClient) -> ImuSet:
     return join_imu_set(envelope, tuple(sets[a] for a in AXES), imu_set_id, source)
 
 
+@dataclass(frozen=True)
+class ActiveOnDevice:
+    """What a device runs: its IMU set when a coupling is active (``imu``), else its single-axis sets."""
+
+    sets: dict[str, CoefficientSet]
+    imu: ImuSet | None = None
+
+
+def pull_active(network: canopen.Network, node_id: int, axes: tuple[str, ...] = AXES,
+                timeout: float = DEFAULT_TIMEOUT_S) -> ActiveOnDevice:
+    """The sets a device runs, whole: its IMU set (axes and coupling) when it runs one, for a
+    caller with its own network (the daemon at start and on SIGHUP)."""
+    client = ImuClient(network, node_id, timeout)
+    try:
+        client.require_canical_objects()
+        if tuple(axes) == AXES and client.active_coupling() is not None:
+            return ActiveOnDevice({}, pull_imu_set(client))
+        return ActiveOnDevice(pull_sets(client, axes))
+    finally:
+        client.close()
+
+
 def pull_active_sets(
     network: canopen.Network, node_id: int, axes: tuple[str, ...] = AXES, timeout: float = DEFAULT_TIMEOUT_S
 ) -> dict[str, CoefficientSet]:

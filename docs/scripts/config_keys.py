@@ -138,7 +138,7 @@ KEYS: tuple[Key, ...] = (
         "imu_set",
         "`null` (a set file per axis)",
         "a file path to an IMU set (`canical calibrate x.csv y.csv z.csv`); no axis names its own "
-        "`coefficients`; not with `device`",
+        "`coefficients`",
         "the three axes' models and the coupling between them, loaded, checked and reloaded as one: "
         "the corrected frame carries the coupled rates",
     ),
@@ -171,7 +171,8 @@ KEYS: tuple[Key, ...] = (
         "device",
         "`null` (sets from files only)",
         "a mapping",
-        "take the sets from the IMU over CANopen SDO at start and on SIGHUP; files are the fallback",
+        "take the sets from the IMU over CANopen SDO at start and on SIGHUP (its IMU set whole, "
+        "coupling included, when it runs one); files are the fallback",
     ),
     Key("device.node", "required", "integer 1..127", "the IMU's CANopen node id (e.g. `0x10`)"),
     Key("device.timeout_s", "`1.0`", "positive number of seconds", "SDO timeout"),

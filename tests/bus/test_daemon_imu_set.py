@@ -177,9 +177,6 @@ def test_configuration_errors_are_one_line(folder: Path) -> None:
     with pytest.raises(CanicalError, match=r"axes.x.coefficients: not with imu_set"):
         load_config(write_config(folder, "both", imu_set=str(folder / "imu-set.yaml")))
     axes = {a: {"raw": f"GyroRaw{a.upper()}"} for a in AXES}
-    with pytest.raises(CanicalError, match=r"imu_set: not read from a device"):
-        load_config(write_config(folder, "dev", axes=axes, imu_set=str(folder / "imu-set.yaml"),
-                                 device={"node": 16}))
     with pytest.raises(CanicalError, match=r"axes: no axis has a coefficients file"):
         load_config(write_config(folder, "none", axes=axes))
 

@@ -429,3 +429,43 @@ def test_command_line_mistakes_are_one_line_and_write_nothing(tmp_path: Path, ca
         assert "writes one file" in one_line(capsys)
         assert dev.store.activation_count == 0 and sorted(p.name for p in tmp_path.iterdir()) == [
             "imu.yaml", "x.yaml"]
+
+
+# --------------------------------------------------------------------------------------------
+# The daemon with device: the IMU set the device runs, whole
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("configured", ["imu_set", "per-axis files"])
+def test_the_daemon_takes_the_imu_set_the_device_runs(tmp_path: Path, capsys, configured: str) -> None:
+    """At start (and on SIGHUP) a daemon with ``device:`` reads the device's IMU set (axes and
+    coupling, one id) whether its own files are an IMU set or per-axis sets; a device without
+    one leaves it on its files."""
+    from support.daemon_fixtures import write_config
+
+    from canical.bus import active_sets
+    from canical.bus.daemon_config import load_config
+    from canical.sets import coefficient_file
+
+    on_device, on_file = imu_triad_set(0), imu_triad_set(1)
+    imu_file.save(tmp_path / "imu.yaml", on_device)
+    imu_file.save(tmp_path / "file.yaml", on_file)
+    if configured == "imu_set":
+        files = {"axes": {a: {"raw": f"GyroRaw{a.upper()}"} for a in AXES},
+                 "imu_set": str(tmp_path / "file.yaml")}
+    else:
+        for axis, cset in zip(AXES, on_file.axes, strict=True):
+            coefficient_file.save(tmp_path / f"imu-{axis}.yaml", cset)
+        files = {}
+    with emulated(tmp_path) as (_, channel):
+        cfg = write_config(tmp_path, channel, interface="virtual", sensor=None, inputs={},
+                           device={"node": NODE, "timeout_s": 2.0}, **files)
+        config = load_config(cfg)
+        before, _ = active_sets.initial(config)  # the device runs no IMU set yet: the files
+        assert before.coupling == (on_file.coupling if configured == "imu_set" else None)
+        assert before.combined_id != imu_file.imu_set_crc(on_device)
+        assert main(["push", str(tmp_path / "imu.yaml"), *bus(channel)]) == 0
+        sets, messages = active_sets.initial(config)
+    assert sets.coupling == on_device.coupling and sets.combined_id == imu_file.imu_set_crc(on_device)
+    assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_DEVICE] * 3
+    assert any(f"imu set 0x{sets.combined_id:08x} from device node 0x{NODE:02x}" in m for m in messages)
