@@ -56,6 +56,7 @@ from canical.bus.daemon_config import DaemonConfig
 from canical.bus.frame_handler import (
     NO_PLAN,
     CompiledAxes,
+    OwnLayout,
     Plan,
     RawHandler,
     frame_layout,
@@ -129,6 +130,9 @@ class Daemon:
         self._encode_rate = None if self.rate is None else self.rate.encode_in_order
         self._rate_head, self._rate_pad = layout.rate_head, layout.rate_pad
         self._own = layout.own  # the corrected frame in the raw frame's layout (None: not sent)
+        #: The latest bytes of each other message an axis comes in, when the own layout re-encodes it.
+        self.held_frames: dict[int, bytes] = {}
+        self._keep_frames = frozenset(o.source_key for o in layout.own_held)
         self.out_bus: can.BusABC | None = None  # the gateway's output bus (None: the sensor's bus)
         self._counter_mask, self._tx_counter_mask = layout.counter_mask, layout.tx_counter_mask
         self._compiled_axes: CompiledAxes = weakref.WeakKeyDictionary()
@@ -361,6 +365,7 @@ class Daemon:
                     self.stats.unknown_ids += 1
                     return
                 handler = None if known == self._raw_key else self._input_handlers[known]
+                key = known
         if can_id & CAN_RTR_FLAG:
             self.stats.remote_frames += 1
             return
@@ -378,6 +383,8 @@ class Daemon:
             self.stats.bad_length += 1
             return
         signals = handler.decode(data)
+        if key in self._keep_frames:
+            self.held_frames[key] = bytes(data)
         values, times = self.values, self.times
         for name, at in handler.inputs_at:
             values[name] = signals[at]
@@ -425,7 +432,8 @@ class Daemon:
         if self.compiled and in_order and send_own is not None and len(sets.axes) == 3 and all(
                 ax.corrector is None or compiled.get(ax.corrector) is not None for ax in sets.axes):
             names = {"stats": self.stats, "values": self.values, "times": self.times, "encode": encode,
-                     "send": sock.send, "send_own": send_own, "send_failed": self._send_failed}
+                     "send": sock.send, "send_own": send_own, "send_failed": self._send_failed,
+                     "held_frames": self.held_frames}
             handler = generate_raw_handler(self.layout, sets, plan, owner=self, general=self._on_raw,
                                            names=names, tracking=self.tracking)
         self._fast = (sets, sock, handler)
@@ -439,18 +447,24 @@ class Daemon:
         out = raw_socket_of(self.out_bus) if self.out_bus is not None else None
         return None if out is None else out.send
 
-    def _send_own_layout(self, data: bytes | bytearray, signals: tuple[Any, ...],
-                         axes: tuple[tuple[int, float, bool], ...]) -> None:
-        """The reference path's own-layout frame: the raw frame, each calibrated axis's signal
-        (position, corrected rate, uncalibrated) saturated to its range, the rest as it came."""
-        own = self._own
-        assert own is not None
-        rates = {at: rate for at, rate, uncalibrated in axes if not uncalibrated}
-        values = []
-        for at, (lo, hi) in zip(own.at, own.spans, strict=True):
-            rate = rates.get(at)
-            values.append(signals[at] if rate is None else lo if rate < lo else hi if rate > hi else rate)
-        payload = own.payload(data, values)
+    def _send_own_layout(self, data: bytes | bytearray, raws: tuple[Any, Any, Any],
+                         rates: tuple[float | None, float | None, float | None]) -> None:
+        """The reference path's own-layout frames: the raw frame (and each other message an axis
+        comes in, from its latest frame), each calibrated axis's signal its corrected rate
+        (``rates[k]``, None: uncalibrated, its raw value ``raws[k]``) saturated to its range, the
+        rest as it came."""
+        assert self._own is not None
+        for own in (self._own, *self.layout.own_held):
+            source = data if own.source_key is None else self.held_frames.get(own.source_key)
+            if source is None:  # that message has not come yet
+                continue
+            values = []
+            for k, (lo, hi) in zip(own.axes, own.spans, strict=True):
+                rate = rates[k]
+                values.append(raws[k] if rate is None else lo if rate < lo else hi if rate > hi else rate)
+            self._send_own(own, own.payload(source, values))
+
+    def _send_own(self, own: OwnLayout, payload: bytes) -> None:
         bus = self.out_bus if own.gateway else self.bus
         sock = raw_socket_of(bus) if self.compiled else None
         if sock is not None:
@@ -525,7 +539,10 @@ class Daemon:
         ry = ry if isfinite(ry) else 0.0
         rz = rz if isfinite(rz) else 0.0
         if self._own is not None:
-            self._send_own_layout(data, signals, ((px.at, rx, ux), (py.at, ry, uy), (pz.at, rz, uz)))
+            raws = (signals[px.at] if px.held is None else values.get(px.held),
+                    signals[py.at] if py.held is None else values.get(py.held),
+                    signals[pz.at] if pz.held is None else values.get(pz.held))
+            self._send_own_layout(data, raws, (None if ux else rx, None if uy else ry, None if uz else rz))
         rate = self.rate
         if rate is None:  # frames.rate null: the own-layout frame is the corrected frame
             stats.frames_out += 1

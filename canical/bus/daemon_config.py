@@ -83,6 +83,9 @@ class OwnLayoutOutput:
     frame_id: int
     extended: bool
     channel: str | None
+    #: Axes from several messages: each other message's id (name, id, extended), in the raw
+    #: frame's layout's place re-encoded from its latest frame when the raw frame comes.
+    held_ids: tuple[tuple[str, int, bool], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -417,35 +420,63 @@ def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSo
     spec = content.get("own_layout")
     if spec is None:
         return None
-    held = sorted({s.message for n, s in inputs.items() if n.startswith(HELD_AXIS_PREFIX)})
-    if held:
-        raise dbc.fail("own_layout", f"the axes come from several messages ({frames.raw.name}, "
-                                     f"{', '.join(held)}): the own layout re-encodes the raw frame's "
-                                     "message alone, so it needs every axis in it")
+    held = list(dict.fromkeys(s.message for n, s in inputs.items() if n.startswith(HELD_AXIS_PREFIX)))
     if not isinstance(spec, dict):
         raise dbc.fail("own_layout", "must be a mapping {id: CAN id, extended: bool, channel: name}")
-    _no_unknown(spec, {"id", "extended", "channel"}, "own_layout.", dbc.fail)
+    _no_unknown(spec, {"id", "extended", "channel", "ids"}, "own_layout.", dbc.fail)
     extended = spec.get("extended", frames.raw.is_extended_frame)
     if not isinstance(extended, bool):
         raise dbc.fail("own_layout.extended", f"must be true or false, got {extended!r}")
-    frame_id = spec.get("id")
-    top = 0x1FFFFFFF if extended else 0x7FF
-    if not isinstance(frame_id, int) or isinstance(frame_id, bool) or not 0 <= frame_id <= top:
-        raise dbc.fail("own_layout.id", f"must be a CAN id 0..{top:#x}, got {frame_id!r}")
+    frame_id = _can_id(spec.get("id"), extended, "own_layout.id", dbc.fail)
+    held_ids = _held_ids(spec.get("ids"), held, dbc)
     out_channel = spec.get("channel")
     if out_channel is not None and (not isinstance(out_channel, str) or not out_channel):
         raise dbc.fail("own_layout.channel", "must be a non-empty interface name")
     if out_channel == channel:
         out_channel = None
+    out_ids = [("own_layout.id", frame_id, extended),
+               *((f"own_layout.ids.{n}", i, e) for n, i, e in held_ids)]
     if out_channel is None:  # on the sensor's bus: not an id the daemon reads or sends already
         read = [frames.raw, *(dbc.db.get_message_by_name(s.message) for s in inputs.values())]
         sent = [m for m in (frames.rate, frames.status) if m is not None]
-        for msg, match in [*((m, frame_match(m, j1939)) for m in read), *((m, frame_match(m)) for m in sent)]:
-            if match.matches(frame_id, extended):
-                what = "id" if match.exact else f"group ({match.describe()})"
-                raise dbc.fail("own_layout.id", f"{frame_id:#x} is {msg.name}'s {what} on the same bus "
-                                                "(give another id, or another channel)")
-    return OwnLayoutOutput(frame_id, extended, out_channel)
+        for key, out_id, out_ext in out_ids:
+            for msg, match in [*((m, frame_match(m, j1939)) for m in read),
+                               *((m, frame_match(m)) for m in sent)]:
+                if match.matches(out_id, out_ext):
+                    what = "id" if match.exact else f"group ({match.describe()})"
+                    raise dbc.fail(key, f"{out_id:#x} is {msg.name}'s {what} on the same bus "
+                                        "(give another id, or another channel)")
+    if len({(i, e) for _, i, e in out_ids}) < len(out_ids):
+        raise dbc.fail("own_layout.ids", "two messages sent at the same id")
+    return OwnLayoutOutput(frame_id, extended, out_channel, held_ids)
+
+
+def _can_id(value: Any, extended: bool, key: str, fail: Fail) -> int:
+    top = 0x1FFFFFFF if extended else 0x7FF
+    if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= top:
+        raise fail(key, f"must be a CAN id 0..{top:#x}, got {value!r}")
+    return value
+
+
+def _held_ids(spec: Any, held: list[str], dbc: _Dbc) -> tuple[tuple[str, int, bool], ...]:
+    """``own_layout.ids``: the id of each other message an axis comes in (each of them, no other)."""
+    if spec is None and not held:
+        return ()
+    if not isinstance(spec, dict):
+        raise dbc.fail("own_layout.ids", f"the axes come from several messages: give each other one's "
+                                         f"id ({', '.join(f'{m}: ID' for m in held)})")
+    unknown = sorted(set(spec) - set(held))
+    if unknown:
+        others = ", ".join(held) or "none"
+        raise dbc.fail(f"own_layout.ids.{unknown[0]}", f"no axis comes in {unknown[0]} (ids are for the "
+                                                       f"axes' other messages: {others})")
+    out = []
+    for name in held:
+        if name not in spec:
+            raise dbc.fail("own_layout.ids", f"no id for {name}, which an axis comes in")
+        extended = dbc.db.get_message_by_name(name).is_extended_frame
+        out.append((name, _can_id(spec[name], extended, f"own_layout.ids.{name}", dbc.fail), extended))
+    return tuple(out)
 
 
 def _j1939_source(content: dict, fail: Fail) -> J1939Source:

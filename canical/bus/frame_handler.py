@@ -76,6 +76,10 @@ class OwnLayout:
     frame_id: int
     extended: bool
     gateway: bool  # sent on another bus than the sensor's
+    axes: tuple[int, ...] = ()  # per signal of ``message``, the axis (0, 1, 2) whose rate it carries
+    #: The SocketCAN key of the message it re-encodes when not the raw frame (an axis's other
+    #: message: its latest frame's bytes), else None.
+    source_key: int | None = None
 
     def payload(self, data: bytes | bytearray, values: Any) -> bytes:
         """The frame for the axes' values (in ``message``'s order): the reference path's form."""
@@ -92,22 +96,45 @@ def _axes_message(raw_msg: Message, names: tuple[str, ...]) -> Message:
 
 
 def own_layout(config: DaemonConfig, raw_msg: Message, *, compiled: bool) -> OwnLayout | None:
-    """The own-layout output as configured (None: not sent)."""
+    """The own-layout output of the raw frame's message as configured (None: not sent)."""
     out = config.own_layout
     if out is None:
         return None
-    axes = _axes_message(raw_msg, tuple(a.raw_signal for a in config.axes))
-    ones = {s.name: -1 if s.is_signed else (1 << s.length) - 1 for s in axes.signals}
-    mask = int.from_bytes(axes.encode(ones, scaling=False, strict=False), "little")
-    order = [s.name for s in raw_msg.signals]
+    axes = [(a.raw_signal, k) for k, a in enumerate(config.axes) if a.held is None]
+    return _own_for(raw_msg, axes, out.frame_id, out.extended, out.channel is not None, compiled, None)
+
+
+def held_own_layouts(config: DaemonConfig, db: Database, *, compiled: bool) -> tuple[OwnLayout, ...]:
+    """The own-layout outputs of the other messages axes come in (``own_layout.ids``)."""
+    out = config.own_layout
+    if out is None:
+        return ()
+    layouts = []
+    for name, frame_id, extended in out.held_ids:
+        msg = db.get_message_by_name(name)
+        axes = [(a.raw_signal, k) for k, a in enumerate(config.axes) if a.message == name]
+        match = frame_match(msg, config.j1939_source)
+        layouts.append(_own_for(msg, axes, frame_id, extended, out.channel is not None, compiled,
+                                frame_key(match.usual_id, msg.is_extended_frame)))
+    return tuple(layouts)
+
+
+def _own_for(msg: Message, axes: list[tuple[str, int]], frame_id: int, extended: bool, gateway: bool,
+             compiled: bool, source_key: int | None) -> OwnLayout:
+    """One message's own-layout output: its ``axes`` signals (name, axis index) replaced."""
+    by_signal = dict(axes)
+    only = _axes_message(msg, tuple(by_signal))
+    ones = {s.name: -1 if s.is_signed else (1 << s.length) - 1 for s in only.signals}
+    mask = int.from_bytes(only.encode(ones, scaling=False, strict=False), "little")
+    order = [s.name for s in msg.signals]
     return OwnLayout(
-        encode=codec_for(axes, compiled=compiled).encode, message=axes,
-        at=tuple(order.index(s.name) for s in axes.signals),
-        spans=tuple(signal_range(raw_msg, s.name) for s in axes.signals),
-        keep=((1 << (8 * raw_msg.length)) - 1) & ~mask, length=raw_msg.length,
-        head=FRAME_HEAD.pack(frame_key(out.frame_id, out.extended), raw_msg.length, 0, 0),
-        pad=bytes(max(0, 8 - raw_msg.length)), frame_id=out.frame_id, extended=out.extended,
-        gateway=out.channel is not None)
+        encode=codec_for(only, compiled=compiled).encode, message=only,
+        at=tuple(order.index(s.name) for s in only.signals),
+        spans=tuple(signal_range(msg, s.name) for s in only.signals),
+        keep=((1 << (8 * msg.length)) - 1) & ~mask, length=msg.length,
+        head=FRAME_HEAD.pack(frame_key(frame_id, extended), msg.length, 0, 0),
+        pad=bytes(max(0, 8 - msg.length)), frame_id=frame_id, extended=extended, gateway=gateway,
+        axes=tuple(by_signal[s.name] for s in only.signals), source_key=source_key)
 
 
 @dataclass(frozen=True)
@@ -135,6 +162,8 @@ class FrameLayout:
     input_matches: tuple[tuple[FrameMatch, int], ...] = ()  # each input frame's match, and its key
     #: Axes whose raw signal is in another message: the input their latest value is held under.
     held_axes: tuple[tuple[str, str], ...] = ()
+    #: The own layout of those other messages, re-encoded from their latest frames.
+    own_held: tuple[OwnLayout, ...] = ()
 
     @property
     def masked_inputs(self) -> tuple[tuple[FrameMatch, int], ...]:
@@ -189,6 +218,7 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
         raw_match=raw_match,
         input_matches=tuple((m, frame_key(m.usual_id, key[1])) for key, m in matches.items()),
         held_axes=tuple((a.axis, a.held) for a in config.axes if a.held is not None),
+        own_held=held_own_layouts(config, db, compiled=compiled),
     )
 
 
@@ -312,8 +342,16 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
     if tracking is not None:  # the bias learned at standstills, less (canical.bus.bias_tracking)
         src.add(*tracking.inline_lines(flags))
     src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
+    raws = [f"s{a.at}" if a.held is None else held.get(a.held, f"values[{a.held!r}]") for a in plan.axes]
     if layout.own is not None:
-        _encode_and_send_own(src, layout.own, plan, flags)
+        _encode_and_send_own(src, layout.own, raws, flags, "data", "own0_")
+    for j, own in enumerate(layout.own_held, 1):  # the axes' other messages, from their latest frames
+        src.ns[f"KEY{j}"] = own.source_key
+        src.lines.extend([f"    hd{j} = held_frames.get(KEY{j})", f"    if hd{j} is not None:"])
+        body: list[str] = []
+        sub = _Source(body, src.ns)
+        _encode_and_send_own(sub, own, raws, flags, f"hd{j}", f"own{j}_")
+        src.lines.extend("    " + line for line in body)
     if layout.rate is not None:
         _encode_and_send(src, layout, layout.rate, sets, flags)
     else:  # the own-layout frame is the corrected frame
@@ -349,37 +387,36 @@ def _decode_and_count(src: _Source, layout: FrameLayout, plan: Plan) -> None:
                           f"    self._prev_counter = {got}"])
 
 
-def _encode_and_send_own(src: _Source, own: OwnLayout, plan: Plan, flags: list[str]) -> None:
-    """The raw frame again, each axis's signal its corrected value saturated to the signal's
-    range (an uncalibrated axis: its raw value as it came), every other bit as it came."""
-    rates = {axis.at: (k, flags[k] == "True") for k, axis in enumerate(plan.axes)}
+def _encode_and_send_own(src: _Source, own: OwnLayout, raws: list[str], flags: list[str], data: str,
+                         tag: str) -> None:
+    """A message again (``data``: its bytes), each axis's signal its corrected value saturated to
+    the signal's range (an uncalibrated axis: its raw value, ``raws[k]``), every other bit as it
+    came."""
     values: list[str] = []
     spans: list[tuple[float, float] | None] = []
-    for at, (lo, hi) in zip(own.at, own.spans, strict=True):
-        k, uncalibrated = rates.get(at, (-1, True))
-        if uncalibrated:
-            values.append(f"s{at}")
+    for k, (lo, hi) in zip(own.axes, own.spans, strict=True):
+        if flags[k] == "True":  # uncalibrated
+            values.append(raws[k])
             spans.append(None)
             continue
         zero = lo if lo > 0.0 else hi if hi < 0.0 else 0.0  # a non-finite rate is sent as 0
-        r = f"r{k}"
-        src.lines.append(f"    q{k} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
+        r, q = f"r{k}", f"{tag}q{k}"
+        src.lines.append(f"    {q} = ({lo!r} if {r} < {lo!r} else {hi!r} if {r} > {hi!r} else {r})"
                          f" if {r} - {r} == 0.0 else {zero!r}")
-        values.append(f"q{k}")
+        values.append(q)
         spans.append((lo, hi))
     try:
-        body, names, payload = encode_lines(own.message, values, [None] * len(values), tag="own_",
-                                            spans=spans)
+        body, names, payload = encode_lines(own.message, values, [None] * len(values), tag=tag, spans=spans)
         src.add(body, names)
     except NotCompilable:  # cantools encodes this frame (logged at start)
-        src.ns["own_encode"] = own.encode
-        payload = f"own_encode(({', '.join(values)},))"
-    src.ns.update({"OWN": own.head, "from_bytes": int.from_bytes})
+        src.ns[f"{tag}encode"] = own.encode
+        payload = f"{tag}encode(({', '.join(values)},))"
+    src.ns.update({f"{tag}HEAD": own.head, "from_bytes": int.from_bytes})
     n = own.length
-    frame = (f"((from_bytes({payload}, 'little') | (from_bytes(data, 'little') & {own.keep:#x}))"
+    frame = (f"((from_bytes({payload}, 'little') | (from_bytes({data}, 'little') & {own.keep:#x}))"
              f".to_bytes({n}, 'little'))")
     pad = f" + {own.pad!r}" if own.pad else ""
-    src.lines.extend(["    try:", f"        send_own(OWN + {frame}{pad}, MSG_DONTWAIT)",
+    src.lines.extend(["    try:", f"        send_own({tag}HEAD + {frame}{pad}, MSG_DONTWAIT)",
                       "    except OSError as exc:", "        send_failed(exc)"])
 
 

@@ -149,7 +149,14 @@ def test_apply_on_a_log_of_the_frames_gives_the_daemons_rates(tmp_path: Path, se
 
 
 @pytest.mark.parametrize(("change", "words"), [
-    ({"own_layout": {"id": 0x2A2}}, "own_layout: the axes come from several messages"),
+    ({"own_layout": {"id": 0x2A2}}, "own_layout.ids: the axes come from several messages"),
+    ({"own_layout": {"id": 0x2A2, "ids": {"ROLL_RATE": 0x2A0}}}, "own_layout.ids: no id for PITCH_RATE"),
+    ({"own_layout": {"id": 0x2A2, "ids": {"ROLL_RATE": 0x2A0, "PITCH_RATE": 0x20000000}}},
+     "own_layout.ids.PITCH_RATE: must be a CAN id"),
+    ({"own_layout": {"id": 0x2A2, "extended": False, "ids": {"ROLL_RATE": 0x2A2, "PITCH_RATE": 0x18FF0001}}},
+     "own_layout.ids: two messages sent at the same id"),
+    ({"own_layout": {"id": 0x2A2, "ids": {"ROLL_RATE": 0x1A0, "PITCH_RATE": 0x18FF0001}}},
+     "own_layout.ids.ROLL_RATE: 0x1a0 is ROLL_RATE's id on the same bus"),
     ({"axes": {"x": {"raw": "ROLL_RATE.Nope"}}}, "axes.x.raw: signal Nope not in message ROLL_RATE"),
     ({"axes": {"x": {"raw": "YAW_RATE.YawRaw", "max_age_s": 0.5}, "y": {"raw": "PITCH_RATE.PitchRaw"}}},
      "axes.x.max_age_s: only for an axis in another message"),
@@ -161,3 +168,44 @@ def test_bad_split_configurations_are_one_line(tmp_path: Path, sets, change: dic
                            **{a: {**v, "coefficients": str(sets[a])} for a, v in change["axes"].items()}}}
     with pytest.raises(CanicalError, match=words.replace("(", r"\(").replace("'", ".")):
         load_config(split_config(tmp_path, sets, **change))
+
+
+OWN = {"id": 0x2A2, "ids": {"ROLL_RATE": 0x2A0, "PITCH_RATE": 0x18FF2A41}}
+
+
+def test_each_message_goes_out_in_its_own_layout(tmp_path: Path, sets) -> None:
+    """own_layout with ids: when the raw frame comes, it and each other message an axis comes in
+    (from its latest frame) go out at their ids, the axis's signal its corrected rate (saturated
+    and rounded to the signal as cantools encodes), every other signal as it came."""
+    msgs = split_stream(300, gap=(100, 101))  # one ROLL lost: its last frame is re-sent
+    compiled, sent, sent_ref = run(split_config(tmp_path, sets, own_layout=OWN), msgs)
+    assert sent == sent_ref and len(sent) == 4 * 300  # YAW, ROLL, PITCH in their layouts; CANICAL_RATE
+    assert "held_frames.get(KEY1)" in compiled._fast[2].source
+    db = load_dbc(SPLIT)
+    rate_msg = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
+    layouts = [db.get_message_by_name(m) for m in ("YAW_RATE", "ROLL_RATE", "PITCH_RATE")]
+    rows = held_rows(msgs)
+    for i, row in enumerate(rows):
+        yaw, roll, pitch = (m.decode(p) for m, p in zip(layouts, sent[4 * i:4 * i + 3], strict=True))
+        rates = rate_msg.decode(sent[4 * i + 3])
+        for own, signal, axis in ((roll, "RollRaw", "X"), (pitch, "PitchRaw", "Y"), (yaw, "YawRaw", "Z")):
+            assert abs(own[signal] - rates[f"Rate{axis}"]) <= 0.5 + 0.005, (i, signal)
+        assert (roll["RollQuality"], pitch["PitchQuality"], yaw["YawQuality"]) == (1, 1, 1)
+        assert yaw["ChipTemp"] == pytest.approx(row["ChipTemp"])
+
+
+def test_the_own_layouts_of_several_messages_on_the_bus_as_the_daemon_runs(tmp_path: Path, sets) -> None:
+    """The same through the daemon's receive loop on python-can's virtual bus (the reference
+    path's send): the frames at their ids."""
+    msgs = split_stream(50)
+    config = load_config(split_config(tmp_path, sets, own_layout=OWN, frames={"rate": None}))
+    daemon = Daemon(config, compiled=False)
+    daemon.load_sets()
+    out: list[can.Message] = []
+    daemon.bus = type("Bus", (), {  # type: ignore[assignment]
+        "send": lambda self, msg, timeout=None: out.append(msg)})()
+    for m in msgs:
+        daemon._dispatch(m)
+    assert [(m.arbitration_id, m.is_extended_id) for m in out[:3]] == [
+        (0x2A2, False), (0x2A0, False), (0x18FF2A41, True)]
+    assert len(out) == 150 and daemon.stats.frames_out == 50

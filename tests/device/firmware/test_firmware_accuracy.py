@@ -188,8 +188,11 @@ def test_property_any_valid_set_evaluates_like_canical(lib_for_hypothesis, cset,
 
     lib = lib_for_hypothesis.lib
     fixed = ctypes.create_string_buffer(lib_for_hypothesis.fixed_size)
-    if lib.ce_fixed_from(fixed, fw._set) != 0:
-        assert cset.terms or cset.kind == "forward-poly"  # the fixed form's scope
+    code = lib.ce_fixed_from(fixed, fw._set)
+    if code != 0:
+        # The fixed form's scope: no terms, the segmented model, and numbers its Q16/Q30 words hold
+        # (a segment a fraction of a count wide needs a scale beyond them: refused, not wrapped).
+        assert cset.terms or cset.kind == "forward-poly" or code == CODES["CE_ERR_LIMIT"], code
         return
     out = ctypes.c_int32()
     for r, e, o in zip(raw.astype(np.int32).tolist(), expected.tolist(), expected_oos.tolist(), strict=True):
