@@ -193,6 +193,14 @@ KEYS: tuple[Key, ...] = (
     ),
     Key("own_layout.extended", "the raw frame's", "`true` or `false`", "whether that id is extended"),
     Key(
+        "own_layout.ids",
+        "required when axes come in several messages, else absent",
+        "a mapping of each other message an axis comes in to a CAN id (extended as that message is); "
+        "all ids distinct, none the daemon reads or sends on the same bus",
+        "where each of those messages goes out, re-encoded from its latest frame with its axes "
+        "corrected, whenever the raw frame is",
+    ),
+    Key(
         "own_layout.channel",
         "`null` (the sensor's bus)",
         "a non-empty interface name",
