@@ -271,13 +271,11 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         extra = [n for n in ("time_s", args.standstill_column, args.temp_column) if n in source.inputs]
         needed = list(dict.fromkeys([*needed, *extra]))
     raw_signal = source.raw_signals.get(cset.axis)
-    if raw_signal is not None and raw_signal in source.inputs:  # held: from another message
-        needed.append(raw_signal)
     log = read_canlog(
         args.input,
         dbc=source.dbc,
         axis=cset.axis,
-        inputs={n: source.inputs[n] for n in needed},
+        inputs=source.axis_inputs(cset.axis, needed),
         ref=None,
         raw_message=source.raw_message,
         raw_signal=raw_signal,

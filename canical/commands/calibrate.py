@@ -343,8 +343,8 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
     if axis is None and named_raw:
         axis = "z"
     if axis is None:  # the table says which axis it turns; a first pass finds out
-        first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs={}, ref=None,
-                            raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"),
+        first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs=source.axis_inputs("z", []),
+                            ref=None, raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"),
                             j1939_source=source.j1939_source)
         axis = first.table_axis or "z"
     log = read_canlog(

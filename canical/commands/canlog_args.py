@@ -30,6 +30,13 @@ class CanlogSource:
     from_config: bool
     j1939_source: J1939Source = None  # J1939 messages: the DBC's source address (None), a given one, or any
 
+    def axis_inputs(self, axis: str, names: list[str] | tuple[str, ...]) -> dict[str, str]:
+        """The inputs ``names`` and, for an axis in another message than the raw frame, its held raw
+        signal ("@x", as ``raw_signals`` names it): what reading the axis from a log needs."""
+        held = self.raw_signals.get(axis)
+        wanted = [*names, *([held] if held is not None and held in self.inputs else [])]
+        return {n: self.inputs[n] for n in dict.fromkeys(wanted)}
+
 
 def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(f"CAN logs ({CANLOG_FORMATS})")

@@ -129,7 +129,7 @@ def _read_canlog(args: argparse.Namespace):
         raise CanicalError(f"the coefficient set needs input(s) {', '.join(unmapped)}: map them with "
                            "--input NAME=MESSAGE.Signal or --config")
     log = read_canlog(args.record, dbc=source.dbc, axis=corrector.cset.axis,
-                      inputs={n: source.inputs[n] for n in corrector.required_inputs}, ref=None,
+                      inputs=source.axis_inputs(corrector.cset.axis, corrector.required_inputs), ref=None,
                       raw_message=source.raw_message, raw_signal=source.raw_signals.get(corrector.cset.axis),
                       j1939_source=source.j1939_source)
     s = log.session

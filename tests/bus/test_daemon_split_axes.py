@@ -209,3 +209,16 @@ def test_the_own_layouts_of_several_messages_on_the_bus_as_the_daemon_runs(tmp_p
     assert [(m.arbitration_id, m.is_extended_id) for m in out[:3]] == [
         (0x2A2, False), (0x2A0, False), (0x18FF2A41, True)]
     assert len(out) == 150 and daemon.stats.frames_out == 50
+
+
+def test_noise_reads_a_held_axis_from_a_log_with_the_configuration(tmp_path: Path, sets, capsys) -> None:
+    """``noise --config`` on a log: the x axis from its own message, one row per raw frame."""
+    msgs = split_stream(400)
+    split_config(tmp_path, sets)
+    log = tmp_path / "static.log"
+    with can.Logger(str(log)) as logger:
+        for m in msgs:
+            logger.on_message_received(m)
+    assert main(["noise", str(log), "--coefficients", str(sets["x"]), "--config",
+                 str(tmp_path / "split.yaml")]) == 0
+    assert "2.0 s at 200 Hz" in capsys.readouterr().out  # 400 rows: every YAW frame
