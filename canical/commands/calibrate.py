@@ -382,7 +382,7 @@ def summary(report: CalibrationReport) -> str:
         f"rate model {report.spec} (size chosen on held-out plateau means)",
         f"samples    {s.used} of {s.total} used "
         f"({s.transition} at changing rate, {s.settling} settling), {report.plateaus} plateaus",
-        *([f"read as    {report.read_as_means}"] if report.read_as_means else []),
+        *([f"input      {report.read_as_means}"] if report.read_as_means else []),
         _plateau_line(report.plateau_finding),
         *(f"left out   {p.label()}" for p in report.left_out_plateaus),
         f"V0         {report.v0:.3f}",

@@ -65,7 +65,7 @@ def read_row_means(
     if lines <= bound:
         return None
     check_columns(head, [c for c in (raw_column, settled_column) if c])
-    reducer = _Reducer(head, samples_per_mean(lines, bound), raw_column, settled_column)
+    reducer = _Reducer(head, lines, samples_per_mean(lines, bound), raw_column, settled_column)
     done = head.data_offset
     for chunk in read_chunks(head, head.header):
         reducer.add(chunk.columns, chunk.first_row)
@@ -76,15 +76,19 @@ def read_row_means(
 
 
 class _Reducer:
-    """Means of ``k`` rows, column by column; the rows short of a whole ``k`` carried over."""
+    """Means of ``k`` rows, column by column, written in place into columns sized for the file's
+    lines (no copies gathered and joined: memory is the means); the rows short of a whole ``k``
+    carried over to the next block."""
 
-    def __init__(self, head: CsvHead, k: int, raw_column: str, settled_column: str | None) -> None:
+    def __init__(self, head: CsvHead, lines: int, k: int, raw_column: str,
+                 settled_column: str | None) -> None:
         self.head, self.k = head, k
         self.raw_column, self.settled_column = raw_column, settled_column
         self.names = list(dict.fromkeys(head.header))
-        self.parts: dict[str, list[np.ndarray]] = {name: [] for name in self.names}
-        self.low: list[np.ndarray] = []
-        self.high: list[np.ndarray] = []
+        size = -(-lines // k)  # at most: blank lines are not rows
+        self.out = {name: np.empty(size) for name in self.names}
+        self.low, self.high = np.empty(size), np.empty(size)
+        self.filled = 0
         self.rest: dict[str, np.ndarray] = {name: np.zeros(0) for name in self.names}
         self.rows = 0
         self.last_time = -np.inf
@@ -95,28 +99,33 @@ class _Reducer:
         whole = {name: np.concatenate([self.rest[name], columns[name]]) for name in self.names}
         n = len(whole[self.names[0]])
         cut = n - n % self.k
+        at = slice(self.filled, self.filled + cut // self.k)
         for name, values in whole.items():
-            self._reduce(name, values[:cut].reshape(-1, self.k))
+            self._reduce(name, values[:cut].reshape(-1, self.k), at)
             self.rest[name] = values[cut:]
+        self.filled = at.stop
 
     def finish(self) -> tuple[CsvTable, RowMeans]:
         if self.rest[self.names[0]].size:
+            at = slice(self.filled, self.filled + 1)
             for name, values in self.rest.items():
-                self._reduce(name, values.reshape(1, -1))
-        columns = {name: np.concatenate(parts) for name, parts in self.parts.items()}
-        means = RowMeans(self.rows, self.k, np.concatenate(self.low), np.concatenate(self.high))
+                self._reduce(name, values.reshape(1, -1), at)
+            self.filled = at.stop
+        n = self.filled
+        columns = {name: values[:n] for name, values in self.out.items()}
+        means = RowMeans(self.rows, self.k, self.low[:n], self.high[:n])
         head = self.head
         table = CsvTable(head.path, head.meta, head.preamble, head.header, [], columns, head.first_data_line)
         return table, means
 
-    def _reduce(self, name: str, groups: np.ndarray) -> None:
+    def _reduce(self, name: str, groups: np.ndarray, at: slice) -> None:
         if name == self.settled_column:  # settled when every one of its samples is
-            self.parts[name].append(np.all(groups != 0, axis=1).astype(float))
+            self.out[name][at] = np.all(groups != 0, axis=1)
             return
-        self.parts[name].append(groups.mean(axis=1))
+        groups.mean(axis=1, out=self.out[name][at])
         if name == self.raw_column:
-            self.low.append(groups.min(axis=1))
-            self.high.append(groups.max(axis=1))
+            groups.min(axis=1, out=self.low[at])
+            groups.max(axis=1, out=self.high[at])
 
     def _check_time(self, time_s: np.ndarray | None, first_row: int) -> None:
         """The whole read's check (``session_from_table``), on the samples before they are averaged."""

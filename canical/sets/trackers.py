@@ -129,6 +129,22 @@ def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float,
     return np.array([tracker.update(r, t) for r, t in zip(raw.tolist(), time_s.tolist(), strict=True)])
 
 
+#: Samples the per-sample slope takes at once: its Python floats (some 100 bytes a sample) stay
+#: a few megabytes whatever the record's length.
+SLOPE_BLOCK = 1 << 16
+
+
+def _slope_state_in_blocks(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """:func:`slope_state` of the whole record, a block at a time with its state carried: the same
+    values, without a list of Python floats as long as the record."""
+    tracker = SlopeTracker(tau_s)
+    out = np.empty(raw.size)
+    for a in range(0, raw.size, SLOPE_BLOCK):
+        out[a : a + SLOPE_BLOCK] = slope_state(raw[a : a + SLOPE_BLOCK], time_s[a : a + SLOPE_BLOCK],
+                                               tau_s, tracker)
+    return out
+
+
 class SlopeTracker:
     """Rate of change of the raw output, first-order smoothed with time constant ``tau_s``."""
 
@@ -165,7 +181,7 @@ def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarra
     dt = np.diff(time_s)
     step = float(np.median(dt))
     if not (step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step)):
-        return slope_state(raw, time_s, tau_s)
+        return _slope_state_in_blocks(raw, time_s, tau_s)
     from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
 
     a = 1.0 - math.exp(-step / tau_s)

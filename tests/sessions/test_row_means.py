@@ -146,5 +146,5 @@ def test_calibrate_prints_how_the_session_was_read(tmp_path, monkeypatch, capsys
     assert main(["calibrate", str(path), "-o", str(out), "--no-extend"]) == 0
     captured = capsys.readouterr()
     line = f"{len(session):,} rows read as {-(-len(session) // 4):,} means of 4"
-    assert f"read as    {line}" in captured.out
+    assert f"input      {line}" in captured.out
     assert f"calibrate: {line}" in captured.err
