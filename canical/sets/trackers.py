@@ -135,13 +135,32 @@ SLOPE_BLOCK = 1 << 16
 
 
 def _slope_state_in_blocks(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """:func:`slope_state` of the whole record, a block at a time with its state carried: the same
-    values, without a list of Python floats as long as the record."""
-    tracker = SlopeTracker(tau_s)
+    """:func:`slope_state` of a whole record from a fresh state, bit for bit, a block at a time.
+
+    Why: the tracker's method call per sample costs seconds on millions of samples, and its
+    lists of Python floats as long as the record cost gigabytes. The differences and quotients
+    are numpy's (the same IEEE operations on the same floats); the smoothing runs in a plain
+    loop with ``math.exp`` as :meth:`SlopeTracker.update` does, skipping a sample whose time does
+    not advance (``t - last_t > 0`` exactly when ``t > last_t``, NaN neither).
+    """
     out = np.empty(raw.size)
-    for a in range(0, raw.size, SLOPE_BLOCK):
-        out[a : a + SLOPE_BLOCK] = slope_state(raw[a : a + SLOPE_BLOCK], time_s[a : a + SLOPE_BLOCK],
-                                               tau_s, tracker)
+    if raw.size == 0:
+        return out
+    with np.errstate(divide="ignore", invalid="ignore"):  # a step that does not advance is skipped
+        dt = np.diff(time_s)
+        quotient = np.diff(raw) / dt
+    tau = float(tau_s)
+    exp = math.exp
+    value = 0.0
+    out[0] = value
+    for a in range(0, dt.size, SLOPE_BLOCK):
+        values = []
+        for d, q in zip(dt[a : a + SLOPE_BLOCK].tolist(), quotient[a : a + SLOPE_BLOCK].tolist(),
+                        strict=True):
+            if d > 0.0:
+                value += (1.0 - exp(-d / tau)) * (q - value)
+            values.append(value)
+        out[a + 1 : a + 1 + len(values)] = values
     return out
 
 

@@ -114,11 +114,15 @@ def loadtxt_argv(path: Path) -> list[str]:
 
 
 def canical_steps(tmp: Path, session: Path, static: Path, tag: str) -> list[tuple[str, list[str]]]:
-    """calibrate, apply and noise as the command line runs them, outputs in ``tmp`` named by ``tag``."""
-    cset = tmp / f"set-{tag}.yaml"
+    """calibrate, apply and noise as the command line runs them, outputs in ``tmp`` named by ``tag``.
+
+    apply and noise take this tree's set whichever tree runs them: the baseline's calibration may
+    differ (a long session read as means), and apply's output is compared for apply alone.
+    """
+    cset = tmp / "set-this.yaml"
     py = [sys.executable, "-m", "canical"]
     return [
-        ("calibrate", [*py, "calibrate", str(session), "-o", str(cset)]),
+        ("calibrate", [*py, "calibrate", str(session), "-o", str(tmp / f"set-{tag}.yaml")]),
         ("apply", [*py, "apply", str(cset), str(session), "-o", str(tmp / f"applied-{tag}.csv")]),
         ("noise", [*py, "noise", str(static), "--coefficients", str(cset)]),
     ]

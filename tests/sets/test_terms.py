@@ -224,6 +224,11 @@ def test_uneven_slope_a_block_at_a_time_is_the_tracker_bit_for_bit(monkeypatch, 
     rng = np.random.default_rng(block)
     n = 10_000
     time_s = np.cumsum(rng.uniform(0.0005, 0.0015, n))
+    time_s[100:103] = time_s[100]  # duplicated timestamps: the tracker skips them
+    time_s[500] = np.nan
     raw = np.cumsum(rng.normal(0, 5, n))
+    raw[2000] = np.nan  # the tracker carries NaN from there on
     whole = trackers.slope_state(raw, time_s, 0.5)
     assert trackers.slope_filter(raw, time_s, 0.5).tobytes() == whole.tobytes()
+    assert trackers.slope_filter(raw[:1500], time_s[:1500], 0.5).tobytes() == whole[:1500].tobytes()
+    assert np.isfinite(whole[:1500][time_s[:1500] == time_s[:1500]]).all() and np.isnan(whole[-1])
