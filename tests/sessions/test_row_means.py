@@ -3,10 +3,12 @@ the set the samples give, within the fit's own tolerance, and loses no rail hit.
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from support.table_clock import own_clock_case, table_csv
 
 from canical.commands.cli import main
 from canical.errors import CanicalError
@@ -148,3 +150,25 @@ def test_calibrate_prints_how_the_session_was_read(tmp_path, monkeypatch, capsys
     line = f"{len(session):,} rows read as {-(-len(session) // 4):,} means of 4"
     assert f"input      {line}" in captured.out
     assert f"calibrate: {line}" in captured.err
+
+
+def test_a_tables_own_file_aligns_to_the_means_as_to_the_samples(tmp_path, monkeypatch, capsys):
+    case = own_clock_case(0, gyro=GyroModel(), fs_hz=100.0, offset_s=5000.25, drift_ppm=-75.0)
+    path = _write(tmp_path, case.session)  # no ref_dps column: the table's file gives it
+    table = tmp_path / "table.csv"
+    table.write_text(table_csv(case.table))
+    args = ["calibrate", str(path), "--reference", str(table), "--no-extend", "--segments", "3",
+            "--order", "2", "--report", str(tmp_path / "r.json")]
+    clocks = []
+    for bound in (None, len(case.session) // 4):
+        if bound:
+            monkeypatch.setattr(row_means, "REDUCE_ABOVE_ROWS", bound)
+        assert main([*args, "-o", str(tmp_path / f"set-{bound}.yaml")]) == 0
+        report = json.loads((tmp_path / "r.json").read_text())
+        assert ("read_as_means" in report) == bool(bound)
+        clocks.append(report["reference_clock"])
+    capsys.readouterr()
+    samples, means = clocks
+    assert means["rate_changes_matched"] == samples["rate_changes_matched"]
+    assert means["offset_s"] == pytest.approx(samples["offset_s"], abs=0.01)  # a mean is 40 ms here
+    assert means["drift_ppm"] == pytest.approx(samples["drift_ppm"], abs=5.0)
