@@ -154,6 +154,7 @@ class CalibrationReport:
     coefficients: str | None = None
     left_out_plateaus: tuple[LeftOutPlateau, ...] = ()
     reference_clock: dict[str, Any] | None = None  # a table file aligned to the log (the CLI's)
+    read_as_means: str | None = None  # "N rows read as M means of k": a session too long to hold
 
     @property
     def loop_ran(self) -> bool:
@@ -188,6 +189,7 @@ class CalibrationReport:
             "smoothness": self.smoothness,
             "v0": self.v0,
             "samples": asdict(self.samples),
+            **({"read_as_means": self.read_as_means} if self.read_as_means is not None else {}),
             "plateaus": self.plateaus,
             "plateau_finding": self.plateau_finding,
             "saturated_rates_dps": list(self.saturated_rates_dps),

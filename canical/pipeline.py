@@ -106,9 +106,12 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
             plateaus, min_duration_s=options.min_duration_s,
             what=f"no zero-rate plateau among {plateaus.count} plateaus (V0 cannot be measured)"))
     v0 = zero_bias(session.raw, plateaus)
-    rails = rail_plateaus(session.raw, plateaus, rail_limits(session))
+    means = session.means
+    rails = rail_plateaus(session.raw, plateaus, rail_limits(session),
+                          lowest=None if means is None else means.raw_low,
+                          highest=None if means is None else means.raw_high)
     clipped = rails.left_out
-    points = fit_points(session.raw, v0, plateaus).take(~clipped)
+    points = fit_points(session.raw, v0, plateaus, session.samples_per_row).take(~clipped)
     left_out = left_out_plateaus(session, plateaus, rails)
     if left_out:
         progress(f"left out {len(left_out)} plateaus at a rail of the sensor's output "
@@ -205,6 +208,7 @@ def base_report(session: Session, base: BaseFit) -> CalibrationReport:
     slope = float(np.polyfit(base.points.rate, base.points.dv, 1)[0])
     per_sample_noise = float(np.median(base.points.dv_sem * np.sqrt(base.points.weight))) / abs(slope)
     jumps = getattr(base.fitted.model, "jumps", None)
+    k = session.samples_per_row  # a long session's rows are means of k samples: counts in samples
     return CalibrationReport(
         model=spec.kind,
         spec=spec.describe(),
@@ -212,8 +216,10 @@ def base_report(session: Session, base: BaseFit) -> CalibrationReport:
         order=spec.order,
         smoothness=spec.smoothness if spec.kind == "segmented-inverse" else None,
         v0=base.v0,
-        samples=SampleCounts(total=len(session), used=base.plateaus.n_used,
-                             transition=base.plateaus.n_transition, settling=base.plateaus.n_settling),
+        samples=SampleCounts(total=session.samples_read, used=base.plateaus.n_used * k,
+                             transition=base.plateaus.n_transition * k,
+                             settling=base.plateaus.n_settling * k),
+        read_as_means=None if session.means is None else session.means.line(),
         plateaus=base.plateaus.count,
         plateau_finding=base.plateaus.describe(),
         saturated_rates_dps=base.saturated_rates,
@@ -251,6 +257,10 @@ def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
     dt = sample_interval(session.time_s)
     records = zero_rate_records(session.time_s, rate, start, stop, dt)
     analysis = noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
+    if session.means is not None and "curve" in analysis:
+        # The records are means of k samples: the curve starts at τ = k samples (exact there
+        # for non-overlapping clusters, fewer overlaps for the overlapping estimate).
+        analysis["samples_per_point"] = session.samples_per_row
     temp = session.aux.get("temp_c")
     if temp is not None:
         inside = np.concatenate([temp[a:b] for a, b in zip(start, stop, strict=True)] or [np.zeros(0)])
@@ -339,7 +349,7 @@ def set_arw(report: CalibrationReport) -> float | None:
     term = report.allan.get("terms", {}).get("arw", {})
     if term.get("resolved"):
         return float(term["value"])
-    rate_hz = report.allan.get("sample_rate_hz")
+    rate_hz = report.allan.get("sample_rate_hz", 0.0) * report.allan.get("samples_per_point", 1)
     sigma = report.noise.per_sample_dps
     if rate_hz and np.isfinite(sigma) and sigma > 0:
         return float(sigma / np.sqrt(rate_hz) * 60.0)

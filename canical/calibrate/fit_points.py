@@ -69,10 +69,16 @@ class FitPoints:
         return FitPoints(rate, dv, w, np.sqrt(var), rate_sem)
 
 
-def fit_points(raw: np.ndarray, v0: float, plateaus: Plateaus) -> FitPoints:
-    """Reduce a session to plateau means of ΔV at each plateau's table rate."""
+def fit_points(raw: np.ndarray, v0: float, plateaus: Plateaus, samples_per_row: int = 1) -> FitPoints:
+    """Reduce a session to plateau means of ΔV at each plateau's table rate.
+
+    ``samples_per_row``: a session read as means of that many samples. The standard error
+    comes from the rows (a mean's spread is already a sample's over √k); the weight counts
+    samples, so that ``dv_sem·√weight`` stays one sample's spread.
+    """
     dv = plateau_means(raw, plateaus) - v0
     n = (plateaus.stop - plateaus.start).astype(float)
     sem = plateau_stds(raw, plateaus) / np.sqrt(n)
     ref_sem = plateaus.rate_uncertainty()
-    return FitPoints(plateaus.rate_dps.copy(), dv, n, sem, ref_sem.copy() if np.any(ref_sem > 0) else None)
+    return FitPoints(plateaus.rate_dps.copy(), dv, n * samples_per_row, sem,
+                     ref_sem.copy() if np.any(ref_sem > 0) else None)

@@ -58,20 +58,28 @@ class RailCheck:
         return int(np.count_nonzero(self.left_out))
 
 
-def rail_plateaus(raw: np.ndarray, plateaus: Plateaus, rail: RailLimits | None) -> RailCheck:
-    """The plateaus at a rail: by the known limits, or (none known) only where the output is pinned."""
+def rail_plateaus(raw: np.ndarray, plateaus: Plateaus, rail: RailLimits | None, *,
+                  lowest: np.ndarray | None = None, highest: np.ndarray | None = None) -> RailCheck:
+    """The plateaus at a rail: by the known limits, or (none known) only where the output is pinned.
+
+    ``lowest``/``highest``: per row of a session read as means of several samples, the lowest
+    and highest sample behind it (the means themselves rarely reach a rail): a row is at a
+    rail when any of its samples is, so shares count rows that touch it.
+    """
     x = np.asarray(raw, dtype=float)
+    low_x = x if lowest is None else np.asarray(lowest, dtype=float)
+    high_x = x if highest is None else np.asarray(highest, dtype=float)
     if plateaus.count == 0:
         return RailCheck(np.zeros(0, dtype=bool), ())
     if rail is not None:
-        return _at_known_rail(x, plateaus, rail)
-    return _pinned(x, plateaus)
+        return _at_known_rail(low_x, high_x, plateaus, rail)
+    return _pinned(x, low_x, high_x, plateaus)
 
 
-def _at_known_rail(x: np.ndarray, plateaus: Plateaus, rail: RailLimits) -> RailCheck:
+def _at_known_rail(low_x: np.ndarray, high_x: np.ndarray, plateaus: Plateaus, rail: RailLimits) -> RailCheck:
     tol = rail.resolution / 2 + 1e-9 * max(abs(rail.low), abs(rail.high), 1.0)
-    high = plateau_means((x >= rail.high - tol).astype(float), plateaus)
-    low = plateau_means((x <= rail.low + tol).astype(float), plateaus)
+    high = plateau_means((high_x >= rail.high - tol).astype(float), plateaus)
+    low = plateau_means((low_x <= rail.low + tol).astype(float), plateaus)
     out = (high >= MIN_AT_RAIL) | (low >= MIN_AT_RAIL)
     why = tuple(
         f"{100 * max(h, lo):.0f} % of its samples at the rail "
@@ -80,10 +88,10 @@ def _at_known_rail(x: np.ndarray, plateaus: Plateaus, rail: RailLimits) -> RailC
     return RailCheck(out, why)
 
 
-def _pinned(x: np.ndarray, plateaus: Plateaus) -> RailCheck:
-    hi, lo = float(np.max(x)), float(np.min(x))
-    share_hi = plateau_means((x == hi).astype(float), plateaus)
-    share_lo = plateau_means((x == lo).astype(float), plateaus)
+def _pinned(x: np.ndarray, low_x: np.ndarray, high_x: np.ndarray, plateaus: Plateaus) -> RailCheck:
+    hi, lo = float(np.max(high_x)), float(np.min(low_x))
+    share_hi = plateau_means((high_x == hi).astype(float), plateaus)
+    share_lo = plateau_means((low_x == lo).astype(float), plateaus)
     value = np.where(share_hi >= share_lo, hi, lo)
     share = np.maximum(share_hi, share_lo)
     spread = np.array([np.std(x[a:b]) for a, b in zip(plateaus.start, plateaus.stop, strict=True)])

@@ -200,6 +200,8 @@ def calibrate_session(args: argparse.Namespace) -> int:
         session = read_session(args.session, raw_column=args.raw_column,
                                ref_column=None if args.reference else args.ref_column,
                                settled_column=args.settled_column, on_block=reading_progress(args.session))
+        if session.means is not None:
+            progress.step(session.means.line())
     clock = None
     if args.reference:
         session, clock = align_table_file(args, session, progress)
@@ -380,6 +382,7 @@ def summary(report: CalibrationReport) -> str:
         f"rate model {report.spec} (size chosen on held-out plateau means)",
         f"samples    {s.used} of {s.total} used "
         f"({s.transition} at changing rate, {s.settling} settling), {report.plateaus} plateaus",
+        *([f"input      {report.read_as_means}"] if report.read_as_means else []),
         _plateau_line(report.plateau_finding),
         *(f"left out   {p.label()}" for p in report.left_out_plateaus),
         f"V0         {report.v0:.3f}",

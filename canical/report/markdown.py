@@ -53,6 +53,8 @@ def render(report: CalibrationReport, plots: list[str]) -> str:
         f"- coefficient set: `{report.coefficients or ''}`: {report.written_model()}",
         f"- samples used: {s.used} of {s.total} ({s.transition} at a changing rate, "
         f"{s.settling} settling); {report.plateaus} plateaus at {report.rates} rates",
+        *([f"- {report.read_as_means} (a session too long to hold; see docs/sessions.md)"]
+          if report.read_as_means else []),
         *_plateau_finding(report.plateau_finding),
         *(f"- left out: {p.label()}" for p in report.left_out_plateaus),
         *_reference_clock(report.reference_clock),

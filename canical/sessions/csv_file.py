@@ -12,7 +12,7 @@ import csv
 import io
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -126,13 +126,25 @@ def read_session(
     ref_column: str | None = "ref_dps",
     settled_column: str | None = None,
     on_block: Callable[[int], None] | None = None,
+    max_rows: int | None = None,
 ) -> Session:
     """Read a session CSV file (its columns only, block by block: no row text is kept);
-    ``on_block`` hears the bytes read so far."""
-    from canical.sessions.csv_chunks import read_columns  # it reads its head with this module
+    ``on_block`` hears the bytes read so far.
 
-    return session_from_table(read_columns(path, on_block=on_block), raw_column=raw_column,
-                              ref_column=ref_column, settled_column=settled_column)
+    A session longer than ``max_rows`` rows (default
+    :data:`~canical.sessions.row_means.REDUCE_ABOVE_ROWS`) is read as means of consecutive
+    samples (:mod:`canical.sessions.row_means`; ``Session.means`` says how); a shorter one is
+    read as it is.
+    """
+    from canical.sessions.csv_chunks import read_columns  # they read their head with this module
+    from canical.sessions.row_means import read_row_means
+
+    reduced = read_row_means(path, raw_column=raw_column, settled_column=settled_column,
+                             max_rows=max_rows, on_block=on_block)
+    table, means = reduced if reduced is not None else (read_columns(path, on_block=on_block), None)
+    session = session_from_table(table, raw_column=raw_column, ref_column=ref_column,
+                                 settled_column=settled_column)
+    return session if means is None else replace(session, means=means)
 
 
 def format_session(session: Session, *, float_format: str = "%.9g") -> str:

@@ -49,6 +49,29 @@ RAW_UNITS = "raw_units"
 
 
 @dataclass(frozen=True)
+class RowMeans:
+    """How a session too long to hold was read: each row the mean of ``k`` consecutive samples.
+
+    Why: a session of tens of millions of samples does not fit in memory, yet plateaus, blocks
+    and fit points are means anyway. What a mean hides and calibration needs is kept beside it:
+    ``raw_low``/``raw_high`` are the lowest and highest raw sample behind each row, so a row
+    touches a rail when any of its samples did.
+    """
+
+    rows_read: int  # samples in the file
+    k: int  # samples per row (the last row may have fewer)
+    raw_low: np.ndarray
+    raw_high: np.ndarray
+
+    def line(self) -> str:
+        """The one line calibrate prints and reports."""
+        return f"{self.rows_read:,} rows read as {self.raw_low.size:,} means of {self.k}"
+
+    def take(self, index: np.ndarray) -> RowMeans:
+        return RowMeans(self.rows_read, self.k, self.raw_low[index], self.raw_high[index])
+
+
+@dataclass(frozen=True)
 class Session:
     """Samples of one axis, in time order."""
 
@@ -59,6 +82,17 @@ class Session:
     meta: dict[str, str] = field(default_factory=dict)
     settled: np.ndarray | None = None
     rail: Rail | None = None  # the raw signal's limits, when its definition or the user gives them
+    means: RowMeans | None = None  # a long session read as means of consecutive samples
+
+    @property
+    def samples_per_row(self) -> int:
+        """How many recorded samples each row stands for (1: the samples themselves)."""
+        return 1 if self.means is None else self.means.k
+
+    @property
+    def samples_read(self) -> int:
+        """How many samples the recording holds (rows, or the rows the means were made of)."""
+        return len(self) if self.means is None else self.means.rows_read
 
     def __len__(self) -> int:
         return int(self.raw.shape[0])
@@ -89,4 +123,5 @@ class Session:
             meta=dict(self.meta),
             settled=None if self.settled is None else self.settled[index],
             rail=self.rail,
+            means=None if self.means is None else self.means.take(index),
         )

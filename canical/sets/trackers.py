@@ -129,6 +129,41 @@ def slope_state(raw: np.ndarray, time_s: np.ndarray, tau_s: float,
     return np.array([tracker.update(r, t) for r, t in zip(raw.tolist(), time_s.tolist(), strict=True)])
 
 
+#: Samples the per-sample slope takes at once: its Python floats (some 100 bytes a sample) stay
+#: a few megabytes whatever the record's length.
+SLOPE_BLOCK = 1 << 16
+
+
+def _slope_state_in_blocks(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """:func:`slope_state` of a whole record from a fresh state, bit for bit, a block at a time.
+
+    Why: the tracker's method call per sample costs seconds on millions of samples, and its
+    lists of Python floats as long as the record cost gigabytes. The differences and quotients
+    are numpy's (the same IEEE operations on the same floats); the smoothing runs in a plain
+    loop with ``math.exp`` as :meth:`SlopeTracker.update` does, skipping a sample whose time does
+    not advance (``t - last_t > 0`` exactly when ``t > last_t``, NaN neither).
+    """
+    out = np.empty(raw.size)
+    if raw.size == 0:
+        return out
+    with np.errstate(divide="ignore", invalid="ignore"):  # a step that does not advance is skipped
+        dt = np.diff(time_s)
+        quotient = np.diff(raw) / dt
+    tau = float(tau_s)
+    exp = math.exp
+    value = 0.0
+    out[0] = value
+    for a in range(0, dt.size, SLOPE_BLOCK):
+        values = []
+        for d, q in zip(dt[a : a + SLOPE_BLOCK].tolist(), quotient[a : a + SLOPE_BLOCK].tolist(),
+                        strict=True):
+            if d > 0.0:
+                value += (1.0 - exp(-d / tau)) * (q - value)
+            values.append(value)
+        out[a + 1 : a + 1 + len(values)] = values
+    return out
+
+
 class SlopeTracker:
     """Rate of change of the raw output, first-order smoothed with time constant ``tau_s``."""
 
@@ -165,7 +200,7 @@ def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarra
     dt = np.diff(time_s)
     step = float(np.median(dt))
     if not (step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step)):
-        return slope_state(raw, time_s, tau_s)
+        return _slope_state_in_blocks(raw, time_s, tau_s)
     from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
 
     a = 1.0 - math.exp(-step / tau_s)

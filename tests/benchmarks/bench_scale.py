@@ -1,16 +1,18 @@
 """Benchmark: calibrate, apply and noise on sessions of millions of rows, beside numpy.loadtxt.
 
 Generates a session CSV of ``--rows`` rows at 1 kHz (the simulator's sweeps up and down the
-paper's 41 rates, 30 s plateaus; written one sweep at a time, so generating is bounded too) and a
-static record of ``--noise-rows`` rows, then runs each step in its own process, so that its peak
-resident memory (``ru_maxrss`` of that child) is its own: ``numpy.loadtxt`` of the same file
-(the I/O floor), ``canical calibrate`` (the default, closed loop), ``canical apply`` of the set
-to the session, and ``canical noise`` of the static record through the set. Prints a table:
-step, wall seconds, peak MB, multiple of the floor. ``--baseline DIR`` runs the canical steps
-with that tree on PYTHONPATH too (before/after in one run). Files go to a temporary folder
-(``--tmp``, default the system's), deleted at the end.
+paper's 41 rates, 30 s plateaus; written one sweep at a time, so generating is bounded too; several
+sizes one after the other, each file deleted before the next is written) and a static record of
+``--noise-rows`` rows, then runs each step in its own process, so that its peak resident memory
+(``ru_maxrss`` of that child) is its own: ``numpy.loadtxt`` of the same file (the I/O floor),
+``canical calibrate`` (the default, closed loop), ``canical apply`` of the set to the session, and
+``canical noise`` of the static record through the set. Prints a table: step, wall seconds, peak
+MB, multiple of the floor; then how calibrate read each session (as samples, or as means of k)
+and the load average before and after (the machine may be shared). ``--baseline DIR`` runs the
+canical steps with that tree on PYTHONPATH too (before/after in one run). Files go to a temporary
+folder (``--tmp``, default the system's), deleted at the end.
 
-Run: python tests/benchmarks/bench_scale.py [--rows N] [--noise-rows N] [--baseline DIR] [--quick]
+Run: python tests/benchmarks/bench_scale.py [--rows N [N ...]] [--noise-rows N] [--baseline DIR] [--quick]
 Prints figures; asserts nothing.
 """
 
@@ -75,8 +77,9 @@ def write_session(path: Path, rows: int, *, static: bool, dwell_s: float = DWELL
             sweep += 1
 
 
-def measure(name: str, argv: list[str], pythonpath: str) -> Step:
-    """Run ``argv`` in a child process; its wall time and its own peak RSS.
+def measure(name: str, argv: list[str], pythonpath: str, out: list[str] | None = None) -> Step:
+    """Run ``argv`` in a child process; its wall time and its own peak RSS (its stdout's lines
+    appended to ``out``).
 
     Through ``/usr/bin/time``: a child forked from this process would count this process's
     memory in its ``ru_maxrss`` (Linux keeps the high-water mark across exec).
@@ -92,6 +95,8 @@ def measure(name: str, argv: list[str], pythonpath: str) -> Step:
         if proc.returncode != 0:
             sys.exit(f"{name} failed ({proc.returncode}):\n{proc.stdout[-2000:]}\n{proc.stderr[-4000:]}")
         peak_kb = float(rss.read().split()[-1])
+    if out is not None:
+        out += proc.stdout.splitlines()
     return Step(name, wall, peak_kb / 1024.0)
 
 
@@ -109,53 +114,89 @@ def loadtxt_argv(path: Path) -> list[str]:
 
 
 def canical_steps(tmp: Path, session: Path, static: Path, tag: str) -> list[tuple[str, list[str]]]:
-    """calibrate, apply and noise as the command line runs them, outputs in ``tmp`` named by ``tag``."""
-    cset = tmp / f"set-{tag}.yaml"
+    """calibrate, apply and noise as the command line runs them, outputs in ``tmp`` named by ``tag``.
+
+    apply and noise take this tree's set whichever tree runs them: the baseline's calibration may
+    differ (a long session read as means), and apply's output is compared for apply alone.
+    """
+    cset = tmp / "set-this.yaml"
     py = [sys.executable, "-m", "canical"]
     return [
-        ("calibrate", [*py, "calibrate", str(session), "-o", str(cset)]),
+        ("calibrate", [*py, "calibrate", str(session), "-o", str(tmp / f"set-{tag}.yaml")]),
         ("apply", [*py, "apply", str(cset), str(session), "-o", str(tmp / f"applied-{tag}.csv")]),
         ("noise", [*py, "noise", str(static), "--coefficients", str(cset)]),
     ]
 
 
+def load() -> str:
+    """The load average (1, 5, 15 min), beside figures taken on a machine that may be shared."""
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rows", type=int, default=10_000_000, help="session rows (1 kHz) [10,000,000]")
+    parser.add_argument("--rows", type=int, nargs="+", default=[10_000_000], metavar="N",
+                        help="session rows (1 kHz), one session per size given [10,000,000]")
     parser.add_argument("--noise-rows", type=int, default=18_000_000,
                         help="static record rows for noise (1 kHz) [18,000,000]")
     parser.add_argument("--baseline", metavar="DIR", help="another tree to run the canical steps with too")
     parser.add_argument("--tmp", metavar="DIR", help="where the generated files go [system temp]")
     parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
     args = parser.parse_args()
-    rows, noise_rows = (100_000, 60_000) if args.quick else (args.rows, args.noise_rows)
+    sizes, noise_rows = ([100_000], 60_000) if args.quick else (args.rows, args.noise_rows)
     trees = [("", str(ROOT))]
     if args.baseline:
         trees.append((" (baseline)", str(Path(args.baseline).resolve())))
+    print(f"load average before: {load()}")
     tmp = Path(tempfile.mkdtemp(prefix="bench_scale_", dir=args.tmp))
+    rows_label = len(sizes) > 1
+    steps: list[tuple[Step, Step]] = []
+    floors: list[Step] = []
+    read_as: list[str] = []
+    same: list[bool] = []
     try:
-        session, static = tmp / "session.csv", tmp / "static.csv"
+        for rows in sizes:
+            session = tmp / "session.csv"
+            t0 = time.perf_counter()
+            write_session(session, rows, static=False, dwell_s=2.0 if args.quick else DWELL_S)
+            print(f"session {rows:,} rows ({session.stat().st_size / 1e6:.0f} MB), generated in "
+                  f"{time.perf_counter() - t0:.0f} s")
+            size = f" {rows / 1e6:g}M" if rows_label else ""
+            floor = measure(f"loadtxt session{size}", loadtxt_argv(session), str(ROOT))
+            floors.append(floor)
+            for tag, path in trees:
+                for name, argv in canical_steps(tmp, session, session, "base" if tag else "this")[:2]:
+                    out: list[str] = []
+                    steps.append((measure(name + size + tag, argv, path, out), floor))
+                    if name == "calibrate":
+                        how = next((line.split(None, 1)[1] for line in out if line.startswith("input ")),
+                                   f"{rows:,} rows read as they are")
+                        read_as.append(f"calibrate{size}{tag}: {how}")
+            if args.baseline:
+                applied = [(tmp / f"applied-{t}.csv").read_bytes() for t in ("this", "base")]
+                same.append(applied[0] == applied[1])
+            for leftover in tmp.glob("*.csv"):
+                leftover.unlink()
+        static = tmp / "static.csv"
         t0 = time.perf_counter()
-        write_session(session, rows, static=False, dwell_s=2.0 if args.quick else DWELL_S)
         write_session(static, noise_rows, static=True, seed=1)
-        print(f"session {rows:,} rows ({session.stat().st_size / 1e6:.0f} MB), static record "
-              f"{noise_rows:,} rows ({static.stat().st_size / 1e6:.0f} MB), generated in "
+        print(f"static record {noise_rows:,} rows ({static.stat().st_size / 1e6:.0f} MB), generated in "
               f"{time.perf_counter() - t0:.0f} s")
-        floors = {"session": measure("loadtxt session", loadtxt_argv(session), str(ROOT)),
-                  "static": measure("loadtxt static", loadtxt_argv(static), str(ROOT))}
-        steps: list[tuple[Step, Step]] = []
+        static_floor = measure("loadtxt static", loadtxt_argv(static), str(ROOT))
+        floors.append(static_floor)
         for tag, path in trees:
-            for name, argv in canical_steps(tmp, session, static, "base" if tag else "this"):
-                floor = floors["static" if name == "noise" else "session"]
-                steps.append((measure(name + tag, argv, path), floor))
-        print(f"\n{'step':24s} {'wall s':>8s} {'peak MB':>8s} {'x floor':>8s}")
-        for floor in floors.values():
-            print(f"{floor.name:24s} {floor.wall_s:8.2f} {floor.peak_mb:8.0f} {1.0:8.2f}")
+            name, argv = canical_steps(tmp, static, static, "base" if tag else "this")[2]
+            steps.append((measure(name + tag, argv, path), static_floor))
+        print(f"\n{'step':26s} {'wall s':>8s} {'peak MB':>8s} {'x floor':>8s}")
+        for floor in floors:
+            print(f"{floor.name:26s} {floor.wall_s:8.2f} {floor.peak_mb:8.0f} {1.0:8.2f}")
         for step, floor in steps:
-            print(f"{step.name:24s} {step.wall_s:8.2f} {step.peak_mb:8.0f} {step.wall_s / floor.wall_s:8.2f}")
+            print(f"{step.name:26s} {step.wall_s:8.2f} {step.peak_mb:8.0f} {step.wall_s / floor.wall_s:8.2f}")
+        print()
+        print("\n".join(read_as))
         if args.baseline:
-            same = (tmp / "applied-this.csv").read_bytes() == (tmp / "applied-base.csv").read_bytes()
-            print(f"\napply output identical to the baseline's: {'yes' if same else 'NO'}")
+            print(f"apply output identical to the baseline's: {'yes' if all(same) else 'NO'}")
+        print(f"load average after: {load()}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -59,3 +59,24 @@ def test_same_errors_as_read_table(tmp_path, change):
 def test_a_missing_file(tmp_path):
     with pytest.raises(CanicalError, match="file not found"):
         csv_chunks.read_columns(tmp_path / "none.csv")
+
+
+def test_a_plain_block_is_tabs_newlines_and_space_to_tilde_only():
+    import numpy as np
+
+    plain = np.zeros(256, dtype=bool)
+    plain[[9, 10]] = True
+    plain[32:127] = True
+    rng = np.random.default_rng(0)
+    base = np.frombuffer(b"0.001,-0.1,24\n0.002,\t-0.2,33\n", dtype=np.uint8)
+    for byte in range(256):
+        for at in (0, 7, base.size - 1):
+            buf = base.copy()
+            buf[at] = byte
+            block = buf.tobytes()
+            got = csv_chunks._is_plain(block, buf, block.count(b"\n"))
+            assert got == bool(plain[buf].all()), (byte, at)
+    for _ in range(200):
+        buf = rng.choice(np.frombuffer(b"0123456789,.-e \t\n\r\x7f\x00\xc3", dtype=np.uint8), 64)
+        block = buf.tobytes()
+        assert csv_chunks._is_plain(block, buf, block.count(b"\n")) == bool(plain[buf].all())

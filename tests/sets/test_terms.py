@@ -214,3 +214,21 @@ def test_vectorised_slope_equals_the_tracker(even):
     raw = np.cumsum(rng.normal(0, 5, n))
     np.testing.assert_allclose(slope_filter(raw, time_s, 0.5), slope_state(raw, time_s, 0.5),
                                rtol=1e-9, atol=1e-9 * np.abs(np.diff(raw)).max() * 1000)
+
+
+@pytest.mark.parametrize("block", [1, 7, 4096])
+def test_uneven_slope_a_block_at_a_time_is_the_tracker_bit_for_bit(monkeypatch, block):
+    from canical.sets import trackers
+
+    monkeypatch.setattr(trackers, "SLOPE_BLOCK", block)
+    rng = np.random.default_rng(block)
+    n = 10_000
+    time_s = np.cumsum(rng.uniform(0.0005, 0.0015, n))
+    time_s[100:103] = time_s[100]  # duplicated timestamps: the tracker skips them
+    time_s[500] = np.nan
+    raw = np.cumsum(rng.normal(0, 5, n))
+    raw[2000] = np.nan  # the tracker carries NaN from there on
+    whole = trackers.slope_state(raw, time_s, 0.5)
+    assert trackers.slope_filter(raw, time_s, 0.5).tobytes() == whole.tobytes()
+    assert trackers.slope_filter(raw[:1500], time_s[:1500], 0.5).tobytes() == whole[:1500].tobytes()
+    assert np.isfinite(whole[:1500][time_s[:1500] == time_s[:1500]]).all() and np.isnan(whole[-1])
