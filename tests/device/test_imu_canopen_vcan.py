@@ -466,3 +466,82 @@ def test_imu_set_push_pull_round_trip_survives_power_cycle(vcan_channel: str, tm
         assert pulled.returncode == 0, pulled.stderr
     again = imu_file.load(back)
     assert again == imu and imu_file.imu_set_crc(again) == imu_file.imu_set_crc(imu)
+
+
+@pytest.mark.vcan
+def test_device_daemon_and_apply_agree_with_an_imu_set(vcan_channel: str, tmp_path: Path) -> None:
+    """An IMU set pushed to the device process; the daemon (``device:``) takes it from the device;
+    on the same raw frames the device's IMU_RATE, the daemon's CANICAL_RATE and ``apply imu.yaml``
+    on a log of the bus agree to the frames' resolution, on all three coupled axes."""
+    import numpy as np
+
+    from canical.frames.codec import load_dbc
+    from canical.sessions.csv_file import read_table
+    from canical.sets import imu_set as imu_file
+
+    try:
+        from support.daemon_fixtures import DBC, DaemonProcess, Recorder, write_config
+        from support.imu_fixtures import imu_triad_set
+    except ImportError:  # pragma: no cover
+        from tests.daemon_fixtures import DBC, DaemonProcess, Recorder, write_config  # type: ignore[no-redef]
+        from tests.imu_fixtures import imu_triad_set  # type: ignore[no-redef]
+
+    imu = imu_triad_set(0, str(SERIAL))
+    path = tmp_path / "imu.yaml"
+    imu_file.save(path, imu)
+    etc = tmp_path / "etc"
+    etc.mkdir()
+    imu_file.save(etc / "imu.yaml", imu_triad_set(1, str(SERIAL)))  # the file, until the device answers
+    config = write_config(etc, vcan_channel, sensor=str(SERIAL), inputs={},
+                          axes={a: {"raw": f"GyroRaw{a.upper()}"} for a in AXES},
+                          imu_set=str(etc / "imu.yaml"), device={"node": 0x10, "timeout_s": 1.0})
+    db = load_dbc(DBC)
+    raw_id, dev_id, rate_id = (db.get_message_by_name(m).frame_id
+                               for m in ("IMU_RAW", "IMU_RATE", "CANICAL_RATE"))
+    node = Device(vcan_channel, tmp_path / "dev.json", "--rate", "50", "--correct", "--table-rates=-45:45:15",
+                  "--dwell", "1", node=0x10)
+    try:
+        node.start()
+        pushed = canical("push", str(path), "--node", "0x10", "--channel", vcan_channel, "--timeout", TIMEOUT)
+        assert pushed.returncode == 0, pushed.stderr
+        rec = Recorder(vcan_channel)
+        daemon = DaemonProcess(config)
+        try:
+            rec.wait_count(rate_id, 400, timeout=60)
+        finally:
+            daemon.stop()
+            msgs = list(rec.messages)
+            rec.close()
+    finally:
+        node.stop()
+    assert f"imu set 0x{imu_file.imu_set_crc(imu):08x} from device node 0x10" in daemon.log(), daemon.log()
+    # Frame by frame: each raw frame followed by the device's and the daemon's corrected frames.
+    rows, raw_seen, dev_of, ours_of = [], None, {}, {}
+    for m in msgs:
+        if m.arbitration_id == raw_id:
+            raw_seen = len(rows)
+            rows.append(m)
+        elif m.arbitration_id == dev_id and raw_seen is not None:
+            dev_of.setdefault(raw_seen, m)
+        elif m.arbitration_id == rate_id and raw_seen is not None:
+            ours_of.setdefault(raw_seen, m)
+    both = sorted(set(dev_of) & set(ours_of))
+    assert len(both) >= 300
+    dev_msg, rate_msg = db.get_message_by_name("IMU_RATE"), db.get_message_by_name("CANICAL_RATE")
+    log = tmp_path / "bus.log"
+    import can
+
+    with can.Logger(str(log)) as logger:
+        for m in msgs:
+            if m.arbitration_id in (raw_id, db.get_message_by_name("IMU_AUX").frame_id):
+                logger.on_message_received(m)
+    out = tmp_path / "apply.csv"
+    applied = canical("apply", str(path), str(log), "--config", str(config), "-o", str(out))
+    assert applied.returncode == 0, applied.stderr
+    table = read_table(out).columns
+    for axis in AXES:
+        dev = np.array([dev_msg.decode(dev_of[i].data)[f"Rate{axis.upper()}"] for i in both])
+        ours = np.array([rate_msg.decode(ours_of[i].data)[f"Rate{axis.upper()}"] for i in both])
+        want = np.clip(table[f"rate_{axis}_dps"][both], -327.68, 327.67)
+        assert np.max(np.abs(ours - want)) <= 0.0051, axis
+        assert np.max(np.abs(dev - want)) <= 0.0101, axis  # the device's float32 and its own rounding
