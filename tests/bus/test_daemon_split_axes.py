@@ -222,3 +222,61 @@ def test_noise_reads_a_held_axis_from_a_log_with_the_configuration(tmp_path: Pat
     assert main(["noise", str(log), "--coefficients", str(sets["x"]), "--config",
                  str(tmp_path / "split.yaml")]) == 0
     assert "2.0 s at 200 Hz" in capsys.readouterr().out  # 400 rows: every YAW frame
+
+
+@pytest.mark.vcan
+def test_split_axes_through_a_one_way_gateway_equal_apply(vcan_channels: tuple[str, str], tmp_path: Path,
+                                                          sets) -> None:
+    """On SocketCAN: ROLL (standard, Intel), PITCH (extended, Motorola) and YAW (standard, Motorola)
+    frames on vcan0, no counter; each goes out on vcan1 in its own layout, its axis corrected,
+    equal to ``apply --config`` on a log of vcan0 (to the signal's resolution); nothing sent on
+    vcan1 reaches vcan0."""
+    import subprocess
+    import sys
+    import time
+
+    from support.daemon_fixtures import DaemonProcess, Recorder
+
+    sensor_bus, vehicle_bus = vcan_channels
+    n = 300
+    path = split_config(tmp_path, sets, bus={"interface": "socketcan", "channel": sensor_bus},
+                        own_layout={**OWN, "channel": vehicle_bus})
+    msgs = split_stream(n)
+    rec_in, rec_out = Recorder(sensor_bus), Recorder(vehicle_bus)
+    daemon = DaemonProcess(path)
+    try:
+        with can.Bus(interface="socketcan", channel=sensor_bus) as tx:
+            start = time.monotonic()
+            for i, m in enumerate(msgs):
+                tx.send(can.Message(arbitration_id=m.arbitration_id, is_extended_id=m.is_extended_id,
+                                    data=bytes(m.data)), timeout=1.0)
+                lag = start + (i + 1) / 900.0 - time.monotonic()
+                if lag > 0:
+                    time.sleep(lag)
+        rec_out.wait_count(0x18FF2A41, n, timeout=60)
+        time.sleep(0.5)
+    finally:
+        code = daemon.stop()
+        seen_in, seen_out = list(rec_in.messages), list(rec_out.messages)
+        rec_in.close()
+        rec_out.close()
+    assert code == 0, daemon.log()
+    assert not [m for m in seen_in if m.arbitration_id in (0x2A0, 0x2A2, 0x18FF2A41)]  # one way
+    db = load_dbc(SPLIT)
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for m in seen_in:
+            if m.arbitration_id in (0x1A0, 0x1A2, 0x18FF2A40):
+                logger.on_message_received(m)
+    for axis, (name, out_id, signal) in {"x": ("ROLL_RATE", 0x2A0, "RollRaw"),
+                                         "y": ("PITCH_RATE", 0x18FF2A41, "PitchRaw"),
+                                         "z": ("YAW_RATE", 0x2A2, "YawRaw")}.items():
+        message = db.get_message_by_name(name)
+        got = [message.decode(bytes(m.data)) for m in seen_out if m.arbitration_id == out_id]
+        assert len(got) == n, (axis, len(got))
+        csv = tmp_path / f"apply-{axis}.csv"
+        proc = subprocess.run([sys.executable, "-m", "canical", "apply", str(sets[axis]), str(log),
+                               "--config", str(path), "-o", str(csv)], capture_output=True, text=True)
+        assert proc.returncode == 0, proc.stderr
+        want = np.clip(read_table(csv).columns["rate_dps"], -32768, 32767)
+        assert np.max(np.abs(np.array([g[signal] for g in got]) - want)) <= 0.5 + 1e-6, axis
