@@ -116,7 +116,9 @@ class Daemon:
         db = load_dbc(config.dbc_path)
         self.layout = layout = frame_layout(config, db, compiled=compiled)
         self.raw, self.rate = layout.raw, layout.rate
-        self.status = StatusEncoder(db.get_message_by_name(config.status_message))
+        #: The status frame's encoder (None: ``frames.status: null``, no status frames sent).
+        self.status = (None if config.status_message is None
+                       else StatusEncoder(db.get_message_by_name(config.status_message)))
         # The per-frame forms of the layout, read by the reference handler on every frame.
         self._raw_key, self._raw_inputs_at = layout.raw_key, layout.raw_inputs_at
         self._counter_at = layout.counter_at
@@ -647,9 +649,12 @@ class Daemon:
 
     def status_pages(self) -> list[tuple[int, dict[str, int]]]:
         """The status frame's pages: counters, one page per axis set, fault counters."""
-        return status_pages(self._state, self.stats, self.sets, self.status.pages)
+        pages = (0, 1, 2) if self.status is None else self.status.pages
+        return status_pages(self._state, self.stats, self.sets, pages)
 
     def _send_status(self) -> None:
+        if self.status is None:  # frames.status: null
+            return
         for page, values in self.status_pages():
             payload = self.status.encode(page, values, saturate=page in SATURATING_PAGES)
             self._send(self.status.frame_id, self.status.is_extended, payload)

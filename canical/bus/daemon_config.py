@@ -108,7 +108,7 @@ class DaemonConfig:
     sensor: str | None
     raw_message: str
     rate_message: str | None  # None: CANICAL_RATE not sent (frames.rate: null, own_layout instead)
-    status_message: str
+    status_message: str | None  # None: CANICAL_STATUS not sent (frames.status: null)
     counter_signal: str | None
     axes: tuple[AxisConfig, ...]
     inputs: dict[str, InputSource] = field(default_factory=dict)
@@ -170,7 +170,7 @@ class _Frames:
 
     raw: Message
     rate: Message | None  # None: not sent
-    status: Message
+    status: Message | None  # None: not sent
 
 
 def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) -> DaemonConfig:
@@ -213,7 +213,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         sensor=_optional_text(content, "sensor", fail),
         raw_message=frames.raw.name,
         rate_message=None if frames.rate is None else frames.rate.name,
-        status_message=frames.status.name,
+        status_message=None if frames.status is None else frames.status.name,
         counter_signal=counter,
         axes=axes,
         inputs=inputs,
@@ -283,18 +283,26 @@ def _frames(content: dict, dbc: _Dbc) -> _Frames:
     raw_default = _raw_message_of_axes(content, dbc.fail) or "IMU_RAW"
     raw_msg = dbc.message("frames.raw", frames.get("raw", raw_default))
     rate_msg = _rate_frame(content, frames, dbc)
-    status_msg = dbc.message("frames.status", frames.get("status", "CANICAL_STATUS"))
+    status_msg = _status_frame(frames, dbc)
     if raw_msg.is_multiplexed() or (rate_msg is not None and rate_msg.is_multiplexed()):
         raise dbc.fail("frames", "the raw and rate frames must not be multiplexed")
     if raw_msg.is_fd or (rate_msg is not None and rate_msg.is_fd):
         raise dbc.fail("frames", "the raw and rate frames must be classic CAN frames")
+    if raw_msg.frame_id in {m.frame_id for m in (rate_msg, status_msg) if m is not None}:
+        raise dbc.fail("frames.raw", "must differ from the rate and status frames")
+    return _Frames(raw_msg, rate_msg, status_msg)
+
+
+def _status_frame(frames: dict, dbc: _Dbc) -> Message | None:
+    """``frames.status``: canical's heartbeat, multiplexed by page, or null (not sent)."""
+    if "status" in frames and frames["status"] is None:
+        return None
+    status_msg = dbc.message("frames.status", frames.get("status", "CANICAL_STATUS"))
     if not status_msg.is_multiplexed():
         raise dbc.fail("frames.status", f"message {status_msg.name} must be multiplexed by Page")
     for sig in STATUS_SIGNALS:
         dbc.need_signal("frames.status", status_msg, sig)
-    if raw_msg.frame_id in (*([rate_msg.frame_id] if rate_msg else []), status_msg.frame_id):
-        raise dbc.fail("frames.raw", "must differ from the rate and status frames")
-    return _Frames(raw_msg, rate_msg, status_msg)
+    return status_msg
 
 
 def _rate_frame(content: dict, frames: dict, dbc: _Dbc) -> Message | None:

@@ -102,7 +102,8 @@ KEYS: tuple[Key, ...] = (
     Key(
         "frames.status",
         "`CANICAL_STATUS`",
-        "a DBC message multiplexed by `Page`, with `State`, `FramesIn`, `SetId`, `Reloads`",
+        "a DBC message multiplexed by `Page`, with `State`, `FramesIn`, `SetId`, `Reloads`; or `null` "
+        "(not sent: a vehicle bus that takes no frame of canical's own)",
         "the heartbeat, every `status_period_s`",
     ),
     Key(

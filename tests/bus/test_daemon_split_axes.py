@@ -280,3 +280,19 @@ def test_split_axes_through_a_one_way_gateway_equal_apply(vcan_channels: tuple[s
         assert proc.returncode == 0, proc.stderr
         want = np.clip(read_table(csv).columns["rate_dps"], -32768, 32767)
         assert np.max(np.abs(np.array([g[signal] for g in got]) - want)) <= 0.5 + 1e-6, axis
+
+
+def test_canical_frames_are_optional(tmp_path: Path, sets) -> None:
+    """frames: {rate: null, status: null}: only the IMU's own layout goes out, no frame of canical's."""
+    config = load_config(split_config(tmp_path, sets, own_layout=OWN, frames={"rate": None, "status": None}))
+    assert (config.rate_message, config.status_message) == (None, None)
+    daemon = Daemon(config, compiled=False)
+    daemon.load_sets()
+    out: list[can.Message] = []
+    daemon.bus = type("Bus", (), {  # type: ignore[assignment]
+        "send": lambda self, msg, timeout=None: out.append(msg)})()
+    for m in split_stream(20):
+        daemon._dispatch(m)
+    daemon._send_status()
+    assert {m.arbitration_id for m in out} == {0x2A2, 0x2A0, 0x18FF2A41} and len(out) == 60
+    assert "20 frames in" in daemon.status_line()
