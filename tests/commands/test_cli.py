@@ -153,3 +153,12 @@ def test_demo_runs(tmp_path, capsys):
                         r"max (\d\.\d{4})", out)
     assert written is not None and written.groups() == (row[-2], row[-1])
     assert (tmp_path / "demo" / "coefficients.yaml").exists()
+    # The IMU as three axes: the coupling brings the multi-axis error down by well over 10x.
+    triad = re.search(r"each axis's set alone (\d+\.\d{4}) deg/s, with the coupling (\d\.\d{4}) deg/s", out)
+    assert triad is not None, out
+    before, after = (float(v) for v in triad.groups())
+    assert after <= 0.01 and before >= 10 * after
+    from canical.sets import imu_set
+
+    assert imu_set.load(tmp_path / "demo" / "triad" / "imu.yaml").coupling
+    assert (tmp_path / "demo" / "triad" / "report" / "coupling.png").exists()
