@@ -6,6 +6,7 @@ and the only sure way is to run the same code on the same values in the same ord
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,35 +31,58 @@ class Replay:
     power_cycles: int
 
 
+class Replayer:
+    """A drive replayed a block of rows at a time: the tracker and its per-frame step carry from
+    one block to the next, so any cut of the drive into blocks gives the bias :func:`replay`
+    gives for the whole, bit for bit (``apply --track-bias`` on a file that does not fit memory).
+    """
+
+    def __init__(self, config: TrackerConfig, *, axes: Sequence[str] = ("z",),
+                 learned: Sequence[AxisBias] | None = None) -> None:
+        self.tracker = tracker = BiasTracker(axes, config, learned)
+        self._one = fast_step(tracker) if len(tracker.axes) == 1 else None  # the daemon's step
+        self._three = fast_step3(tracker) if len(tracker.axes) == 3 else None  # an IMU set's
+
+    def feed(self, time_s: np.ndarray, rates_dps: np.ndarray, temp_c: np.ndarray | None = None,
+             cue: np.ndarray | None = None) -> np.ndarray:
+        """The bias per row and axis, (rows, axes), for the next rows of the drive."""
+        rates = np.asarray(rates_dps, dtype=float)
+        if rates.ndim == 1:
+            rates = rates[:, None]
+        out = np.empty(rates.shape)
+        times = np.asarray(time_s, dtype=float).tolist()
+        rows = rates.tolist()
+        temps = np.asarray(temp_c, dtype=float).tolist() if temp_c is not None else [math.nan] * len(times)
+        cues = np.asarray(cue, dtype=float).tolist() if cue is not None else [None] * len(times)
+        if self._one is not None:
+            one = self._one.step
+            for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
+                out[i, 0] = one(t, r[0], temp, c)
+        elif self._three is not None:
+            three = self._three.step
+            for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
+                out[i] = three(t, r[0], r[1], r[2], temp, c)
+        else:
+            step = self.tracker.step
+            for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
+                out[i] = step(t, r, temp, c)
+        return out
+
+    def finish(self) -> Replay:
+        """The drive has ended: the tracker's events and final state (bias_dps left empty)."""
+        for fast in (self._one, self._three):
+            if fast is not None:
+                fast.sync()
+        tracker = self.tracker
+        tracker.finish()
+        return Replay(np.empty((0, len(tracker.axes))), tuple(tracker.events), tuple(tracker.taken),
+                      tuple(tracker.learned), tracker.power_cycle + 1)
+
+
 def replay(time_s: np.ndarray, rates_dps: np.ndarray, config: TrackerConfig, *,
            axes: Sequence[str] = ("z",), temp_c: np.ndarray | None = None, cue: np.ndarray | None = None,
            learned: Sequence[AxisBias] | None = None) -> Replay:
     """Run a tracker over a drive; ``rates_dps`` is (rows,) for one axis or (rows, axes)."""
-    rates = np.asarray(rates_dps, dtype=float)
-    if rates.ndim == 1:
-        rates = rates[:, None]
-    tracker = BiasTracker(axes, config, learned)
-    out = np.empty(rates.shape)
-    times = np.asarray(time_s, dtype=float).tolist()
-    rows = rates.tolist()
-    temps = np.asarray(temp_c, dtype=float).tolist() if temp_c is not None else [math.nan] * len(times)
-    cues = np.asarray(cue, dtype=float).tolist() if cue is not None else [None] * len(times)
-    if len(tracker.axes) == 1:  # the daemon's per-frame step (canical.tracking.fast_step)
-        fast = fast_step(tracker)
-        one = fast.step
-        for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
-            out[i, 0] = one(t, r[0], temp, c)
-        fast.sync()
-    elif len(tracker.axes) == 3:  # an IMU set: the daemon's step over three axes
-        fast3 = fast_step3(tracker)
-        three = fast3.step
-        for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
-            out[i] = three(t, r[0], r[1], r[2], temp, c)
-        fast3.sync()
-    else:
-        step = tracker.step
-        for i, (t, r, temp, c) in enumerate(zip(times, rows, temps, cues, strict=True)):
-            out[i] = step(t, r, temp, c)
-    tracker.finish()
-    return Replay(out, tuple(tracker.events), tuple(tracker.taken), tuple(tracker.learned),
-                  tracker.power_cycle + 1)
+    replayer = Replayer(config, axes=axes, learned=learned)
+    bias = replayer.feed(time_s, rates_dps, temp_c, cue)
+    return dataclasses.replace(replayer.finish(), bias_dps=bias)

@@ -8,6 +8,7 @@ comes and goes, a learned state loaded from a previous run; over many seeds.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -110,3 +111,29 @@ def test_the_three_axis_closure_steps_as_the_tracker_bit_for_bit(seed: int, cue:
     assert states(fast) == states(reference)
     adopted = sum(e.decision == "adopted" for e in reference.events)
     assert adopted >= 1  # the drive's first stop is learned: the comparison covered decisions
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), axes=st.sampled_from([1, 3]),
+       cuts=st.lists(st.integers(1, 7_999), max_size=6))
+def test_a_drive_replayed_in_blocks_gives_the_whole_drives_bias_bit_for_bit(seed: int, axes: int,
+                                                                            cuts: list[int]) -> None:
+    """Any cut of a drive into blocks (``Replayer.feed``) gives what one ``replay`` of it gives:
+    the same bias on every row, the same events and final state."""
+    from canical.tracking.replay import Replayer, replay
+
+    times, rates, temps, cues = drive3(seed)
+    names = ("x", "y", "z") if axes == 3 else ("z",)
+    r = np.array(rates)[:, :axes]
+    t, temp = np.array(times), np.array(temps)
+    cue = np.array([np.nan if c is None else c for c in cues])
+    config = TrackerConfig(arw_deg_rt_h=0.3, cue_threshold=0.1)
+    whole = replay(t, r, config, axes=names, temp_c=temp, cue=cue)
+    replayer = Replayer(config, axes=names)
+    edges = [0, *sorted(set(cuts)), len(t)]
+    blocks = [replayer.feed(t[a:b], r[a:b], temp[a:b], cue[a:b]) for a, b in itertools.pairwise(edges)]
+    end = replayer.finish()
+    assert np.array_equal(np.vstack(blocks), whole.bias_dps)
+    assert (end.events, end.taken, end.learned, end.power_cycles) == (
+        whole.events, whole.taken, whole.learned, whole.power_cycles)
+    assert sum(e.decision == "adopted" for e in whole.events) >= 1
