@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -41,25 +42,41 @@ def tracked_bias(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]], ax
 
     ``columns`` holds time_s (since power-on), and the cue and temperature when there are.
     """
-    from canical.tracking.replay import replay
-
-    config = tracker_config(args, fits)
-    time_s = columns["time_s"]
-    if not np.isfinite(time_s).all():
-        raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
-    temp = columns.get(args.temp_column)
-    cue = columns[args.standstill_column] if args.standstill_column else None
-    out = replay(time_s, rates, config, axes=axes, temp_c=temp, cue=cue)
-    for event in out.events:
-        print(f"apply: {event.line(axes)}")
+    replayer = replayer_for(args, fits, axes)
+    time_s, temp, cue = tracking_inputs(args, columns)
+    bias = replayer.feed(time_s, rates, temp, cue)
+    out = replayer.finish()
+    print_events(out, axes, bias[-1] if len(bias) else np.full(len(axes), np.nan))
     if args.report_dir:
         from canical.report.drive import write_drive_report
 
-        write_drive_report(args.report_dir, time_s, rates, out, axes)
-    bias: np.ndarray = out.bias_dps
-    last = (f"{bias[-1, 0]:+.4f}" if len(axes) == 1
-            else ", ".join(f"{a} {b:+.4f}" for a, b in zip(axes, bias[-1], strict=True)))
-    print(f"apply: bias tracking: {sum(e.decision == 'adopted' for e in out.events)} of {len(out.events)} "
-          f"standstills used, {out.learned[0].updates} windows; last bias {last} deg/s"
-          f"{'' if all(math.isfinite(b) for b in bias[-1]) else ' (no data)'}")
+        write_drive_report(args.report_dir, time_s, rates, replace(out, bias_dps=bias), axes)
     return bias
+
+
+def replayer_for(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]], axes: tuple[str, ...]):
+    """The tracker for these sets, fed a drive block by block (:class:`~canical.tracking.replay.Replayer`)."""
+    from canical.tracking.replay import Replayer
+
+    return Replayer(tracker_config(args, fits), axes=axes)
+
+
+def tracking_inputs(args: argparse.Namespace, columns: Mapping[str, np.ndarray]
+                    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """A block's time since power-on, temperature and cue, from its columns (checked finite time)."""
+    time_s = columns["time_s"]
+    if not np.isfinite(time_s).all():
+        raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
+    cue = columns[args.standstill_column] if args.standstill_column else None
+    return time_s, columns.get(args.temp_column), cue
+
+
+def print_events(out, axes: tuple[str, ...], last: np.ndarray) -> None:
+    """Each standstill used or refused, and a summary line with the last bias."""
+    for event in out.events:
+        print(f"apply: {event.line(axes)}")
+    text = (f"{last[0]:+.4f}" if len(axes) == 1
+            else ", ".join(f"{a} {b:+.4f}" for a, b in zip(axes, last, strict=True)))
+    print(f"apply: bias tracking: {sum(e.decision == 'adopted' for e in out.events)} of {len(out.events)} "
+          f"standstills used, {out.learned[0].updates} windows; last bias {text} deg/s"
+          f"{'' if all(math.isfinite(b) for b in last) else ' (no data)'}")
