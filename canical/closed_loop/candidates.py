@@ -38,6 +38,7 @@ from canical.sets.term_kinds import (
     CHANNEL_GATED,
     CHANNEL_LAG,
     CHANNEL_OFFSET,
+    CHANNEL_SPLINE,
     CHANNEL_SQUARE,
     DIRECTION,
     DIRECTION_SIGN,
@@ -46,6 +47,7 @@ from canical.sets.term_kinds import (
     TIME_LINEAR,
     TIME_WARMUP,
     TermKind,
+    spline_values,
 )
 from canical.sets.terms import Term
 
@@ -115,6 +117,8 @@ BLOCK_FEATURES: dict[TermKind, Callable[[Term, Blocks], np.ndarray]] = {
     CHANNEL_DERIVATIVE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_DIRECTION: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_GATED: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_SPLINE: lambda term, blocks: spline_values(term.knots or (), term.pieces or (),
+                                                       blocks.aux[term.channel or ""]),
     TIME_WARMUP: _warmup,
     TIME_LINEAR: lambda term, blocks: blocks.time_s,
     DIRECTION_SIGN: lambda term, blocks: blocks.direction,
