@@ -73,11 +73,12 @@ from canical.sets.term_kinds import (
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_SPLINE,
     DIRECTION,
     TIME,
     TIME_WARMUP,
 )
-from canical.sets.terms import Term, gated_name
+from canical.sets.terms import Term, gated_name, term_from_dict
 
 MIN_GAIN = 0.10
 ALPHA = 1e-3
@@ -491,7 +492,12 @@ def _effect(cand: Candidate, before: Score, after: Score, f: float, p: float, ba
 
 
 def _term_key(t: dict[str, Any]) -> tuple[Any, ...]:
-    return (t["kind"], t["channel"], t["feature"], t["form"], t["reference"])
+    return _key(term_from_dict(t))
+
+
+def _key(t: Term) -> tuple[Any, ...]:
+    """What tells a fitted term from the others (a spline's basis functions share all but their pieces)."""
+    return (t.kind, t.channel, t.feature, t.form, t.reference, t.pieces)
 
 
 def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
@@ -499,7 +505,7 @@ def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
 
     An effect none of whose terms stayed is left out.
     """
-    final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
+    final_terms = {_key(t): t for t in final_fit.terms}
     out = []
     for eff in effects:
         terms = tuple(final_terms[k].to_dict() for k in map(_term_key, eff.terms) if k in final_terms)
@@ -725,10 +731,12 @@ def _prefer_level(scorer: Scorer, check: ConfoundCheck, alone: dict[str, Structu
 
 def _nests(general: Candidate, simple: Candidate) -> bool:
     """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
-    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞)."""
+    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞); a channel's
+    smooth form holds its level and square (a spline with knots everywhere)."""
     if general.name == WARMUP_NAME and simple.name == DRIFT_NAME:
         return True
-    generalises = general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
+    generalises = (general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
+                   or general.name == CHANNEL_SPLINE.label(general.channel or ""))
     return (general.kind == simple.kind == CHANNEL and general.channel == simple.channel
             and generalises and simple.name.startswith("channel:"))
 
