@@ -78,10 +78,10 @@ KNEE_SHARES = (0.03, 0.8)
 # A smooth candidate: at most this many interior knots, at quantiles of the channel's plateau
 # levels; one interior knot more per SMOOTH_LEVELS_PER_KNOT distinct levels beyond the
 # SMOOTH_MIN_LEVELS a cubic needs (levels closer than SMOOTH_LEVEL_SHARE of the range are one).
-SMOOTH_MAX_INTERIOR = 4
+SMOOTH_MAX_INTERIOR = 5
 SMOOTH_MIN_LEVELS = 8
 SMOOTH_LEVELS_PER_KNOT = 3
-SMOOTH_LEVEL_SHARE = 0.02
+SMOOTH_LEVEL_SHARE = 0.005
 # The names of the candidates that are not a channel's.
 WARMUP_NAME = f"{TIME}:warm-up"
 DRIFT_NAME = f"{TIME}:linear-drift"

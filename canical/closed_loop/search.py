@@ -752,19 +752,34 @@ def _drop_unpaid(
     scorer: Scorer, s: Structure, fixed: tuple[Term, ...], terms: tuple[Term, ...]
 ) -> tuple[Term, ...]:
     """Drop columns of ``terms`` (kept on top of ``fixed``) one at a time while held-out error
-    does not suffer by more than ``PRUNE_TOLERANCE``; at least one stays."""
+    does not suffer by more than ``PRUNE_TOLERANCE``; at least one stays.
 
-    def held(kept: tuple[Term, ...]) -> float:
-        return scorer.held_rms(replace(s, terms=fixed + kept))
+    A spline's basis columns go or stay together (:func:`_units`): one basis function less is
+    another shape, with a hole where its knots are, not a simpler one.
+    """
 
-    while len(terms) > 1:
-        full = held(terms)
-        fewer = [terms[:i] + terms[i + 1 :] for i in range(len(terms))]
+    def held(kept: list[tuple[Term, ...]]) -> float:
+        return scorer.held_rms(replace(s, terms=fixed + tuple(t for unit in kept for t in unit)))
+
+    units = _units(terms)
+    while len(units) > 1:
+        full = held(units)
+        fewer = [units[:i] + units[i + 1 :] for i in range(len(units))]
         best_rms, i = min((held(f), i) for i, f in enumerate(fewer))
         if best_rms > full * (1 + PRUNE_TOLERANCE):
             break
-        terms = fewer[i]
-    return terms
+        units = fewer[i]
+    return tuple(t for unit in units for t in unit)
+
+
+def _units(terms: tuple[Term, ...]) -> list[tuple[Term, ...]]:
+    """The terms as the units pruning drops: each term alone, a spline's basis (same channel,
+    form and knots) as one, in the order the terms come."""
+    units: dict[Any, tuple[Term, ...]] = {}
+    for j, t in enumerate(terms):
+        key = (t.channel, t.form, t.knots) if t.spec is CHANNEL_SPLINE else j
+        units[key] = (*units.get(key, ()), t)
+    return list(units.values())
 
 
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:
