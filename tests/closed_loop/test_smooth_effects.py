@@ -4,12 +4,15 @@ on clean sensors whose channels range as widely."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 from canical.closed_loop.candidates import CHANNEL_SPLINE, build_candidates, smooth_terms
 from canical.evaluation import score_scenario
 from canical.pipeline import CalibrateOptions, calibrate
+from canical.report.plots import variable_label, variable_of, write_plots
 from canical.sets.corrector import Corrector
 from canical.sim import environment as env
 from canical.sim.gyro import GyroModel
@@ -60,10 +63,17 @@ def test_clean_sensor_with_wide_ranging_channels_gets_no_smooth_effect(seed: int
     assert not any(t["kind"] == "channel" for t in result.coefficients.terms)
 
 
-def test_learned_set_corrects_sample_by_sample_as_in_blocks() -> None:
+def test_learned_set_corrects_sample_by_sample_as_in_blocks_and_is_drawn(tmp_path: Path) -> None:
     scenario = SMOOTH_SCENARIOS[1]
     session = scenario.session(seed=2, dwell_s=8.0)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
+    assert result.loop is not None
+    # the report draws the learned shape against the channel itself, not a basis function of it
+    x, label = variable_of("smooth(load)", result.loop.blocks, result.loop)
+    assert label == "load (units of load)" and np.array_equal(x, result.loop.blocks.aux["load"])
+    assert variable_label("smooth(vib_g)") == "vib_g (g)"
+    written = write_plots(result.loop, tmp_path)
+    assert any("smooth_load" in p.name and p.stat().st_size > 0 for p in written)
     splines = [t for t in result.coefficients.terms if t["feature"] == "spline"]
     assert splines, "the saturating effect is learned as a spline"
     corrector = Corrector(result.coefficients)
