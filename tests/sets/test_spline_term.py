@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from canical.commands.push import load_sets
+from canical.commands.cli import main
 from canical.errors import CanicalError
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
@@ -108,15 +108,18 @@ def test_set_file_round_trip_and_other_terms_unchanged(tmp_path: Path) -> None:
     assert coefficient_file.set_crc(back) == coefficient_file.set_crc(cset)
 
 
-def test_push_and_the_c_evaluator_refuse_a_set_with_a_spline(tmp_path: Path) -> None:
+def test_push_and_the_c_evaluator_refuse_a_set_with_a_spline(tmp_path: Path, capsys) -> None:
     rng = np.random.default_rng(3)
     cset = CoefficientSet("123", "z", 12.5, MODEL, (spline_dict(rng, "bias", 3),))
     path = tmp_path / "z.yaml"
     coefficient_file.save(path, cset)
     assert host_only(cset.terms) == "terms[0] (channel/spline)"
     assert host_only(()) is None
-    with pytest.raises(CanicalError, match=r"host only.*not pushed"):
-        load_sets([str(path)])
+    # refused in one line before any bus is opened (none is configured here)
+    assert main(["push", str(path), "--node", "5", "--channel", "vcan-none", "--dry-run"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "terms[0] (channel/spline) is evaluated on the host only" in err[0]
+    assert "not pushed" in err[0]
     from canical.device.firmware_eval import ERROR_NAMES, FirmwareCorrector, FirmwareRefusal, library
 
     try:
