@@ -46,7 +46,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import pairwise
 from typing import Any
 
@@ -76,7 +76,7 @@ from canical.sets.trackers import (
 __all__ = [
     "FEATURES", "FORMS", "STATEFUL_CHANNEL", "TERM_FIELDS", "TIME_INPUT", "ChannelTracker",
     "DirectionTracker", "SlopeTracker", "Term", "direction_state",
-    "feature_values", "gate_one", "gated_name", "lag_filter", "rate_gate", "raw_shift",
+    "feature_values", "gate_one", "gated_name", "lag_filter", "merge_splines", "rate_gate", "raw_shift",
     "slope_state", "term_from_dict",
 ]
 
@@ -214,6 +214,34 @@ def _spline_fields(d: Mapping[str, Any], where: str
         if not isinstance(row, list) or len(row) != 4 or not all(_finite(a) for a in row):
             raise ValueError(f"{where}: pieces[{i}] must be 4 finite numbers (a0 a1 a2 a3)")
     return tuple(float(k) for k in knots), tuple(tuple(float(a) for a in row) for row in pieces)
+
+
+def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
+    """The terms with each group of splines of one channel, form and knots written as one:
+    Σ c_j·S_j(v) is one piecewise cubic with pieces Σ c_j·pieces_j and coefficient 1.
+
+    Why: the closed loop fits a spline as one term per basis function; the set needs one segment
+    lookup and one cubic per sample, not one per basis function. The merged term gives the same
+    correction to rounding (the sum is taken over pieces instead of over terms). The merged term
+    stands where the group's first term stood.
+    """
+    groups: dict[Any, list[Term]] = {}
+    order: list[Any] = []
+    for j, t in enumerate(terms):
+        key = ("spline", t.channel, t.form, t.knots) if t.spec.needs_spline else j
+        if key not in groups:
+            order.append(key)
+        groups.setdefault(key, []).append(t)
+    out = []
+    for key in order:
+        group = groups[key]
+        if len(group) == 1:
+            out.append(group[0])
+            continue
+        pieces = sum(t.coefficient * np.asarray(t.pieces, dtype=float) for t in group)
+        out.append(replace(group[0], coefficient=1.0,
+                           pieces=tuple(tuple(float(a) for a in row) for row in np.asarray(pieces))))
+    return tuple(out)
 
 
 def feature_values(

@@ -17,7 +17,7 @@ from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import compile_corrector
 from canical.sets.term_kinds import CHANNEL_SPLINE, host_only, spline_one, spline_values
-from canical.sets.terms import term_from_dict
+from canical.sets.terms import merge_splines, term_from_dict
 
 MODEL = {"kind": "segmented-inverse", "knots_raw": [-1000.0, 1000.0], "segment_points_dps": [-10.0, 10.0],
          "scale": 1000.0, "coefficients": [[0.1, 0.2, 0.003], [0.0, 0.25, 0.001], [0.2, 0.2, -0.002]],
@@ -129,3 +129,24 @@ def test_push_and_the_c_evaluator_refuse_a_set_with_a_spline(tmp_path: Path, cap
     with pytest.raises(FirmwareRefusal) as refused:
         FirmwareCorrector(cset, serial=123, axis="z")
     assert ERROR_NAMES[refused.value.code] == "CE_ERR_TERM_KIND"
+
+
+@pytest.mark.parametrize("form", ["bias", "scale"])
+def test_merged_splines_correct_as_the_separate_terms(form: str) -> None:
+    rng = np.random.default_rng(11)
+    base = spline_dict(rng, form, 4)
+    basis = [term_from_dict({**base, "coefficient": float(rng.normal(0.0, 30.0)),
+                             "pieces": (rng.normal(0.0, 1.0, (4, 4)) * 0.1).tolist()}) for _ in range(3)]
+    other = term_from_dict({"kind": "channel", "feature": "offset", "channel": "vib_g", "form": "bias",
+                            "coefficient": 2.0, "reference": 1.0})
+    terms = (basis[0], other, basis[1], basis[2])
+    merged = merge_splines(terms)
+    assert [t.feature for t in merged] == ["spline", "offset"] and merged[0].coefficient == 1.0
+    assert merge_splines((other,)) == (other,)
+    v = rng.uniform(-20.0, 60.0, 2000)
+    raw = np.rint(rng.uniform(-20000.0, 20000.0, v.size))
+    separate, _ = Corrector(CoefficientSet("s", "z", 12.5, MODEL, tuple(t.to_dict() for t in terms))).correct(
+        raw, {"vib_g": v})
+    one, _ = Corrector(CoefficientSet("s", "z", 12.5, MODEL, tuple(t.to_dict() for t in merged))).correct(
+        raw, {"vib_g": v})
+    assert one == pytest.approx(separate, rel=1e-12, abs=1e-12)
