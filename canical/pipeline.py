@@ -45,6 +45,7 @@ from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
+from canical.sets.terms import merge_splines
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
 
@@ -406,7 +407,7 @@ def calibrate(
         model = piecewise_model_dict(
             spec.kind, loop.fit.poly, base.v0, smoothness=spec.smoothness, segment_points_dps=points_dps
         )
-        terms = tuple(t.to_dict() for t in loop.fit.terms)
+        terms = tuple(t.to_dict() for t in merge_splines(loop.fit.terms))  # a spline: one term
         report = with_loop(report, loop, len(terms))
     elif options.extend:
         report = replace(report, loop_skipped="the effect search needs the segmented-inverse model, "

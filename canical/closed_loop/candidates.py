@@ -15,6 +15,14 @@ feels a channel other than directly:
   output, |ΔV| > k, with k estimated like a time constant (an effect that
   switches on with rate: a drive loop near its limit).
 
+* ``smooth(<ch>)`` — its effect as a smooth function learned from the data: a cubic
+  B-spline of its level with knots at quantiles of its plateau levels (a bias that follows
+  the square of a wide-ranging channel, or saturates with it), built only where the channel
+  takes enough distinct levels to fit one. It competes as one more candidate with the same
+  held-out plateaus, F-test (charged for every basis column) and paired tests; it nests the
+  channel's level and square, so where the two tie the level is taken (see
+  :mod:`canical.closed_loop.search`). Clean sensors and effects on the list add no spline.
+
 Time since power-on brings a warm-up 1 − exp(−t/τ) with τ estimated and a
 linear drift; the table brings the direction of approach (the raw signal's last
 significant change) and its rate of change. Each candidate brings its terms in
@@ -28,6 +36,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.interpolate import BSpline
 
 from canical.closed_loop.blocks import SLOPE_TAU_S, Blocks
 from canical.robust_stats import mad_sigma
@@ -38,6 +47,7 @@ from canical.sets.term_kinds import (
     CHANNEL_GATED,
     CHANNEL_LAG,
     CHANNEL_OFFSET,
+    CHANNEL_SPLINE,
     CHANNEL_SQUARE,
     DIRECTION,
     DIRECTION_SIGN,
@@ -46,6 +56,7 @@ from canical.sets.term_kinds import (
     TIME_LINEAR,
     TIME_WARMUP,
     TermKind,
+    spline_values,
 )
 from canical.sets.terms import Term
 
@@ -64,6 +75,13 @@ DERIVATIVE_WINDOWS_S = (2.0, 4.0, 8.0, 15.0, 30.0, 60.0)
 # too few plateaus lie beyond it to fit anything).
 KNEE_GRID_POINTS = 10
 KNEE_SHARES = (0.03, 0.8)
+# A smooth candidate: at most this many interior knots, at quantiles of the channel's plateau
+# levels; one interior knot more per SMOOTH_LEVELS_PER_KNOT distinct levels beyond the
+# SMOOTH_MIN_LEVELS a cubic needs (levels closer than SMOOTH_LEVEL_SHARE of the range are one).
+SMOOTH_MAX_INTERIOR = 5
+SMOOTH_MIN_LEVELS = 8
+SMOOTH_LEVELS_PER_KNOT = 3
+SMOOTH_LEVEL_SHARE = 0.005
 # The names of the candidates that are not a channel's.
 WARMUP_NAME = f"{TIME}:warm-up"
 DRIFT_NAME = f"{TIME}:linear-drift"
@@ -115,6 +133,8 @@ BLOCK_FEATURES: dict[TermKind, Callable[[Term, Blocks], np.ndarray]] = {
     CHANNEL_DERIVATIVE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_DIRECTION: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_GATED: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_SPLINE: lambda term, blocks: spline_values(term.knots or (), term.pieces or (),
+                                                       blocks.aux[term.channel or ""]),
     TIME_WARMUP: _warmup,
     TIME_LINEAR: lambda term, blocks: blocks.time_s,
     DIRECTION_SIGN: lambda term, blocks: blocks.direction,
@@ -183,6 +203,9 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
         )
         out.append(Candidate(CHANNEL_OFFSET.label(name), CHANNEL, name, terms))
         out.extend(_transform_candidates(blocks, name, ref, session_duration_s))
+        smooth = smooth_terms(name, plateau_levels(blocks, name))
+        if smooth:
+            out.append(Candidate(CHANNEL_SPLINE.label(name), CHANNEL, name, smooth))
     if np.ptp(blocks.time_s) > 0:
         tau = float(session_duration_s) / 3.0
         out.append(Candidate(WARMUP_NAME, TIME, None, _pair(TIME_WARMUP, tau_s=tau)))
@@ -203,6 +226,48 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
             Candidate(SLOPE_NAME, DIRECTION, None, _pair(DIRECTION_SLOPE, tau_s=SLOPE_TAU_S))
         )
     return out
+
+
+def plateau_levels(blocks: Blocks, channel: str) -> np.ndarray:
+    """The channel's mean over each plateau: the levels a smooth effect of it is learned from."""
+    _, idx = np.unique(blocks.plateau, return_inverse=True)
+    return np.bincount(idx, blocks.aux[channel]) / np.bincount(idx)
+
+
+def smooth_terms(channel: str, levels: np.ndarray, form: str = "bias") -> tuple[Term, ...]:
+    """The cubic B-spline basis of ``channel`` over the span of ``levels``, one spline term per
+    basis function (its coefficient still to fit), the first left out: the rate model's own
+    constant plus the others span every cubic spline on these knots. Empty when the levels are
+    too few to fit one (a channel stepped between a handful of values says what the level and
+    square say).
+
+    Why B-splines: each basis function is local and bounded (0 to 1), so the least squares stay
+    well conditioned and a basis column the data do not support is pruned without disturbing the
+    others; each is written into the set in piecewise-polynomial form (a segment lookup and a
+    cubic per sample).
+    """
+    levels = np.sort(np.asarray(levels, dtype=float))
+    span = float(levels[-1] - levels[0]) if levels.size else 0.0
+    if not span > 0:
+        return ()
+    distinct = 1 + int(np.sum(np.diff(levels) > SMOOTH_LEVEL_SHARE * span))
+    n_interior = min(SMOOTH_MAX_INTERIOR, (distinct - SMOOTH_MIN_LEVELS) // SMOOTH_LEVELS_PER_KNOT + 1)
+    if n_interior < 1:
+        return ()
+    lo, hi = float(levels[0]), float(levels[-1])
+    interior = np.quantile(levels, np.linspace(0.0, 1.0, n_interior + 2)[1:-1])
+    breaks = np.unique(np.concatenate([[lo], interior, [hi]]))
+    knots = np.concatenate([[lo] * 3, breaks, [hi] * 3])
+    n_basis = knots.size - 4
+    out = []
+    for j in range(1, n_basis):
+        basis = BSpline(knots, np.eye(n_basis)[j], 3)
+        derivs = [basis.derivative(d) if d else basis for d in range(4)]
+        pieces = tuple(tuple(float(derivs[d](b)) / (1.0, 1.0, 2.0, 6.0)[d] for d in range(4))
+                       for b in breaks[:-1])
+        out.append(Term.of(CHANNEL_SPLINE, form, 0.0, channel=channel,
+                           knots=tuple(float(b) for b in breaks), pieces=pieces))
+    return tuple(out)
 
 
 def sample_noise(values: np.ndarray) -> float:

@@ -73,11 +73,12 @@ from canical.sets.term_kinds import (
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_SPLINE,
     DIRECTION,
     TIME,
     TIME_WARMUP,
 )
-from canical.sets.terms import Term, gated_name
+from canical.sets.terms import Term, gated_name, term_from_dict
 
 MIN_GAIN = 0.10
 ALPHA = 1e-3
@@ -491,7 +492,12 @@ def _effect(cand: Candidate, before: Score, after: Score, f: float, p: float, ba
 
 
 def _term_key(t: dict[str, Any]) -> tuple[Any, ...]:
-    return (t["kind"], t["channel"], t["feature"], t["form"], t["reference"])
+    return _key(term_from_dict(t))
+
+
+def _key(t: Term) -> tuple[Any, ...]:
+    """What tells a fitted term from the others (a spline's basis functions share all but their pieces)."""
+    return (t.kind, t.channel, t.feature, t.form, t.reference, t.pieces)
 
 
 def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
@@ -499,7 +505,7 @@ def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
 
     An effect none of whose terms stayed is left out.
     """
-    final_terms = {(t.kind, t.channel, t.feature, t.form, t.reference): t for t in final_fit.terms}
+    final_terms = {_key(t): t for t in final_fit.terms}
     out = []
     for eff in effects:
         terms = tuple(final_terms[k].to_dict() for k in map(_term_key, eff.terms) if k in final_terms)
@@ -725,10 +731,12 @@ def _prefer_level(scorer: Scorer, check: ConfoundCheck, alone: dict[str, Structu
 
 def _nests(general: Candidate, simple: Candidate) -> bool:
     """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
-    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞)."""
+    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞); a channel's
+    smooth form holds its level and square (a spline with knots everywhere)."""
     if general.name == WARMUP_NAME and simple.name == DRIFT_NAME:
         return True
-    generalises = general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
+    generalises = (general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
+                   or general.name == CHANNEL_SPLINE.label(general.channel or ""))
     return (general.kind == simple.kind == CHANNEL and general.channel == simple.channel
             and generalises and simple.name.startswith("channel:"))
 
@@ -744,19 +752,34 @@ def _drop_unpaid(
     scorer: Scorer, s: Structure, fixed: tuple[Term, ...], terms: tuple[Term, ...]
 ) -> tuple[Term, ...]:
     """Drop columns of ``terms`` (kept on top of ``fixed``) one at a time while held-out error
-    does not suffer by more than ``PRUNE_TOLERANCE``; at least one stays."""
+    does not suffer by more than ``PRUNE_TOLERANCE``; at least one stays.
 
-    def held(kept: tuple[Term, ...]) -> float:
-        return scorer.held_rms(replace(s, terms=fixed + kept))
+    A spline's basis columns go or stay together (:func:`_units`): one basis function less is
+    another shape, with a hole where its knots are, not a simpler one.
+    """
 
-    while len(terms) > 1:
-        full = held(terms)
-        fewer = [terms[:i] + terms[i + 1 :] for i in range(len(terms))]
+    def held(kept: list[tuple[Term, ...]]) -> float:
+        return scorer.held_rms(replace(s, terms=fixed + tuple(t for unit in kept for t in unit)))
+
+    units = _units(terms)
+    while len(units) > 1:
+        full = held(units)
+        fewer = [units[:i] + units[i + 1 :] for i in range(len(units))]
         best_rms, i = min((held(f), i) for i, f in enumerate(fewer))
         if best_rms > full * (1 + PRUNE_TOLERANCE):
             break
-        terms = fewer[i]
-    return terms
+        units = fewer[i]
+    return tuple(t for unit in units for t in unit)
+
+
+def _units(terms: tuple[Term, ...]) -> list[tuple[Term, ...]]:
+    """The terms as the units pruning drops: each term alone, a spline's basis (same channel,
+    form and knots) as one, in the order the terms come."""
+    units: dict[Any, tuple[Term, ...]] = {}
+    for j, t in enumerate(terms):
+        key = (t.channel, t.form, t.knots) if t.spec is CHANNEL_SPLINE else j
+        units[key] = (*units.get(key, ()), t)
+    return list(units.values())
 
 
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:

@@ -33,6 +33,7 @@ import numpy as np
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
 from canical.robust_stats import mad_sigma
+from canical.sets.term_kinds import CHANNEL_SPLINE
 
 # Clean simulated sensors (white noise, or with bias instability and rate random
 # walk) leave 1.0-1.4x the floor on held-out plateaus; an unexplained effect the
@@ -62,10 +63,12 @@ def _sensitivity(blocks: Blocks) -> float:
 
 
 def candidate_variables(candidates: list[Candidate], blocks: Blocks) -> dict[str, np.ndarray]:
-    """Each candidate's variable at the blocks (its first term's feature), and time since power-on."""
+    """Each candidate's variable at the blocks (its first term's feature; a smooth candidate's, its
+    channel: its first term is one basis function of it), and time since power-on."""
     out = {"time since power-on": blocks.time_s}
     for cand in candidates:
-        out[cand.name] = feature(cand.terms[0], blocks)
+        smooth = cand.terms[0].spec is CHANNEL_SPLINE and cand.channel is not None
+        out[cand.name] = blocks.aux[cand.channel or ""] if smooth else feature(cand.terms[0], blocks)
     return out
 
 

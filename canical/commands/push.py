@@ -55,8 +55,19 @@ def load_sets(paths: list[str]) -> dict[str, tuple[str, CoefficientSet]]:
         sensors = {c.sensor_id for _, c in sets.values()}
         if sensors and cset.sensor_id not in sensors:
             raise CanicalError(f"{path} is for sensor {cset.sensor_id}, the others for {sensors.pop()}")
+        refuse_host_only(path, cset)
         sets[cset.axis] = (path, cset)
     return sets
+
+
+def refuse_host_only(path: str, cset: CoefficientSet) -> None:
+    """One line, before anything is sent, for a set holding a term the device cannot evaluate."""
+    from canical.sets.term_kinds import host_only
+
+    term = host_only(cset.terms)
+    if term is not None:
+        raise CanicalError(f"{path}: axis {cset.axis} {term} is evaluated on the host only (canical apply, "
+                           "canical serve); the device's evaluator refuses it: not pushed")
 
 
 def load_imu_set(paths: list[str]) -> tuple[str, ImuSet] | None:
@@ -68,7 +79,10 @@ def load_imu_set(paths: list[str]) -> tuple[str, ImuSet] | None:
         return None
     if len(paths) > 1:
         raise CanicalError(f"{found[0]} is an IMU set (three axes and their coupling): give it alone")
-    return paths[0], imu_set.load(paths[0])
+    imu = imu_set.load(paths[0])
+    for axis in imu.axes:
+        refuse_host_only(paths[0], axis)
+    return paths[0], imu
 
 
 def run(args: argparse.Namespace) -> int:

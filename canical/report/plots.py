@@ -75,6 +75,9 @@ def variable_label(name: str) -> str:
     if name.startswith(LEVEL_PREFIX):
         channel = name.removeprefix(LEVEL_PREFIX)
         return f"{channel} ({channel_unit(channel)})"
+    smooth = re.fullmatch(r"smooth\((.+)\)", name)
+    if smooth:  # a learned function of the channel: drawn against the channel itself
+        return f"{smooth.group(1)} ({channel_unit(smooth.group(1))})"
     if name.startswith(WARMUP_NAME):
         return f"{name}: 1 − exp(−t/τ) (no unit)"
     if name.startswith(TIME):

@@ -22,7 +22,9 @@ one object that knows
   prove its outputs finite.
 
 Adding a kind is one new class here (and one row plus one ``case`` in the C evaluator); the
-tests fail while any of these is missing. Like cantools' conversions: one class per kind
+tests fail while any of these is missing. A kind with ``c_name`` None (the spline) is not in
+the C evaluator: the device refuses a set holding it and ``canical push`` refuses to send it
+(:func:`host_only`). Like cantools' conversions: one class per kind
 behind a lookup (:func:`lookup`). The term record itself, and the set file's validation built
 on these objects, are :mod:`canical.sets.terms`.
 """
@@ -30,6 +32,7 @@ on these objects, are :mod:`canical.sets.terms`.
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
@@ -90,9 +93,13 @@ class TermKind:
 
     kind: ClassVar[str]
     feature: ClassVar[str]
-    c_name: ClassVar[str]
+    #: The C evaluator's code; None: the C evaluator refuses a set with this kind
+    #: (``CE_ERR_TERM_KIND``), and ``canical push`` refuses to send it.
+    c_name: ClassVar[str | None]
     needs_tau: ClassVar[bool] = False
     needs_threshold: ClassVar[bool] = False
+    #: Whether the term carries a piecewise cubic (``knots``, ``pieces``).
+    needs_spline: ClassVar[bool] = False
     #: Whether the compiled corrector keeps the part of x that depends on the input alone.
     kept: ClassVar[bool] = False
     #: The tracker class this kind keeps its state in (None: stateless).
@@ -355,6 +362,75 @@ class ChannelGated(ChannelKind):
         return gated_name(channel)
 
 
+#: Most knots a spline term may have (segments: one fewer): bounds the work per sample.
+MAX_SPLINE_KNOTS = 64
+
+
+def spline_one(knots: tuple[float, ...], pieces: tuple[tuple[float, ...], ...], v: float) -> float:
+    """S(v) for one sample: v clamped to the knots' span, the segment by ``bisect``, Horner in
+    u = v − knot. The block form (:func:`spline_values`) runs the same operations in the same order."""
+    last = len(pieces) - 1
+    w = knots[0] if v < knots[0] else knots[-1] if v > knots[-1] else v
+    i = bisect_right(knots, w) - 1
+    i = 0 if i < 0 else last if i > last else i
+    a0, a1, a2, a3 = pieces[i]
+    u = w - knots[i]
+    return ((a3 * u + a2) * u + a1) * u + a0
+
+
+def spline_values(knots: tuple[float, ...], pieces: tuple[tuple[float, ...], ...],
+                  v: np.ndarray) -> np.ndarray:
+    """S(v) for a block of samples, element by element what :func:`spline_one` gives."""
+    k = np.asarray(knots, dtype=float)
+    a = np.asarray(pieces, dtype=float)
+    w = np.where(v < k[0], k[0], np.where(v > k[-1], k[-1], v))
+    i = np.clip(np.searchsorted(k, w, side="right") - 1, 0, len(pieces) - 1)
+    u = w - k[i]
+    out: np.ndarray = ((a[i, 3] * u + a[i, 2]) * u + a[i, 1]) * u + a[i, 0]
+    return out
+
+
+class ChannelSpline(ChannelKind):
+    """x = S(v): a piecewise cubic of the channel learned from the data (a smooth effect whose
+    form is on no list), flat beyond its end knots so a channel outside the calibrated range
+    extrapolates nothing. ``knots`` b₀ < … < b_m, ``pieces`` m rows (a₀, a₁, a₂, a₃): on
+    [b_i, b_i+1], S = a₀ + a₁u + a₂u² + a₃u³ with u = v − b_i. Bounded work per sample: one
+    ``bisect`` and a cubic. Scale form: c·S(v)·ΔV, a nonlinearity changing with the channel.
+    """
+
+    feature = "spline"
+    c_name = None
+    needs_spline = True
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return spline_values(term.knots or (), term.pieces or (), _column(inputs, term.channel))
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return spline_one(term.knots or (), term.pieces or (), float(inputs[term.channel]))  # type: ignore[index]
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        """:func:`spline_one` written out, its knots and pieces as constants."""
+        knots, pieces, last = term.knots or (), term.pieces or (), len(term.pieces or ()) - 1
+        lo, hi = knots[0], knots[-1]
+        return [f"    w = float({names.value})",
+                f"    w = {lo!r} if w < {lo!r} else {hi!r} if w > {hi!r} else w",
+                f"    i = bisect_right({knots!r}, w) - 1",
+                f"    i = 0 if i < 0 else {last} if i > {last} else i",
+                f"    a0, a1, a2, a3 = {pieces!r}[i]",
+                f"    u = w - {knots!r}[i]",
+                "    x = ((a3 * u + a2) * u + a1) * u + a0",
+                f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"smooth({channel})"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        """Σ|a_j|·h^j of the largest segment: S is flat beyond the knots, whatever the input."""
+        knots, pieces = term.knots or (0.0, 0.0), term.pieces or ()
+        return max((sum(abs(a) * (b - k) ** j for j, a in enumerate(row))
+                    for k, b, row in zip(knots[:-1], knots[1:], pieces, strict=True)), default=0.0)
+
+
 def gated_name(channel: str, knee_dps: float | None = None) -> str:
     """``temp_c × (|rate| > 30 dps)``; without a knee, the candidate's name (knee to be estimated)."""
     knee = "knee" if knee_dps is None else f"{knee_dps:.0f} dps"
@@ -494,6 +570,7 @@ CHANNEL_LAG = ChannelLag()
 CHANNEL_DERIVATIVE = ChannelDerivative()
 CHANNEL_DIRECTION = ChannelDirection()
 CHANNEL_GATED = ChannelGated()
+CHANNEL_SPLINE = ChannelSpline()
 TIME_WARMUP = TimeWarmup()
 TIME_LINEAR = TimeLinear()
 DIRECTION_SIGN = DirectionSign()
@@ -501,7 +578,7 @@ DIRECTION_SLOPE = DirectionSlope()
 
 #: Every kind this canical version reads, in the order error messages list them.
 ALL: tuple[TermKind, ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNEL_DERIVATIVE,
-                             CHANNEL_DIRECTION, CHANNEL_GATED, TIME_WARMUP, TIME_LINEAR,
+                             CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_SPLINE, TIME_WARMUP, TIME_LINEAR,
                              DIRECTION_SIGN, DIRECTION_SLOPE)
 _BY_KEY = {k.key: k for k in ALL}
 #: The features of each kind, as the set file names them.
@@ -509,6 +586,17 @@ FEATURES: dict[str, tuple[str, ...]] = {}
 for _k in ALL:
     FEATURES.setdefault(_k.kind, ())
     FEATURES[_k.kind] += (_k.feature,)
+
+
+def host_only(terms: tuple[Mapping[str, Any], ...]) -> str | None:
+    """The first of a set's terms the C evaluator refuses, as ``terms[i] (kind/feature)`` (None:
+    the device evaluates them all). Why: a device would refuse the bank (``CE_ERR_TERM_KIND``)
+    after the download; ``canical push`` says so before sending anything."""
+    for i, t in enumerate(terms):
+        spec = lookup(t.get("kind"), t.get("feature"))
+        if spec is not None and spec.c_name is None:
+            return f"terms[{i}] ({spec.kind}/{spec.feature})"
+    return None
 
 
 def lookup(kind: object, feature: object) -> TermKind | None:

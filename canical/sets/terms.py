@@ -24,7 +24,10 @@ coefficient means the output rises with temperature. Features:
   g = max(|ΔV| − k, 0)/|ΔV| and the knee k = ``threshold_raw`` in raw units: an
   effect that acts only beyond some rate (a drive loop near its limit). In scale
   form c·x·ΔV = c·(v − ref)·sign(ΔV)·max(|ΔV| − k, 0), a hinge; in bias form a
-  bias that switches on with rate;
+  bias that switches on with rate; and ``spline`` x = S(v), a piecewise cubic of the
+  channel learned from the data (``knots``, ``pieces``; flat beyond the end knots): a
+  smooth effect whose form is none of the above (evaluated in Python only: the C
+  evaluator refuses it);
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
 * ``direction`` — how the rate got where it is. ``sign``: the direction of the last
@@ -43,7 +46,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -52,6 +56,7 @@ from canical.sets.term_kinds import (
     ALL,
     CHANNEL,
     FEATURES,
+    MAX_SPLINE_KNOTS,
     TIME_INPUT,
     TermKind,
     gated_name,
@@ -71,14 +76,15 @@ from canical.sets.trackers import (
 __all__ = [
     "FEATURES", "FORMS", "STATEFUL_CHANNEL", "TERM_FIELDS", "TIME_INPUT", "ChannelTracker",
     "DirectionTracker", "SlopeTracker", "Term", "direction_state",
-    "feature_values", "gate_one", "gated_name", "lag_filter", "rate_gate", "raw_shift",
+    "feature_values", "gate_one", "gated_name", "lag_filter", "merge_splines", "rate_gate", "raw_shift",
     "slope_state", "term_from_dict",
 ]
 
 FORMS = ("bias", "scale")
 #: The channel features with state (a lag, a derivative, a direction).
 STATEFUL_CHANNEL = tuple(k.feature for k in ALL if k.kind == CHANNEL and k.tracker_type is not None)
-TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw")
+TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw",
+               "knots", "pieces")
 
 
 @dataclass(frozen=True)
@@ -93,6 +99,9 @@ class Term:
     reference: float = 0.0
     tau_s: float | None = None
     threshold_raw: float | None = None
+    #: A spline term's piecewise cubic (see :class:`~canical.sets.term_kinds.ChannelSpline`).
+    knots: tuple[float, ...] | None = None
+    pieces: tuple[tuple[float, ...], ...] | None = None
 
     @classmethod
     def of(cls, spec: TermKind, form: str, coefficient: float, **fields: Any) -> Term:
@@ -122,7 +131,9 @@ class Term:
         return self.spec.describe(self)
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        """The set file's term; ``knots`` and ``pieces`` only for a spline (other terms' bytes,
+        and so their sets' CRCs, stay what they were)."""
+        out: dict[str, Any] = {
             "kind": self.kind,
             "channel": self.channel,
             "feature": self.feature,
@@ -132,6 +143,10 @@ class Term:
             "tau_s": self.tau_s,
             "threshold_raw": self.threshold_raw,
         }
+        if self.knots is not None:
+            out["knots"] = list(self.knots)
+            out["pieces"] = [list(row) for row in self.pieces or ()]
+        return out
 
 
 def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
@@ -164,6 +179,7 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
         raise ValueError(f"{where}: channel must name an input")
     tau = number("tau_s", required=spec.needs_tau, positive=True)
     threshold = number("threshold_raw", required=spec.needs_threshold, positive=True)
+    knots, pieces = _spline_fields(d, where) if spec.needs_spline else (None, None)
     return Term(
         kind=spec.kind,
         feature=spec.feature,
@@ -173,7 +189,59 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
         reference=number("reference") or 0.0,
         tau_s=tau,
         threshold_raw=threshold,
+        knots=knots,
+        pieces=pieces,
     )
+
+
+def _finite(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _spline_fields(d: Mapping[str, Any], where: str
+                   ) -> tuple[tuple[float, ...], tuple[tuple[float, ...], ...]]:
+    """A spline's knots (2 to MAX_SPLINE_KNOTS finite numbers, strictly increasing) and pieces
+    (one row of 4 finite numbers per segment)."""
+    knots, pieces = d.get("knots"), d.get("pieces")
+    if (not isinstance(knots, list) or not 2 <= len(knots) <= MAX_SPLINE_KNOTS
+            or not all(_finite(k) for k in knots)):
+        raise ValueError(f"{where}: knots must be a list of 2 to {MAX_SPLINE_KNOTS} finite numbers")
+    if any(not b > a for a, b in pairwise(knots)):
+        raise ValueError(f"{where}: knots must be strictly increasing")
+    if not isinstance(pieces, list) or len(pieces) != len(knots) - 1:
+        raise ValueError(f"{where}: pieces must be a list of {len(knots) - 1} rows (one per segment)")
+    for i, row in enumerate(pieces):
+        if not isinstance(row, list) or len(row) != 4 or not all(_finite(a) for a in row):
+            raise ValueError(f"{where}: pieces[{i}] must be 4 finite numbers (a0 a1 a2 a3)")
+    return tuple(float(k) for k in knots), tuple(tuple(float(a) for a in row) for row in pieces)
+
+
+def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
+    """The terms with each group of splines of one channel, form and knots written as one:
+    Σ c_j·S_j(v) is one piecewise cubic with pieces Σ c_j·pieces_j and coefficient 1.
+
+    Why: the closed loop fits a spline as one term per basis function; the set needs one segment
+    lookup and one cubic per sample, not one per basis function. The merged term gives the same
+    correction to rounding (the sum is taken over pieces instead of over terms). The merged term
+    stands where the group's first term stood.
+    """
+    groups: dict[Any, list[Term]] = {}
+    order: list[Any] = []
+    for j, t in enumerate(terms):
+        key = ("spline", t.channel, t.form, t.knots) if t.spec.needs_spline else j
+        if key not in groups:
+            order.append(key)
+        groups.setdefault(key, []).append(t)
+    out = []
+    for key in order:
+        group = groups[key]
+        if len(group) == 1:
+            out.append(group[0])
+            continue
+        pieces = sum(t.coefficient * np.asarray(t.pieces, dtype=float) for t in group)
+        out.append(replace(group[0], coefficient=1.0,
+                           pieces=tuple(tuple(float(a) for a in row) for row in np.asarray(pieces))))
+    return tuple(out)
 
 
 def feature_values(

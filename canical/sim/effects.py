@@ -186,3 +186,30 @@ class HiddenVariableEffect:
         t = np.asarray(time_s, dtype=float)
         hidden = np.sin(2 * np.pi * t / self.period_s) * np.sin(2 * np.pi * t / (3.7 * self.period_s))
         return self.amplitude_dps * hidden, np.zeros_like(t)
+
+
+@dataclass(frozen=True)
+class SquareLawEffect:
+    """A bias following the square of a channel over its whole range: vibration rectification,
+    bias = k·g²rms with the vibration level (g rms) the channel."""
+
+    channel: str = "vib_g"
+    bias_dps_per_unit2: float = 0.004
+
+    def errors(self, time_s, rate_dps, aux):
+        v = np.asarray(aux[self.channel], dtype=float)
+        return self.bias_dps_per_unit2 * v * v, np.zeros_like(v)
+
+
+@dataclass(frozen=True)
+class SaturatingEffect:
+    """A bias that saturates with a channel, A·tanh((v − centre)/width): a form on no list."""
+
+    channel: str = "load"
+    amplitude_dps: float = 0.12
+    centre: float = 4.0
+    width: float = 1.2
+
+    def errors(self, time_s, rate_dps, aux):
+        v = np.asarray(aux[self.channel], dtype=float)
+        return self.amplitude_dps * np.tanh((v - self.centre) / self.width), np.zeros_like(v)

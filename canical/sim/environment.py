@@ -119,3 +119,15 @@ def other_axis_raw(gyro=None, hold_s: float = 7.0, limit_dps: float = 60.0, seed
         return gyro.output(t, rate, rng=rng)
 
     return f
+
+
+def level_per_plateau(low: float = 0.5, high: float = 8.0, noise: float = 0.02):
+    """A level drawn afresh (uniformly over ``low``–``high``) each time the table rate changes:
+    a vibration level (g rms) or a load set per plateau, ranging wide and in no order of time."""
+
+    def f(t, w, rng):
+        segment = np.concatenate([[0], np.cumsum(np.abs(np.diff(np.asarray(w, dtype=float))) > 1e-9)])
+        levels = rng.uniform(low, high, int(segment[-1]) + 1)
+        return levels[segment] + noise * rng.standard_normal(t.size)
+
+    return f

@@ -21,6 +21,7 @@ from canical.sets.term_kinds import (
     CHANNEL_GATED,
     CHANNEL_LAG,
     CHANNEL_OFFSET,
+    CHANNEL_SPLINE,
     CHANNEL_SQUARE,
     DIRECTION,
     DIRECTION_SIGN,
@@ -183,6 +184,38 @@ SCENARIOS: tuple[Scenario, ...] = (
     Scenario("clean, bias instability + rate random walk, 5 distractors", (), FIVE_DISTRACTORS,
              gyro=COLOURED),
     Scenario("clean, white noise, 5 distractors", (), FIVE_DISTRACTORS),
+)
+
+
+
+def _spline_of(fn: Callable[[np.ndarray], np.ndarray], lo: float, hi: float, channel: str,
+               points: int = 64) -> Term:
+    """A spline term interpolating ``fn`` closely (``points`` knots): an oracle told a form no
+    other term kind writes."""
+    from scipy.interpolate import CubicSpline
+
+    x = np.linspace(lo, hi, points)
+    c = CubicSpline(x, fn(x)).c  # highest power first, per segment
+    pieces = tuple(tuple(float(c[3 - k, i]) for k in range(4)) for i in range(points - 1))
+    return _t(CHANNEL_SPLINE, "bias", channel=channel, knots=tuple(float(v) for v in x), pieces=pieces)
+
+
+VIBRATION = {"vib_g": env.level_per_plateau(0.5, 8.0), **DISTRACTORS}
+LOAD = {"load": env.level_per_plateau(0.0, 8.0), **DISTRACTORS}
+_SATURATING = fx.SaturatingEffect()
+#: Smooth effects of a channel (issue 21), scored over several seeds by the closed loop's tests:
+#: a square over a wide range (on the list, as level + square) and a saturating function (on no
+#: list: the smooth form must learn it). Kept apart from :data:`SCENARIOS`, whose figures the
+#: effects benchmark records.
+SMOOTH_SCENARIOS: tuple[Scenario, ...] = (
+    Scenario("vibration rectification: bias 0.004 dps/g² over 0.5-8 g rms per plateau",
+             (fx.SquareLawEffect(),), VIBRATION, expect=("channel:vib_g",),
+             oracle_terms=(_t(CHANNEL_OFFSET, "bias", channel="vib_g"),
+                           _t(CHANNEL_SQUARE, "bias", channel="vib_g"))),
+    Scenario("bias saturating with a channel: 0.12 dps tanh((load - 4)/1.2), load 0-8 per plateau",
+             (_SATURATING,), LOAD, expect=("smooth(load)",),
+             oracle_terms=(_spline_of(lambda v: np.tanh((v - _SATURATING.centre) / _SATURATING.width),
+                                      -1.0, 9.0, "load"),)),
 )
 
 # A sensor whose error follows a variable nobody recorded: no candidate can represent it.

@@ -87,6 +87,10 @@ FIELDS: tuple[Field, ...] = (
         "positive number",
         "threshold of a direction tracker, or the knee of a gated term, in the units the feature names",
     ),
+    Field("terms[].knots", "list of 2 to 64 increasing numbers",
+          "`spline` only: the segment ends of the channel's piecewise cubic (flat beyond the ends)"),
+    Field("terms[].pieces", "one list of 4 numbers per segment",
+          "`spline` only: a0 a1 a2 a3 of a0 + a1·u + a2·u² + a3·u³ with u = v − the segment's first knot"),
     Field(
         "fit",
         "mapping",
@@ -107,7 +111,8 @@ Effects act on the sensor's output, so a term corrects ΔV before the rate model
 (bias form) or ΔV' = ΔV − c·x·ΔV (scale form), then ω = f(ΔV'). The variable x by kind and feature:
 `channel` — `offset` v − ref, `square` (v − ref)², `lag` the channel through a first-order lag τ,
 `derivative` its rate of change smoothed over τ, `direction` the sign of its last significant
-change (hysteresis), `gated` its level acting only beyond a knee in the output; `time` (input
+change (hysteresis), `gated` its level acting only beyond a knee in the output, `spline` a piecewise
+cubic of it learned by the closed loop (`knots`, `pieces`; host only: the device refuses it); `time` (input
 `time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t; `direction` (of the raw
 output) — `sign` its last significant rise or fall, `slope` its rate of change. The kinds this
 canical accepts:"""

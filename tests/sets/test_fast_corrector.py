@@ -53,6 +53,12 @@ def terms(draw) -> dict:
         term["threshold_raw"] = draw(st.floats(0.5, 500.0))
     if kind == "channel" and feature == "direction":
         term["threshold_raw"] = draw(st.floats(0.01, 50.0))  # in the channel's own units
+    if feature == "spline":
+        knots = sorted(set(draw(st.lists(finite, min_size=2, max_size=7))))
+        if len(knots) < 2:
+            knots = [knots[0], knots[0] + 1.0]
+        term["knots"] = knots
+        term["pieces"] = [draw(st.lists(st.floats(-2.0, 2.0), min_size=4, max_size=4)) for _ in knots[1:]]
     return term
 
 

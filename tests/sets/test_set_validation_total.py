@@ -48,6 +48,9 @@ def _term(kind: Any) -> dict[str, Any]:
         d["tau_s"] = 30.0
     if kind.needs_threshold:
         d["threshold_raw"] = 0.5 if kind.needs_channel else 300.0
+    if kind.needs_spline:
+        d["knots"] = [10.0, 25.0, 40.0]
+        d["pieces"] = [[0.0, 0.5, -0.01, 1e-4], [2.0, 0.1, 0.02, -2e-4]]
     return d
 
 
