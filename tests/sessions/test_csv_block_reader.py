@@ -61,3 +61,31 @@ def test_columns_without_numpys_file_reader_are_the_same(tmp_path, monkeypatch, 
     plain = csv_chunks.read_columns(path, ["time_s", "raw"]).columns
     assert fast_cols["raw"].tobytes() == plain["raw"].tobytes() == raw.tobytes()
     assert fast_cols["time_s"].tobytes() == plain["time_s"].tobytes() == t.tobytes()
+
+
+@pytest.mark.parametrize("blank", ["\n", "  \n", " \t \n", "#note\n"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_rows_read_table_drops_or_refuses_send_the_block_to_the_rows(tmp_path, monkeypatch, blank, seed):
+    """An empty row, one of spaces, a comment: the block reader reads or refuses as read_table."""
+    from canical.errors import CanicalError
+    from canical.sessions.csv_file import read_table
+
+    rng = np.random.default_rng(seed)
+    lines = [f"{i / 1000!r},0,{int(v)}\n" for i, v in enumerate(rng.integers(-500, 500, 3000))]
+    for at in sorted(rng.integers(0, len(lines), 5).tolist(), reverse=True):
+        lines.insert(at, blank)
+    path = tmp_path / "s.csv"
+    path.write_text("# sensor: X\ntime_s,ref_dps,raw\n" + "".join(lines))
+    monkeypatch.setattr(csv_chunks, "CHUNK_BYTES", 4000)
+    try:
+        whole: dict[str, np.ndarray] | str = read_table(path, ["time_s", "raw"]).columns
+    except CanicalError as exc:
+        whole = str(exc)
+    try:
+        blocks: dict[str, np.ndarray] | str = csv_chunks.read_columns(path, ["time_s", "raw"]).columns
+    except CanicalError as exc:
+        blocks = str(exc)
+    if isinstance(whole, str) or isinstance(blocks, str):
+        assert blocks == whole
+    else:
+        assert {k: v.tobytes() for k, v in blocks.items()} == {k: v.tobytes() for k, v in whole.items()}
