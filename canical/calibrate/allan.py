@@ -150,7 +150,7 @@ def overlapping_adev(record: np.ndarray, sample_rate_hz: float,
         return m, np.asarray(devs, dtype=float), np.asarray(ns, dtype=float)
     phase = np.empty(record.size + 1)
     phase[0] = 0.0
-    np.subtract(record, np.nanmean(record), out=phase[1:])
+    np.subtract(record, np.mean(record), out=phase[1:])  # finite: nanmean's value, without its copy
     np.cumsum(phase[1:], out=phase[1:])
     phase[1:] *= 1.0 / float(sample_rate_hz)
     m_all = np.unique(np.asarray(m_values, dtype=int))
