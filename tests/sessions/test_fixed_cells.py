@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -66,3 +67,20 @@ def test_a_long_row_among_short_ones():
     values = list(np.linspace(-1234.5, 98765.4321, len(rows)))
     flags = [i % 3 == 0 for i in range(len(rows))]
     assert numpy_rows(rows, values, flags) == python_rows(rows, values, flags)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+@pytest.mark.parametrize("width", range(1, 10))
+def test_every_width_of_whole_part_as_python(seed, width):
+    """Whole parts of 1 to 9 digits (two words a row up to 8, columns beyond), digits at the
+    powers of ten, signs, negative zero, a value Python formats itself among them."""
+    rng = np.random.default_rng(seed)
+    top = 10.0**width
+    values = np.concatenate([
+        rng.uniform(-top, top, 300),
+        [10.0**k for k in range(width)], [-(10.0**k) + 5e-7 for k in range(width)],
+        [top - 1e-3, -(top - 1e-3), -0.0, 0.0, -4e-7, 4e-7, 2.5e-6, float("nan")],
+    ])
+    rows = [f"r{i}" for i in range(len(values))]
+    flags = [bool(i % 2) for i in range(len(values))]
+    assert numpy_rows(rows, values.tolist(), flags) == python_rows(rows, values.tolist(), flags)
