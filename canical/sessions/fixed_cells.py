@@ -84,9 +84,10 @@ def flag_cells(flags: np.ndarray) -> np.ndarray:
     return out
 
 
-def append_cells(rows: bytes, cells: list[np.ndarray]) -> bytes:
+def append_cells(rows: bytes, cells: list[np.ndarray]) -> memoryview:
     """``rows`` (each ending in a newline) with ``,cell`` appended to each row for every matrix of
-    ``cells`` (one row of bytes per text row, 0 where there is no byte), in order.
+    ``cells`` (one row of bytes per text row, 0 where there is no byte), in order; the bytes as a
+    view of the array they were made in (a file writes it as it is: no copy into ``bytes``).
 
     Why two ways: placing every byte by its own computed offset costs some ten index operations
     per byte of the input, more than reading it. When the rows are of similar lengths (a session's
@@ -97,7 +98,7 @@ def append_cells(rows: bytes, cells: list[np.ndarray]) -> bytes:
     ends = np.flatnonzero(buf == _NEWLINE)
     n = len(ends)
     if n == 0:
-        return rows
+        return memoryview(rows)
     comma = np.full((n, 1), _COMMA, dtype=np.uint8)
     parts = [m for block in cells for m in (comma, block)]
     tails = np.hstack([*parts, np.full((n, 1), _NEWLINE, dtype=np.uint8)])
@@ -117,7 +118,7 @@ _PADDED_AT_MOST = 3
 
 
 def _append_padded(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, width: int,
-                   tails: np.ndarray) -> bytes:
+                   tails: np.ndarray) -> memoryview:
     """Each row copied whole (a window of ``width`` bytes from its start), its new cells beside it,
     and the bytes past the row's end and the cells' zeros dropped by one boolean mask."""
     n = len(starts)
@@ -131,11 +132,10 @@ def _append_padded(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, wid
     keep = np.empty(full.shape, dtype=bool)
     np.less(np.arange(width), lengths[:, None], out=keep[:, :width])
     np.not_equal(tails, 0, out=keep[:, width:])
-    out: bytes = full[keep].tobytes()
-    return out
+    return full[keep].data
 
 
-def _append_scattered(buf: np.ndarray, ends: np.ndarray, tails: np.ndarray) -> bytes:
+def _append_scattered(buf: np.ndarray, ends: np.ndarray, tails: np.ndarray) -> memoryview:
     """Every input byte and every new byte placed at its own offset in the output."""
     n = len(ends)
     present = tails != 0
@@ -148,4 +148,4 @@ def _append_scattered(buf: np.ndarray, ends: np.ndarray, tails: np.ndarray) -> b
     out[moved[kept]] = buf[kept]
     where = (ends + shift)[:, None] + np.cumsum(present, axis=1) - 1
     out[where[present]] = tails[present]
-    return out.tobytes()
+    return out.data
