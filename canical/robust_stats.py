@@ -25,4 +25,5 @@ def median_step(time_s: np.ndarray, default: float) -> float:
     advances (a positive median is never 0, so 0.0 as ``default`` also says so)."""
     dt = np.diff(np.asarray(time_s, dtype=float))
     forward = dt[dt > 0]
-    return float(np.median(forward)) if forward.size else default
+    # forward is this function's own copy: the median may reorder it rather than copy it again
+    return float(np.median(forward, overwrite_input=True)) if forward.size else default

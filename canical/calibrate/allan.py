@@ -88,7 +88,7 @@ class NoiseTerm:
         }
 
 
-OADEV_BLOCK = 1 << 20  # samples of a second difference squared and summed at a time
+OADEV_BLOCK = 1 << 15  # samples of a second difference squared and summed at a time (in the cache)
 
 
 def allan_deviation(
@@ -136,9 +136,10 @@ def overlapping_adev(record: np.ndarray, sample_rate_hz: float,
 
     Why here: allantools takes each second difference of the whole record's phase at once, several
     copies of a record of millions of samples (gigabytes for hours at 1 kHz). The phase is made in
-    place and the squares summed a block at a time: the same operations on the same phase, the
-    sums added in another order, so equal within rounding. A record that is not finite goes to
-    allantools, which trims it.
+    place and the squares summed a block at a time, small enough to stay in the processor's cache
+    (a block's second difference made in one buffer, its squares summed by a dot product): the
+    same operations on the same phase, the sums added in another order, so equal within rounding.
+    A record that is not finite goes to allantools, which trims it.
     """
     if not np.isfinite(record).all():
         import allantools
@@ -149,20 +150,24 @@ def overlapping_adev(record: np.ndarray, sample_rate_hz: float,
         return m, np.asarray(devs, dtype=float), np.asarray(ns, dtype=float)
     phase = np.empty(record.size + 1)
     phase[0] = 0.0
-    np.subtract(record, np.nanmean(record), out=phase[1:])
+    np.subtract(record, np.mean(record), out=phase[1:])  # finite: nanmean's value, without its copy
     np.cumsum(phase[1:], out=phase[1:])
     phase[1:] *= 1.0 / float(sample_rate_hz)
     m_all = np.unique(np.asarray(m_values, dtype=int))
     m_all = m_all[(m_all > 0) & (m_all < phase.size)]
     devs = np.zeros(m_all.size)
     ns = np.zeros(m_all.size)
+    block = np.empty(OADEV_BLOCK)
     for k, m in enumerate(m_all.tolist()):
         n = max(phase.size - 2 * m, 1)
         total = 0.0
         for a in range(0, n, OADEV_BLOCK):
             b = min(a + OADEV_BLOCK, n)
-            v = phase[2 * m + a : 2 * m + b] - 2 * phase[m + a : m + b] + phase[a:b]
-            total += float(np.sum(v * v))
+            v = block[: b - a]  # phase[2m+i] - 2·phase[m+i] + phase[i], the same sums in place
+            np.multiply(phase[m + a : m + b], -2.0, out=v)
+            v += phase[2 * m + a : 2 * m + b]
+            v += phase[a:b]
+            total += float(v @ v)
         devs[k] = np.sqrt(total / (2.0 * n)) / m * sample_rate_hz
         ns[k] = n
     keep = ns > 1

@@ -118,6 +118,7 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     gives (:func:`apply_table`).
     """
     import os
+    from concurrent.futures import Future, ThreadPoolExecutor
 
     import numpy as np
 
@@ -129,20 +130,34 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     progress = Progress("apply", max(os.path.getsize(args.input) >> 20, 1), unit="MB")
     done = head.data_offset
     n_rows = n_out = 0
-    with atomic_writer(args.output, "wb") as out:
-        out.write("".join(line + "\n" for line in head.preamble).encode("utf-8"))
-        out.write((",".join([*head.header, "rate_dps", "out_of_span"]) + "\n").encode("utf-8"))
+    # One block written by a thread while the next is read and corrected (writing a file lets
+    # go of the interpreter); one write in flight at most, so memory stays two blocks and a
+    # failed write stops the run at the next block. Leaving the pool waits for that write
+    # before the output is kept or discarded.
+    with atomic_writer(args.output, "wb") as out, ThreadPoolExecutor(max_workers=1) as writer:
+        pending: Future[int] | None = None
+
+        def write(data: bytes | memoryview) -> None:
+            nonlocal pending
+            if pending is not None:
+                pending.result()
+            pending = writer.submit(out.write, data)
+
+        write("".join(line + "\n" for line in head.preamble).encode("utf-8"))
+        write((",".join([*head.header, "rate_dps", "out_of_span"]) + "\n").encode("utf-8"))
         for chunk in read_chunks(head, [args.raw_column, *corrector.required_inputs]):
             inputs = {name: chunk.columns[name] for name in corrector.required_inputs}
             rate, oos = corrector.correct_next(chunk.columns[args.raw_column], inputs)
             if chunk.text is not None:
-                out.write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos)]))
+                write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos)]))
             else:
-                out.write(_chunk_text(chunk.rows or [], rate, oos, []).encode("utf-8"))
+                write(_chunk_text(chunk.rows or [], rate, oos, []).encode("utf-8"))
             n_rows += chunk.n_rows
             n_out += int(np.count_nonzero(oos))
             done += chunk.size
             progress.update(done >> 20)
+        if pending is not None:
+            pending.result()
     print_applied(args, corrector, n_rows, n_out)
     return 0
 

@@ -75,6 +75,11 @@ def read_row_means(
     return reducer.finish()
 
 
+#: Rows per mean below which a mean is summed a column at a time (numpy's sum of fewer than eight
+#: numbers is the plain sum in order, so the means are the same bits; of more, a pairwise one).
+_BY_COLUMNS_BELOW = 8
+
+
 class _Reducer:
     """Means of ``k`` rows, column by column, written in place into columns sized for the file's
     lines (no copies gathered and joined: memory is the means); the rows short of a whole ``k``
@@ -122,10 +127,24 @@ class _Reducer:
         if name == self.settled_column:  # settled when every one of its samples is
             self.out[name][at] = np.all(groups != 0, axis=1)
             return
-        groups.mean(axis=1, out=self.out[name][at])
+        if groups.shape[1] >= _BY_COLUMNS_BELOW:
+            groups.mean(axis=1, out=self.out[name][at])
+            if name == self.raw_column:
+                groups.min(axis=1, out=self.low[at])
+                groups.max(axis=1, out=self.high[at])
+            return
+        # A few rows per mean: numpy sums a short row in order from 0.0 (so -0.0 means 0.0);
+        # the same sums a column at a time, without a reduction per mean.
+        out = self.out[name][at]
+        np.add(groups[:, 0], 0.0, out=out)
+        for j in range(1, groups.shape[1]):
+            out += groups[:, j]
+        out /= groups.shape[1]
         if name == self.raw_column:
-            groups.min(axis=1, out=self.low[at])
-            groups.max(axis=1, out=self.high[at])
+            for extreme, into in ((np.minimum, self.low[at]), (np.maximum, self.high[at])):
+                into[:] = groups[:, 0]
+                for j in range(1, groups.shape[1]):
+                    extreme(into, groups[:, j], out=into)
 
     def _check_time(self, time_s: np.ndarray | None, first_row: int) -> None:
         """The whole read's check (``session_from_table``), on the samples before they are averaged."""

@@ -185,13 +185,15 @@ class SlopeTracker:
 
 
 def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """:func:`slope_state` for a whole record, vectorised when the samples are evenly spaced.
+    """:func:`slope_state` for a whole record, vectorised over its stretches of even spacing.
 
     Why: the closed loop's blocks need the slope of sessions of millions of samples, where the
     per-sample tracker takes tens of seconds. The same first-order smoothing of the same
-    differences, with the smoothing factor of the median spacing (as :func:`lag_filter`), so
-    equal to the tracker's within rounding, not bit for bit; the run-time corrector keeps the
-    tracker. Sample by sample when the spacing is uneven.
+    differences; over a long stretch of evenly spaced samples (all of an even record; the bulk of
+    one whose last mean is of fewer rows, or that has a gap) with the smoothing factor of the
+    median spacing (as :func:`lag_filter`), so equal to the tracker's within rounding, not bit for
+    bit; the other samples one at a time, as the tracker does. The run-time corrector keeps the
+    tracker.
     """
     raw = np.asarray(raw, dtype=float)
     time_s = np.asarray(time_s, dtype=float)
@@ -199,14 +201,35 @@ def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarra
         return slope_state(raw, time_s, tau_s)
     dt = np.diff(time_s)
     step = float(np.median(dt))
-    if not (step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step)):
+    if not step > 0:
+        return _slope_state_in_blocks(raw, time_s, tau_s)
+    even = np.abs(dt - step) <= 1e-6 * step
+    if np.count_nonzero(even) < EVEN_RUN:
         return _slope_state_in_blocks(raw, time_s, tau_s)
     from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
 
     a = 1.0 - math.exp(-step / tau_s)
-    out = np.zeros_like(raw)
-    out[1:] = lfilter([a], [1.0, a - 1.0], np.diff(raw) / dt)
+    with np.errstate(divide="ignore", invalid="ignore"):  # a step that does not advance is skipped
+        quotient = np.diff(raw) / dt
+    out = np.empty_like(raw)
+    out[0] = value = 0.0
+    edges = np.flatnonzero(np.diff(even.astype(np.int8))) + 1
+    for lo, hi in zip([0, *edges.tolist()], [*edges.tolist(), dt.size], strict=True):
+        if even[lo] and hi - lo >= EVEN_RUN:
+            y, _ = lfilter([a], [1.0, a - 1.0], quotient[lo:hi], zi=[(1.0 - a) * value])
+        else:  # uneven, or too short a stretch to be worth a filter call: the tracker's steps
+            y = np.empty(hi - lo)
+            for i, (d, q) in enumerate(zip(dt[lo:hi].tolist(), quotient[lo:hi].tolist(), strict=True)):
+                if d > 0.0:
+                    value += (1.0 - math.exp(-d / tau_s)) * (q - value)
+                y[i] = value
+        out[lo + 1 : hi + 1] = y
+        value = float(y[-1])
     return out
+
+
+#: Evenly spaced steps a stretch needs to be filtered at once (shorter ones go sample by sample).
+EVEN_RUN = 64
 
 
 class ChannelTracker:

@@ -9,6 +9,7 @@ are not plain ASCII lines, and the errors a bad file gives.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 from pathlib import Path
 
@@ -111,3 +112,42 @@ def test_the_command_streams_and_refuses_what_it_refused(tmp_path, capsys):
     src.write_text(session_text().replace("# sensor: S", "# sensor: T"))
     assert main(["apply", str(cset), str(src), "-o", str(tmp_path / "p.csv")]) == 2
     assert not (tmp_path / "p.csv").exists()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_late_bad_block_leaves_no_output(tmp_path, seed):
+    """Blocks before the bad one were handed to the writing thread: none of them is kept."""
+    text = session_text(n=600, seed=seed)
+    lines = text.split("\n")
+    lines[500 + seed] = "x" + lines[500 + seed]
+    stream, table = run_both(tmp_path, "\n".join(lines))
+    assert isinstance(stream, str) and stream == table
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.csv", "set.yaml"]
+
+
+def test_a_failed_write_stops_the_run_and_leaves_no_output(tmp_path, monkeypatch):
+    from canical import atomic_file  # apply imports atomic_writer where it is used: patched here
+
+    opened = atomic_file.atomic_writer
+    writes = {"n": 0}
+
+    class Failing:
+        def __init__(self, handle):
+            self.handle = handle
+
+        def write(self, data):
+            writes["n"] += 1
+            if writes["n"] == 4:
+                raise OSError(28, "No space left on device")
+            return self.handle.write(data)
+
+    @contextlib.contextmanager
+    def failing_writer(path, mode="w"):
+        with opened(path, mode) as handle:
+            yield Failing(handle)
+
+    monkeypatch.setattr(atomic_file, "atomic_writer", failing_writer)
+    with pytest.raises(OSError, match="No space"):
+        run_both(tmp_path, session_text(n=600))
+    assert 4 <= writes["n"] <= 5  # stopped at the next block, not at the end
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.csv", "set.yaml"]
