@@ -80,7 +80,9 @@ def apply_set(args: argparse.Namespace) -> int:
     corrector = Corrector(cset)
     if is_canlog(args.input):
         return run_canlog(args, corrector)
-    head = None if args.track_bias or not corrector.elementwise_model else read_head(args.input)
+    # The drive report draws the whole drive: with --report-dir the file is read whole.
+    whole = (args.track_bias and args.report_dir) or not corrector.elementwise_model
+    head = None if whole else read_head(args.input)
     if head is None:
         return apply_table(args, corrector)
     return apply_stream(args, corrector, head)
@@ -114,8 +116,9 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     """Read, correct and write block by block, in memory bounded by the block.
 
     The set's state (direction, slope, lag, derivative) is carried from block to block
-    (``Corrector.correct_next``), so the output is, byte for byte, what the whole file at once
-    gives (:func:`apply_table`).
+    (``Corrector.correct_next``), and so is the bias tracker's with ``--track-bias``
+    (:class:`~canical.tracking.replay.Replayer`), so the output is, byte for byte, what the
+    whole file at once gives (:func:`apply_table`).
     """
     import os
     from concurrent.futures import Future, ThreadPoolExecutor
@@ -126,7 +129,16 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     from canical.sessions.csv_chunks import read_chunks
     from canical.sessions.fixed_cells import append_cells, fixed6_cells, flag_cells
 
-    check_input(args, corrector.cset, head.meta, head.header)
+    cset = corrector.cset
+    check_input(args, cset, head.meta, head.header)
+    columns = [args.raw_column, *corrector.required_inputs]
+    replayer = None
+    if args.track_bias:
+        from canical.commands.track_bias import print_events, replayer_for, tracking_inputs
+
+        columns = list(dict.fromkeys([*columns, *tracking_columns(args.input, args)]))
+        replayer = replayer_for(args, [cset.fit], (cset.axis,))
+    last_bias = np.full(1, np.nan)
     progress = Progress("apply", max(os.path.getsize(args.input) >> 20, 1), unit="MB")
     done = head.data_offset
     n_rows = n_out = 0
@@ -144,20 +156,29 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
             pending = writer.submit(out.write, data)
 
         write("".join(line + "\n" for line in head.preamble).encode("utf-8"))
-        write((",".join([*head.header, "rate_dps", "out_of_span"]) + "\n").encode("utf-8"))
-        for chunk in read_chunks(head, [args.raw_column, *corrector.required_inputs]):
+        added = ["rate_dps", "out_of_span", *(["bias_dps"] if replayer is not None else [])]
+        write((",".join([*head.header, *added]) + "\n").encode("utf-8"))
+        for chunk in read_chunks(head, columns):
             inputs = {name: chunk.columns[name] for name in corrector.required_inputs}
             rate, oos = corrector.correct_next(chunk.columns[args.raw_column], inputs)
+            extra = []
+            if replayer is not None and chunk.n_rows:
+                time_s, temp, cue = tracking_inputs(args, chunk.columns)
+                extra = [replayer.feed(time_s, rate, temp, cue)[:, 0]]
+                last_bias = extra[0][-1:]
             if chunk.text is not None:
-                write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos)]))
+                write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos),
+                                                *(fixed6_cells(b) for b in extra)]))
             else:
-                write(_chunk_text(chunk.rows or [], rate, oos, []).encode("utf-8"))
+                write(_chunk_text(chunk.rows or [], rate, oos, extra).encode("utf-8"))
             n_rows += chunk.n_rows
             n_out += int(np.count_nonzero(oos))
             done += chunk.size
             progress.update(done >> 20)
         if pending is not None:
             pending.result()
+        if replayer is not None:  # before the output is kept: the summary of what was learned
+            print_events(replayer.finish(), (cset.axis,), last_bias)
     print_applied(args, corrector, n_rows, n_out)
     return 0
 

@@ -142,3 +142,27 @@ def test_apply_track_bias_on_a_can_log(tmp_path: Path, capsys: pytest.CaptureFix
                  "speed", "-o", str(tmp_path / "o2.csv")]) == 2
     assert "map it to a signal with --input speed=MESSAGE.Signal" in capsys.readouterr().err
     assert not (tmp_path / "o2.csv").exists()
+
+
+@pytest.mark.parametrize("block_bytes", [300, 7_000, 1 << 22])
+def test_apply_track_bias_streamed_in_blocks_writes_what_the_whole_file_gives(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch,
+        block_bytes: int) -> None:
+    """Without --report-dir the drive is read, corrected, tracked and written a block at a time
+    (the tracker carried across blocks); the file is byte for byte the whole-file run's (with
+    --report-dir), and so are the standstills printed."""
+    from canical.sessions import csv_chunks
+
+    set_path, csv, _ = drive_csv(tmp_path, seed=2)
+    args = [str(set_path), str(csv), "--track-bias", "--arw", "0.3", "--standstill-column", "speed_mps"]
+    whole = tmp_path / "whole.csv"
+    assert main(["apply", *args, "-o", str(whole), "--report-dir", str(tmp_path / "r")]) == 0
+    whole_text = capsys.readouterr().out
+    monkeypatch.setattr(csv_chunks, "CHUNK_BYTES", block_bytes)
+    streamed = tmp_path / "streamed.csv"
+    assert main(["apply", *args, "-o", str(streamed)]) == 0
+    streamed_text = capsys.readouterr().out
+    assert csv_chunks.read_head(csv) is not None  # so it streamed
+    assert streamed.read_bytes() == whole.read_bytes()
+    events = [line for line in whole_text.splitlines() if "standstill" in line]
+    assert events and events == [line for line in streamed_text.splitlines() if "standstill" in line]
