@@ -219,16 +219,11 @@ def _device_imu(config: DaemonConfig, current: ActiveSets, imu: ImuSet,
     correctors = [check_set(config, axis, cset, f"{where}: axes.{axis}")
                   for axis, cset in zip(AXES, imu.axes, strict=True)]
     imu_id = imu_set_crc(imu)
-    axes = []
-    for old, corrector in zip(current.axes, correctors, strict=True):
-        same = old.corrector is not None and old.set_id == corrector.set_id
-        axes.append(replace(old, corrector=old.corrector if same else corrector, set_id=corrector.set_id,
-                            source=SOURCE_DEVICE, stamp=file_stamp(old.path),
-                            reloads=old.reloads + (1 if old.corrector is not None and not same else 0)))
+    axes = _imu_axes(current, correctors, SOURCE_DEVICE, tuple(file_stamp(a.path) for a in current.axes))
     if current.coupling is not None and current.combined_id == imu_id:
-        return build(tuple(axes), imu), []
+        return build(axes, imu), []
     was = f"0x{current.combined_id:08x}" if current.complete else "none"
-    return build(tuple(axes), imu), [f"imu set 0x{imu_id:08x} from {where} replaces {was}"]
+    return build(axes, imu), [f"imu set 0x{imu_id:08x} from {where} replaces {was}"]
 
 
 def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:
@@ -307,11 +302,19 @@ def reload_imu(config: DaemonConfig, current: ActiveSets, path: Path, *,
     imu_id = imu_set_crc(imu)
     if current.complete and current.coupling is not None and imu_id == current.combined_id:
         return replace(current, axes=restamped), []
+    axes = _imu_axes(current, correctors, SOURCE_FILE, (stamp,) * len(current.axes))
+    was = f"0x{current.combined_id:08x}" if current.complete else "none"
+    return build(axes, imu), [f"imu set 0x{imu_id:08x} from {path} replaces {was}"]
+
+
+def _imu_axes(current: ActiveSets, correctors: list[Corrector] | tuple[Corrector, ...], source: int,
+              stamps: tuple[FileStamp, ...]) -> tuple[AxisSet, ...]:
+    """An IMU set's three axes from ``correctors``: an axis whose model is the one running keeps
+    its corrector (and the state of its terms); another counts a reload."""
     axes = []
-    for old, corrector in zip(current.axes, correctors, strict=True):
+    for old, corrector, stamp in zip(current.axes, correctors, stamps, strict=True):
         same = old.corrector is not None and old.set_id == corrector.set_id
         axes.append(replace(old, corrector=old.corrector if same else corrector, set_id=corrector.set_id,
-                            source=SOURCE_FILE, stamp=stamp,
+                            source=source, stamp=stamp,
                             reloads=old.reloads + (1 if old.corrector is not None and not same else 0)))
-    was = f"0x{current.combined_id:08x}" if current.complete else "none"
-    return build(tuple(axes), imu), [f"imu set 0x{imu_id:08x} from {path} replaces {was}"]
+    return tuple(axes)
