@@ -69,6 +69,7 @@ from canical.bus.sd_notify import Notifier
 from canical.bus.socketcan import (
     TX_FULL,
     BusLost,
+    enlarge_receive_buffer,
     raw_socket_of,
     receive_filters,
     send_message,
@@ -183,8 +184,10 @@ class Daemon:
         if self.config.interface == "socketcan":
             # See CAN FD frames (to count and drop them) instead of the kernel hiding them.
             kwargs.setdefault("fd", True)
-        return self.bus_factory(interface=self.config.interface, channel=self.config.channel,
-                                can_filters=self.can_filters(), **kwargs)
+        bus = self.bus_factory(interface=self.config.interface, channel=self.config.channel,
+                               can_filters=self.can_filters(), **kwargs)
+        enlarge_receive_buffer(bus)  # a moment's stall of the host loses no frame
+        return bus
 
     def open_output_bus(self) -> can.BusABC | None:
         """The gateway's output bus, when the own-layout frame goes to another channel: opened to

@@ -19,6 +19,7 @@ from typing import Any
 import can
 import numpy as np
 
+from canical.bus.socketcan import enlarge_receive_buffer
 from canical.errors import CanicalError
 from canical.frames.imu_frames import ImuFrames
 from canical.imu_dictionary import AXES
@@ -134,6 +135,8 @@ def open_recorder_bus(interface: str, channel: str, frames: ImuFrames, **options
     """
     filters = [{"can_id": fid, "can_mask": 0x7FF, "extended": False} for fid in frames.ids.values()]
     try:
-        return can.Bus(interface=interface, channel=channel, can_filters=filters, **options)
+        bus = can.Bus(interface=interface, channel=channel, can_filters=filters, **options)
     except Exception as exc:  # python-can raises many types
         raise CanicalError(f"cannot open CAN interface {interface} channel {channel}: {exc}") from None
+    enlarge_receive_buffer(bus)  # a recorder busy decoding must not lose the frames meanwhile
+    return bus

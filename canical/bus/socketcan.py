@@ -18,14 +18,20 @@ from typing import Any
 import can
 from can.interfaces.socketcan.constants import CAN_EFF_FLAG
 
-from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
+from canical.bus.socketcan_constants import FRAME_HEAD, SO_RCVBUFFORCE, TIMEVAL
 from canical.frames.frame_match import FrameMatch
 
-__all__ = ["TX_FULL", "BusLost", "frame_key", "raw_socket_of", "receive_filters",
-           "send_message", "set_receive_timeout", "socket_frame"]
+__all__ = ["RECEIVE_BUFFER_BYTES", "TX_FULL", "BusLost", "enlarge_receive_buffer", "frame_key",
+           "raw_socket_of", "receive_filters", "send_message", "set_receive_timeout", "socket_frame"]
 
 #: errno values that mean "not a problem of this frame": the transmit queue is full.
 TX_FULL = frozenset({errno.ENOBUFS, errno.EAGAIN})
+
+
+#: The receive buffer a reader of the IMU's frames asks for: a few thousand frames (a CAN frame
+#: takes some 700-1000 bytes of kernel memory), seconds of a 1 kHz IMU, so that a reader the
+#: host stalls for a moment loses nothing (the kernel's default holds a few hundred).
+RECEIVE_BUFFER_BYTES = 4 << 20
 
 
 class BusLost(Exception):
@@ -57,6 +63,23 @@ def raw_socket_of(bus: object) -> socket.socket | None:
     sock = getattr(bus, "socket", None)
     usable = sock is not None and getattr(sock, "family", None) == socket.AF_CAN and sock.gettimeout() is None
     return sock if usable else None
+
+
+def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) -> int | None:
+    """Ask for a receive buffer of ``size_bytes`` on the bus's SocketCAN socket: beyond the
+    system's cap where the process may (``SO_RCVBUFFORCE``), within it otherwise. Returns the
+    size the kernel granted (None: not a SocketCAN bus, or refused; the default then stays)."""
+    sock = getattr(bus, "socket", None)
+    if sock is None or getattr(sock, "family", None) != socket.AF_CAN:
+        return None
+    for option in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, option, size_bytes)
+        except OSError:
+            continue
+        granted: int = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        return granted
+    return None
 
 
 def set_receive_timeout(sock: socket.socket, wait_s: float) -> float:

@@ -12,7 +12,7 @@ import struct
 
 from can.interfaces.socketcan.constants import CAN_EFF_FLAG, MAX_29_BIT_ID
 
-__all__ = ["CAN_MTU", "FRAME_HEAD", "FRAME_KEY", "STAMP_BUFFER_SIZE", "TIMEVAL"]
+__all__ = ["CAN_MTU", "FRAME_HEAD", "FRAME_KEY", "SO_RCVBUFFORCE", "STAMP_BUFFER_SIZE", "TIMEVAL"]
 
 #: ``sizeof(struct can_frame)``: a classic frame as the raw socket reads and writes it.
 CAN_MTU = 16
@@ -26,3 +26,6 @@ TIMEVAL = struct.Struct("@ll")
 STAMP_BUFFER_SIZE = socket.CMSG_SPACE(TIMEVAL.size) if hasattr(socket, "CMSG_SPACE") else 0
 #: What tells frames apart: the id and whether it is extended (not the RTR and error flags).
 FRAME_KEY = CAN_EFF_FLAG | MAX_29_BIT_ID
+#: ``SO_RCVBUFFORCE`` (``<asm-generic/socket.h>``; Python's socket module does not name it): a
+#: receive buffer beyond ``net.core.rmem_max``, for a process with CAP_NET_ADMIN.
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)

@@ -122,6 +122,8 @@ def _record(tmp: Path, args: argparse.Namespace, what: Recording, filters: list,
     """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts."""
     import can
 
+    from canical.bus.socketcan import enlarge_receive_buffer
+
     stop = False
 
     def on_signal(*_: object) -> None:
@@ -134,6 +136,7 @@ def _record(tmp: Path, args: argparse.Namespace, what: Recording, filters: list,
     try:
         with can.Bus(interface=interface, channel=channel, can_filters=filters) as bus, \
                 can.Logger(str(tmp)) as logger:
+            enlarge_receive_buffer(bus)  # writing the log must not lose frames meanwhile
             print(f"record: {', '.join(names)} on {interface} {channel} -> {args.output} (Ctrl-C ends)",
                   flush=True)
             end = time.monotonic() + args.duration if args.duration else None
