@@ -8,6 +8,7 @@ sizes (a set is data: the evaluator must follow whatever a valid set says).
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import replace
 
 import numpy as np
@@ -35,6 +36,30 @@ MODELS = {
     "segmented-linear": CalibrateOptions(model="segmented-linear", extend=False),
     "forward-poly": CalibrateOptions(model="forward-poly", order=3, extend=False),
 }
+
+def hermite_pieces(knots: list[float], value, slope) -> list[list[float]]:
+    """The pieces (a0, a1, a2, a3 per segment, in u = v − knot) of the cubic Hermite spline through
+    ``value`` with ``slope`` at the knots: a smooth curve as a spline term writes it."""
+    rows = []
+    for k0, k1 in itertools.pairwise(knots):
+        h, y0, y1, m0, m1 = k1 - k0, value(k0), value(k1), slope(k0), slope(k1)
+        d = (y1 - y0) / h
+        rows.append([float(y0), float(m0), float((3 * d - 2 * m0 - m1) / h), float((m0 + m1 - 2 * d) / h**2)])
+    return rows
+
+
+#: A bias saturating with temperature, 60·tanh((T − 25)/10) counts, as a spline whose knots lie
+#: between the Temperature signal's 0.1 °C steps (no sample sits on a knot within float32 rounding).
+SPLINE_KNOTS = [4.05, 12.05, 18.05, 22.05, 25.05, 28.05, 33.05, 46.05]
+
+
+def _saturating(t: float) -> float:
+    return 60.0 * float(np.tanh((t - 25.0) / 10.0))
+
+
+def _saturating_slope(t: float) -> float:
+    return 6.0 / float(np.cosh((t - 25.0) / 10.0)) ** 2
+
 
 #: One term of every kind and feature; bias and scale forms alternate.
 TERMS = {
@@ -118,6 +143,15 @@ TERMS = {
         "coefficient": 4.5,
         "threshold_raw": 0.0375,
     },
+    "channel-spline": {
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "spline",
+        "form": "bias",
+        "coefficient": 1.0,
+        "knots": SPLINE_KNOTS,
+        "pieces": hermite_pieces(SPLINE_KNOTS, _saturating, _saturating_slope),
+    },
 }
 
 #: The stateful channel transforms in their other form (TERMS holds one form of each).
@@ -125,6 +159,7 @@ OTHER_FORMS = {
     "channel-lag-scale": dict(TERMS["channel-lag"], form="scale", coefficient=1e-4),
     "channel-derivative-bias": dict(TERMS["channel-derivative"], form="bias", coefficient=150.0),
     "channel-direction-scale": dict(TERMS["channel-direction"], form="scale", coefficient=3e-4),
+    "channel-spline-scale": dict(TERMS["channel-spline"], form="scale", coefficient=2e-5),
 }
 ALL_TERMS = {**TERMS, **OTHER_FORMS}
 
