@@ -997,6 +997,18 @@ static const term_spec *find_term_spec(const term_fields *f)
     return spec;
 }
 
+/* A spline knot as a float pair. A knot within a few double ulps of a float32 number (2^-50 of
+ * it) is that number (lo = 0): canical writes a float32 knot (a channel value as the device
+ * sees it) with 17 digits, which parse_number reads to within an ulp or two, and a sample
+ * exactly on such a knot must fall in the segment above it, as in canical. */
+static void split_knot(double d, float *hi, float *lo)
+{
+    split(d, hi, lo);
+    if ((double)*lo <= 0x1p-50 * (d < 0.0 ? -d : d) && (double)*lo >= -0x1p-50 * (d < 0.0 ? -d : d)) {
+        *lo = 0.0f;
+    }
+}
+
 /* A spline's knots into `sp`: 2..CE_MAX_SPLINE_KNOTS finite numbers, strictly increasing (more
  * knots: CE_ERR_LIMIT), each within float range, kept as float pairs. */
 static int parse_knots(cur *c, ce_spline *sp, term_fields *f)
@@ -1020,7 +1032,7 @@ static int parse_knots(cur *c, ce_spline *sp, term_fields *f)
             return fail(c, CE_ERR_LIMIT); /* a float32 device cannot hold it */
         }
         CE_ASSERT(n < CE_MAX_SPLINE_KNOTS);
-        split(d, &sp->knot_hi[n], &sp->knot_lo[n]);
+        split_knot(d, &sp->knot_hi[n], &sp->knot_lo[n]);
         if (n > 0) {
             sp->top_u = (float)(d - prev); /* the last segment's width, once the list ends */
         }
@@ -1810,7 +1822,8 @@ static int derive(ce_set *s, const reading *r)
         if (s->terms[i].feature == CE_TERM_CHANNEL_RATE_SPLINE) { /* knots in dV -> raw counts */
             ce_spline *sp = &s->splines[s->terms[i].spline];
             for (j = 0; j < sp->n_knots; j++) {
-                split((double)sp->knot_hi[j] + (double)sp->knot_lo[j] + r->v0, &sp->knot_hi[j], &sp->knot_lo[j]);
+                split_knot((double)sp->knot_hi[j] + (double)sp->knot_lo[j] + r->v0, &sp->knot_hi[j],
+                           &sp->knot_lo[j]);
             }
         }
     }

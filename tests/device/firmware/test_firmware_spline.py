@@ -1,0 +1,234 @@
+"""Spline terms in the firmware's C evaluator: any valid spline corrects as `canical apply` does, to
+a float32 error bound derived from the pieces and the knot spacing; bad splines are refused as
+canical refuses them; the device's spline limits are canical's."""
+
+from __future__ import annotations
+
+import json
+import re
+import zlib
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from support.firmware_build import CODES, FIRMWARE, TOLERANCE_DPS, load_code, python_verdict
+from support.firmware_cases import ALL_TERMS, model_set, stream
+
+from canical.device.bank_payload import encode_set
+from canical.device.firmware_eval import FirmwareCorrector
+from canical.sets import coefficient_file
+from canical.sets.admission import MAX_SPLINE_TERMS
+from canical.sets.coefficients import CoefficientSet
+from canical.sets.corrector import Corrector
+from canical.sets.term_kinds import MAX_SPLINE_KNOTS, spline_values
+from canical.sets.terms import term_from_dict
+
+EPS32 = 2.0**-24  # float32 unit roundoff
+
+# ----------------------------------------------------------------------------------------------
+# The float32 error of a spline term, derived
+# ----------------------------------------------------------------------------------------------
+#
+# M = max over segments i of Σ_j |a_ij|·h_i^j (h_i the segment's width; what
+# ChannelSpline.reach gives): |S| ≤ M, and every partial sum of Horner's scheme is within M.
+# With ε = 2^-24, the C evaluator's S differs from canical's double one by at most
+#   ε·M    the pieces rounded to float32 (|δa_j| ≤ ε|a_j|, times |u|^j ≤ h^j),
+#   6ε·M   u = (v − b_hi) − b_lo: two roundings, |δu| ≤ 2ε|u|, and |u·S'(u)| ≤ Σ j|a_j||u|^j ≤ 3M,
+#   6ε·M   Horner: three multiply-adds, six roundings, each within ε of a partial sum (≤ M),
+# so |ΔS| ≤ 13ε·M (to first order; the segment is the same: the knots are float pairs and the
+# channel values float32 numbers). The share c·S adds the coefficient's rounding and the
+# product's, 2ε·|c|·M: the bias form's shift is within 15ε·|c|·M. The scale form c·(S·ΔV)
+# adds ΔV = (raw − V0_hi) − V0_lo (2ε|ΔV|) and one more product: 18ε·|c|·M·max|ΔV|.
+# The rate moves with the shift at most by the model's steepest slope G (deg/s per count;
+# beyond the span the model extrapolates with its edge slope, within G), on top of the model's
+# own float32 error (TOLERANCE_DPS, as for every set without terms).
+
+
+def shift_bound(term: dict, dv_max: float) -> float:
+    """The largest float32 error of the term's share of ΔV (counts), as derived above."""
+    knots = np.asarray(term["knots"])
+    pieces = np.abs(np.asarray(term["pieces"]))
+    widths = np.diff(knots)[:, None] ** np.arange(4)
+    m = float(np.max(np.sum(pieces * widths, axis=1)))
+    c = abs(term["coefficient"])
+    return 15 * EPS32 * c * m if term["form"] == "bias" else 18 * EPS32 * c * m * dv_max
+
+
+def with_term(term: dict) -> CoefficientSet:
+    """The calibrated segmented set with ``term``, through the file format."""
+    cset = replace(model_set("segmented-inverse"), terms=(term_from_dict(term).to_dict(),))
+    return coefficient_file.loads(coefficient_file.dumps(cset))
+
+
+def steepest_slope(cset: CoefficientSet) -> float:
+    """G: the model's largest |d rate / d ΔV| over its span (difference quotients on a grid of
+    20,001 points; the model is a smooth polynomial per segment, so 1 % covers the grid)."""
+    lo, hi = (v - cset.v0 for v in cset.span_raw)
+    grid = np.linspace(lo, hi, 20_001)
+    rates, _ = cset.rate_model().evaluate(grid)
+    return 1.01 * float(np.max(np.abs(np.diff(rates) / np.diff(grid))))
+
+
+@st.composite
+def spline_terms(draw) -> dict:
+    """A valid spline of the channel: 2 to 64 knots, some of them float32 numbers (samples land
+    exactly on them), pieces of any sign whose each power moves S by up to `size` over a segment
+    (discontinuous at the knots: a wrong segment would show), either form."""
+    n = draw(st.integers(2, MAX_SPLINE_KNOTS))
+    seed = draw(st.integers(0, 2**32 - 1))
+    rng = np.random.default_rng(seed)
+    knots = np.unique(rng.uniform(0.0, 50.0, n))
+    on_float = rng.random(knots.size) < 0.5
+    knots[on_float] = knots[on_float].astype(np.float32)
+    knots = np.unique(knots)
+    if knots.size < 2:
+        knots = np.array([10.0, 30.0])
+    widths = np.diff(knots)
+    size = draw(st.floats(0.01, 10.0))
+    pieces = rng.normal(0.0, size, (widths.size, 4)) / widths[:, None] ** np.arange(4)
+    form = draw(st.sampled_from(("bias", "scale")))
+    coefficient = draw(st.floats(-50.0, 50.0)) if form == "bias" else draw(st.floats(-2e-3, 2e-3))
+    return {"kind": "channel", "feature": "spline", "channel": "temp_c", "form": form,
+            "coefficient": coefficient, "knots": knots.tolist(), "pieces": pieces.tolist()}
+
+
+def channel_values(term: dict, n: int, rng: np.random.Generator) -> np.ndarray:
+    """float32 numbers (what the device gets) across the knots, on them, and beyond both ends."""
+    knots = np.asarray(term["knots"])
+    lo, hi = knots[0], knots[-1]
+    v = rng.uniform(lo - 5.0, hi + 5.0, n)
+    on_knot = rng.random(n) < 0.1
+    v[on_knot] = rng.choice(knots, int(on_knot.sum()))
+    return v.astype(np.float32).astype(float)
+
+
+@settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(term=spline_terms(), seed=st.integers(0, 1000))
+def test_property_any_spline_evaluates_like_canical(lib_for_hypothesis, term, seed):
+    """Any valid spline term: the C evaluator's rates within the derived float32 bound of
+    canical's, and the same out-of-span flags (except where the shift's own bound straddles a
+    span edge)."""
+    cset = with_term(term)
+    raw, inputs = stream(cset, 3000, seed=seed)
+    rng = np.random.default_rng(seed)
+    inputs = {**inputs, "temp_c": channel_values(term, raw.size, rng)}
+    expected, expected_oos = Corrector(cset).correct(raw, inputs)
+    rate, oos = FirmwareCorrector(cset, lib=lib_for_hypothesis).correct(raw, inputs)
+    dv = raw - cset.v0
+    bound = shift_bound(term, float(np.max(np.abs(dv))))
+    s = spline_values(tuple(term["knots"]), tuple(map(tuple, term["pieces"])), inputs["temp_c"])
+    shift = term["coefficient"] * (s * dv if term["form"] == "scale" else s)
+    lo, hi = cset.span_raw
+    edge = np.minimum(np.abs(raw - shift - lo), np.abs(raw - shift - hi)) <= bound
+    np.testing.assert_array_equal(oos[~edge], expected_oos[~edge])
+    worst = float(np.max(np.abs(rate - expected)))
+    allowed = TOLERANCE_DPS + steepest_slope(cset) * bound
+    assert worst <= allowed, f"largest difference {worst:.3e} deg/s, bound {allowed:.3e}"
+
+
+def test_the_bound_is_not_vacuous_a_wrong_segment_breaks_it(lib):
+    """The derived bound is tight enough to see a segment chosen one knot off: the same set with
+    each piece moved to the next segment gives rates far beyond it."""
+    term = dict(ALL_TERMS["channel-spline"], coefficient=5.0)
+    shifted = dict(term, pieces=[*term["pieces"][1:], term["pieces"][-1]])
+    right, wrong = with_term(term), with_term(shifted)
+    raw, inputs = stream(right, 3000, seed=1)
+    expected, _ = Corrector(right).correct(raw, inputs)
+    rate, _ = FirmwareCorrector(wrong, lib=lib).correct(raw, inputs)
+    allowed = TOLERANCE_DPS + steepest_slope(right) * shift_bound(term, float(np.max(np.abs(raw - right.v0))))
+    assert float(np.max(np.abs(rate - expected))) > 100 * allowed
+
+
+# ----------------------------------------------------------------------------------------------
+# Validation: what canical refuses the device refuses
+# ----------------------------------------------------------------------------------------------
+
+
+def spline_bank(*terms: dict) -> dict:
+    base = model_set("segmented-inverse")
+    cset = replace(base, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    return json.loads(encode_set(cset)[0])
+
+
+def edited(change) -> tuple[bytes, int]:
+    d = spline_bank(ALL_TERMS["channel-spline"])
+    change(d["terms"][0])
+    content = json.dumps(d, sort_keys=True, separators=(",", ":")).encode()
+    return content, zlib.crc32(content)
+
+
+def _set(**fields):
+    return lambda t: t.update(fields)
+
+
+def _drop(name):
+    return lambda t: t.pop(name)
+
+
+KNOTS = ALL_TERMS["channel-spline"]["knots"]
+PIECES = ALL_TERMS["channel-spline"]["pieces"]
+REFUSALS = {
+    "one knot": (_set(knots=[1.0], pieces=[]), "CE_ERR_FIELD"),
+    "knots not increasing": (_set(knots=[KNOTS[1], KNOTS[0], *KNOTS[2:]]), "CE_ERR_FIELD"),
+    "a repeated knot": (_set(knots=[KNOTS[0], KNOTS[0], *KNOTS[2:]]), "CE_ERR_FIELD"),
+    "knots not numbers": (_set(knots="0 1 2"), "CE_ERR_FIELD"),
+    "a knot not a number": (_set(knots=[*KNOTS[:-1], "46"]), "CE_ERR_FIELD"),
+    "no knots": (_drop("knots"), "CE_ERR_FIELD"),
+    "no pieces": (_drop("pieces"), "CE_ERR_FIELD"),
+    "a row too few": (_set(pieces=PIECES[:-1]), "CE_ERR_FIELD"),
+    "a row too many": (_set(pieces=[*PIECES, PIECES[0]]), "CE_ERR_FIELD"),
+    "a row of 3": (_set(pieces=[PIECES[0][:3], *PIECES[1:]]), "CE_ERR_FIELD"),
+    "a row of 5": (_set(pieces=[[*PIECES[0], 0.0], *PIECES[1:]]), "CE_ERR_FIELD"),
+    "a row not a list": (_set(pieces=[1.0, *PIECES[1:]]), "CE_ERR_FIELD"),
+    "no channel": (_drop("channel"), "CE_ERR_FIELD"),
+    "more knots than 64": (_set(knots=list(np.linspace(0.0, 50.0, MAX_SPLINE_KNOTS + 1)),
+                                pieces=[[0.0, 0.0, 0.0, 0.0]] * MAX_SPLINE_KNOTS), "CE_ERR_LIMIT"),
+}
+
+
+@pytest.mark.parametrize("case", list(REFUSALS))
+def test_bad_splines_are_refused_by_the_device_and_by_canical(lib, case):
+    change, code = REFUSALS[case]
+    content, crc = edited(change)
+    assert load_code(lib, content, crc) == CODES[code]
+    assert python_verdict(content, crc) is not None
+
+
+def test_what_only_the_device_refuses_canical_push_refuses_before_writing(lib):
+    """More spline terms than CE_MAX_SPLINES, or a piece beyond float32: the device's own limits;
+    canical's admission (which push and export run before writing) names the same."""
+    too_many = spline_bank(*(dict(ALL_TERMS["channel-spline"], coefficient=0.5 * (i + 1))
+                             for i in range(MAX_SPLINE_TERMS + 1)))
+    huge = spline_bank(dict(ALL_TERMS["channel-spline"], pieces=[[1e39, 0.0, 0.0, 0.0], *PIECES[1:]]))
+    far = spline_bank(dict(ALL_TERMS["channel-spline"], knots=[*KNOTS[:-1], 1e39]))
+    for d, words in ((too_many, "spline terms"), (huge, "float32"), (far, "float32")):
+        content = json.dumps(d, sort_keys=True, separators=(",", ":")).encode()
+        assert load_code(lib, content, zlib.crc32(content)) == CODES["CE_ERR_LIMIT"]
+        assert words in (python_verdict(content, zlib.crc32(content)) or "")
+    most = spline_bank(*(dict(ALL_TERMS["channel-spline"], coefficient=0.5 * (i + 1))
+                         for i in range(MAX_SPLINE_TERMS)))
+    content = json.dumps(most, sort_keys=True, separators=(",", ":")).encode()
+    assert load_code(lib, content, zlib.crc32(content)) == 0
+    assert python_verdict(content, zlib.crc32(content)) is None
+
+
+def test_knots_on_another_kind_are_ignored_as_canical_ignores_them(lib):
+    d = spline_bank(ALL_TERMS["channel-offset"])
+    d["terms"][0].update(knots=[0.0, 1.0], pieces="anything")
+    content = json.dumps(d, sort_keys=True, separators=(",", ":")).encode()
+    assert load_code(lib, content, zlib.crc32(content)) == 0
+    assert python_verdict(content, zlib.crc32(content)) is None
+
+
+def test_the_device_limits_are_canicals():
+    header = (FIRMWARE / "canical_eval.h").read_text()
+
+    def limit(name: str) -> int:
+        found = re.search(rf"#define {name} (\d+)", header)
+        assert found, name
+        return int(found.group(1))
+
+    assert limit("CE_MAX_SPLINE_KNOTS") == MAX_SPLINE_KNOTS
+    assert limit("CE_MAX_SPLINES") == MAX_SPLINE_TERMS
