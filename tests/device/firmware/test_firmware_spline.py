@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from support.firmware_build import CODES, FIRMWARE, TOLERANCE_DPS, load_code, python_verdict
+from support.firmware_build import (
+    CODES,
+    EPS32,
+    FIRMWARE,
+    TOLERANCE_DPS,
+    load_code,
+    python_verdict,
+    steepest_slope,
+)
 from support.firmware_cases import ALL_TERMS, model_set, stream
 
 from canical.device.bank_payload import encode_set
@@ -24,8 +32,6 @@ from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.term_kinds import MAX_SPLINE_KNOTS, spline_values
 from canical.sets.terms import term_from_dict
-
-EPS32 = 2.0**-24  # float32 unit roundoff
 
 # ----------------------------------------------------------------------------------------------
 # The float32 error of a spline term, derived
@@ -60,15 +66,6 @@ def with_term(term: dict) -> CoefficientSet:
     """The calibrated segmented set with ``term``, through the file format."""
     cset = replace(model_set("segmented-inverse"), terms=(term_from_dict(term).to_dict(),))
     return coefficient_file.loads(coefficient_file.dumps(cset))
-
-
-def steepest_slope(cset: CoefficientSet) -> float:
-    """G: the model's largest |d rate / d ΔV| over its span (difference quotients on a grid of
-    20,001 points; the model is a smooth polynomial per segment, so 1 % covers the grid)."""
-    lo, hi = (v - cset.v0 for v in cset.span_raw)
-    grid = np.linspace(lo, hi, 20_001)
-    rates, _ = cset.rate_model().evaluate(grid)
-    return 1.01 * float(np.max(np.abs(np.diff(rates) / np.diff(grid))))
 
 
 @st.composite
