@@ -14,8 +14,9 @@ activate a bank) refuse a set when:
   A narrower set would extrapolate over part of the range the sensor is sold
   for; such a set needs a wider turntable session, not a download;
 * its terms do not fit the device's evaluator (``firmware/canical_eval.c``): more
-  spline terms than its spline slots (:data:`MAX_SPLINE_TERMS`, ``CE_MAX_SPLINES``),
-  or a spline knot or piece beyond float32 range (the device holds them as float32);
+  terms than it holds (:data:`MAX_TERMS`, ``CE_MAX_TERMS``), more spline terms than its
+  slots (:data:`MAX_SPLINE_TERMS`, ``CE_MAX_SPLINES``), or a spline knot or piece beyond
+  float32 range (the device holds them as float32);
 * its bank content (the set's canonical JSON) is longer than the device's banks hold
   (object "Coefficient bank capacity", when the device's limits say it): a spline's
   knots and pieces are a few kilobytes.
@@ -34,6 +35,8 @@ from canical.sets.coefficient_file import canonical_bytes
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.term_kinds import lookup
 
+#: Effect terms the device's evaluator holds in one set (``CE_MAX_TERMS`` of canical_eval.h).
+MAX_TERMS = 16
 #: Spline terms the device's evaluator holds in one set (``CE_MAX_SPLINES`` of canical_eval.h;
 #: each of up to MAX_SPLINE_KNOTS knots, ``CE_MAX_SPLINE_KNOTS``). A test compares them.
 MAX_SPLINE_TERMS = 4
@@ -62,6 +65,8 @@ def evaluator_problem(cset: CoefficientSet) -> str | None:
     """Why the device's evaluator cannot hold the set's terms though canical evaluates them
     (None: it can). Why here: the device would refuse the bank (``CE_ERR_LIMIT``) after the
     download; ``canical push`` says so before writing anything."""
+    if len(cset.terms) > MAX_TERMS:
+        return f"{len(cset.terms)} terms, the device's evaluator holds {MAX_TERMS} per set (CE_MAX_TERMS)"
     splines = [i for i, t in enumerate(cset.terms)
                if (k := lookup(t.get("kind"), t.get("feature"))) is not None and k.needs_spline]
     if len(splines) > MAX_SPLINE_TERMS:

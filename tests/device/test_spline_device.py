@@ -27,7 +27,7 @@ from canical.device.sdo_download import plan_push
 from canical.errors import CanicalError
 from canical.imu_dictionary import AXES, imu_objects
 from canical.sets import coefficient_file
-from canical.sets.admission import MAX_SPLINE_TERMS, DeviceLimits, admission_problem
+from canical.sets.admission import MAX_SPLINE_TERMS, MAX_TERMS, DeviceLimits, admission_problem
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.term_kinds import MAX_SPLINE_KNOTS
@@ -74,6 +74,7 @@ def test_sets_the_device_cannot_hold_are_refused_before_writing() -> None:
     spline = ALL_TERMS["channel-spline"]
     beyond_float = with_terms(base, [dict(spline, pieces=[[1e39, 0.0, 0.0, 0.0], *spline["pieces"][1:]])])
     too_long = with_terms(base, [wide_spline(rng) for _ in range(MAX_SPLINE_TERMS)])
+    too_many_terms = with_terms(base, [ALL_TERMS["channel-offset"]] * (MAX_TERMS + 1))
     assert len(encode_set(too_long)[0]) > CAPACITY
     fits = with_terms(base, [wide_spline(rng)])
     assert len(encode_set(fits)[0]) <= CAPACITY
@@ -81,6 +82,7 @@ def test_sets_the_device_cannot_hold_are_refused_before_writing() -> None:
     for cset, reason in [(too_many, f"{MAX_SPLINE_TERMS + 1} spline terms, the device's evaluator holds "
                                     f"{MAX_SPLINE_TERMS}"),
                          (beyond_float, "terms[0]: a spline knot or piece beyond float32 range"),
+                         (too_many_terms, f"{MAX_TERMS + 1} terms, the device's evaluator holds {MAX_TERMS}"),
                          (too_long, f"the device's coefficient banks hold {CAPACITY}")]:
         with pytest.raises(CanicalError) as refused:
             plan_push({"z": ("z.yaml", cset)}, LIMITS, active, ids, NODE)

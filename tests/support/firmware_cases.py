@@ -61,6 +61,12 @@ def _saturating_slope(t: float) -> float:
     return 6.0 / float(np.cosh((t - 25.0) / 10.0)) ** 2
 
 
+def saturating_spline(knots: list[float]) -> dict:
+    """A bias spline of temperature through 60·tanh((T − 25)/10) counts on ``knots``."""
+    return {"kind": "channel", "channel": "temp_c", "feature": "spline", "form": "bias", "coefficient": 1.0,
+            "knots": list(knots), "pieces": hermite_pieces(list(knots), _saturating, _saturating_slope)}
+
+
 #: One term of every kind and feature; bias and scale forms alternate.
 TERMS = {
     "channel-gated": {
@@ -143,15 +149,7 @@ TERMS = {
         "coefficient": 4.5,
         "threshold_raw": 0.0375,
     },
-    "channel-spline": {
-        "kind": "channel",
-        "channel": "temp_c",
-        "feature": "spline",
-        "form": "bias",
-        "coefficient": 1.0,
-        "knots": SPLINE_KNOTS,
-        "pieces": hermite_pieces(SPLINE_KNOTS, _saturating, _saturating_slope),
-    },
+    "channel-spline": saturating_spline(SPLINE_KNOTS),
 }
 
 #: The stateful channel transforms in their other form (TERMS holds one form of each).
@@ -173,8 +171,12 @@ def model_set(name: str) -> CoefficientSet:
 
 def with_terms(cset: CoefficientSet, names: tuple[str, ...]) -> CoefficientSet:
     """The set with effect terms attached, validated through the file format."""
-    terms = tuple(term_from_dict(ALL_TERMS[n]).to_dict() for n in names)
-    out = replace(cset, terms=terms)
+    return with_terms_dicts(cset, tuple(ALL_TERMS[n] for n in names))
+
+
+def with_terms_dicts(cset: CoefficientSet, terms: tuple[dict, ...]) -> CoefficientSet:
+    """The set with these term dicts attached, validated through the file format."""
+    out = replace(cset, terms=tuple(term_from_dict(t).to_dict() for t in terms))
     return coefficient_file.loads(coefficient_file.dumps(out))
 
 

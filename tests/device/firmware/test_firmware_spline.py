@@ -27,7 +27,7 @@ from support.firmware_cases import ALL_TERMS, model_set, stream
 from canical.device.bank_payload import encode_set
 from canical.device.firmware_eval import FirmwareCorrector
 from canical.sets import coefficient_file
-from canical.sets.admission import MAX_SPLINE_TERMS
+from canical.sets.admission import MAX_SPLINE_TERMS, MAX_TERMS
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.term_kinds import MAX_SPLINE_KNOTS, spline_values
@@ -229,3 +229,4 @@ def test_the_device_limits_are_canicals():
 
     assert limit("CE_MAX_SPLINE_KNOTS") == MAX_SPLINE_KNOTS
     assert limit("CE_MAX_SPLINES") == MAX_SPLINE_TERMS
+    assert limit("CE_MAX_TERMS") == MAX_TERMS
