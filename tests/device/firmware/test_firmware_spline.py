@@ -41,25 +41,41 @@ from canical.sets.terms import term_from_dict
 # ChannelSpline.reach gives): |S| ≤ M, and every partial sum of Horner's scheme is within M.
 # With ε = 2^-24, the C evaluator's S differs from canical's double one by at most
 #   ε·M    the pieces rounded to float32 (|δa_j| ≤ ε|a_j|, times |u|^j ≤ h^j),
-#   6ε·M   u = (v − b_hi) − b_lo: two roundings, |δu| ≤ 2ε|u|, and |u·S'(u)| ≤ Σ j|a_j||u|^j ≤ 3M,
+#   6ε·M   u = (w − b_hi) − b_lo: two roundings, |δu| ≤ 2ε|u|, and |u·S'(u)| ≤ Σ j|a_j||u|^j ≤ 3M,
 #   6ε·M   Horner: three multiply-adds, six roundings, each within ε of a partial sum (≤ M),
 # so |ΔS| ≤ 13ε·M (to first order; the segment is the same: the knots are float pairs and the
-# channel values float32 numbers). The share c·S adds the coefficient's rounding and the
-# product's, 2ε·|c|·M: the bias form's shift is within 15ε·|c|·M. The scale form c·(S·ΔV)
-# adds ΔV = (raw − V0_hi) − V0_lo (2ε|ΔV|) and one more product: 18ε·|c|·M·max|ΔV|.
+# variable is a float32 number, the channel's value or the raw output). A rate spline's knots
+# are held in raw counts (b + V0, rounded in double: within 2^-50·|b + V0|), which moves u by
+# that much more: M₁·2^-50·max|b + V0|, M₁ = max Σ j|a_j|·h^(j-1) the steepest S can get.
+# x = S (spline): the share c·S adds the coefficient's rounding and the product's, 2ε·|c|·M, so
+# the bias form's shift is within 15ε·|c|·M; the scale form c·(S·ΔV) adds ΔV = (raw − V0_hi) −
+# V0_lo (2ε|ΔV|) and one more product: 18ε·|c|·M·max|ΔV|.
+# x = (v − ref)·R (rate spline), A = max|v − ref|: ref rounded (ε|ref|) and the subtraction
+# (ε·A), the product (ε·A·M), on top of A·|ΔR|: ε·M·(15A + |ref|); the share adds 2ε·|c|·A·M
+# (bias) or, with ΔV, 4ε·|c|·A·M·|ΔV| (scale).
 # The rate moves with the shift at most by the model's steepest slope G (deg/s per count;
 # beyond the span the model extrapolates with its edge slope, within G), on top of the model's
 # own float32 error (TOLERANCE_DPS, as for every set without terms).
 
+#: The spline kinds (their x; the variable of S: the channel, or the output's ΔV).
+SPLINE_FEATURES = ("spline",)
 
-def shift_bound(term: dict, dv_max: float) -> float:
+
+def shift_bound(term: dict, dv_max: float, v: np.ndarray, v0: float) -> float:
     """The largest float32 error of the term's share of ΔV (counts), as derived above."""
     knots = np.asarray(term["knots"])
     pieces = np.abs(np.asarray(term["pieces"]))
-    widths = np.diff(knots)[:, None] ** np.arange(4)
-    m = float(np.max(np.sum(pieces * widths, axis=1)))
+    h = np.diff(knots)[:, None]
+    m = float(np.max(np.sum(pieces * h ** np.arange(4), axis=1)))
     c = abs(term["coefficient"])
-    return 15 * EPS32 * c * m if term["form"] == "bias" else 18 * EPS32 * c * m * dv_max
+    dv = dv_max if term["form"] == "scale" else 1.0
+    if term["feature"] == "spline":
+        return (15 if term["form"] == "bias" else 18) * EPS32 * c * m * dv
+    m1 = float(np.max(np.sum(pieces[:, 1:] * np.arange(1, 4) * h ** np.arange(3), axis=1)))
+    a = float(np.max(np.abs(v - term["reference"])))
+    ds = 13 * EPS32 * m + m1 * 2.0**-50 * float(np.max(np.abs(knots + v0)))
+    dx = a * ds + EPS32 * m * (2 * a + abs(term["reference"]))
+    return c * dv * (dx + (2 if term["form"] == "bias" else 4) * EPS32 * a * m)
 
 
 def with_term(term: dict) -> CoefficientSet:
@@ -68,17 +84,31 @@ def with_term(term: dict) -> CoefficientSet:
     return coefficient_file.loads(coefficient_file.dumps(cset))
 
 
+def term_x(term: dict, v: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    """canical's x of a spline kind (to tell where a span edge lies within the bound)."""
+    knots, pieces = tuple(term["knots"]), tuple(map(tuple, term["pieces"]))
+    if term["feature"] == "spline":
+        return spline_values(knots, pieces, v)
+    return (v - term["reference"]) * spline_values(knots, pieces, dv)
+
+
 @st.composite
 def spline_terms(draw) -> dict:
-    """A valid spline of the channel: 2 to 64 knots, some of them float32 numbers (samples land
-    exactly on them), pieces of any sign whose each power moves S by up to `size` over a segment
-    (discontinuous at the knots: a wrong segment would show), either form."""
+    """A valid spline term: 2 to 64 knots, some of them exactly where samples land (float32
+    channel values; for a rate spline, ΔV of whole raw counts), pieces of any sign whose each
+    power moves S by up to `size` over a segment (discontinuous at the knots: a wrong segment
+    would show), either form."""
+    feature = draw(st.sampled_from(SPLINE_FEATURES))
     n = draw(st.integers(2, MAX_SPLINE_KNOTS))
-    seed = draw(st.integers(0, 2**32 - 1))
-    rng = np.random.default_rng(seed)
-    knots = np.unique(rng.uniform(0.0, 50.0, n))
-    on_float = rng.random(knots.size) < 0.5
-    knots[on_float] = knots[on_float].astype(np.float32)
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    on = rng.random(n) < 0.5
+    if feature == "spline":
+        knots = rng.uniform(0.0, 50.0, n)
+        knots[on] = knots[on].astype(np.float32)
+    else:  # ΔV in raw counts, across the span and beyond it
+        v0 = model_set("segmented-inverse").v0
+        knots = rng.uniform(-35000.0, 35000.0, n)
+        knots[on] = np.rint(knots[on] + v0) - v0
     knots = np.unique(knots)
     if knots.size < 2:
         knots = np.array([10.0, 30.0])
@@ -86,13 +116,19 @@ def spline_terms(draw) -> dict:
     size = draw(st.floats(0.01, 10.0))
     pieces = rng.normal(0.0, size, (widths.size, 4)) / widths[:, None] ** np.arange(4)
     form = draw(st.sampled_from(("bias", "scale")))
-    coefficient = draw(st.floats(-50.0, 50.0)) if form == "bias" else draw(st.floats(-2e-3, 2e-3))
-    return {"kind": "channel", "feature": "spline", "channel": "temp_c", "form": form,
-            "coefficient": coefficient, "knots": knots.tolist(), "pieces": pieces.tolist()}
+    largest = {("spline", "bias"): 50.0, ("spline", "scale"): 2e-3,
+               ("rate_spline", "bias"): 5.0, ("rate_spline", "scale"): 1e-4}[feature, form]
+    return {"kind": "channel", "feature": feature, "channel": "temp_c", "form": form,
+            "coefficient": draw(st.floats(-largest, largest)), "reference": draw(st.floats(0.0, 40.0)),
+            "knots": knots.tolist(), "pieces": pieces.tolist()}
 
 
 def channel_values(term: dict, n: int, rng: np.random.Generator) -> np.ndarray:
-    """float32 numbers (what the device gets) across the knots, on them, and beyond both ends."""
+    """float32 numbers (what the device gets): a spline's across its knots, on them and beyond
+    both ends; a rate spline's within 20 of its reference."""
+    if term["feature"] != "spline":
+        v = rng.uniform(term["reference"] - 20.0, term["reference"] + 20.0, n)
+        return v.astype(np.float32).astype(float)
     knots = np.asarray(term["knots"])
     lo, hi = knots[0], knots[-1]
     v = rng.uniform(lo - 5.0, hi + 5.0, n)
@@ -110,13 +146,18 @@ def test_property_any_spline_evaluates_like_canical(lib_for_hypothesis, term, se
     cset = with_term(term)
     raw, inputs = stream(cset, 3000, seed=seed)
     rng = np.random.default_rng(seed)
+    dv = raw - cset.v0
+    if term["feature"] != "spline":  # ΔV on the knots that lie on whole counts too
+        on = np.rint(np.asarray(term["knots"]) + cset.v0)
+        hit = rng.random(raw.size) < 0.1
+        raw = np.where(hit, rng.choice(on, raw.size), raw)
+        dv = raw - cset.v0
     inputs = {**inputs, "temp_c": channel_values(term, raw.size, rng)}
     expected, expected_oos = Corrector(cset).correct(raw, inputs)
     rate, oos = FirmwareCorrector(cset, lib=lib_for_hypothesis).correct(raw, inputs)
-    dv = raw - cset.v0
-    bound = shift_bound(term, float(np.max(np.abs(dv))))
-    s = spline_values(tuple(term["knots"]), tuple(map(tuple, term["pieces"])), inputs["temp_c"])
-    shift = term["coefficient"] * (s * dv if term["form"] == "scale" else s)
+    bound = shift_bound(term, float(np.max(np.abs(dv))), inputs["temp_c"], cset.v0)
+    x = term_x(term, inputs["temp_c"], dv)
+    shift = term["coefficient"] * (x * dv if term["form"] == "scale" else x)
     lo, hi = cset.span_raw
     edge = np.minimum(np.abs(raw - shift - lo), np.abs(raw - shift - hi)) <= bound
     np.testing.assert_array_equal(oos[~edge], expected_oos[~edge])
@@ -134,7 +175,8 @@ def test_the_bound_is_not_vacuous_a_wrong_segment_breaks_it(lib):
     raw, inputs = stream(right, 3000, seed=1)
     expected, _ = Corrector(right).correct(raw, inputs)
     rate, _ = FirmwareCorrector(wrong, lib=lib).correct(raw, inputs)
-    allowed = TOLERANCE_DPS + steepest_slope(right) * shift_bound(term, float(np.max(np.abs(raw - right.v0))))
+    bound = shift_bound(term, float(np.max(np.abs(raw - right.v0))), inputs["temp_c"], right.v0)
+    allowed = TOLERANCE_DPS + steepest_slope(right) * bound
     assert float(np.max(np.abs(rate - expected))) > 100 * allowed
 
 
