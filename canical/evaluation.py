@@ -154,7 +154,7 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     rms_oracle = min(scorer.held_rms(same_size), scorer.held_rms(resized))
     in_groups = {name.lstrip("~") for g in groups for name in g}
     correct = (
-        set(found) == set(scenario.expect)
+        scenario.attributed(found)
         and set(scenario.confounded) <= in_groups
         and (bool(groups) == bool(scenario.confounded))
     )

@@ -25,7 +25,13 @@ import numpy as np
 from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.plateaus import Plateaus
 from canical.sessions.session import Session
-from canical.sets.term_kinds import CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_LAG
+from canical.sets.term_kinds import (
+    CHANNEL_DIRECTION,
+    CHANNEL_GATED,
+    CHANNEL_LAG,
+    CHANNEL_RATE_SPLINE,
+    spline_values,
+)
 from canical.sets.terms import Term, lag_filter, rate_gate
 from canical.sets.trackers import direction_steps, slope_filter
 
@@ -55,7 +61,8 @@ class ChannelSamples:
         sample in Python and cost far more to redo than a lag or a gate.
         """
         if len(self.cache) > 512:
-            for key in [k for k in self.cache if k[0] in (CHANNEL_LAG, CHANNEL_GATED)]:
+            searched = (CHANNEL_LAG, CHANNEL_GATED, CHANNEL_RATE_SPLINE)
+            for key in [k for k in self.cache if k[0] in searched]:
                 del self.cache[key]
 
     def means(self, values: np.ndarray) -> np.ndarray:
@@ -78,6 +85,17 @@ class ChannelSamples:
         if key not in self.cache:
             self._make_room()
             self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
+        return self.cache[key]
+
+    def rate_spline_means(self, term: Term) -> np.ndarray:
+        """Block means of (v − reference)·R(ΔV), a channel's coefficient smooth in rate (all blocks)."""
+        if self.dv is None:
+            raise ValueError("these samples were kept without their raw output")
+        key = (CHANNEL_RATE_SPLINE, term.channel, float(term.reference), term.knots, term.pieces)
+        if key not in self.cache:
+            self._make_room()
+            offset = self.values[term.channel or ""] - term.reference
+            self.cache[key] = self.means(offset * spline_values(term.knots or (), term.pieces or (), self.dv))
         return self.cache[key]
 
     def abs_dv_means(self) -> np.ndarray:
@@ -134,6 +152,8 @@ class Blocks:
         spec = term.spec
         if spec is CHANNEL_GATED:
             return self.samples.gated_means(ch, term.reference, term.threshold_raw or 1.0)[rows]
+        if spec is CHANNEL_RATE_SPLINE:
+            return self.samples.rate_spline_means(term)[rows]
         if spec is CHANNEL_DIRECTION:
             return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
         y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]

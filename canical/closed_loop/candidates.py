@@ -15,6 +15,10 @@ feels a channel other than directly:
   output, |ΔV| > k, with k estimated like a time constant (an effect that
   switches on with rate: a drive loop near its limit).
 
+* ``smooth(<ch> × rate)`` — its level times a smooth function of the output ΔV, learned the
+  same way (cubic B-splines of ΔV, knots at quantiles of the plateaus' ΔV): a coefficient of the
+  channel that changes with rate, e.g. a scale-factor temperature coefficient that depends on
+  rate (the nonlinearity's shape changing with temperature). It nests the channel's level.
 * ``smooth(<ch>)`` — its effect as a smooth function learned from the data: a cubic
   B-spline of its level with knots at quantiles of its plateau levels (a bias that follows
   the square of a wide-ranging channel, or saturates with it), built only where the channel
@@ -47,6 +51,7 @@ from canical.sets.term_kinds import (
     CHANNEL_GATED,
     CHANNEL_LAG,
     CHANNEL_OFFSET,
+    CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
     CHANNEL_SQUARE,
     DIRECTION,
@@ -82,6 +87,9 @@ SMOOTH_MAX_INTERIOR = 5
 SMOOTH_MIN_LEVELS = 8
 SMOOTH_LEVELS_PER_KNOT = 3
 SMOOTH_LEVEL_SHARE = 0.005
+# A channel's coefficient smooth in rate: fewer interior knots, since each basis function's
+# coefficient rests on the channel's spread among the plateaus in its span of rates only.
+RATE_SMOOTH_MAX_INTERIOR = 2
 # The names of the candidates that are not a channel's.
 WARMUP_NAME = f"{TIME}:warm-up"
 DRIFT_NAME = f"{TIME}:linear-drift"
@@ -133,6 +141,7 @@ BLOCK_FEATURES: dict[TermKind, Callable[[Term, Blocks], np.ndarray]] = {
     CHANNEL_DERIVATIVE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_DIRECTION: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_GATED: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_RATE_SPLINE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_SPLINE: lambda term, blocks: spline_values(term.knots or (), term.pieces or (),
                                                        blocks.aux[term.channel or ""]),
     TIME_WARMUP: _warmup,
@@ -206,6 +215,9 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
         smooth = smooth_terms(name, plateau_levels(blocks, name))
         if smooth:
             out.append(Candidate(CHANNEL_SPLINE.label(name), CHANNEL, name, smooth))
+        by_rate = rate_smooth_terms(name, ref, plateau_means(blocks, blocks.points.dv))
+        if by_rate and blocks.samples is not None and blocks.samples.dv is not None:
+            out.append(Candidate(CHANNEL_RATE_SPLINE.label(name), CHANNEL, name, by_rate))
     if np.ptp(blocks.time_s) > 0:
         tau = float(session_duration_s) / 3.0
         out.append(Candidate(WARMUP_NAME, TIME, None, _pair(TIME_WARMUP, tau_s=tau)))
@@ -230,8 +242,13 @@ def build_candidates(blocks: Blocks, session_duration_s: float) -> list[Candidat
 
 def plateau_levels(blocks: Blocks, channel: str) -> np.ndarray:
     """The channel's mean over each plateau: the levels a smooth effect of it is learned from."""
+    return plateau_means(blocks, blocks.aux[channel])
+
+
+def plateau_means(blocks: Blocks, values: np.ndarray) -> np.ndarray:
+    """The mean of a block quantity over each plateau."""
     _, idx = np.unique(blocks.plateau, return_inverse=True)
-    return np.bincount(idx, blocks.aux[channel]) / np.bincount(idx)
+    return np.bincount(idx, values) / np.bincount(idx)
 
 
 def smooth_terms(channel: str, levels: np.ndarray, form: str = "bias") -> tuple[Term, ...]:
@@ -246,28 +263,54 @@ def smooth_terms(channel: str, levels: np.ndarray, form: str = "bias") -> tuple[
     others; each is written into the set in piecewise-polynomial form (a segment lookup and a
     cubic per sample).
     """
+    basis = bspline_basis(levels)
+    if basis is None:
+        return ()
+    breaks, pieces = basis
+    return tuple(Term.of(CHANNEL_SPLINE, form, 0.0, channel=channel, knots=breaks, pieces=p)
+                 for p in pieces[1:])
+
+
+def rate_smooth_terms(channel: str, reference: float, dv_levels: np.ndarray) -> tuple[Term, ...]:
+    """The channel's level times each cubic B-spline basis function of ΔV over the span of the
+    plateaus' ``dv_levels``: a coefficient of the channel that changes smoothly with rate (a
+    scale-factor temperature coefficient that depends on rate). All basis functions: they sum to
+    one, so together they hold the channel's plain level, and in ΔV the scale form too. Bias form
+    only (R(ΔV) holds ΔV itself where the data want it). Empty when the rates are too few."""
+    basis = bspline_basis(dv_levels, RATE_SMOOTH_MAX_INTERIOR)
+    if basis is None:
+        return ()
+    breaks, pieces = basis
+    return tuple(Term.of(CHANNEL_RATE_SPLINE, "bias", 0.0, channel=channel, reference=reference,
+                         knots=breaks, pieces=p) for p in pieces)
+
+
+def bspline_basis(levels: np.ndarray, max_interior: int = SMOOTH_MAX_INTERIOR
+                  ) -> tuple[tuple[float, ...], list[tuple[tuple[float, ...], ...]]] | None:
+    """The breaks and each basis function's pieces (piecewise-polynomial form) of a cubic B-spline
+    over the span of ``levels`` with interior knots at their quantiles, one more per
+    SMOOTH_LEVELS_PER_KNOT distinct levels up to ``max_interior``; None when the levels are too
+    few to fit one."""
     levels = np.sort(np.asarray(levels, dtype=float))
     span = float(levels[-1] - levels[0]) if levels.size else 0.0
     if not span > 0:
-        return ()
+        return None
     distinct = 1 + int(np.sum(np.diff(levels) > SMOOTH_LEVEL_SHARE * span))
-    n_interior = min(SMOOTH_MAX_INTERIOR, (distinct - SMOOTH_MIN_LEVELS) // SMOOTH_LEVELS_PER_KNOT + 1)
+    n_interior = min(max_interior, (distinct - SMOOTH_MIN_LEVELS) // SMOOTH_LEVELS_PER_KNOT + 1)
     if n_interior < 1:
-        return ()
+        return None
     lo, hi = float(levels[0]), float(levels[-1])
     interior = np.quantile(levels, np.linspace(0.0, 1.0, n_interior + 2)[1:-1])
     breaks = np.unique(np.concatenate([[lo], interior, [hi]]))
     knots = np.concatenate([[lo] * 3, breaks, [hi] * 3])
     n_basis = knots.size - 4
     out = []
-    for j in range(1, n_basis):
+    for j in range(n_basis):
         basis = BSpline(knots, np.eye(n_basis)[j], 3)
         derivs = [basis.derivative(d) if d else basis for d in range(4)]
-        pieces = tuple(tuple(float(derivs[d](b)) / (1.0, 1.0, 2.0, 6.0)[d] for d in range(4))
-                       for b in breaks[:-1])
-        out.append(Term.of(CHANNEL_SPLINE, form, 0.0, channel=channel,
-                           knots=tuple(float(b) for b in breaks), pieces=pieces))
-    return tuple(out)
+        out.append(tuple(tuple(float(derivs[d](b)) / (1.0, 1.0, 2.0, 6.0)[d] for d in range(4))
+                         for b in breaks[:-1]))
+    return tuple(float(b) for b in breaks), out
 
 
 def sample_noise(values: np.ndarray) -> float:
@@ -323,6 +366,7 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
                   _pair(CHANNEL_DIRECTION, channel=name, threshold_raw=thr)),
         *gated,
     ]
+
 
 
 def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple[Term, ...]:

@@ -30,6 +30,7 @@ What the loop leaves unexplained is judged afterwards (:mod:`canical.closed_loop
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -73,12 +74,14 @@ from canical.sets.term_kinds import (
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_OFFSET,
+    CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
     DIRECTION,
     TIME,
     TIME_WARMUP,
 )
-from canical.sets.terms import Term, gated_name, term_from_dict
+from canical.sets.terms import Term, gated_name, spline_group, term_from_dict
 
 MIN_GAIN = 0.10
 ALPHA = 1e-3
@@ -582,7 +585,7 @@ def run_loop(
             if chosen is None:
                 continue
             best = chosen
-        pruned = _prune(scorer, s, best)
+        pruned = _pruned(scorer, s, best)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)
         f, p = f_test(current, after, scorer.n_plateaus)
@@ -676,6 +679,7 @@ def _confounded_with(
     alone = {c.name: footing.of(c.terms, footing.own[c.name]) for c in hopeful}
     useful = [c for c in hopeful if held_rms(alone[c.name]) < r_now * (1 - min_gain)] or [best]
     best = min(useful, key=lambda c: held_rms(alone[c.name]) if c.name in alone else r_now)
+    best = _simplest_paid(best, useful, alone, held_rms, min_gain)
     best_s = alone.get(best.name, footing.with_terms(best.terms))
     check = ConfoundCheck(best, evidence={best.name: Comparison(held_rms(best_s), 0.5)})
     _sort_twins(scorer, footing, check, best_s, [c for c in useful if c is not best], alone, min_gain)
@@ -684,6 +688,18 @@ def _confounded_with(
         check.twins.remove(nested)
         check.shadows.append(nested)
     return check
+
+
+def _simplest_paid(best: Candidate, useful: list[Candidate], alone: dict[str, Structure],
+                   held_rms: Callable[[Structure], float], min_gain: float) -> Candidate:
+    """The best, or the best of the simpler forms it nests when it does not beat them by the loop's
+    own bar for an effect (``min_gain``): a smooth coefficient in rate that predicts 4 % better
+    than the channel's plain level has not shown that its extra shape is there."""
+    if best.name not in alone:
+        return best
+    bar = held_rms(alone[best.name]) / (1 - min_gain)
+    simpler = [c for c in useful if c.name in alone and _nests(best, c) and held_rms(alone[c.name]) <= bar]
+    return min(simpler, key=lambda c: held_rms(alone[c.name])) if simpler else best
 
 
 def _sort_twins(scorer: Scorer, footing: _Footing, check: ConfoundCheck, best_s: Structure,
@@ -731,14 +747,29 @@ def _prefer_level(scorer: Scorer, check: ConfoundCheck, alone: dict[str, Structu
 
 def _nests(general: Candidate, simple: Candidate) -> bool:
     """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
-    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞); a channel's
-    smooth form holds its level and square (a spline with knots everywhere)."""
+    and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞); a smooth form
+    holds what a spline with knots everywhere holds: a channel's smooth form its level and
+    square, its smooth coefficient in rate its level and its rate-gated level."""
     if general.name == WARMUP_NAME and simple.name == DRIFT_NAME:
         return True
-    generalises = (general.name.startswith("lag(") or general.name == gated_name(general.channel or "")
-                   or general.name == CHANNEL_SPLINE.label(general.channel or ""))
-    return (general.kind == simple.kind == CHANNEL and general.channel == simple.channel
-            and generalises and simple.name.startswith("channel:"))
+    if general.kind != CHANNEL or simple.kind != CHANNEL or general.channel != simple.channel:
+        return False
+    return simple.name in _simpler_forms(general.name, general.channel or "")
+
+
+def _simpler_forms(name: str, channel: str) -> tuple[str, ...]:
+    """The candidates of ``channel`` that the candidate ``name`` holds in a limit."""
+    level = CHANNEL_OFFSET.label(channel)
+    lag = CHANNEL_LAG.label(channel)
+    nested = {
+        lag: (level,),
+        gated_name(channel): (level,),
+        CHANNEL_SPLINE.label(channel): (level,),
+        CHANNEL_RATE_SPLINE.label(channel): (level, gated_name(channel)),
+    }
+    if name.startswith("lag("):  # the lag's name may carry its τ
+        name = lag
+    return nested.get(name, ())
 
 
 def knee_dps(poly: PiecewisePoly, knee_raw: float | None) -> float:
@@ -773,11 +804,11 @@ def _drop_unpaid(
 
 
 def _units(terms: tuple[Term, ...]) -> list[tuple[Term, ...]]:
-    """The terms as the units pruning drops: each term alone, a spline's basis (same channel,
-    form and knots) as one, in the order the terms come."""
+    """The terms as the units pruning drops: each term alone, a spline's basis (same kind,
+    channel, form, reference and knots) as one, in the order the terms come."""
     units: dict[Any, tuple[Term, ...]] = {}
     for j, t in enumerate(terms):
-        key = (t.channel, t.form, t.knots) if t.spec is CHANNEL_SPLINE else j
+        key = spline_group(t) if t.spec.needs_spline else j
         units[key] = (*units.get(key, ()), t)
     return list(units.values())
 
@@ -785,6 +816,24 @@ def _units(terms: tuple[Term, ...]) -> list[tuple[Term, ...]]:
 def _prune_all(scorer: Scorer, s: Structure) -> Structure:
     """With the final base size, drop any accepted column that no longer earns its keep."""
     return replace(s, terms=_drop_unpaid(scorer, s, (), s.terms))
+
+
+def _pruned(scorer: Scorer, s: Structure, cand: Candidate) -> Candidate:
+    """The candidate's columns that pay, pruned on the current base and on the base chosen again
+    with the candidate in; where the two differ, the set whose structure, sized again, predicts
+    the held-out plateaus better. Why both: on a base too small for the effect a column that
+    only pays once the base fits is dropped for good (a knee's scale terms), while a column that
+    pays only on the larger base may leave the next size choice worse off."""
+    here = _prune(scorer, s, cand)
+    sized = reselect_size(scorer, replace(s, terms=s.terms + cand.terms), scorer.duration_s)
+    there = _prune(scorer, replace(sized, terms=s.terms), cand)
+    if there.terms == here.terms:
+        return here
+
+    def resized(c: Candidate) -> float:
+        return scorer.held_rms(reselect_size(scorer, replace(s, terms=s.terms + c.terms), scorer.duration_s))
+
+    return min((here, there), key=resized)
 
 
 def _prune(scorer: Scorer, s: Structure, cand: Candidate) -> Candidate:

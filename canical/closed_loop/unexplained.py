@@ -33,7 +33,6 @@ import numpy as np
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
 from canical.robust_stats import mad_sigma
-from canical.sets.term_kinds import CHANNEL_SPLINE
 
 # Clean simulated sensors (white noise, or with bias instability and rate random
 # walk) leave 1.0-1.4x the floor on held-out plateaus; an unexplained effect the
@@ -67,7 +66,7 @@ def candidate_variables(candidates: list[Candidate], blocks: Blocks) -> dict[str
     channel: its first term is one basis function of it), and time since power-on."""
     out = {"time since power-on": blocks.time_s}
     for cand in candidates:
-        smooth = cand.terms[0].spec is CHANNEL_SPLINE and cand.channel is not None
+        smooth = cand.terms[0].spec.needs_spline and cand.channel is not None
         out[cand.name] = blocks.aux[cand.channel or ""] if smooth else feature(cand.terms[0], blocks)
     return out
 

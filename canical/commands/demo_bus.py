@@ -193,11 +193,14 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
 
         # 4. The device's corrected rates against `canical apply` on the same frames.
         say(window.describe())
-        keep = window.selects(live)
-        keep &= live.array("device_tag") == new_tag
+        inside = window.selects(live)
+        tagged = inside & (live.array("device_tag") == new_tag)
         # A raw frame whose IMU_RATE was not matched (lost, or paired with another counter
         # value) has no device rate: compare only frames that have both.
-        keep &= np.isfinite(live.array(f"device_rate_{o.axis}"))
+        keep = tagged & np.isfinite(live.array(f"device_rate_{o.axis}"))
+        if keep.sum() < o.field_samples:
+            say(f"  of the window's {o.field_samples} samples: {int(inside.sum())} raw frames received, "
+                f"{int(tagged.sum())} with the new set's tag, {int(keep.sum())} with a device rate")
         field_session = _field_session(live, keep, o.axis, sensor)
         applied = _apply_in(scratch, result.coefficients, format_session(field_session), out, say)
         write_text_atomic(out / "bus-field.csv", format_session(field_session))

@@ -2,7 +2,8 @@
 
 * residual versus table rate, before and after the closed loop (held-out plateaus);
 * per accepted effect, the residual the effect explains versus its variable
-  (channel value, time since power-on, or direction state), with the fitted term;
+  (channel value, time since power-on, or direction state), with the fitted term; a
+  channel's coefficient that changes with rate, versus the table rate, coloured by the channel;
 * per confounded pair, the residual against each candidate's variable;
 * what stays unexplained: the held-out residual after the loop against time and
   against every candidate variable (each channel's level, derivative, lag,
@@ -29,7 +30,7 @@ from canical.closed_loop.candidates import DIRECTION_NAME, SLOPE_NAME, WARMUP_NA
 from canical.closed_loop.findings import Confound, Effect
 from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
-from canical.sets.term_kinds import CHANNEL_OFFSET, TIME
+from canical.sets.term_kinds import CHANNEL_OFFSET, CHANNEL_RATE_SPLINE, TIME
 from canical.sets.terms import term_from_dict
 
 
@@ -75,7 +76,7 @@ def variable_label(name: str) -> str:
     if name.startswith(LEVEL_PREFIX):
         channel = name.removeprefix(LEVEL_PREFIX)
         return f"{channel} ({channel_unit(channel)})"
-    smooth = re.fullmatch(r"smooth\((.+)\)", name)
+    smooth = re.fullmatch(r"smooth\((.+?)(?: × rate)?\)", name)
     if smooth:  # a learned function of the channel: drawn against the channel itself
         return f"{smooth.group(1)} ({channel_unit(smooth.group(1))})"
     if name.startswith(WARMUP_NAME):
@@ -130,10 +131,18 @@ def effect_plot(loop: LoopResult, effect: Effect, path: Path) -> None:
     terms = tuple(term_from_dict(t) for t in effect.terms)
     contribution = effect_contribution(loop.fit, blocks, terms)
     x, label = variable_of(effect.name, blocks, loop)
+    by_rate = any(t.spec is CHANNEL_RATE_SPLINE for t in terms)
     # The correction subtracts the error, so the sensor's error is the negative contribution.
     fig, ax = plt.subplots(figsize=(8, 4.2))
-    ax.plot(x, -(resid + contribution), ".", ms=3, alpha=0.6, label="sensor error explained (blocks)")
-    ax.plot(x, -contribution, "x", ms=3, alpha=0.8, label="fitted terms (scale-factor terms vary with rate)")
+    if by_rate:  # a channel's coefficient changing with rate: along the rate, coloured by the channel
+        dots = ax.scatter(blocks.points.rate, -(resid + contribution), c=x, s=6, alpha=0.7,
+                          label="sensor error explained (blocks)")
+        fig.colorbar(dots, ax=ax, label=label)
+        x, label = blocks.points.rate, "table rate (deg/s)"
+    else:
+        ax.plot(x, -(resid + contribution), ".", ms=3, alpha=0.6, label="sensor error explained (blocks)")
+    ax.plot(x, -contribution, "x", ms=3, alpha=0.8, color="k" if by_rate else None,
+            label="fitted terms (scale-factor terms vary with rate)")
     ax.set_xlabel(label)
     ax.set_ylabel("rate error (deg/s)")
     ax.set_title(

@@ -412,26 +412,74 @@ class ChannelSpline(ChannelKind):
         return spline_one(term.knots or (), term.pieces or (), float(inputs[term.channel]))  # type: ignore[index]
 
     def code(self, term: Term, names: CodeNames) -> list[str]:
-        """:func:`spline_one` written out, its knots and pieces as constants."""
-        knots, pieces, last = term.knots or (), term.pieces or (), len(term.pieces or ()) - 1
-        lo, hi = knots[0], knots[-1]
-        return [f"    w = float({names.value})",
-                f"    w = {lo!r} if w < {lo!r} else {hi!r} if w > {hi!r} else w",
-                f"    i = bisect_right({knots!r}, w) - 1",
-                f"    i = 0 if i < 0 else {last} if i > {last} else i",
-                f"    a0, a1, a2, a3 = {pieces!r}[i]",
-                f"    u = w - {knots!r}[i]",
-                "    x = ((a3 * u + a2) * u + a1) * u + a0",
+        return [*spline_code(term, f"float({names.value})"),
                 f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"smooth({channel})"
 
     def reach(self, term: Term, inputs: float) -> float:
-        """Σ|a_j|·h^j of the largest segment: S is flat beyond the knots, whatever the input."""
-        knots, pieces = term.knots or (0.0, 0.0), term.pieces or ()
-        return max((sum(abs(a) * (b - k) ** j for j, a in enumerate(row))
-                    for k, b, row in zip(knots[:-1], knots[1:], pieces, strict=True)), default=0.0)
+        return spline_reach(term)
+
+
+def spline_code(term: Term, variable: str) -> list[str]:
+    """:func:`spline_one` of the expression ``variable`` written out as statements leaving S in
+    ``x``, the term's knots and pieces as constants."""
+    knots, pieces, last = term.knots or (), term.pieces or (), len(term.pieces or ()) - 1
+    lo, hi = knots[0], knots[-1]
+    return [f"    w = {variable}",
+            f"    w = {lo!r} if w < {lo!r} else {hi!r} if w > {hi!r} else w",
+            f"    i = bisect_right({knots!r}, w) - 1",
+            f"    i = 0 if i < 0 else {last} if i > {last} else i",
+            f"    a0, a1, a2, a3 = {pieces!r}[i]",
+            f"    u = w - {knots!r}[i]",
+            "    x = ((a3 * u + a2) * u + a1) * u + a0"]
+
+
+def spline_reach(term: Term) -> float:
+    """The largest |S|: Σ|a_j|·h^j of the largest segment (S is flat beyond the knots)."""
+    knots, pieces = term.knots or (0.0, 0.0), term.pieces or ()
+    return max((sum(abs(a) * (b - k) ** j for j, a in enumerate(row))
+                for k, b, row in zip(knots[:-1], knots[1:], pieces, strict=True)), default=0.0)
+
+
+class ChannelRateSpline(ChannelKind):
+    """x = (v − ref)·R(ΔV): a channel's coefficient that changes smoothly with rate (a scale-factor
+    temperature coefficient that depends on rate: the nonlinearity's shape changes with the
+    channel). R is a piecewise cubic of ΔV = raw − V0 in raw units with the same ``knots`` and
+    ``pieces`` as :class:`ChannelSpline`, flat beyond its end knots. Bias form c·x covers a
+    coefficient of any smooth shape in rate (R holds its own ΔV factor where the data want one);
+    scale form c·x·ΔV. Stateless: one lookup and a cubic per sample, like the gated level.
+    """
+
+    feature = "rate_spline"
+    c_name = None
+    needs_spline = True
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        if dv is None:
+            raise ValueError("a rate_spline term needs ΔV = raw − V0")
+        offset = _column(inputs, term.channel) - term.reference
+        r = spline_values(term.knots or (), term.pieces or (), np.asarray(dv, dtype=float))
+        out: np.ndarray = offset * r
+        return out
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        offset = float(inputs[term.channel]) - term.reference  # type: ignore[index]
+        return offset * spline_one(term.knots or (), term.pieces or (), dv)
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        return [*spline_code(term, "dv"), f"    x = ({names.value} - {term.reference!r}) * x",
+                f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
+
+    def describe(self, term: Term) -> str:
+        return self.label(term.channel or "?")
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"smooth({channel} × rate)"
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return (inputs + abs(term.reference)) * spline_reach(term)
 
 
 def gated_name(channel: str, knee_dps: float | None = None) -> str:
@@ -574,6 +622,7 @@ CHANNEL_DERIVATIVE = ChannelDerivative()
 CHANNEL_DIRECTION = ChannelDirection()
 CHANNEL_GATED = ChannelGated()
 CHANNEL_SPLINE = ChannelSpline()
+CHANNEL_RATE_SPLINE = ChannelRateSpline()
 TIME_WARMUP = TimeWarmup()
 TIME_LINEAR = TimeLinear()
 DIRECTION_SIGN = DirectionSign()
@@ -581,7 +630,8 @@ DIRECTION_SLOPE = DirectionSlope()
 
 #: Every kind this canical version reads, in the order error messages list them.
 ALL: tuple[TermKind, ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNEL_DERIVATIVE,
-                             CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_SPLINE, TIME_WARMUP, TIME_LINEAR,
+                             CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_SPLINE, CHANNEL_RATE_SPLINE,
+                             TIME_WARMUP, TIME_LINEAR,
                              DIRECTION_SIGN, DIRECTION_SLOPE)
 _BY_KEY = {k.key: k for k in ALL}
 #: The features of each kind, as the set file names them.

@@ -77,7 +77,7 @@ __all__ = [
     "FEATURES", "FORMS", "STATEFUL_CHANNEL", "TERM_FIELDS", "TIME_INPUT", "ChannelTracker",
     "DirectionTracker", "SlopeTracker", "Term", "direction_state",
     "feature_values", "gate_one", "gated_name", "lag_filter", "merge_splines", "rate_gate", "raw_shift",
-    "slope_state", "term_from_dict",
+    "slope_state", "spline_group", "term_from_dict",
 ]
 
 FORMS = ("bias", "scale")
@@ -216,9 +216,15 @@ def _spline_fields(d: Mapping[str, Any], where: str
     return tuple(float(k) for k in knots), tuple(tuple(float(a) for a in row) for row in pieces)
 
 
+def spline_group(t: Term) -> tuple[Any, ...]:
+    """What the basis functions of one learned spline share: all but their pieces and coefficient."""
+    return (t.kind, t.feature, t.channel, t.form, t.reference, t.knots)
+
+
 def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
-    """The terms with each group of splines of one channel, form and knots written as one:
-    Σ c_j·S_j(v) is one piecewise cubic with pieces Σ c_j·pieces_j and coefficient 1.
+    """The terms with each group of splines (:func:`spline_group`) written as one: Σ c_j·S_j is one
+    piecewise cubic with pieces Σ c_j·pieces_j and coefficient 1 (of a channel, or of ΔV times
+    the same channel level).
 
     Why: the closed loop fits a spline as one term per basis function; the set needs one segment
     lookup and one cubic per sample, not one per basis function. The merged term gives the same
@@ -228,7 +234,7 @@ def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
     groups: dict[Any, list[Term]] = {}
     order: list[Any] = []
     for j, t in enumerate(terms):
-        key = ("spline", t.channel, t.form, t.knots) if t.spec.needs_spline else j
+        key = spline_group(t) if t.spec.needs_spline else j
         if key not in groups:
             order.append(key)
         groups.setdefault(key, []).append(t)

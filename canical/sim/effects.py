@@ -173,6 +173,27 @@ class HighRateTemperatureEffect:
 
 
 @dataclass(frozen=True)
+class RateDependentTemperatureEffect:
+    """A scale-factor temperature coefficient that grows smoothly with rate: the nonlinearity's
+    shape changes with temperature. Relative scale error k·(T − ref)·s(ω), s = r²/(1 + r²) with
+    r = ω/ω_s: nearly nothing at low rate, k·(T − ref) at high rate, no knee anywhere."""
+
+    channel: str = "temp_c"
+    reference_c: float = 25.0
+    scale_per_c: float = 2e-4
+    onset_dps: float = 20.0
+
+    def shape(self, rate_dps: np.ndarray) -> np.ndarray:
+        r2 = (np.asarray(rate_dps, dtype=float) / self.onset_dps) ** 2
+        out: np.ndarray = r2 / (1.0 + r2)
+        return out
+
+    def errors(self, time_s, rate_dps, aux):
+        w = np.asarray(rate_dps, dtype=float)
+        return np.zeros_like(w), self.scale_per_c * (aux[self.channel] - self.reference_c) * self.shape(w)
+
+
+@dataclass(frozen=True)
 class HiddenVariableEffect:
     """Bias following a variable nobody recorded (humidity, a neighbour's vibration...).
 

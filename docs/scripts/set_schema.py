@@ -88,9 +88,11 @@ FIELDS: tuple[Field, ...] = (
         "threshold of a direction tracker, or the knee of a gated term, in the units the feature names",
     ),
     Field("terms[].knots", "list of 2 to 64 increasing numbers",
-          "`spline` only: the segment ends of the channel's piecewise cubic (flat beyond the ends)"),
+          "`spline` and `rate_spline` only: the segment ends of the piecewise cubic, of the channel or of "
+          "ΔV in raw units (flat beyond the ends)"),
     Field("terms[].pieces", "one list of 4 numbers per segment",
-          "`spline` only: a0 a1 a2 a3 of a0 + a1·u + a2·u² + a3·u³ with u = v − the segment's first knot"),
+          "`spline` and `rate_spline` only: a0 a1 a2 a3 of a0 + a1·u + a2·u² + a3·u³ with u = its variable "
+          "− the segment's first knot"),
     Field(
         "fit",
         "mapping",
@@ -112,10 +114,11 @@ Effects act on the sensor's output, so a term corrects ΔV before the rate model
 `channel` — `offset` v − ref, `square` (v − ref)², `lag` the channel through a first-order lag τ,
 `derivative` its rate of change smoothed over τ, `direction` the sign of its last significant
 change (hysteresis), `gated` its level acting only beyond a knee in the output, `spline` a piecewise
-cubic of it learned by the closed loop (`knots`, `pieces`; flat beyond the end knots); `time` (input
-`time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t; `direction` (of the raw
-output) — `sign` its last significant rise or fall, `slope` its rate of change. The kinds this
-canical accepts:"""
+cubic of it learned by the closed loop (`knots`, `pieces`; flat beyond the end knots),
+`rate_spline` its level times a piecewise cubic of ΔV (a coefficient changing with rate; same
+`knots`, `pieces`); `time` (input `time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
+`direction` (of the raw output) — `sign` its last significant rise or fall, `slope` its rate of
+change. The kinds this canical accepts:"""
 
 EXAMPLE_INTRO = "An example, written by `canical calibrate` (a simulated session, 3 segments, order 2):"
 

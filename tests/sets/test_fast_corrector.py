@@ -28,6 +28,7 @@ from canical.sets.fast_corrector import (
     why_not,
     with_state,
 )
+from canical.sets.term_kinds import lookup
 from canical.sets.terms import STATEFUL_CHANNEL, Term
 
 INPUTS = ("temp_c", "supply_v")
@@ -53,7 +54,7 @@ def terms(draw) -> dict:
         term["threshold_raw"] = draw(st.floats(0.5, 500.0))
     if kind == "channel" and feature == "direction":
         term["threshold_raw"] = draw(st.floats(0.01, 50.0))  # in the channel's own units
-    if feature == "spline":
+    if lookup(kind, feature).needs_spline:  # type: ignore[union-attr]
         knots = sorted(set(draw(st.lists(finite, min_size=2, max_size=7))))
         if len(knots) < 2:
             knots = [knots[0], knots[0] + 1.0]
