@@ -139,6 +139,7 @@ static const term_spec TERM_SPECS[] = {
     {"channel", "derivative", CE_TERM_CHANNEL_DERIVATIVE, NEEDS_CHANNEL | NEEDS_TAU},
     {"channel", "direction", CE_TERM_CHANNEL_DIRECTION, NEEDS_CHANNEL | NEEDS_THRESHOLD},
     {"channel", "spline", CE_TERM_CHANNEL_SPLINE, NEEDS_CHANNEL | NEEDS_SPLINE},
+    {"channel", "rate_spline", CE_TERM_CHANNEL_RATE_SPLINE, NEEDS_CHANNEL | NEEDS_SPLINE},
     {"time", "warmup", CE_TERM_TIME_WARMUP, NEEDS_TAU},
     {"time", "linear", CE_TERM_TIME_LINEAR, 0u},
     {"direction", "sign", CE_TERM_DIRECTION_SIGN, NEEDS_THRESHOLD},
@@ -1619,6 +1620,53 @@ static double horner_d(const double *c, int n, double u)
     return acc;
 }
 
+/* canical.sets.finite_outputs.forward_bound for a set without terms: 1 when the forward
+ * polynomial's slope is finite and of one sign at 512 points across the rate span (as numpy's
+ * linspace places them), sum |a_k| u^k stays within 1e150 (u the largest |rate| / rate_scale),
+ * and the rate extrapolated 2^33 counts beyond the span by the edge slope stays within 1e150: a
+ * polynomial without an inverse, or whose outputs overflow, is refused as canical refuses it. */
+static int forward_invertible(const reading *r, double lo, double hi)
+{
+    const double limit = 1e150, reach_raw = 8589934592.0; /* RATE_LIMIT_DPS, RAW_REACH = 2^33 */
+    double a = r->rate_span[0], b = r->rate_span[1], step = (b - a) / 511.0;
+    double u_max = (a < 0.0 ? -a : a) > (b < 0.0 ? -b : b) ? (a < 0.0 ? -a : a) : (b < 0.0 ? -b : b);
+    double sum = 0.0, power = 1.0, first = 0.0, last = 0.0, reach, edge;
+    int i, k, n = r->coeff_width, positive = 0, negative = 0, zero = 0;
+    for (k = 0; k < n; k++) {
+        sum += (r->flat[k] < 0.0 ? -r->flat[k] : r->flat[k]) * power;
+        power *= u_max / r->rate_scale;
+    }
+    if (!(sum <= limit)) {
+        return 0;
+    }
+    for (i = 0; i < 512; i++) {
+        double u = (i == 511 ? b : (double)i * step + a) / r->rate_scale, d = (double)(n - 1) * r->flat[n - 1];
+        for (k = n - 2; k >= 1; k--) {
+            d = d * u + (double)k * r->flat[k];
+        }
+        d /= r->rate_scale;
+        if (!(d - d == 0.0)) {
+            return 0;
+        }
+        positive |= d > 0.0;
+        negative |= d < 0.0;
+        zero |= d == 0.0;
+        if (i == 0) {
+            first = d < 0.0 ? -d : d;
+        }
+        last = d < 0.0 ? -d : d;
+    }
+    if (zero || positive == negative) {
+        return 0; /* the slope changes sign or is zero somewhere: no inverse */
+    }
+    reach = lo - (r->span[0] - r->v0 - reach_raw);
+    if ((r->span[1] - r->v0 + reach_raw) - hi > reach) {
+        reach = (r->span[1] - r->v0 + reach_raw) - hi;
+    }
+    edge = first < last ? first : last;
+    return u_max + (reach > 0.0 ? reach : 0.0) / edge <= limit;
+}
+
 static int serial_matches(uint32_t serial, const uint8_t *id, uint32_t n)
 {
     char digits[10];
@@ -1797,6 +1845,9 @@ static int derive(ce_set *s, const reading *r)
         s->newton_tol = (float)(1e-6 * (r->rate_span[1] - r->rate_span[0]));
         lo = f_lo < f_hi ? f_lo : f_hi;
         hi = f_lo < f_hi ? f_hi : f_lo;
+        if (!forward_invertible(r, lo, hi)) {
+            return CE_ERR_FIELD;
+        }
     } else {
         s->model = 0;
         s->n_segments = (uint8_t)r->coeff_rows;

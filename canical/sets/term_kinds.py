@@ -449,11 +449,13 @@ class ChannelRateSpline(ChannelKind):
     channel). R is a piecewise cubic of ΔV = raw − V0 in raw units with the same ``knots`` and
     ``pieces`` as :class:`ChannelSpline`, flat beyond its end knots. Bias form c·x covers a
     coefficient of any smooth shape in rate (R holds its own ΔV factor where the data want one);
-    scale form c·x·ΔV. Stateless: one lookup and a cubic per sample, like the gated level.
+    scale form c·x·ΔV. Stateless: one lookup and a cubic per sample, like the gated level. The C
+    evaluator runs R with the spline's own steps (``spline_at`` of the raw output, its knots held
+    in raw counts as b + V0), then (v − ref)·R in float32.
     """
 
     feature = "rate_spline"
-    c_name = None
+    c_name = "CE_TERM_CHANNEL_RATE_SPLINE"
     needs_spline = True
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:

@@ -61,6 +61,19 @@ def _saturating_slope(t: float) -> float:
     return 6.0 / float(np.cosh((t - 25.0) / 10.0)) ** 2
 
 
+#: ΔV knots (raw counts) of the rate spline: across the span and beyond (flat there), half a count
+#: off the integers (raw counts are integers; V0 is not either).
+RATE_KNOTS = [-30000.5, -15000.5, -5000.5, 0.5, 5000.5, 15000.5, 30000.5]
+
+
+def _rate_shape(dv: float) -> float:
+    return 1.5 * float(np.tanh(dv / 12000.0))
+
+
+def _rate_shape_slope(dv: float) -> float:
+    return 1.5 / 12000.0 / float(np.cosh(dv / 12000.0)) ** 2
+
+
 def saturating_spline(knots: list[float]) -> dict:
     """A bias spline of temperature through 60·tanh((T − 25)/10) counts on ``knots``."""
     return {"kind": "channel", "channel": "temp_c", "feature": "spline", "form": "bias", "coefficient": 1.0,
@@ -150,6 +163,16 @@ TERMS = {
         "threshold_raw": 0.0375,
     },
     "channel-spline": saturating_spline(SPLINE_KNOTS),
+    "channel-rate-spline": {  # a temperature coefficient that grows with rate and saturates
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "rate_spline",
+        "form": "bias",
+        "coefficient": 1.0,
+        "reference": 25.0,
+        "knots": RATE_KNOTS,
+        "pieces": hermite_pieces(RATE_KNOTS, _rate_shape, _rate_shape_slope),
+    },
 }
 
 #: The stateful channel transforms in their other form (TERMS holds one form of each).
@@ -158,6 +181,7 @@ OTHER_FORMS = {
     "channel-derivative-bias": dict(TERMS["channel-derivative"], form="bias", coefficient=150.0),
     "channel-direction-scale": dict(TERMS["channel-direction"], form="scale", coefficient=3e-4),
     "channel-spline-scale": dict(TERMS["channel-spline"], form="scale", coefficient=2e-5),
+    "channel-rate-spline-scale": dict(TERMS["channel-rate-spline"], form="scale", coefficient=1e-4),
 }
 ALL_TERMS = {**TERMS, **OTHER_FORMS}
 

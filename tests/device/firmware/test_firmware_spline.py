@@ -58,7 +58,7 @@ from canical.sets.terms import term_from_dict
 # own float32 error (TOLERANCE_DPS, as for every set without terms).
 
 #: The spline kinds (their x; the variable of S: the channel, or the output's ΔV).
-SPLINE_FEATURES = ("spline",)
+SPLINE_FEATURES = ("spline", "rate_spline")
 
 
 def shift_bound(term: dict, dv_max: float, v: np.ndarray, v0: float) -> float:
