@@ -272,3 +272,28 @@ def test_the_device_limits_are_canicals():
     assert limit("CE_MAX_SPLINE_KNOTS") == MAX_SPLINE_KNOTS
     assert limit("CE_MAX_SPLINES") == MAX_SPLINE_TERMS
     assert limit("CE_MAX_TERMS") == MAX_TERMS
+
+
+@pytest.mark.parametrize("effect", ["smooth(load)", "smooth(temp_c × rate)"])
+def test_a_learned_smooth_effect_runs_on_the_device_as_apply(lib, effect):
+    """What the closed loop writes for a smooth effect (a channel's spline; a coefficient that
+    changes with rate), corrected by the C evaluator on the session's own samples (channels as
+    float32, as a device has them): within the derived bounds of apply, flags alike."""
+    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.sim.scenarios import SMOOTH_SCENARIOS
+
+    scenario = next(s for s in SMOOTH_SCENARIOS if effect in s.expect)
+    session = scenario.session(seed=1, dwell_s=8.0)
+    cset = calibrate(session, CalibrateOptions(), sensor_id="4711", axis="z").coefficients
+    splines = [t for t in cset.terms if t["feature"] in ("spline", "rate_spline")]
+    assert splines, [t["feature"] for t in cset.terms]
+    inputs = {k: np.asarray(v, dtype=np.float32).astype(float) for k, v in session.aux.items()}
+    inputs["time_s"] = session.time_s
+    raw = session.raw
+    expected, expected_oos = Corrector(cset).correct(raw, inputs)
+    rate, oos = FirmwareCorrector(cset, lib=lib).correct(raw, inputs)
+    np.testing.assert_array_equal(oos, expected_oos)
+    dv_max = float(np.max(np.abs(raw - cset.v0)))
+    bound = sum(shift_bound(t, dv_max, inputs[t["channel"]], cset.v0) for t in splines)
+    worst = float(np.max(np.abs(rate - expected)))
+    assert worst <= TOLERANCE_DPS + steepest_slope(cset) * bound, worst
