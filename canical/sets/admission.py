@@ -27,6 +27,7 @@ Pure: no bus, no files.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from itertools import pairwise
 
 import numpy as np
 
@@ -74,9 +75,12 @@ def evaluator_problem(cset: CoefficientSet) -> str | None:
                 f"(CE_MAX_SPLINES)")
     for i in splines:
         t = cset.terms[i]
-        values = [*t.get("knots", ()), *(a for row in t.get("pieces", ()) for a in row)]
-        if values and max(abs(float(v)) for v in values) > FLOAT32_MAX:
-            return f"terms[{i}]: a spline knot or piece beyond float32 range, which the device holds"
+        knots = [float(k) for k in t.get("knots", ())]
+        pieces = [float(a) for row in t.get("pieces", ()) for a in row]
+        values = [*knots, *(b - a for a, b in pairwise(knots)), *pieces]
+        if values and max(abs(v) for v in values) > FLOAT32_MAX:
+            return (f"terms[{i}]: a spline knot, knot spacing or piece beyond float32 range, "
+                    "which the device holds")
     return None
 
 

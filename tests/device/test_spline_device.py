@@ -81,7 +81,7 @@ def test_sets_the_device_cannot_hold_are_refused_before_writing() -> None:
     plan_push({"z": ("fits.yaml", fits)}, LIMITS, active, ids, NODE)  # the most knots, one spline: pushed
     for cset, reason in [(too_many, f"{MAX_SPLINE_TERMS + 1} spline terms, the device's evaluator holds "
                                     f"{MAX_SPLINE_TERMS}"),
-                         (beyond_float, "terms[0]: a spline knot or piece beyond float32 range"),
+                         (beyond_float, "terms[0]: a spline knot, knot spacing or piece beyond float32"),
                          (too_many_terms, f"{MAX_TERMS + 1} terms, the device's evaluator holds {MAX_TERMS}"),
                          (too_long, f"the device's coefficient banks hold {CAPACITY}")]:
         with pytest.raises(CanicalError) as refused:

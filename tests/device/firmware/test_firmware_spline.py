@@ -242,7 +242,8 @@ def test_what_only_the_device_refuses_canical_push_refuses_before_writing(lib):
                              for i in range(MAX_SPLINE_TERMS + 1)))
     huge = spline_bank(dict(ALL_TERMS["channel-spline"], pieces=[[1e39, 0.0, 0.0, 0.0], *PIECES[1:]]))
     far = spline_bank(dict(ALL_TERMS["channel-spline"], knots=[*KNOTS[:-1], 1e39]))
-    for d, words in ((too_many, "spline terms"), (huge, "float32"), (far, "float32")):
+    wide = spline_bank(dict(ALL_TERMS["channel-spline"], knots=[-2e38, 2e38], pieces=PIECES[:1]))
+    for d, words in ((too_many, "spline terms"), (huge, "float32"), (far, "float32"), (wide, "spacing")):
         content = json.dumps(d, sort_keys=True, separators=(",", ":")).encode()
         assert load_code(lib, content, zlib.crc32(content)) == CODES["CE_ERR_LIMIT"]
         assert words in (python_verdict(content, zlib.crc32(content)) or "")
