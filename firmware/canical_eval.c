@@ -9,7 +9,9 @@
  * does not prove a float spelling is the *shortest* round trip (it checks the form only).
  *
  * Adding a term kind: one row in TERM_SPECS and one case in term_feature() (which gets the
- * sample's dv = raw - V0 for terms that read the output, as a rate-gated channel does).
+ * sample's dv = raw - V0 for terms that read the output, as a rate-gated channel does). A kind
+ * with NEEDS_SPLINE carries a piecewise cubic (knots, pieces) in a ce_set.splines slot, evaluated
+ * by spline_at() of whichever variable the kind names.
  *
  * MIT licence, like the rest of canical.
  */
@@ -113,9 +115,14 @@ enum {
 /* A channel's level beyond a knee in |dv| (canical.sets.terms "gated"): its own code, apart from the list. */
 enum { CE_TERM_CHANNEL_GATED = 64 };
 
+/* Piecewise cubics (canical.sets.term_kinds.ChannelSpline): S(v) of the channel, and the channel's
+ * offset times R(dV) of the output (ChannelRateSpline); both through spline_at(). */
+enum { CE_TERM_CHANNEL_SPLINE = 65, CE_TERM_CHANNEL_RATE_SPLINE = 66 };
+
 #define NEEDS_CHANNEL 1u
 #define NEEDS_TAU 2u
 #define NEEDS_THRESHOLD 4u
+#define NEEDS_SPLINE 8u
 
 typedef struct {
     const char *kind;
@@ -131,6 +138,8 @@ static const term_spec TERM_SPECS[] = {
     {"channel", "lag", CE_TERM_CHANNEL_LAG, NEEDS_CHANNEL | NEEDS_TAU},
     {"channel", "derivative", CE_TERM_CHANNEL_DERIVATIVE, NEEDS_CHANNEL | NEEDS_TAU},
     {"channel", "direction", CE_TERM_CHANNEL_DIRECTION, NEEDS_CHANNEL | NEEDS_THRESHOLD},
+    {"channel", "spline", CE_TERM_CHANNEL_SPLINE, NEEDS_CHANNEL | NEEDS_SPLINE},
+    {"channel", "rate_spline", CE_TERM_CHANNEL_RATE_SPLINE, NEEDS_CHANNEL | NEEDS_SPLINE},
     {"time", "warmup", CE_TERM_TIME_WARMUP, NEEDS_TAU},
     {"time", "linear", CE_TERM_TIME_LINEAR, 0u},
     {"direction", "sign", CE_TERM_DIRECTION_SIGN, NEEDS_THRESHOLD},
@@ -947,6 +956,7 @@ typedef struct {
     double coefficient, reference, tau, threshold;
     int have_coefficient, have_reference, have_tau, have_threshold;
     int channel_ok; /* a non-empty channel name */
+    int have_knots, have_pieces, n_rows; /* a spline's, read into the set's next spline slot */
 } term_fields;
 
 /* A name (kind, feature, form): its bytes if it is a string; any other value is skipped and the
@@ -974,8 +984,134 @@ static int channel_value(cur *c, reading *r, uint8_t slot, term_fields *f)
     return 0;
 }
 
+/* The evaluator's entry for the term's (kind, feature), or NULL when it has none. */
+static const term_spec *find_term_spec(const term_fields *f)
+{
+    const term_spec *spec = NULL;
+    size_t i;
+    for (i = 0; i < N_TERM_SPECS; i++) {
+        if (bytes_are(f->kind, f->kind_n, TERM_SPECS[i].kind) &&
+            bytes_are(f->feature, f->feature_n, TERM_SPECS[i].feature)) {
+            spec = &TERM_SPECS[i];
+        }
+    }
+    return spec;
+}
+
+/* A spline knot as a float pair. A knot within a few double ulps of a float32 number (2^-50 of
+ * it) is that number (lo = 0): canical writes a float32 knot (a channel value as the device
+ * sees it) with 17 digits, which parse_number reads to within an ulp or two, and a sample
+ * exactly on such a knot must fall in the segment above it, as in canical. */
+static void split_knot(double d, float *hi, float *lo)
+{
+    split(d, hi, lo);
+    if ((double)*lo <= 0x1p-50 * (d < 0.0 ? -d : d) && (double)*lo >= -0x1p-50 * (d < 0.0 ? -d : d)) {
+        *lo = 0.0f;
+    }
+}
+
+/* A spline's knots into `sp`: 2..CE_MAX_SPLINE_KNOTS finite numbers, strictly increasing (more
+ * knots: CE_ERR_LIMIT), each within float range, kept as float pairs. */
+static int parse_knots(cur *c, ce_spline *sp, term_fields *f)
+{
+    int started = 0, more;
+    double prev = 0.0;
+    sp->n_knots = 0;
+    while ((more = next_element(c, &started)) == 1) {
+        double d;
+        int n = sp->n_knots;
+        if (n == CE_MAX_SPLINE_KNOTS) {
+            return fail(c, CE_ERR_LIMIT);
+        }
+        if (number_value(c, &d)) {
+            return c->err;
+        }
+        if (n > 0 && !(d > prev)) {
+            return fail(c, CE_ERR_FIELD);
+        }
+        if (!(d >= -FLT_MAX && d <= FLT_MAX) || (n > 0 && !(d - prev <= FLT_MAX))) {
+            return fail(c, CE_ERR_LIMIT); /* a float32 device cannot hold it */
+        }
+        CE_ASSERT(n < CE_MAX_SPLINE_KNOTS);
+        split_knot(d, &sp->knot_hi[n], &sp->knot_lo[n]);
+        if (n > 0) {
+            sp->top_u = (float)(d - prev); /* the last segment's width, once the list ends */
+        }
+        prev = d;
+        sp->n_knots = (uint8_t)(n + 1);
+    }
+    if (more < 0) {
+        return more;
+    }
+    if (sp->n_knots < 2) {
+        return fail(c, CE_ERR_FIELD);
+    }
+    f->have_knots = 1;
+    return 0;
+}
+
+/* A spline's pieces into `sp`: one row of 4 finite numbers (a0 a1 a2 a3) per segment of the knots
+ * read before them ("knots" sorts before "pieces"), each within float range. */
+static int parse_pieces(cur *c, ce_spline *sp, term_fields *f)
+{
+    int started = 0, more;
+    f->n_rows = 0;
+    if (!f->have_knots) {
+        return fail(c, CE_ERR_FIELD); /* pieces without knots */
+    }
+    while ((more = next_element(c, &started)) == 1) {
+        int row_started = 0, width = 0, m;
+        if (f->n_rows == sp->n_knots - 1) {
+            return fail(c, CE_ERR_FIELD); /* more rows than segments */
+        }
+        while ((m = next_element(c, &row_started)) == 1) {
+            double d;
+            if (width == 4) {
+                return fail(c, CE_ERR_FIELD);
+            }
+            if (number_value(c, &d)) {
+                return c->err;
+            }
+            if (!(d >= -FLT_MAX && d <= FLT_MAX)) {
+                return fail(c, CE_ERR_LIMIT);
+            }
+            CE_ASSERT(f->n_rows < CE_MAX_SPLINE_KNOTS - 1);
+            sp->pieces[f->n_rows][width++] = (float)d;
+        }
+        if (m < 0) {
+            return m;
+        }
+        if (width != 4) {
+            return fail(c, CE_ERR_FIELD);
+        }
+        f->n_rows++;
+    }
+    if (more < 0) {
+        return more;
+    }
+    f->have_pieces = 1;
+    return 0;
+}
+
+/* A term's "knots" or "pieces": into the set's next free spline slot when the term's kind (read
+ * before them: "feature" and "kind" sort first) carries a spline; skipped otherwise, as canical
+ * ignores them there. A set with more spline terms than CE_MAX_SPLINES: CE_ERR_LIMIT. */
+static int spline_field(cur *c, ce_set *set, term_fields *f, int knots)
+{
+    const term_spec *spec = find_term_spec(f);
+    if (spec == NULL || !(spec->needs & NEEDS_SPLINE)) {
+        return skip_value(c);
+    }
+    if (set->n_splines == CE_MAX_SPLINES) {
+        return fail(c, CE_ERR_LIMIT);
+    }
+    CE_ASSERT(set->n_splines < CE_MAX_SPLINES);
+    return knots ? parse_knots(c, &set->splines[set->n_splines], f)
+                 : parse_pieces(c, &set->splines[set->n_splines], f);
+}
+
 /* Every member of a term object; unknown members are skipped. */
-static int read_term_fields(cur *c, reading *r, uint8_t slot, term_fields *f)
+static int read_term_fields(cur *c, reading *r, ce_set *set, uint8_t slot, term_fields *f)
 {
     members it = {NULL, 0, 0};
     int more, bad;
@@ -990,6 +1126,8 @@ static int read_term_fields(cur *c, reading *r, uint8_t slot, term_fields *f)
             bad = name_value(c, &f->form, &f->form_n);
         } else if (key_is(&it, "kind")) {
             bad = name_value(c, &f->kind, &f->kind_n);
+        } else if (key_is(&it, "knots") || key_is(&it, "pieces")) {
+            bad = spline_field(c, set, f, key_is(&it, "knots"));
         } else if (key_is(&it, "reference")) {
             bad = optional_number(c, &f->reference, &f->have_reference);
         } else if (key_is(&it, "tau_s")) {
@@ -1006,24 +1144,15 @@ static int read_term_fields(cur *c, reading *r, uint8_t slot, term_fields *f)
     return more < 0 ? more : 0;
 }
 
-/* The evaluator's entry for the term's (kind, feature), or NULL when it has none. */
-static const term_spec *find_term_spec(const term_fields *f)
-{
-    const term_spec *spec = NULL;
-    size_t i;
-    for (i = 0; i < N_TERM_SPECS; i++) {
-        if (bytes_are(f->kind, f->kind_n, TERM_SPECS[i].kind) &&
-            bytes_are(f->feature, f->feature_n, TERM_SPECS[i].feature)) {
-            spec = &TERM_SPECS[i];
-        }
-    }
-    return spec;
-}
-
-/* 1 when the term has every field its kind needs, each in range, and a known form. */
-static int term_fields_ok(const term_spec *spec, const term_fields *f)
+/* 1 when the term has every field its kind needs, each in range, and a known form; a spline's
+ * knots and pieces (one row per segment) were checked as they were read into `spline`. */
+static int term_fields_ok(const term_spec *spec, const term_fields *f, const ce_spline *spline)
 {
     if (!bytes_are(f->form, f->form_n, "bias") && !bytes_are(f->form, f->form_n, "scale")) {
+        return 0;
+    }
+    if ((spec->needs & NEEDS_SPLINE) &&
+        !(f->have_knots && f->have_pieces && f->n_rows == (int)spline->n_knots - 1)) {
         return 0;
     }
     return !(((spec->needs & NEEDS_CHANNEL) && !f->channel_ok) || !f->have_coefficient ||
@@ -1048,7 +1177,7 @@ static void fill_term(ce_term *t, const term_spec *spec, const term_fields *f)
     }
 }
 
-static int parse_term(cur *c, reading *r, ce_term *t)
+static int parse_term(cur *c, reading *r, ce_set *set, ce_term *t)
 {
     term_fields f;
     const term_spec *spec;
@@ -1058,7 +1187,7 @@ static int parse_term(cur *c, reading *r, ce_term *t)
     zero(&f, sizeof f);
     r->channel[slot] = NULL;
     r->channel_n[slot] = 0;
-    err = read_term_fields(c, r, slot, &f);
+    err = read_term_fields(c, r, set, slot, &f);
     if (err) {
         return err;
     }
@@ -1066,13 +1195,19 @@ static int parse_term(cur *c, reading *r, ce_term *t)
     if (spec == NULL) {
         return fail(c, CE_ERR_TERM_KIND);
     }
-    if (!term_fields_ok(spec, &f)) {
+    if (set->n_splines == CE_MAX_SPLINES && (spec->needs & NEEDS_SPLINE)) {
+        return fail(c, CE_ERR_FIELD); /* no knots read (beyond the slots they meet CE_ERR_LIMIT) */
+    }
+    if (!term_fields_ok(spec, &f, &set->splines[set->n_splines < CE_MAX_SPLINES ? set->n_splines : 0])) {
         return fail(c, CE_ERR_FIELD);
     }
     if (!(spec->needs & NEEDS_CHANNEL)) {
         r->channel[slot] = NULL; /* only channel terms read a named input */
     }
     fill_term(t, spec, &f);
+    if (spec->needs & NEEDS_SPLINE) {
+        t->spline = set->n_splines++; /* the slot its knots and pieces were read into */
+    }
     return 0;
 }
 
@@ -1086,7 +1221,7 @@ static int parse_terms(cur *c, reading *r, ce_set *set)
         if (tok(c) != '{') {
             return fail(c, c->err ? c->err : CE_ERR_FIELD);
         }
-        if (parse_term(c, r, &set->terms[r->n_terms])) {
+        if (parse_term(c, r, set, &set->terms[r->n_terms])) {
             return c->err;
         }
         r->n_terms++;
@@ -1312,10 +1447,47 @@ static float channel_lag_gap(ce_term *t, float v, uint32_t now_ms)
     return (v - t->y) - t->y_err;
 }
 
-static float term_feature(ce_term *t, const ce_sample *in, float t_s, float dv)
+/* S(var) of a spline (canical.sets.term_kinds.spline_one), the same steps in the same order:
+ * var clamped to [b_0, b_m]; the segment i, the last knot at or below it (binary search: at
+ * most log2(CE_MAX_SPLINE_KNOTS) steps); Horner in u = var - b_i. The knot comparisons and u
+ * use the knots' float pairs, so the segment is the one double precision chooses. A NaN var
+ * gives NaN, as in canical. */
+static float spline_at(const ce_spline *sp, float var)
+{
+    int last = sp->n_knots - 2, lo = 0, hi;
+    const float *a;
+    float u;
+    CE_ASSERT(sp->n_knots >= 2 && sp->n_knots <= CE_MAX_SPLINE_KNOTS);
+    if ((var - sp->knot_hi[0]) < sp->knot_lo[0]) {
+        u = 0.0f; /* below b_0: w = b_0, segment 0 */
+    } else if ((var - sp->knot_hi[last + 1]) > sp->knot_lo[last + 1]) {
+        lo = last; /* above b_m: w = b_m, the last segment */
+        u = sp->top_u;
+    } else {
+        hi = last;
+        while (lo < hi) {
+            int mid = (lo + hi + 1) / 2;
+            if ((var - sp->knot_hi[mid]) >= sp->knot_lo[mid]) {
+                lo = mid;
+            } else {
+                hi = mid - 1;
+            }
+        }
+        u = (var - sp->knot_hi[lo]) - sp->knot_lo[lo];
+    }
+    CE_ASSERT(lo >= 0 && lo <= last);
+    a = sp->pieces[lo];
+    return ((a[3] * u + a[2]) * u + a[1]) * u + a[0];
+}
+
+static float term_feature(ce_term *t, const ce_spline *splines, const ce_sample *in, float t_s, float dv)
 {
     float x;
     switch (t->feature) {
+    case CE_TERM_CHANNEL_SPLINE: /* S(v) */
+        return spline_at(&splines[t->spline], in->inputs[t->input]);
+    case CE_TERM_CHANNEL_RATE_SPLINE: /* (v - ref) R(dV); R's knots are raw counts: compared with raw */
+        return (in->inputs[t->input] - t->reference) * spline_at(&splines[t->spline], in->raw);
     case CE_TERM_CHANNEL_GATED: /* (v - ref) * max(|dv| - knee, 0) / max(|dv|, knee) */
         x = dv < 0.0f ? -dv : dv;
         return x > t->threshold ? (in->inputs[t->input] - t->reference) * ((x - t->threshold) / x) : 0.0f;
@@ -1364,7 +1536,7 @@ int ce_eval(ce_set *s, const ce_sample *in, float *rate_dps)
     t_s = (float)in->time_ms * 0.001f;
     for (i = 0; i < s->n_terms; i++) {
         ce_term *t = &s->terms[i];
-        float f = term_feature(t, in, t_s, dv);
+        float f = term_feature(t, s->splines, in, t_s, dv);
         shift += t->coefficient * (t->scale_form ? f * dv : f);
     }
     if (!at_or_above(raw, shift, s->lo_hi, s->lo_lo)) {
@@ -1446,6 +1618,53 @@ static double horner_d(const double *c, int n, double u)
         acc = acc * u + c[k];
     }
     return acc;
+}
+
+/* canical.sets.finite_outputs.forward_bound for a set without terms: 1 when the forward
+ * polynomial's slope is finite and of one sign at 512 points across the rate span (as numpy's
+ * linspace places them), sum |a_k| u^k stays within 1e150 (u the largest |rate| / rate_scale),
+ * and the rate extrapolated 2^33 counts beyond the span by the edge slope stays within 1e150: a
+ * polynomial without an inverse, or whose outputs overflow, is refused as canical refuses it. */
+static int forward_invertible(const reading *r, double lo, double hi)
+{
+    const double limit = 1e150, reach_raw = 8589934592.0; /* RATE_LIMIT_DPS, RAW_REACH = 2^33 */
+    double a = r->rate_span[0], b = r->rate_span[1], step = (b - a) / 511.0;
+    double u_max = (a < 0.0 ? -a : a) > (b < 0.0 ? -b : b) ? (a < 0.0 ? -a : a) : (b < 0.0 ? -b : b);
+    double sum = 0.0, power = 1.0, first = 0.0, last = 0.0, reach, edge;
+    int i, k, n = r->coeff_width, positive = 0, negative = 0, zero = 0;
+    for (k = 0; k < n; k++) {
+        sum += (r->flat[k] < 0.0 ? -r->flat[k] : r->flat[k]) * power;
+        power *= u_max / r->rate_scale;
+    }
+    if (!(sum <= limit)) {
+        return 0;
+    }
+    for (i = 0; i < 512; i++) {
+        double u = (i == 511 ? b : (double)i * step + a) / r->rate_scale, d = (double)(n - 1) * r->flat[n - 1];
+        for (k = n - 2; k >= 1; k--) {
+            d = d * u + (double)k * r->flat[k];
+        }
+        d /= r->rate_scale;
+        if (!(d - d == 0.0)) {
+            return 0;
+        }
+        positive |= d > 0.0;
+        negative |= d < 0.0;
+        zero |= d == 0.0;
+        if (i == 0) {
+            first = d < 0.0 ? -d : d;
+        }
+        last = d < 0.0 ? -d : d;
+    }
+    if (zero || positive == negative) {
+        return 0; /* the slope changes sign or is zero somewhere: no inverse */
+    }
+    reach = lo - (r->span[0] - r->v0 - reach_raw);
+    if ((r->span[1] - r->v0 + reach_raw) - hi > reach) {
+        reach = (r->span[1] - r->v0 + reach_raw) - hi;
+    }
+    edge = first < last ? first : last;
+    return u_max + (reach > 0.0 ? reach : 0.0) / edge <= limit;
 }
 
 static int serial_matches(uint32_t serial, const uint8_t *id, uint32_t n)
@@ -1626,6 +1845,9 @@ static int derive(ce_set *s, const reading *r)
         s->newton_tol = (float)(1e-6 * (r->rate_span[1] - r->rate_span[0]));
         lo = f_lo < f_hi ? f_lo : f_hi;
         hi = f_lo < f_hi ? f_hi : f_lo;
+        if (!forward_invertible(r, lo, hi)) {
+            return CE_ERR_FIELD;
+        }
     } else {
         s->model = 0;
         s->n_segments = (uint8_t)r->coeff_rows;
@@ -1647,6 +1869,15 @@ static int derive(ce_set *s, const reading *r)
     s->dv_hi = (float)hi;
     split(lo + r->v0, &s->lo_hi, &s->lo_lo);
     split(hi + r->v0, &s->hi_hi, &s->hi_lo);
+    for (i = 0; i < s->n_terms; i++) {
+        if (s->terms[i].feature == CE_TERM_CHANNEL_RATE_SPLINE) { /* knots in dV -> raw counts */
+            ce_spline *sp = &s->splines[s->terms[i].spline];
+            for (j = 0; j < sp->n_knots; j++) {
+                split_knot((double)sp->knot_hi[j] + (double)sp->knot_lo[j] + r->v0, &sp->knot_hi[j],
+                           &sp->knot_lo[j]);
+            }
+        }
+    }
     return CE_OK;
 }
 

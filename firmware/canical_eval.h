@@ -13,7 +13,8 @@
  *   single-precision FPU: load time only, never per sample).
  * - Bounded work per sample: at most CE_MAX_TERMS terms, CE_MAX_SEGMENTS segments and
  *   CE_MAX_COEFFS coefficients per polynomial; the forward polynomial's Newton inversion
- *   stops after CE_NEWTON_MAX_ITER steps.
+ *   stops after CE_NEWTON_MAX_ITER steps; a spline term is a binary search over at most
+ *   CE_MAX_SPLINE_KNOTS knots (6 steps for 64) and one cubic.
  * - ce_load() never reads outside [content, content + length) and writes only *set.
  * - The build-time limits (CE_MAX_*) are checked here with #error: a limit that does not fit the
  *   field counting it fails the build, not a set at run time.
@@ -39,13 +40,19 @@ extern "C" {
 #define CE_MAX_COEFFS 10 /* coefficients per polynomial (order 9) */
 #endif
 #ifndef CE_MAX_TERMS
-#define CE_MAX_TERMS 12 /* effect terms of a set */
+#define CE_MAX_TERMS 16 /* effect terms of a set */
 #endif
 #ifndef CE_MAX_INPUTS
 #define CE_MAX_INPUTS 8 /* run-time channels a device offers */
 #endif
 #ifndef CE_MAX_DEPTH
 #define CE_MAX_DEPTH 16 /* JSON nesting (the "fit" statistics may nest) */
+#endif
+#ifndef CE_MAX_SPLINE_KNOTS
+#define CE_MAX_SPLINE_KNOTS 64 /* knots of one spline term (canical.sets.term_kinds.MAX_SPLINE_KNOTS) */
+#endif
+#ifndef CE_MAX_SPLINES
+#define CE_MAX_SPLINES 4 /* spline terms of a set (canical.sets.admission.MAX_SPLINE_TERMS) */
 #endif
 #define CE_NAME_MAX 24 /* longest channel name, bytes */
 #define CE_NEWTON_MAX_ITER 40 /* Newton steps of the forward polynomial's inversion, at most */
@@ -67,6 +74,12 @@ extern "C" {
 #if CE_MAX_DEPTH < 1 || CE_MAX_DEPTH > 255
 #error "CE_MAX_DEPTH must be 1..255 (the parser keeps a stack of this many levels)"
 #endif
+#if CE_MAX_SPLINE_KNOTS < 2 || CE_MAX_SPLINE_KNOTS > 255
+#error "CE_MAX_SPLINE_KNOTS must be 2..255 (a spline has two knots at least; ce_spline.n_knots is a uint8_t)"
+#endif
+#if CE_MAX_SPLINES < 1 || CE_MAX_SPLINES > CE_MAX_TERMS
+#error "CE_MAX_SPLINES must be 1..CE_MAX_TERMS (each spline belongs to one term; ce_term.spline indexes them)"
+#endif
 
 /* Result codes: 0 success, negative refusal. The functions return them as int (so that
  * ce_eval can also return 0 or 1, and the ABI does not depend on the size of an enum). */
@@ -80,7 +93,8 @@ typedef enum ce_result {
     CE_ERR_FIELD = -6,         /* a field missing, of the wrong type, not finite, wrong length */
     CE_ERR_MODEL_KIND = -7,    /* model.kind this library does not evaluate */
     CE_ERR_TERM_KIND = -8,     /* a term kind/feature this library does not evaluate */
-    CE_ERR_LIMIT = -9,         /* more segments, coefficients, terms or nesting than CE_MAX_* */
+    CE_ERR_LIMIT = -9,         /* more segments, coefficients, terms, spline terms, spline knots or
+                                  nesting than CE_MAX_*, or a spline knot or piece beyond float range */
     CE_ERR_SENSOR = -10,       /* sensor.id is not this device's serial number */
     CE_ERR_AXIS = -11,         /* sensor.axis is not the bank's axis */
     CE_ERR_SPAN = -12,         /* the span does not reach +-rated range */
@@ -111,6 +125,7 @@ typedef struct {
     uint8_t feature;        /* CE_TERM_* in canical_eval.c */
     uint8_t scale_form;     /* 0: bias (dV' = dV - c x), 1: scale (dV' = dV - c x dV) */
     uint8_t input;          /* channel slot for channel terms */
+    uint8_t spline;         /* spline terms: its piecewise cubic, ce_set.splines[spline] */
     float coefficient;
     float reference;
     float inv_tau;          /* 1 / tau_s */
@@ -126,6 +141,19 @@ typedef struct {
     uint32_t start_ms, count;
     int32_t mean_ms;
 } ce_term;
+
+/* A spline term's piecewise cubic (canical.sets.term_kinds.spline_one): knots b_0 < ... < b_m
+ * (m + 1 = n_knots), on [b_i, b_i+1] S = a0 + a1 u + a2 u^2 + a3 u^3 with u = w - b_i, w the
+ * variable clamped to [b_0, b_m] (flat beyond the end knots). The knots are float pairs
+ * (b_i = knot_hi[i] + knot_lo[i] to about 2^-48), so the segment is chosen as in double
+ * precision; a rate spline's knots are in raw counts (its dV knots plus V0), compared with the
+ * raw output itself. Internal layout: read-only to the caller. */
+typedef struct {
+    uint8_t n_knots;        /* 2..CE_MAX_SPLINE_KNOTS */
+    float knot_hi[CE_MAX_SPLINE_KNOTS], knot_lo[CE_MAX_SPLINE_KNOTS];
+    float top_u;            /* u at the last knot: b_m - b_m-1 (the variable clamped from above) */
+    float pieces[CE_MAX_SPLINE_KNOTS - 1][4]; /* segment i: a0, a1, a2, a3 */
+} ce_spline;
 
 /* A loaded coefficient set: model, effect terms and their run-time state. Built by ce_load()
  * only; read-only to the caller (its size: ce_sizeof_set()). */
@@ -148,6 +176,8 @@ typedef struct {
     float seg_mid[CE_MAX_SEGMENTS], seg_inv_half[CE_MAX_SEGMENTS];
     float w_lo, w_hi, chord_dv, chord_slope, newton_tol; /* forward polynomial */
     ce_term terms[CE_MAX_TERMS];
+    uint8_t n_splines;      /* spline terms of the set, each with its slot below */
+    ce_spline splines[CE_MAX_SPLINES];
     uint32_t error_at;      /* byte offset where ce_load refused (for the log) */
 } ce_set;
 

@@ -5,7 +5,8 @@
     canical export dcf imu.yaml -o imu.dcf ...      (an IMU set: its three axes and its coupling)
 
 The sets are checked as ``canical push`` checks them before writing (one per axis, one
-sensor whose id is a serial number, span covering the EDS's rated range); the DCF is
+sensor whose id is a serial number, span covering the EDS's rated range, terms the device's
+evaluator holds, content within the EDS's bank capacity); the DCF is
 written atomically. Offline the node cannot be asked, so the DCF describes canical's object
 dictionary for whatever node id it is given, and says so; with ``--channel`` the node is asked
 first, like ``push`` asks it: a node without canical's coefficient objects (a vendor's IMU) is
@@ -72,6 +73,8 @@ def run(args: argparse.Namespace) -> int:
 def export_dcf(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from canopen.objectdictionary import ODVariable
+
     from canical.atomic_file import write_text_atomic
     from canical.commands.push import load_imu_set, load_sets
     from canical.device.bank_payload import encode_coupling
@@ -112,7 +115,11 @@ def export_dcf(args: argparse.Namespace) -> int:
             declared = (float(default_value(member(od, index, sub))) if device is None
                         else device.rated_range_dps[axis])
         rated[axis] = declared
-    limits = DeviceLimits(int(sensor) if device is None else device.serial, rated)
+    capacity = device.bank_capacity if device is not None else None
+    if device is None:
+        entry = od[objects.capacity[0]]  # a variable (0x2200): the EDS's bank capacity
+        capacity = int(default_value(entry)) if isinstance(entry, ODVariable) else None
+    limits = DeviceLimits(int(sensor) if device is None else device.serial, rated, capacity)
     for axis, (path, cset) in sets.items():
         problem = admission_problem(cset, axis, limits)
         if problem:

@@ -2,9 +2,11 @@
 
 A push, for the sets given (one per axis):
 
-1. reads the device's serial number and rated ranges and refuses, before writing
-   anything, a set for another sensor, another axis, or too narrow a span
-   (:mod:`canical.sets.admission`, the same checks the device makes);
+1. reads the device's serial number, rated ranges and bank capacity and refuses,
+   before writing anything, a set for another sensor, another axis, too narrow a
+   span, terms the device's evaluator cannot hold (more spline terms than its slots)
+   or content longer than its banks (:mod:`canical.sets.admission`, the checks the
+   device makes);
 2. takes the device's download lock (a random token; a second tool is refused);
 3. writes each set's canonical bytes and CRC32 into the axis's *inactive* bank,
    reads both back and compares, and checks the device reports the bank valid;
@@ -180,7 +182,8 @@ class ImuClient:
         for axis, key in self.objects.rated_range.items():
             raw = self.upload(key, f"reading the rated range of axis {axis}")
             ranges[axis] = struct.unpack("<f", raw[:4])[0]
-        return DeviceLimits(serial, ranges)
+        capacity = self.read_uint(self.objects.capacity, "reading the coefficient bank capacity")
+        return DeviceLimits(serial, ranges, capacity)
 
     def active(self) -> dict[str, str | None]:
         value = self.read_uint(self.objects.active_banks, "reading the active banks")
@@ -376,6 +379,10 @@ def plan_push(
                                f"{imu_set.sensor_id!r}, the device is serial {serial}")
         coupling_plan = CouplingPlan(source, encode_coupling(imu_set), other_bank(coupling.bank),
                                      coupling.bank, coupling.imu_set_id)
+        size = len(coupling_plan.payload.content)
+        if limits.bank_capacity is not None and size > limits.bank_capacity:
+            raise CanicalError(f"{source}: not for this device (node 0x{node_id:02x}): its coupling is "
+                               f"{size} bytes, the device's banks hold {limits.bank_capacity}")
         if not coupling_plan.unchanged:
             coupling_after = coupling_plan.bank
     elif coupling.bank is not None and any(not p.unchanged for p in axes):

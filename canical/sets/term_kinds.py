@@ -22,9 +22,11 @@ one object that knows
   prove its outputs finite.
 
 Adding a kind is one new class here (and one row plus one ``case`` in the C evaluator); the
-tests fail while any of these is missing. A kind with ``c_name`` None (the spline) is not in
-the C evaluator: the device refuses a set holding it and ``canical push`` refuses to send it
-(:func:`host_only`). Like cantools' conversions: one class per kind
+tests fail while any of these is missing. A kind with ``c_name`` None is not (yet) in the C
+evaluator: the device would refuse a set holding it, so ``canical push`` refuses to send it
+(:func:`host_only`). Every kind of this version has its C form, the splines included (the
+firmware's ``spline_at``: the same clamp, segment lookup and Horner steps as :func:`spline_one`).
+Like cantools' conversions: one class per kind
 behind a lookup (:func:`lookup`). The term record itself, and the set file's validation built
 on these objects, are :mod:`canical.sets.terms`.
 """
@@ -395,11 +397,12 @@ class ChannelSpline(ChannelKind):
     form is on no list), flat beyond its end knots so a channel outside the calibrated range
     extrapolates nothing. ``knots`` b₀ < … < b_m, ``pieces`` m rows (a₀, a₁, a₂, a₃): on
     [b_i, b_i+1], S = a₀ + a₁u + a₂u² + a₃u³ with u = v − b_i. Bounded work per sample: one
-    ``bisect`` and a cubic. Scale form: c·S(v)·ΔV, a nonlinearity changing with the channel.
+    ``bisect`` and a cubic (in the C evaluator a binary search over the knots and the same
+    cubic, in float32). Scale form: c·S(v)·ΔV, a nonlinearity changing with the channel.
     """
 
     feature = "spline"
-    c_name = None
+    c_name = "CE_TERM_CHANNEL_SPLINE"
     needs_spline = True
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
@@ -446,11 +449,13 @@ class ChannelRateSpline(ChannelKind):
     channel). R is a piecewise cubic of ΔV = raw − V0 in raw units with the same ``knots`` and
     ``pieces`` as :class:`ChannelSpline`, flat beyond its end knots. Bias form c·x covers a
     coefficient of any smooth shape in rate (R holds its own ΔV factor where the data want one);
-    scale form c·x·ΔV. Stateless: one lookup and a cubic per sample, like the gated level.
+    scale form c·x·ΔV. Stateless: one lookup and a cubic per sample, like the gated level. The C
+    evaluator runs R with the spline's own steps (``spline_at`` of the raw output, its knots held
+    in raw counts as b + V0), then (v − ref)·R in float32.
     """
 
     feature = "rate_spline"
-    c_name = None
+    c_name = "CE_TERM_CHANNEL_RATE_SPLINE"
     needs_spline = True
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:

@@ -26,8 +26,8 @@ coefficient means the output rises with temperature. Features:
   form c·x·ΔV = c·(v − ref)·sign(ΔV)·max(|ΔV| − k, 0), a hinge; in bias form a
   bias that switches on with rate; and ``spline`` x = S(v), a piecewise cubic of the
   channel learned from the data (``knots``, ``pieces``; flat beyond the end knots): a
-  smooth effect whose form is none of the above (evaluated in Python only: the C
-  evaluator refuses it);
+  smooth effect whose form is none of the above (the C evaluator runs it too: a
+  binary search over the knots and the same cubic, in float32);
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
 * ``direction`` — how the rate got where it is. ``sign``: the direction of the last

@@ -114,9 +114,9 @@ Effects act on the sensor's output, so a term corrects ΔV before the rate model
 `channel` — `offset` v − ref, `square` (v − ref)², `lag` the channel through a first-order lag τ,
 `derivative` its rate of change smoothed over τ, `direction` the sign of its last significant
 change (hysteresis), `gated` its level acting only beyond a knee in the output, `spline` a piecewise
-cubic of it learned by the closed loop (`knots`, `pieces`; host only: the device refuses it),
-`rate_spline` its level times a piecewise cubic of ΔV (a coefficient changing with rate; host
-only); `time` (input `time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
+cubic of it learned by the closed loop (`knots`, `pieces`; flat beyond the end knots),
+`rate_spline` its level times a piecewise cubic of ΔV (a coefficient changing with rate; same
+`knots`, `pieces`); `time` (input `time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
 `direction` (of the raw output) — `sign` its last significant rise or fall, `slope` its rate of
 change. The kinds this canical accepts:"""
 

@@ -1,7 +1,8 @@
 """Cost of the firmware evaluator (firmware/canical_eval.c) per sample, here and on a Cortex-M4F.
 
-Prints, for a set of every model kind and one with every term kind, and for an IMU set (three
-axes and their coupling, ``ce_eval3``: each axis's set, then corrected = M @ the three rates):
+Prints, for a set of every model kind, one with every term kind, one with a spline term (8 and 64
+knots), and for an IMU set (three axes and their coupling, ``ce_eval3``: each axis's set, then
+corrected = M @ the three rates):
 
 * nanoseconds per sample of the C library on this machine (``ce_eval_block`` over 1,000,000
   samples through ctypes, -O2; best of 5), beside canical's Python evaluator per sample
@@ -9,8 +10,8 @@ axes and their coupling, ``ce_eval3``: each axis's set, then corrected = M @ the
 * floating-point operations per sample (add, subtract, multiply, divide, compare, int/float
   conversion), counted from the source along the path each sample takes (inside the span,
   beyond it, and the worst case the library's limits allow);
-* for the IMU set rows, the largest difference from ``canical apply imu.yaml`` (ImuCorrector) over
-  the samples timed;
+* for the spline rows, the largest difference from ``canical apply`` (Corrector) over the samples
+  timed; for the IMU set rows, from ``canical apply imu.yaml`` (ImuCorrector);
 * with ``arm-none-eabi-gcc`` (Debian ``gcc-arm-none-eabi``): code size of a Cortex-M4F build
   (-mcpu=cortex-m4 -mfpu=fpv4-sp-d16 -mfloat-abi=hard, freestanding) at -O2 and -Os, and of
   the functions a sample runs through.
@@ -38,8 +39,10 @@ from support.firmware_cases import (
     imu_set_of,
     imu_stream,
     model_set,
+    saturating_spline,
     stream,
     term_set,
+    with_terms_dicts,
 )
 
 from canical.device.firmware_eval import FirmwareCorrector, FirmwareImuCorrector
@@ -64,7 +67,7 @@ PER_SAMPLE = (
     "pair_add",
     "channel_lag_gap",
 )
-LIMITS = {"segments": 16, "coeffs": 10, "terms": 12, "newton": 40}
+LIMITS = {"segments": 16, "coeffs": 10, "terms": 16, "newton": 40, "spline_knots": 64}
 COUPLING_OPS = 18  # per axis r + (d0 r0 + d1 r1 + d2 r2): three multiplies, three adds
 
 # Operations counted from canical_eval.c along each path (see firmware/README.md, "Cost per
@@ -76,13 +79,17 @@ EXPM1 = 29  # checks 3, range reduction 10, degree-7 polynomial 13, scaling 3
 LAG_GAP = 20 + EXPM1
 # A gated level beyond its knee (the costlier branch): |dv| 2, the knee compare 1, v - ref 1,
 # |dv| - knee 1, divide 1, multiply 1.
+# A spline inside its knots: the two clamp tests 4, the binary search 2 per step (log2 of the
+# segments, rounded up: 6 for 64 knots), u 2, Horner 6; counted at the most knots a spline may have.
+SPLINE = 4 + 2 * 6 + 2 + 6
 TERM_OPS: dict[TermKind, int] = {
     term_kinds.CHANNEL_OFFSET: 1, term_kinds.CHANNEL_SQUARE: 2, term_kinds.TIME_WARMUP: 3 + EXPM1,
     term_kinds.TIME_LINEAR: 0, term_kinds.DIRECTION_SIGN: 8, term_kinds.DIRECTION_SLOPE: 10 + EXPM1,
     term_kinds.CHANNEL_LAG: LAG_GAP + 2, term_kinds.CHANNEL_DERIVATIVE: LAG_GAP + 1,
-    term_kinds.CHANNEL_DIRECTION: 8, term_kinds.CHANNEL_GATED: 7,
+    term_kinds.CHANNEL_DIRECTION: 8, term_kinds.CHANNEL_GATED: 7, term_kinds.CHANNEL_SPLINE: SPLINE,
+    term_kinds.CHANNEL_RATE_SPLINE: SPLINE + 2,  # then (v - ref) and the product
 }  # fmt: skip
-# kinds the C evaluator refuses (c_name None: the spline) have no cost there
+# kinds the C evaluator refuses (c_name None) have no cost there
 _UNCOUNTED = [k for k in term_kinds.ALL if k.c_name is not None and k not in TERM_OPS]
 if _UNCOUNTED:  # a kind added to the registry needs its count here (the quick-mode test runs this)
     raise SystemExit(f"bench_firmware_eval: no operation count for {', '.join(map(repr, _UNCOUNTED))}")
@@ -140,6 +147,11 @@ def main() -> None:
         args.samples = min(args.samples, 2_000)
     cases = {m: model_set(m) for m in MODELS}
     cases["segmented-inverse + every term"] = term_set(tuple(TERMS))
+    plain = cases["segmented-inverse"]
+    cases["segmented-inverse + 8-knot spline"] = term_set(("channel-spline",))
+    knots64 = np.linspace(4.05, 46.05, LIMITS["spline_knots"]).tolist()
+    cases["segmented-inverse + 64-knot spline"] = with_terms_dicts(plain, (saturating_spline(knots64),))
+    spline_agreement = []
     print(f"C evaluator on this machine: ns per sample over {args.samples:,} samples (best of {repeats})")
     head = f"{'set':34s} {'segs':>4s} {'coef':>4s} {'C ns':>7s} {'Python µs/sample':>17s}"
     print(f"{head} {'ops in/out of span':>19s}")
@@ -165,6 +177,16 @@ def main() -> None:
                 segments, coeffs, [t.spec for t in terms], sum(t.form == "scale" for t in terms)
             )
         print(f"{name:34s} {segments:4d} {coeffs:4d} {c_ns:7.1f} {py_us:17.2f} {ops[0]:9d} / {ops[1]:<7d}")
+        if "spline" in name:
+            expected, flags = Corrector(cset).correct(raw, inputs)
+            rate, oos = fw.correct(raw, inputs)
+            spline_agreement.append((float(np.max(np.abs(rate - expected))), int(np.sum(oos != flags))))
+    largest = " / ".join(f"{d:.1e}" for d, _ in spline_agreement)
+    differing = " / ".join(str(f) for _, f in spline_agreement)
+    print(f"spline rows (a bias of 60·tanh((T − 25)/10) counts) against `canical apply` over "
+          f"{args.samples:,} samples: largest difference {largest} deg/s, out-of-span flags differing "
+          f"{differing}")
+    print("(spline operations counted at 64 knots: 6 binary-search steps; 8 knots take 3)")
     agreement = []
     for name, cset, ops in imu_rows(cases):
         imu = imu_set_of(cset)

@@ -153,6 +153,52 @@ def test_push_pull_round_trip_survives_power_cycle(vcan_channel: str, tmp_path: 
 
 
 @pytest.mark.vcan
+def test_spline_sets_go_over_sdo_and_run_on_the_device_in_c(vcan_channel: str, tmp_path: Path) -> None:
+    """Sets with spline terms (a piecewise cubic of temperature, bias and scale form): pushed,
+    read back, stored and pulled byte for byte; the correcting device runs them in the firmware's
+    C evaluator; a set too long for the device's banks is refused in one line, nothing written."""
+    from dataclasses import replace
+
+    from support.firmware_cases import ALL_TERMS
+
+    from canical.sets.terms import term_from_dict
+
+    names = ("channel-spline", "channel-spline-scale")
+    splines = tuple(term_from_dict(ALL_TERMS[k]).to_dict() for k in names)
+    folder = tmp_path / "splines"
+    folder.mkdir()
+    paths, pushed_ids = [], {}
+    for axis, cset in imu_sets().items():
+        with_spline = coefficient_file.loads(coefficient_file.dumps(replace(cset, terms=splines)))
+        paths.append(str(folder / f"imu-{axis}.yaml"))
+        coefficient_file.save(paths[-1], with_spline)
+        pushed_ids[axis] = set_crc(with_spline)
+    big = folder / "big.yaml"
+    rng = random.Random(3)
+    wide = [dict(splines[0], knots=sorted(rng.uniform(0.0, 50.0) for _ in range(64)),
+                 pieces=[[rng.gauss(0.0, 1e-3) for _ in range(4)] for _ in range(63)]) for _ in range(4)]
+    coefficient_file.save(big, replace(imu_set("z"), terms=tuple(wide)))
+    with device(vcan_channel, tmp_path, "--rate", "50", "--correct") as dev:
+        assert_one_line_error(canical("push", str(big), *bus_args(vcan_channel)),
+                              "not for this device", "the device's coefficient banks hold 16384")
+        pushed = canical("push", *paths, *bus_args(vcan_channel))
+        assert pushed.returncode == 0, pushed.stderr
+        pulled = canical("pull", *bus_args(vcan_channel), "-o", str(tmp_path / "pulled-{axis}.yaml"))
+        assert pulled.returncode == 0, pulled.stderr
+        for axis in AXES:
+            back = coefficient_file.load(tmp_path / f"pulled-{axis}.yaml")
+            assert set_crc(back) == pushed_ids[axis] and back.terms[0]["knots"] == splines[0]["knots"]
+        with client(vcan_channel) as c:
+            status = c.status()
+        assert status.active_ids == pushed_ids and status.activations == 1  # the big set wrote nothing
+        deadline = time.monotonic() + 30.0
+        while dev.log.read_text().count("corrected on the device with the firmware evaluator (C)") < 3:
+            assert time.monotonic() < deadline, dev.log.read_text()[-2000:]
+            time.sleep(0.2)
+    assert "correcting in Python" not in dev.log.read_text()
+
+
+@pytest.mark.vcan
 def test_the_tool_refuses_what_it_can_before_writing(vcan_channel: str, tmp_path: Path) -> None:
     good = write_sets(tmp_path / "good")
     foreign = write_sets(tmp_path / "foreign", sensor="4712")

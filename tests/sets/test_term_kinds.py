@@ -54,7 +54,7 @@ IN_C = tuple(k for k in ALL if k.c_name is not None)
 def registry_specs(kinds: tuple[TermKind, ...] = IN_C) -> set[tuple[str, str, str | None, frozenset[str]]]:
     def flags(k: TermKind) -> frozenset[str]:
         named = {"NEEDS_CHANNEL": k.needs_channel, "NEEDS_TAU": k.needs_tau,
-                 "NEEDS_THRESHOLD": k.needs_threshold}
+                 "NEEDS_THRESHOLD": k.needs_threshold, "NEEDS_SPLINE": k.needs_spline}
         return frozenset(name for name, needed in named.items() if needed)
 
     return {(k.kind, k.feature, k.c_name, flags(k)) for k in kinds}

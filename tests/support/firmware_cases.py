@@ -8,6 +8,7 @@ sizes (a set is data: the evaluator must follow whatever a valid set says).
 from __future__ import annotations
 
 import functools
+import itertools
 from dataclasses import replace
 
 import numpy as np
@@ -35,6 +36,49 @@ MODELS = {
     "segmented-linear": CalibrateOptions(model="segmented-linear", extend=False),
     "forward-poly": CalibrateOptions(model="forward-poly", order=3, extend=False),
 }
+
+def hermite_pieces(knots: list[float], value, slope) -> list[list[float]]:
+    """The pieces (a0, a1, a2, a3 per segment, in u = v − knot) of the cubic Hermite spline through
+    ``value`` with ``slope`` at the knots: a smooth curve as a spline term writes it."""
+    rows = []
+    for k0, k1 in itertools.pairwise(knots):
+        h, y0, y1, m0, m1 = k1 - k0, value(k0), value(k1), slope(k0), slope(k1)
+        d = (y1 - y0) / h
+        rows.append([float(y0), float(m0), float((3 * d - 2 * m0 - m1) / h), float((m0 + m1 - 2 * d) / h**2)])
+    return rows
+
+
+#: A bias saturating with temperature, 60·tanh((T − 25)/10) counts, as a spline whose knots lie
+#: between the Temperature signal's 0.1 °C steps (no sample sits on a knot within float32 rounding).
+SPLINE_KNOTS = [4.05, 12.05, 18.05, 22.05, 25.05, 28.05, 33.05, 46.05]
+
+
+def _saturating(t: float) -> float:
+    return 60.0 * float(np.tanh((t - 25.0) / 10.0))
+
+
+def _saturating_slope(t: float) -> float:
+    return 6.0 / float(np.cosh((t - 25.0) / 10.0)) ** 2
+
+
+#: ΔV knots (raw counts) of the rate spline: across the span and beyond (flat there), half a count
+#: off the integers (raw counts are integers; V0 is not either).
+RATE_KNOTS = [-30000.5, -15000.5, -5000.5, 0.5, 5000.5, 15000.5, 30000.5]
+
+
+def _rate_shape(dv: float) -> float:
+    return 1.5 * float(np.tanh(dv / 12000.0))
+
+
+def _rate_shape_slope(dv: float) -> float:
+    return 1.5 / 12000.0 / float(np.cosh(dv / 12000.0)) ** 2
+
+
+def saturating_spline(knots: list[float]) -> dict:
+    """A bias spline of temperature through 60·tanh((T − 25)/10) counts on ``knots``."""
+    return {"kind": "channel", "channel": "temp_c", "feature": "spline", "form": "bias", "coefficient": 1.0,
+            "knots": list(knots), "pieces": hermite_pieces(list(knots), _saturating, _saturating_slope)}
+
 
 #: One term of every kind and feature; bias and scale forms alternate.
 TERMS = {
@@ -118,6 +162,17 @@ TERMS = {
         "coefficient": 4.5,
         "threshold_raw": 0.0375,
     },
+    "channel-spline": saturating_spline(SPLINE_KNOTS),
+    "channel-rate-spline": {  # a temperature coefficient that grows with rate and saturates
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "rate_spline",
+        "form": "bias",
+        "coefficient": 1.0,
+        "reference": 25.0,
+        "knots": RATE_KNOTS,
+        "pieces": hermite_pieces(RATE_KNOTS, _rate_shape, _rate_shape_slope),
+    },
 }
 
 #: The stateful channel transforms in their other form (TERMS holds one form of each).
@@ -125,6 +180,8 @@ OTHER_FORMS = {
     "channel-lag-scale": dict(TERMS["channel-lag"], form="scale", coefficient=1e-4),
     "channel-derivative-bias": dict(TERMS["channel-derivative"], form="bias", coefficient=150.0),
     "channel-direction-scale": dict(TERMS["channel-direction"], form="scale", coefficient=3e-4),
+    "channel-spline-scale": dict(TERMS["channel-spline"], form="scale", coefficient=2e-5),
+    "channel-rate-spline-scale": dict(TERMS["channel-rate-spline"], form="scale", coefficient=1e-4),
 }
 ALL_TERMS = {**TERMS, **OTHER_FORMS}
 
@@ -138,8 +195,12 @@ def model_set(name: str) -> CoefficientSet:
 
 def with_terms(cset: CoefficientSet, names: tuple[str, ...]) -> CoefficientSet:
     """The set with effect terms attached, validated through the file format."""
-    terms = tuple(term_from_dict(ALL_TERMS[n]).to_dict() for n in names)
-    out = replace(cset, terms=terms)
+    return with_terms_dicts(cset, tuple(ALL_TERMS[n] for n in names))
+
+
+def with_terms_dicts(cset: CoefficientSet, terms: tuple[dict, ...]) -> CoefficientSet:
+    """The set with these term dicts attached, validated through the file format."""
+    out = replace(cset, terms=tuple(term_from_dict(t).to_dict() for t in terms))
     return coefficient_file.loads(coefficient_file.dumps(out))
 
 

@@ -69,9 +69,29 @@ def test_out_of_range_limit_fails_the_build(tmp_path, limit, value):
     assert f"{limit} must be 1..255" in done.stderr, done.stderr
 
 
+@pytest.mark.parametrize(
+    ("defines", "message"),
+    [(("-DCE_MAX_SPLINE_KNOTS=1",), "CE_MAX_SPLINE_KNOTS must be 2..255"),
+     (("-DCE_MAX_SPLINE_KNOTS=256",), "CE_MAX_SPLINE_KNOTS must be 2..255"),
+     (("-DCE_MAX_SPLINES=0",), "CE_MAX_SPLINES must be 1..CE_MAX_TERMS"),
+     (("-DCE_MAX_TERMS=3", "-DCE_MAX_SPLINES=4"), "CE_MAX_SPLINES must be 1..CE_MAX_TERMS")],
+)
+def test_out_of_range_spline_limit_fails_the_build(tmp_path, defines, message):
+    """A spline needs two knots and a uint8_t counts them; each spline slot belongs to a term."""
+    done = _compile_with(tmp_path, *defines)
+    assert done.returncode != 0
+    assert message in done.stderr, done.stderr
+
+
+def test_smallest_spline_limits_build(tmp_path):
+    done = _compile_with(tmp_path, "-DCE_MAX_SPLINE_KNOTS=2", "-DCE_MAX_SPLINES=1")
+    assert done.returncode == 0, done.stderr
+
+
 def test_largest_limits_build(tmp_path):
     """Every limit at its largest (255) still compiles cleanly."""
-    limits = ("CE_MAX_SEGMENTS", "CE_MAX_COEFFS", "CE_MAX_TERMS", "CE_MAX_INPUTS", "CE_MAX_DEPTH")
+    limits = ("CE_MAX_SEGMENTS", "CE_MAX_COEFFS", "CE_MAX_TERMS", "CE_MAX_INPUTS", "CE_MAX_DEPTH",
+              "CE_MAX_SPLINE_KNOTS", "CE_MAX_SPLINES")
     done = _compile_with(tmp_path, *(f"-D{name}=255" for name in limits))
     assert done.returncode == 0, done.stderr
 
