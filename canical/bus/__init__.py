@@ -25,7 +25,7 @@ __all__ = [
     "recording",
     "reloads",
     "sd_notify",
-    "socketcan",
     "service_install",
+    "socketcan",
     "socketcan_constants",
 ]
