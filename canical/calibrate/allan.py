@@ -193,14 +193,38 @@ def fit_terms(curve: AllanCurve) -> dict[str, float]:
     The lines of slope −1/2, 0, +1/2 laid against the curve all at once: each line's level
     is set where its term dominates, not raised by the others.
     """
-    from scipy.optimize import nnls
-
     avar = curve.adev**2
     scale = 1.0 / (avar * 2.0 * curve.rel_error)  # the relative error of σ² is twice that of σ
     design = np.column_stack([curve.tau_s**p for p in POWERS.values()]) * scale[:, None]
     norms = np.linalg.norm(design, axis=0)
-    coef, _ = nnls(design / norms, avar * scale)
+    coef = nnls_few(design / norms, avar * scale)
     return {name: float(c / n) for name, c, n in zip(POWERS, coef, norms, strict=True)}
+
+
+def nnls_few(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin ‖a·x − b‖ over x ≥ 0, for a few columns: every subset of the columns solved by
+    least squares, the best whose coefficients are all non-negative.
+
+    Why not scipy's ``nnls``: importing ``scipy.optimize`` takes half a second, longer than the
+    fit of a whole static record's curve. With three columns there are seven subsets; the
+    problem is convex, so the best feasible subset solution is the optimum (its support's
+    least squares), equal to an active-set solver's within rounding.
+    """
+    n = a.shape[1]
+    best = np.zeros(n)
+    best_rss = float(b @ b)
+    for mask in range(1, 1 << n):
+        cols = [j for j in range(n) if mask >> j & 1]
+        x, *_ = np.linalg.lstsq(a[:, cols], b, rcond=None)
+        if np.any(x < 0.0):
+            continue
+        r = b - a[:, cols] @ x
+        rss = float(r @ r)
+        if rss < best_rss:
+            best = np.zeros(n)
+            best[cols] = x
+            best_rss = rss
+    return best
 
 
 def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:

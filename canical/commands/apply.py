@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import io
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
@@ -122,12 +123,12 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     """
     import os
     from concurrent.futures import Future, ThreadPoolExecutor
+    from functools import partial
 
     import numpy as np
 
     from canical.atomic_file import atomic_writer
     from canical.sessions.csv_chunks import read_chunks
-    from canical.sessions.fixed_cells import append_cells, fixed6_cells, flag_cells
 
     cset = corrector.cset
     check_input(args, cset, head.meta, head.header)
@@ -142,22 +143,26 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     progress = Progress("apply", max(os.path.getsize(args.input) >> 20, 1), unit="MB")
     done = head.data_offset
     n_rows = n_out = 0
-    # One block written by a thread while the next is read and corrected (writing a file lets
-    # go of the interpreter); one write in flight at most, so memory stays two blocks and a
-    # failed write stops the run at the next block. Leaving the pool waits for that write
-    # before the output is kept or discarded.
+    # A block's text is made and written by a thread while the next block is read and
+    # corrected (the text is made in numpy and written to a file, both letting go of the
+    # interpreter, while reading holds it): the blocks' texts come out in order, the state
+    # (set, tracker) stays on this thread. One block in the thread at most, so memory stays two
+    # blocks and a failed write stops the run at the next block. Leaving the pool waits for
+    # that block before the output is kept or discarded.
     with atomic_writer(args.output, "wb") as out, ThreadPoolExecutor(max_workers=1) as writer:
         pending: Future[int] | None = None
 
-        def write(data: bytes | memoryview) -> None:
+        def write(text: Callable[[], bytes | memoryview]) -> None:
             nonlocal pending
             if pending is not None:
                 pending.result()
-            pending = writer.submit(out.write, data)
+            pending = writer.submit(lambda: out.write(text()))
 
-        write("".join(line + "\n" for line in head.preamble).encode("utf-8"))
+        preamble = "".join(line + "\n" for line in head.preamble).encode("utf-8")
+        write(lambda: preamble)
         added = ["rate_dps", "out_of_span", *(["bias_dps"] if replayer is not None else [])]
-        write((",".join([*head.header, *added]) + "\n").encode("utf-8"))
+        header = (",".join([*head.header, *added]) + "\n").encode("utf-8")
+        write(lambda: header)
         for chunk in read_chunks(head, columns):
             inputs = {name: chunk.columns[name] for name in corrector.required_inputs}
             rate, oos = corrector.correct_next(chunk.columns[args.raw_column], inputs)
@@ -166,11 +171,7 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
                 time_s, temp, cue = tracking_inputs(args, chunk.columns)
                 extra = [replayer.feed(time_s, rate, temp, cue)[:, 0]]
                 last_bias = extra[0][-1:]
-            if chunk.text is not None:
-                write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos),
-                                                *(fixed6_cells(b) for b in extra)]))
-            else:
-                write(_chunk_text(chunk.rows or [], rate, oos, extra).encode("utf-8"))
+            write(partial(_block_text, chunk.text, chunk.rows, rate, oos, extra))
             n_rows += chunk.n_rows
             n_out += int(np.count_nonzero(oos))
             done += chunk.size
@@ -181,6 +182,17 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
             print_events(replayer.finish(), (cset.axis,), last_bias)
     print_applied(args, corrector, n_rows, n_out)
     return 0
+
+
+def _block_text(text: bytes | None, rows: list[str] | None, rate: np.ndarray, oos: np.ndarray,
+                extra: list[np.ndarray]) -> bytes | memoryview:
+    """A block's rows with their new cells: placed by numpy in the rows' bytes when the block is
+    plain, else formatted row by row."""
+    from canical.sessions.fixed_cells import append_cells, fixed6_cells, flag_cells
+
+    if text is not None:
+        return append_cells(text, [fixed6_cells(rate), flag_cells(oos), *(fixed6_cells(b) for b in extra)])
+    return _chunk_text(rows or [], rate, oos, extra).encode("utf-8")
 
 
 def check_input(args: argparse.Namespace, cset, meta: dict[str, str], header: list[str]) -> None:

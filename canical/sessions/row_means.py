@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.sessions.csv_chunks import CHUNK_BYTES, CsvHead, check_columns, read_chunks, read_head
+from canical.sessions.csv_chunks import CsvHead, check_columns, count_lines, read_chunks, read_head
 from canical.sessions.csv_file import TIME_COLUMN, CsvTable
 from canical.sessions.session import RowMeans
 
@@ -33,17 +33,6 @@ MIN_ROW_BYTES = 6
 def samples_per_mean(rows: int, bound: int) -> int:
     """The smallest ``k`` whose means of ``rows`` samples number at most ``bound``."""
     return max(1, -(-rows // bound))
-
-
-def count_lines(head: CsvHead) -> int:
-    """Lines after the header (blank ones too), counted a block at a time without parsing."""
-    lines, last = 0, b"\n"
-    with open(head.path, "rb") as f:
-        f.seek(head.data_offset)
-        while block := f.read(CHUNK_BYTES):
-            lines += block.count(b"\n")
-            last = block[-1:]
-    return lines + (last != b"\n")
 
 
 def read_row_means(
