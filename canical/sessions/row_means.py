@@ -139,8 +139,10 @@ class _Reducer:
         """The whole read's check (``session_from_table``), on the samples before they are averaged."""
         if time_s is None or not time_s.size:
             return
-        back = np.flatnonzero(np.diff(np.concatenate([[self.last_time], time_s])) < 0)
-        if back.size:
+        # One comparison of each sample with the one before (no joined copy, no differences):
+        # the line is looked for only when some sample is earlier than the one before it.
+        if time_s[0] < self.last_time or bool(np.any(time_s[1:] < time_s[:-1])):
+            back = np.flatnonzero(np.diff(np.concatenate([[self.last_time], time_s])) < 0)
             line = self.head.first_data_line + first_row + int(back[0])
             raise CanicalError(f"{self.head.path}: line {line}: time_s goes backwards")
         self.last_time = float(time_s[-1])
