@@ -1,4 +1,4 @@
-"""Read a CSV file block by block: its head once, then its rows a few megabytes at a time.
+"""Read a CSV file block by block: its head once, then its rows a quarter of a megabyte at a time.
 
 Why: :func:`canical.sessions.csv_file.read_table` holds the whole file, every row as a string
 and every column parsed, about 280 bytes per row; a session of hours at 1 kHz does not fit.
