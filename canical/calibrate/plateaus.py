@@ -484,7 +484,8 @@ def ranged_medians(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.n
         per_block = max(1, MEDIAN_BLOCK // int(length))
         for k in range(0, at.size, per_block):
             chunk = at[k:k + per_block]
-            out[chunk] = np.median(rows[starts[chunk]], axis=1)
+            # the gathered windows are a copy of this loop's own: partitioned where they are
+            out[chunk] = np.median(rows[starts[chunk]], axis=1, overwrite_input=True)
     return out
 
 
