@@ -16,18 +16,14 @@ import importlib
 import io
 import os
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import BinaryIO, TypeVar
+from typing import BinaryIO
 
 import numpy as np
 
 from canical.errors import CanicalError
 from canical.sessions.csv_cells import parse_numeric
 from canical.sessions.csv_file import CsvTable, read_table
-
-_In = TypeVar("_In")
-_Out = TypeVar("_Out")
 
 #: Bytes read per block: some 14,000 rows of a three-column session. Small enough that a block's
 #: temporaries stay in the processor's cache and the allocator reuses them from block to block
@@ -127,31 +123,6 @@ def read_chunks(head: CsvHead, columns: list[str], chunk_bytes: int | None = Non
                 yield chunk
 
 
-def pipelined(items: Iterator[_In], work: Callable[[_In], _Out]) -> Iterator[_Out]:
-    """``work(item)`` for each item in order, done on a second thread while the next item is made.
-
-    Why: reading a block (numpy's parser) holds the interpreter, while the work on the block before
-    (numpy's arithmetic on whole columns) mostly lets go of it; on two cores the two overlap. The
-    work is done one item at a time in order (its state, if any, is carried as without a thread),
-    at most two items are made ahead (memory stays a few blocks), and a failure comes out in the
-    items' order: the work on an item fails before the making of a later one does.
-    """
-    with ThreadPoolExecutor(max_workers=1) as pool:
-        pending: Future[_Out] | None = None
-        try:
-            for item in items:
-                future = pool.submit(work, item)
-                if pending is not None:
-                    yield pending.result()
-                pending = future
-        except BaseException:
-            if pending is not None:
-                pending.result()  # the earlier item's failure, if it failed, comes first
-            raise
-        if pending is not None:
-            yield pending.result()
-
-
 def read_columns(path: str | os.PathLike[str], columns: list[str] | None = None,
                  on_block: Callable[[int], None] | None = None,
                  convert: Callable[[dict[str, np.ndarray]], dict[str, np.ndarray]] | None = None) -> CsvTable:
@@ -177,10 +148,8 @@ def read_columns(path: str | os.PathLike[str], columns: list[str] | None = None,
     filled = 0
     done = head.data_offset
     rest = os.path.getsize(head.path) - head.data_offset
-    chunks = read_chunks(head, wanted)
-    converted = (pipelined(chunks, lambda c: (c, convert(c.columns))) if convert is not None
-                 else ((c, c.columns) for c in chunks))
-    for chunk, block in converted:
+    for chunk in read_chunks(head, wanted):
+        block = convert(chunk.columns) if convert is not None else chunk.columns
         if not parsed:
             size = chunk.n_rows + -(-chunk.n_rows * max(rest - chunk.size, 0) * 21 // (chunk.size * 20))
             parsed = {name: np.empty(size) for name in block}

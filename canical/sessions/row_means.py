@@ -19,15 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.sessions.csv_chunks import (
-    CsvChunk,
-    CsvHead,
-    check_columns,
-    count_lines,
-    pipelined,
-    read_chunks,
-    read_head,
-)
+from canical.sessions.csv_chunks import CsvHead, check_columns, count_lines, read_chunks, read_head
 from canical.sessions.csv_file import TIME_COLUMN, CsvTable
 from canical.sessions.session import RowMeans
 
@@ -64,14 +56,9 @@ def read_row_means(
     check_columns(head, [c for c in (raw_column, settled_column) if c])
     reducer = _Reducer(head, lines, samples_per_mean(lines, bound), raw_column, settled_column)
     done = head.data_offset
-
-    def reduce(chunk: CsvChunk) -> int:
+    for chunk in read_chunks(head, head.header):
         reducer.add(chunk.columns, chunk.first_row)
-        return chunk.size
-
-    # each block averaged on a second thread while the next is parsed (in order, one at a time)
-    for size in pipelined(read_chunks(head, head.header), reduce):
-        done += size
+        done += chunk.size
         if on_block is not None:
             on_block(done)
     return reducer.finish()
