@@ -89,6 +89,9 @@ class NoiseTerm:
 
 
 OADEV_BLOCK = 1 << 15  # samples of a second difference squared and summed at a time (in the cache)
+#: Samples times cluster sizes above which the sums are shared with a second thread (a record of
+#: minutes or more; below, starting a thread costs more than it saves).
+OADEV_THREADED_ABOVE = 1 << 26
 
 
 def allan_deviation(
@@ -157,19 +160,35 @@ def overlapping_adev(record: np.ndarray, sample_rate_hz: float,
     m_all = m_all[(m_all > 0) & (m_all < phase.size)]
     devs = np.zeros(m_all.size)
     ns = np.zeros(m_all.size)
-    block = np.empty(OADEV_BLOCK)
-    for k, m in enumerate(m_all.tolist()):
-        n = max(phase.size - 2 * m, 1)
-        total = 0.0
-        for a in range(0, n, OADEV_BLOCK):
-            b = min(a + OADEV_BLOCK, n)
-            v = block[: b - a]  # phase[2m+i] - 2·phase[m+i] + phase[i], the same sums in place
-            np.multiply(phase[m + a : m + b], -2.0, out=v)
-            v += phase[2 * m + a : 2 * m + b]
-            v += phase[a:b]
-            total += float(v @ v)
-        devs[k] = np.sqrt(total / (2.0 * n)) / m * sample_rate_hz
-        ns[k] = n
+
+    def cluster_sizes(ks: range) -> None:
+        block = np.empty(OADEV_BLOCK)
+        for k in ks:
+            m = int(m_all[k])
+            n = max(phase.size - 2 * m, 1)
+            total = 0.0
+            for a in range(0, n, OADEV_BLOCK):
+                b = min(a + OADEV_BLOCK, n)
+                v = block[: b - a]  # phase[2m+i] - 2·phase[m+i] + phase[i], the same sums in place
+                np.multiply(phase[m + a : m + b], -2.0, out=v)
+                v += phase[2 * m + a : 2 * m + b]
+                v += phase[a:b]
+                total += float(v @ v)
+            devs[k] = np.sqrt(total / (2.0 * n)) / m * sample_rate_hz
+            ns[k] = n
+
+    # A long record's sums take seconds, and numpy lets go of the interpreter while it makes
+    # them: every other cluster size summed on a second thread (each size's sum made by one
+    # thread in the same order, so the values are the same as on one).
+    if phase.size * m_all.size < OADEV_THREADED_ABOVE:
+        cluster_sizes(range(m_all.size))
+    else:
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            other = pool.submit(cluster_sizes, range(1, m_all.size, 2))
+            cluster_sizes(range(0, m_all.size, 2))
+            other.result()
     keep = ns > 1
     return m_all[keep], devs[keep], ns[keep]
 
@@ -193,14 +212,38 @@ def fit_terms(curve: AllanCurve) -> dict[str, float]:
     The lines of slope −1/2, 0, +1/2 laid against the curve all at once: each line's level
     is set where its term dominates, not raised by the others.
     """
-    from scipy.optimize import nnls
-
     avar = curve.adev**2
     scale = 1.0 / (avar * 2.0 * curve.rel_error)  # the relative error of σ² is twice that of σ
     design = np.column_stack([curve.tau_s**p for p in POWERS.values()]) * scale[:, None]
     norms = np.linalg.norm(design, axis=0)
-    coef, _ = nnls(design / norms, avar * scale)
+    coef = nnls_few(design / norms, avar * scale)
     return {name: float(c / n) for name, c, n in zip(POWERS, coef, norms, strict=True)}
+
+
+def nnls_few(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin ‖a·x − b‖ over x ≥ 0, for a few columns: every subset of the columns solved by
+    least squares, the best whose coefficients are all non-negative.
+
+    Why not scipy's ``nnls``: importing ``scipy.optimize`` takes half a second, longer than the
+    fit of a whole static record's curve. With three columns there are seven subsets; the
+    problem is convex, so the best feasible subset solution is the optimum (its support's
+    least squares), equal to an active-set solver's within rounding.
+    """
+    n = a.shape[1]
+    best = np.zeros(n)
+    best_rss = float(b @ b)
+    for mask in range(1, 1 << n):
+        cols = [j for j in range(n) if mask >> j & 1]
+        x, *_ = np.linalg.lstsq(a[:, cols], b, rcond=None)
+        if np.any(x < 0.0):
+            continue
+        r = b - a[:, cols] @ x
+        rss = float(r @ r)
+        if rss < best_rss:
+            best = np.zeros(n)
+            best[cols] = x
+            best_rss = rss
+    return best
 
 
 def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from canical.robust_stats import median_step
+from canical.robust_stats import median_step, time_steps
 
 GAP_FACTOR = 1.5  # a step longer than this many sample intervals is a gap (rows lost)
 MIN_RECORD = 6  # samples: three independent clusters of two
@@ -20,8 +20,11 @@ MIN_RECORD = 6  # samples: three independent clusters of two
 
 def first_backwards(time_s: np.ndarray) -> int | None:
     """Index of the first sample whose time is earlier than the one before, if any."""
-    bad = np.flatnonzero(np.diff(time_s) < 0)
-    return int(bad[0]) + 1 if bad.size else None
+    for first, steps in time_steps(time_s):
+        bad = np.flatnonzero(steps < 0)
+        if bad.size:
+            return first + int(bad[0]) + 1
+    return None
 
 
 def sample_interval(time_s: np.ndarray) -> float:
@@ -31,7 +34,9 @@ def sample_interval(time_s: np.ndarray) -> float:
 
 def uniform_records(time_s: np.ndarray, rate: np.ndarray, dt: float) -> list[np.ndarray]:
     """The rate cut wherever a step exceeds ``GAP_FACTOR``·dt; pieces too short are dropped."""
-    cuts = np.flatnonzero(np.diff(time_s) > GAP_FACTOR * dt) + 1
+    cuts = np.concatenate([np.zeros(0, dtype=np.intp),
+                           *(first + np.flatnonzero(steps > GAP_FACTOR * dt) + 1
+                             for first, steps in time_steps(time_s))])
     return [piece for piece in np.split(np.asarray(rate, dtype=float), cuts) if piece.size >= MIN_RECORD]
 
 

@@ -130,15 +130,17 @@ def check_time_order(time_s: np.ndarray, what: str = "time_s") -> None:
         )
 
 
-def reference_update_s(time_s: np.ndarray, ref_dps: np.ndarray) -> float:
+def reference_update_s(time_s: np.ndarray, ref_dps: np.ndarray, row_step: float | None = None) -> float:
     """How long the reference holds a value: the typical spacing of its changes while it moves.
 
     A reference sent at 10 Hz and joined to 100 Hz sensor rows repeats each value ten times;
     its changes are then 0.1 s apart on ramps (and wherever it has noise). Spacings longer
-    than a second are plateaus of a noiseless reference, not holding.
+    than a second are plateaus of a noiseless reference, not holding. ``row_step``: the rows'
+    :func:`~canical.robust_stats.median_step` (0.0 when time never advances) where the caller has
+    it (a long session's takes a while to make).
     """
     t = np.asarray(time_s, dtype=float)
-    sample_s = median_step(t, 1.0)
+    sample_s = (row_step or 1.0) if row_step is not None else median_step(t, 1.0)
     changes = np.flatnonzero(np.diff(ref_dps) != 0) + 1
     gaps = np.diff(t[changes])
     gaps = gaps[(gaps > 0) & (gaps < MAX_UPDATE_S)]
@@ -163,16 +165,17 @@ def reference_noise(time_s: np.ndarray, ref_dps: np.ndarray, update_s: float) ->
 
 
 def reference_latency(time_s: np.ndarray, ref_dps: np.ndarray, raw: np.ndarray, update_s: float,
-                      max_lag_s: float = MAX_LATENCY_S) -> float:
+                      max_lag_s: float = MAX_LATENCY_S, row_step: float | None = None) -> float:
     """How late the reference is behind the sensor, s, from when each shows the rate changing.
 
     Cross-correlates the reference's and the sensor's changes (each smoothed over one
     reference update, so a held reference lines up with a smooth sensor) over lags up to
     ``max_lag_s``. A held reference is late by half an update on average; that part is the
     hold guard's, so it is taken off. Never negative: an early reference needs no end guard.
+    ``row_step``: the rows' median step where the caller has it, as for :func:`reference_update_s`.
     """
     t = np.asarray(time_s, dtype=float)
-    step = median_step(t, 0.0)
+    step = median_step(t, 0.0) if row_step is None else row_step
     if t.size < 16 or step == 0.0:
         return 0.0
     grid = np.arange(t[0], t[-1], step)
@@ -235,18 +238,20 @@ def detect_plateaus(
         empty = np.zeros(0)
         return Plateaus(label, empty, empty.astype(int), empty.astype(int), n, 0)
     check_time_order(t)
-    update = reference_update_s(t, ref)
+    row_step = median_step(t, 0.0)  # the rows' step, once: each use below would make it again
+    update = reference_update_s(t, ref, row_step=row_step)
     noise = reference_noise(t, ref, update)
     window = window_s if window_s is not None else max(MIN_WINDOW_S, WINDOW_UPDATES * update)
-    row_s = median_step(t, update)
-    stretches, tol, rate_changes = _steady_stretches(t, ref, window, noise, update, row_s, rate_tol)
+    row_s = row_step or update
+    stretches, tol, rate_changes = _steady_stretches(t, ref, window, noise, update, row_s, rate_tol,
+                                                     row_step)
     # What the reference itself shows, for the report and the errors (before the flag).
     longest = max((float(t[b - 1] - t[a]) for a, b in stretches), default=0.0)
     n_flagged = 0
     if settled is not None:
         stretches, n_flagged = _narrowed_by_flag(stretches, np.asarray(settled, dtype=bool))
     if latency_s is None:
-        latency_s = reference_latency(t, ref, raw, update) if raw is not None else 0.0
+        latency_s = reference_latency(t, ref, raw, update, row_step=row_step) if raw is not None else 0.0
     # A value held between updates may be up to one update old; one sent with every row is current.
     end_guard = (update if update > 1.5 * row_s else 0.0) + max(latency_s, 0.0)
     observed = None
@@ -301,11 +306,11 @@ def _window_tolerance(noise: float, per_update: float, full: float,
 
 def _steady_stretches(
     t: np.ndarray, ref: np.ndarray, window: float, noise: float, update: float, row_s: float,
-    rate_tol: float | None,
+    rate_tol: float | None, row_step: float | None = None,
 ) -> tuple[list[tuple[int, int]], float, int]:
     """Runs of rows where the reference's windowed median holds still: (stretches, the tolerance
     for a full window, how many times the rate changed)."""
-    before, after, grid_t, rows_before, rows_after = window_medians(t, ref, window)
+    before, after, grid_t, rows_before, rows_after = window_medians(t, ref, window, row_step=row_step)
     per_update = row_s / update
     full = max(1.0, window / update)
     tol_grid: float | np.ndarray
@@ -317,9 +322,13 @@ def _steady_stretches(
     steady_grid = np.abs(after - before) <= tol_grid
     moving_starts = np.flatnonzero(np.diff(steady_grid.astype(np.int8)) == -1)
     rate_changes = int(moving_starts.size + (not steady_grid[0]))
-    # A row is steady when the grid points on both sides of it are.
-    right = np.clip(np.searchsorted(grid_t, t, side="left"), 0, grid_t.size - 1)
-    left = np.clip(np.searchsorted(grid_t, t, side="right") - 1, 0, grid_t.size - 1)
+    # A row is steady when the grid points on both sides of it are. The grid rises strictly, so
+    # the first point at or after a row is the last at or before it when that is the row's
+    # time, else the next: one search, not two.
+    at_or_before = np.searchsorted(grid_t, t, side="right")
+    on_point = grid_t[np.maximum(at_or_before - 1, 0)] == t
+    right = np.clip(at_or_before - (on_point & (at_or_before > 0)), 0, grid_t.size - 1)
+    left = np.clip(at_or_before - 1, 0, grid_t.size - 1)
     stretches = _runs(steady_grid[left] & steady_grid[right])
     if noise == 0.0:
         stretches = _exact_edges(ref, stretches)
@@ -424,7 +433,8 @@ def observed_settling_s(t: np.ndarray, raw: np.ndarray, stretches: list[tuple[in
 
 
 def window_medians(
-    t: np.ndarray, ref: np.ndarray, window: float, min_rows: int = MIN_WINDOW_ROWS
+    t: np.ndarray, ref: np.ndarray, window: float, min_rows: int = MIN_WINDOW_ROWS,
+    row_step: float | None = None,
 ) -> tuple[np.ndarray, ...]:
     """Median of the reference over the window before and after each point of a time grid.
 
@@ -432,10 +442,11 @@ def window_medians(
     Over rows, not a resampled signal: a burst of lost rows then shrinks a window rather
     than filling it with one held value. A window with fewer than ``min_rows`` rows takes the
     nearest ``min_rows`` on its side, so a rate change hidden in a gap still shows.
+    ``row_step``: the rows' median step where the caller has it, as for :func:`reference_update_s`.
     """
     step = window / GRID_PER_WINDOW
     # Half a row off the rows' own clock, so timestamps jittered by a logger fall on the same side.
-    offset = 0.5 * median_step(t, 0.0)
+    offset = 0.5 * (median_step(t, 0.0) if row_step is None else row_step)
     grid_t = np.arange(t[0] + offset, t[-1] + step, step)
     lo = np.searchsorted(t, grid_t - window, side="left")
     mid = np.searchsorted(t, grid_t, side="left")
@@ -454,8 +465,9 @@ def window_medians(
     return before, after, grid_t, rows_before, rows_after
 
 
-#: Elements per block of windows taken at once: bounds the memory of the vectorised medians.
-MEDIAN_BLOCK = 1 << 22
+#: Elements per block of windows taken at once: bounds the memory of the vectorised medians (8 MB:
+#: a block the allocator reuses, not fresh pages each time).
+MEDIAN_BLOCK = 1 << 20
 
 
 def ranged_medians(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.ndarray:
@@ -473,7 +485,8 @@ def ranged_medians(x: np.ndarray, starts: np.ndarray, stops: np.ndarray) -> np.n
         per_block = max(1, MEDIAN_BLOCK // int(length))
         for k in range(0, at.size, per_block):
             chunk = at[k:k + per_block]
-            out[chunk] = np.median(rows[starts[chunk]], axis=1)
+            # the gathered windows are a copy of this loop's own: partitioned where they are
+            out[chunk] = np.median(rows[starts[chunk]], axis=1, overwrite_input=True)
     return out
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import io
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
@@ -122,12 +123,12 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     """
     import os
     from concurrent.futures import Future, ThreadPoolExecutor
+    from functools import partial
 
     import numpy as np
 
     from canical.atomic_file import atomic_writer
     from canical.sessions.csv_chunks import read_chunks
-    from canical.sessions.fixed_cells import append_cells, fixed6_cells, flag_cells
 
     cset = corrector.cset
     check_input(args, cset, head.meta, head.header)
@@ -142,22 +143,26 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     progress = Progress("apply", max(os.path.getsize(args.input) >> 20, 1), unit="MB")
     done = head.data_offset
     n_rows = n_out = 0
-    # One block written by a thread while the next is read and corrected (writing a file lets
-    # go of the interpreter); one write in flight at most, so memory stays two blocks and a
-    # failed write stops the run at the next block. Leaving the pool waits for that write
-    # before the output is kept or discarded.
+    # A block's text is made and written by a thread while the next block is read and
+    # corrected (the text is made in numpy and written to a file, both letting go of the
+    # interpreter, while reading holds it): the blocks' texts come out in order, the state
+    # (set, tracker) stays on this thread. One block in the thread at most, so memory stays two
+    # blocks and a failed write stops the run at the next block. Leaving the pool waits for
+    # that block before the output is kept or discarded.
     with atomic_writer(args.output, "wb") as out, ThreadPoolExecutor(max_workers=1) as writer:
         pending: Future[int] | None = None
 
-        def write(data: bytes | memoryview) -> None:
+        def write(text: Callable[[], bytes | memoryview]) -> None:
             nonlocal pending
             if pending is not None:
                 pending.result()
-            pending = writer.submit(out.write, data)
+            pending = writer.submit(lambda: out.write(text()))
 
-        write("".join(line + "\n" for line in head.preamble).encode("utf-8"))
+        preamble = "".join(line + "\n" for line in head.preamble).encode("utf-8")
+        write(lambda: preamble)
         added = ["rate_dps", "out_of_span", *(["bias_dps"] if replayer is not None else [])]
-        write((",".join([*head.header, *added]) + "\n").encode("utf-8"))
+        header = (",".join([*head.header, *added]) + "\n").encode("utf-8")
+        write(lambda: header)
         for chunk in read_chunks(head, columns):
             inputs = {name: chunk.columns[name] for name in corrector.required_inputs}
             rate, oos = corrector.correct_next(chunk.columns[args.raw_column], inputs)
@@ -166,11 +171,7 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
                 time_s, temp, cue = tracking_inputs(args, chunk.columns)
                 extra = [replayer.feed(time_s, rate, temp, cue)[:, 0]]
                 last_bias = extra[0][-1:]
-            if chunk.text is not None:
-                write(append_cells(chunk.text, [fixed6_cells(rate), flag_cells(oos),
-                                                *(fixed6_cells(b) for b in extra)]))
-            else:
-                write(_chunk_text(chunk.rows or [], rate, oos, extra).encode("utf-8"))
+            write(partial(_block_text, chunk.text, chunk.rows, rate, oos, extra))
             n_rows += chunk.n_rows
             n_out += int(np.count_nonzero(oos))
             done += chunk.size
@@ -181,6 +182,17 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
             print_events(replayer.finish(), (cset.axis,), last_bias)
     print_applied(args, corrector, n_rows, n_out)
     return 0
+
+
+def _block_text(text: bytes | None, rows: list[str] | None, rate: np.ndarray, oos: np.ndarray,
+                extra: list[np.ndarray]) -> bytes | memoryview:
+    """A block's rows with their new cells: placed by numpy in the rows' bytes when the block is
+    plain, else formatted row by row."""
+    from canical.sessions.fixed_cells import append_cells, fixed6_cells, flag_cells
+
+    if text is not None:
+        return append_cells(text, [fixed6_cells(rate), flag_cells(oos), *(fixed6_cells(b) for b in extra)])
+    return _chunk_text(rows or [], rate, oos, extra).encode("utf-8")
 
 
 def check_input(args: argparse.Namespace, cset, meta: dict[str, str], header: list[str]) -> None:
@@ -307,6 +319,8 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         extra = [n for n in ("time_s", args.standstill_column, args.temp_column) if n in source.inputs]
         needed = list(dict.fromkeys([*needed, *extra]))
     raw_signal = source.raw_signals.get(cset.axis)
+    if corrector.elementwise_model and not args.track_bias:
+        return _apply_canlog_stream(args, corrector, source, sensor, needed, raw_signal)
     log = read_canlog(
         args.input,
         dbc=source.dbc,
@@ -332,17 +346,60 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         for key, value in session.meta.items():
             out.write(f"# {key}: {value}\n")
         out.write(",".join(names) + "\n")
-        buf = io.StringIO()
-        cols = [session.time_s, session.raw, *session.aux.values()]
-        fmt = ["%.6f", "%.9g"] + ["%.9g"] * len(session.aux)
-        table = np.column_stack([*cols, rate, oos.astype(float), *tracked])
-        np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d", *(["%.6f"] if tracked else [])])
-        out.write(buf.getvalue())
-    n_out = int(np.count_nonzero(oos))
-    note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
-    skipped = f"; {log.skipped} frames before the inputs' first values left out" if log.skipped else ""
-    print(
-        f"apply: {len(session)} {source.raw_message} frames (axis {cset.axis}) corrected with set "
-        f"0x{corrector.set_id:08x}{note}{skipped} -> {args.output}"
-    )
+        out.write(_canlog_rows(session.time_s, session.raw, list(session.aux.values()), rate, oos, tracked))
+    _print_canlog_applied(args, corrector, source.raw_message, len(session), int(np.count_nonzero(oos)),
+                          log.skipped)
     return 0
+
+
+def _apply_canlog_stream(args: argparse.Namespace, corrector: Corrector, source, sensor: str | None,
+                         needed: list[str], raw_signal: str | None) -> int:
+    """A CAN log read, corrected and written a block of rows at a time (memory bounded by the
+    block): the set's state carried from block to block, so the output is, byte for byte, the one
+    the whole log at once gives (:func:`run_canlog` without ``--track-bias``)."""
+    import numpy as np
+
+    from canical.atomic_file import atomic_writer
+    from canical.sessions.canlog import TIME_INPUT, stream_canlog
+
+    cset = corrector.cset
+    stream = stream_canlog(args.input, dbc=source.dbc, axis=cset.axis,
+                           inputs=source.axis_inputs(cset.axis, needed), raw_message=source.raw_message,
+                           raw_signal=raw_signal, sensor=sensor, j1939_source=source.j1939_source)
+    n_rows = n_out = 0
+    with atomic_writer(args.output) as out:
+        for key, value in stream.meta.items():
+            out.write(f"# {key}: {value}\n")
+        out.write(",".join(["time_s", "raw", *stream.channels, "rate_dps", "out_of_span"]) + "\n")
+        for block in stream.blocks():
+            inputs = dict(block.aux)
+            if TIME_INPUT in corrector.required_inputs:
+                inputs[TIME_INPUT] = block.time_s
+            rate, oos = corrector.correct_next(block.raw, inputs)
+            out.write(_canlog_rows(block.time_s, block.raw, list(block.aux.values()), rate, oos, []))
+            n_rows += len(block.raw)
+            n_out += int(np.count_nonzero(oos))
+    _print_canlog_applied(args, corrector, source.raw_message, n_rows, n_out, stream.skipped)
+    return 0
+
+
+def _canlog_rows(time_s: np.ndarray, raw: np.ndarray, aux: list[np.ndarray], rate: np.ndarray,
+                 oos: np.ndarray, tracked: list[np.ndarray]) -> str:
+    """A log's rows as CSV text: time, raw and inputs, then rate, out-of-span flag (and bias)."""
+    import numpy as np
+
+    buf = io.StringIO()
+    fmt = ["%.6f", "%.9g"] + ["%.9g"] * len(aux)
+    table = np.column_stack([time_s, raw, *aux, rate, oos.astype(float), *tracked])
+    np.savetxt(buf, table, delimiter=",", fmt=[*fmt, "%.6f", "%d", *(["%.6f"] if tracked else [])])
+    return buf.getvalue()
+
+
+def _print_canlog_applied(args: argparse.Namespace, corrector: Corrector, raw_message: str, n_rows: int,
+                          n_out: int, skipped: int) -> None:
+    note = f", {n_out} outside the calibrated span (flagged)" if n_out else ""
+    left_out = f"; {skipped} frames before the inputs' first values left out" if skipped else ""
+    print(
+        f"apply: {n_rows} {raw_message} frames (axis {corrector.cset.axis}) corrected with set "
+        f"0x{corrector.set_id:08x}{note}{left_out} -> {args.output}"
+    )

@@ -61,6 +61,7 @@ def characterise(args: argparse.Namespace) -> int:
                            f"({time_s[bad - 1]:.6f} -> {time_s[bad]:.6f} s)")
     dt = sample_interval(time_s)
     records = uniform_records(time_s, rate, dt)
+    del time_s, rate  # the records are views of the rate; the times' memory goes to the Allan sums
     analysis = noise_analysis(records, dt, str(args.record))
     if "skipped" in analysis:
         raise CanicalError(f"{args.record}: {analysis['skipped']}")
@@ -87,9 +88,19 @@ def _read_csv(args: argparse.Namespace):
     if args.coefficients:
         corrector = _corrector(args.coefficients)
         inputs = [n for n in corrector.required_inputs if n != TIME_COLUMN]
-        table = read_columns(args.record, [TIME_COLUMN, args.raw_column, *inputs], on_block)
-        values = {n: table.columns[n] for n in inputs} | {TIME_COLUMN: table.columns[TIME_COLUMN]}
-        rate = _corrected(corrector, table.columns[args.raw_column], values)
+        needed = [TIME_COLUMN, args.raw_column, *inputs]
+
+        def correct(columns):  # each block's raw counts to rates as read: the counts are not kept
+            values = {n: columns[n] for n in inputs} | {TIME_COLUMN: columns[TIME_COLUMN]}
+            return {TIME_COLUMN: columns[TIME_COLUMN],
+                    RATE_COLUMN: _corrected(corrector, columns[args.raw_column], values)}
+
+        if corrector.elementwise_model:
+            table = read_columns(args.record, needed, on_block, convert=correct)
+        else:  # the forward polynomial's Newton: the whole record at once
+            table = read_columns(args.record, needed, on_block)
+            table.columns.update(correct(table.columns))
+        rate = table.columns[RATE_COLUMN]
     else:
         column = args.column or RATE_COLUMN
         if column not in read_header(args.record):
@@ -139,8 +150,9 @@ def _read_canlog(args: argparse.Namespace):
 
 
 def _corrected(corrector, raw, inputs):
-    """The rate of a long record, corrected a block at a time so that the model's temporaries
-    stay small (the same values: a piecewise model evaluates each sample on its own)."""
+    """The rate of a long record (or the next block of one), corrected a block at a time so that
+    the model's temporaries stay small (the same values: a piecewise model evaluates each sample
+    on its own, and the terms' state is carried from block to block)."""
     import numpy as np
 
     if not corrector.elementwise_model:

@@ -52,11 +52,14 @@ class PiecewisePoly:
 
     def _horner(self, seg: np.ndarray, u: np.ndarray) -> np.ndarray:
         # One coefficient gathered per sample at a time, not each sample's whole row at once
-        # (order + 1 times the samples' memory): the same operations, the same values.
-        c = self.coeffs
-        out: np.ndarray = c[seg, -1]
+        # (order + 1 times the samples' memory), from that power's own column (``take`` from a
+        # short contiguous column is several times quicker than ``c[seg, k]``): the same
+        # operations, the same values; the products and sums made in place.
+        columns = [np.ascontiguousarray(col) for col in self.coeffs.T]
+        out: np.ndarray = np.take(columns[-1], seg)
         for k in range(self.order - 1, -1, -1):
-            out = out * u + c[seg, k]
+            out *= u
+            out += np.take(columns[k], seg)
         return out
 
     def _slope(self, seg: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -82,10 +85,14 @@ class PiecewisePoly:
         out_of_span = (dv < lo) | (dv > hi)
         inside = np.clip(dv, lo, hi)
         seg = self.segment_of(inside)
-        rate = self._horner(seg, inside / self.scale)
+        u = inside / self.scale
+        rate = self._horner(seg, u)
         if out_of_span.any():
-            slope = self._slope(seg, inside / self.scale)
-            rate = np.where(out_of_span, rate + slope * (dv - inside), rate)
+            if np.ndim(rate) == 0:
+                rate = np.where(out_of_span, rate + self._slope(seg, u) * (dv - inside), rate)
+            else:  # the few samples beyond the span, not the slope of every sample
+                at = np.flatnonzero(out_of_span)
+                rate[at] += self._slope(seg[at], u[at]) * (dv[at] - inside[at])
         return rate, out_of_span
 
     def evaluate_one(self, dv: float) -> tuple[float, bool]:

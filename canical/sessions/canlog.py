@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -129,6 +129,13 @@ class _LogRows:
         if self.has_ref:
             self.refs.append(self.held["\0ref"])
 
+    def drain(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The rows made so far (timestamps, raw values, channels as columns), and forget them."""
+        data = np.asarray(self.rows, dtype=float).reshape(len(self.raws), len(self.channels))
+        out = np.asarray(self.times, dtype=float), np.asarray(self.raws, dtype=float), data
+        self.times, self.frame_no, self.settled, self.raws, self.rows, self.refs = [], [], [], [], [], []
+        return out
+
 
 def read_canlog(
     path: str | os.PathLike[str],
@@ -150,44 +157,162 @@ def read_canlog(
     J1939 messages are matched by their parameter group (:mod:`canical.frames.frame_match`)
     and ``j1939_source``.
     """
-    name = str(path)
-    if not Path(path).is_file():
-        raise CanicalError(f"{name}: file not found")
-    require_log_support(path)
-    db = load_dbc(dbc)
-    raw = _message(db, raw_message, dbc)
-    raw_sig = raw_signal or f"GyroRaw{axis.upper()}"
-    if raw_sig.startswith(HELD_AXIS_PREFIX):  # in another message: held, taken at each raw frame
-        if raw_sig not in inputs:
-            raise CanicalError(f"axis {axis}: its raw signal ({raw_sig}) is not among the inputs")
-        held_msg, _, held_sig = inputs[raw_sig].partition(".")
-        signal_msg, signal_name = _message(db, held_msg, dbc), held_sig
-    elif raw_sig not in {s.name for s in raw.signals}:
-        raise CanicalError(f"{dbc}: message {raw.name} has no signal {raw_sig} (axis {axis})")
-    else:
-        signal_msg, signal_name = raw, raw_sig
-    wanted = _wanted_signals(db, inputs, ref)
-    by_id = _frames_by_id(db, dbc, wanted)
-    raw_match = frame_match(raw, j1939_source)
-    raw_pairs = by_id.pop((raw.frame_id, raw.is_extended_frame), (raw, []))[1]
-    others = FrameMatcher((frame_match(msg, j1939_source), (msg, pairs)) for msg, pairs in by_id.values())
-    log = _LogRows(channels=[c for c in wanted if not c.startswith("\0")],
-                   needed=[c for c in wanted if c not in ("\0axis", "\0settled", "\0inverted")],
-                   has_ref=ref is not None)
-    try:
-        for frame in can.LogReader(name):
-            _take_frame(log, frame, raw_match, (raw, raw_pairs), raw_sig, others)
-    except CanicalError:
-        raise
-    except Exception as exc:  # python-can's readers raise many types on a damaged file
-        raise CanicalError(f"{name}: cannot read CAN log after {log.frames} frames ({exc})") from None
-    signal = signal_msg.get_signal_by_name(signal_name)
-    rail = signal_rail(signal, f"DBC signal {signal_msg.name}.{signal_name}")
-    session = _session(log, name, raw.name, axis, sensor, rail, signal.unit or None)
+    reader = _LogReader(path, dbc=dbc, axis=axis, inputs=inputs, ref=ref, raw_message=raw_message,
+                        raw_signal=raw_signal, j1939_source=j1939_source)
+    log = reader.log
+    for _ in reader.frames():
+        pass
+    signal = reader.signal
+    rail = signal_rail(signal, f"DBC signal {reader.signal_where}")
+    session = _session(log, reader.name, reader.raw.name, axis, sensor, rail, signal.unit or None)
     for channel in [c for c in session.aux if c.startswith(HELD_AXIS_PREFIX)]:
         del session.aux[channel]  # axes' raw values, not inputs
     return CanlogSession(session, log.frames, log.skipped, log.dropped, _table_axis(log.held),
                          bool(log.held.get("\0inverted", 0.0)))
+
+
+class _LogReader:
+    """A log's frames taken one by one as the daemon takes them, into :class:`_LogRows`: the DBC's
+    messages and signals looked up once, the frames read through python-can."""
+
+    def __init__(self, path: str | os.PathLike[str], *, dbc: str | os.PathLike[str], axis: str,
+                 inputs: Mapping[str, str], ref: str | None, raw_message: str, raw_signal: str | None,
+                 j1939_source: J1939Source) -> None:
+        self.name = str(path)
+        if not Path(path).is_file():
+            raise CanicalError(f"{self.name}: file not found")
+        require_log_support(path)
+        db = load_dbc(dbc)
+        self.raw = raw = _message(db, raw_message, dbc)
+        self.raw_sig = raw_sig = raw_signal or f"GyroRaw{axis.upper()}"
+        if raw_sig.startswith(HELD_AXIS_PREFIX):  # in another message: held, taken at each raw frame
+            if raw_sig not in inputs:
+                raise CanicalError(f"axis {axis}: its raw signal ({raw_sig}) is not among the inputs")
+            held_msg, _, held_sig = inputs[raw_sig].partition(".")
+            signal_msg, signal_name = _message(db, held_msg, dbc), held_sig
+        elif raw_sig not in {s.name for s in raw.signals}:
+            raise CanicalError(f"{dbc}: message {raw.name} has no signal {raw_sig} (axis {axis})")
+        else:
+            signal_msg, signal_name = raw, raw_sig
+        self.signal = signal_msg.get_signal_by_name(signal_name)
+        self.signal_where = f"{signal_msg.name}.{signal_name}"
+        wanted = _wanted_signals(db, inputs, ref)
+        by_id = _frames_by_id(db, dbc, wanted)
+        self.raw_match = frame_match(raw, j1939_source)
+        self.raw_entry = (raw, by_id.pop((raw.frame_id, raw.is_extended_frame), (raw, []))[1])
+        self.others = FrameMatcher((frame_match(msg, j1939_source), (msg, pairs))
+                                   for msg, pairs in by_id.values())
+        self.log = _LogRows(channels=[c for c in wanted if not c.startswith("\0")],
+                            needed=[c for c in wanted if c not in ("\0axis", "\0settled", "\0inverted")],
+                            has_ref=ref is not None)
+
+    def frames(self) -> Iterator[None]:
+        """Each frame of the log taken in turn (a step per frame, so a caller may take the rows
+        made so far between two)."""
+        try:
+            for frame in can.LogReader(self.name):
+                _take_frame(self.log, frame, self.raw_match, self.raw_entry, self.raw_sig, self.others)
+                yield None
+        except CanicalError:
+            raise
+        except Exception as exc:  # python-can's readers raise many types on a damaged file
+            raise CanicalError(f"{self.name}: cannot read CAN log after {self.log.frames} frames ({exc})") \
+                from None
+
+
+@dataclass(frozen=True)
+class CanlogBlock:
+    """Consecutive rows of a log, as :func:`read_canlog`'s session holds them: time (the
+    ``time_s`` input, else seconds since the first row), raw values and the inputs."""
+
+    time_s: np.ndarray
+    raw: np.ndarray
+    aux: dict[str, np.ndarray]
+
+
+@dataclass
+class CanlogStream:
+    """One axis of a log without a reference, read a block of rows at a time (``blocks``), for a
+    log too long to hold: memory is the block's. After the blocks, the counts of what was read.
+
+    The rows, joined, are those of :func:`read_canlog`'s session (``ref=None``); a log with no
+    row at all is refused as it refuses it, after the last frame.
+    """
+
+    reader: _LogReader
+    axis: str
+    sensor: str | None
+    rows_per_block: int
+
+    @property
+    def meta(self) -> dict[str, str]:
+        """The metadata :func:`read_canlog`'s session has."""
+        meta = {"axis": self.axis, "source": Path(self.reader.name).name}
+        if self.sensor:
+            meta = {"sensor": self.sensor, **meta}
+        if self.reader.signal.unit:
+            meta[RAW_UNITS] = self.reader.signal.unit
+        return meta
+
+    @property
+    def channels(self) -> list[str]:
+        """The session's aux columns, in order."""
+        return [c for c in self.reader.log.channels if c != TIME_INPUT and not c.startswith(HELD_AXIS_PREFIX)]
+
+    @property
+    def frames(self) -> int:
+        return self.reader.log.frames
+
+    @property
+    def skipped(self) -> int:
+        return self.reader.log.skipped
+
+    def blocks(self) -> Iterator[CanlogBlock]:
+        log = self.reader.log
+        first: float | None = None
+        rows = 0
+        for _ in self.reader.frames():
+            if len(log.raws) >= self.rows_per_block:
+                first, block = self._block(first)
+                rows += len(block.raw)
+                yield block
+        if log.raws:
+            first, block = self._block(first)
+            rows += len(block.raw)
+            yield block
+        if not rows:
+            _session(log, self.reader.name, self.reader.raw.name, self.axis, self.sensor, None, None)
+
+    def _block(self, first: float | None) -> tuple[float, CanlogBlock]:
+        times, raw, data = self.reader.log.drain()
+        aux = {c: data[:, i] for i, c in enumerate(self.reader.log.channels)}
+        first = float(times[0]) if first is None else first
+        time_s = aux.pop(TIME_INPUT) if TIME_INPUT in aux else times - first
+        return first, CanlogBlock(time_s, raw, {c: aux[c] for c in self.channels})
+
+
+def stream_canlog(
+    path: str | os.PathLike[str],
+    *,
+    dbc: str | os.PathLike[str],
+    axis: str,
+    inputs: Mapping[str, str],
+    raw_message: str = DEFAULT_RAW_MESSAGE,
+    raw_signal: str | None = None,
+    sensor: str | None = None,
+    j1939_source: J1939Source = None,
+    rows_per_block: int | None = None,
+) -> CanlogStream:
+    """:func:`read_canlog` (without a reference) as a stream of blocks of rows (of
+    :data:`BLOCK_ROWS` by default): the DBC and the mapping checked now, the frames read as the
+    blocks are taken."""
+    reader = _LogReader(path, dbc=dbc, axis=axis, inputs=inputs, ref=None, raw_message=raw_message,
+                        raw_signal=raw_signal, j1939_source=j1939_source)
+    return CanlogStream(reader, axis, sensor, rows_per_block or BLOCK_ROWS)
+
+
+#: Rows per block of a streamed log: some megabytes of rows held as Python lists while it is read.
+BLOCK_ROWS = 1 << 16
 
 
 def signal_rail(signal: Signal, where: str) -> Rail | None:

@@ -11,6 +11,8 @@ itself, so every cell is the text ``f"{x:.6f}"`` gives.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 #: Products below this are exact enough to round: their ulp is at most 1/4.
@@ -31,39 +33,56 @@ def fixed6_cells(values: np.ndarray) -> np.ndarray:
     fast &= np.abs(q - np.floor(q) - 0.5) > 2.0 * np.spacing(q)
     n = np.rint(q).astype(np.int64)
     whole, frac = np.divmod(n, 1_000_000)
-    width = len(str(int(whole.max(initial=0))))
-    cells = np.zeros((len(v), 1 + width + 7), dtype=np.uint8)
-    cells[:, 0] = np.where(np.signbit(v), _MINUS, 0)
-    cells[:, 1 : 1 + width] = _whole_digits(whole, width)
-    cells[:, 1 + width] = _DOT
+    groups = -(-len(str(int(whole.max(initial=0)))) // 3)
+    # sign, the whole part's digits three at a time (right-aligned, 0 before the first shown
+    # digit), the point, the fraction's six digits: each a field of the row, filled a field at
+    # a time from the tables (a copy of 3-byte items, not a 2-D copy of 3-byte rows)
+    fields = [("sign", "u1"), *((f"g{g}", "V3") for g in range(groups)), ("dot", "u1"), ("hi", "V3"),
+              ("lo", "V3")]
+    cells, rec = _record_rows(len(v), fields)
+    rec["sign"] = np.where(np.signbit(v), _MINUS, 0)
+    rest, lead = whole, None  # lead: every group before this one is 0
+    for g in range(groups):
+        power = 1000 ** (groups - 1 - g)
+        part, rest = np.divmod(rest, power) if power > 1 else (rest, rest)
+        shift = _UNITS if g == groups - 1 else _LEADING
+        index = part + shift if lead is None else np.where(lead, part + shift, part)
+        rec[f"g{g}"] = np.take(_GROUPS, index)
+        lead = part == 0 if lead is None else lead & (part == 0)
+    rec["dot"] = _DOT
     high, low = np.divmod(frac, 1000)
-    cells[:, 2 + width : 5 + width] = _DIGITS3[high]
-    cells[:, 5 + width : 8 + width] = _DIGITS3[low]
+    rec["hi"] = np.take(_GROUPS, high)
+    rec["lo"] = np.take(_GROUPS, low)
     slow = np.flatnonzero(~fast)
     if slow.size:
         cells = _python_formatted(cells, v, slow)
     return cells
 
 
-def _whole_digits(whole: np.ndarray, width: int) -> np.ndarray:
-    """The digits of ``whole`` right-aligned in ``width`` bytes, 0 before the first (a 0 shown).
+def _groups_table() -> np.ndarray:
+    """3-byte items: 0..999 as three digits ("007"); from :data:`_LEADING`, the same without the
+    zeros before the first digit (0 as no byte at all: a leading group); from :data:`_UNITS`, the
+    same with 0 shown (the units of a number with no group before them)."""
+    table = np.zeros((3000, 3), dtype=np.uint8)
+    table[:1000] = _DIGITS3
+    for i in range(1000):
+        text = str(i).encode("ascii")
+        table[_UNITS + i, 3 - len(text):] = np.frombuffer(text, dtype=np.uint8)
+        if i:
+            table[_LEADING + i] = table[_UNITS + i]
+    return table.view("V3").reshape(-1)
 
-    Three digits at a time from a table: one integer division per three digits, not two per digit.
-    """
-    groups = -(-width // 3)
-    digits = np.empty((len(whole), 3 * groups), dtype=np.uint8)
-    rest = whole
-    for g in range(groups - 1, -1, -1):
-        part = rest
-        if g:
-            rest, part = np.divmod(rest, 1000)
-        digits[:, 3 * g : 3 * g + 3] = _DIGITS3[part]
-    shown = np.ones(len(whole), dtype=np.int64)
-    for k in range(1, width):
-        shown += whole >= 10**k
-    power = np.arange(width - 1, -1, -1)
-    out: np.ndarray = np.where(power < shown[:, None], digits[:, 3 * groups - width :], 0).astype(np.uint8)
-    return out
+
+_LEADING, _UNITS = 1000, 2000
+_GROUPS = _groups_table()
+
+
+def _record_rows(n: int, fields: list[tuple[str, str]]) -> tuple[np.ndarray, np.ndarray]:
+    """A matrix of ``n`` rows of bytes and the same memory seen as records of the named fields
+    laid one after the other (filling a field is a copy of one item a row)."""
+    dtype = np.dtype(fields)
+    matrix = np.empty((n, dtype.itemsize), dtype=np.uint8)
+    return matrix, matrix.view(dtype).reshape(n)
 
 
 def _python_formatted(cells: np.ndarray, v: np.ndarray, rows: np.ndarray) -> np.ndarray:
@@ -92,24 +111,26 @@ def append_cells(rows: bytes, cells: list[np.ndarray]) -> memoryview:
     Why two ways: placing every byte by its own computed offset costs some ten index operations
     per byte of the input, more than reading it. When the rows are of similar lengths (a session's
     are), each row is copied whole into a padded matrix beside its new cells and the padding
-    dropped by one mask; a block with a row far longer than the rest takes the byte-offset way.
+    dropped by one mask; a block with a row far longer than the rest (or a NUL byte, which the
+    padded way reads as padding) takes the byte-offset way.
     """
     buf = np.frombuffer(rows, dtype=np.uint8)
     ends = np.flatnonzero(buf == _NEWLINE)
     n = len(ends)
     if n == 0:
         return memoryview(rows)
-    comma = np.full((n, 1), _COMMA, dtype=np.uint8)
-    parts = [m for block in cells for m in (comma, block)]
-    tails = np.hstack([*parts, np.full((n, 1), _NEWLINE, dtype=np.uint8)])
     starts = np.empty(n, dtype=np.int64)
     starts[0] = 0
     starts[1:] = ends[:-1] + 1
     lengths = ends - starts  # without the newline
     width = int(lengths.max())
-    if _PADDED_AT_MOST < 0 or n * (width + 1) > _PADDED_AT_MOST * len(buf) + 4096:
+    if (_PADDED_AT_MOST < 0 or width == 0 or n * (width + 1) > _PADDED_AT_MOST * len(buf) + 4096
+            or b"\x00" in rows):
+        comma = np.full((n, 1), _COMMA, dtype=np.uint8)
+        parts = [m for block in cells for m in (comma, block)]
+        tails = np.hstack([*parts, np.full((n, 1), _NEWLINE, dtype=np.uint8)])
         return _append_scattered(buf, ends, tails)
-    return _append_padded(buf, starts, lengths, width, tails)
+    return _append_padded(buf, starts, lengths, width, cells)
 
 
 #: The padded matrix may hold this many times the block's bytes before the byte-offset way is used
@@ -118,21 +139,36 @@ _PADDED_AT_MOST = 3
 
 
 def _append_padded(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, width: int,
-                   tails: np.ndarray) -> memoryview:
-    """Each row copied whole (a window of ``width`` bytes from its start), its new cells beside it,
-    and the bytes past the row's end and the cells' zeros dropped by one boolean mask."""
+                   cells: list[np.ndarray]) -> memoryview:
+    """Each row copied whole (a window of ``width`` bytes from its start) into a record beside its
+    new cells; the bytes past the row's end cleared by a mask made for its length, and every
+    0 byte (those, and the cells' absent bytes) dropped at once."""
     n = len(starts)
+    fields: list[tuple[str, str]] = [("row", f"V{width}")]
+    for k, matrix in enumerate(cells):
+        fields += [(f"comma{k}", "u1"), *([(f"cell{k}", f"V{matrix.shape[1]}")] if matrix.shape[1] else [])]
+    fields.append(("newline", "u1"))
+    full, rec = _record_rows(n, fields)
     padded = np.zeros(len(buf) + width, dtype=np.uint8)  # every row's window lies inside
     padded[: len(buf)] = buf
-    windows = np.lib.stride_tricks.as_strided(padded, shape=(len(buf) + 1, width), strides=(1, 1),
-                                              writeable=False)
-    full = np.empty((n, width + tails.shape[1]), dtype=np.uint8)
-    full[:, :width] = windows[starts]
-    full[:, width:] = tails
-    keep = np.empty(full.shape, dtype=bool)
-    np.less(np.arange(width), lengths[:, None], out=keep[:, :width])
-    np.not_equal(tails, 0, out=keep[:, width:])
-    return full[keep].data
+    windows = np.ndarray((len(buf) + 1,), dtype=f"V{width}", buffer=padded, strides=(1,))
+    rec["row"] = windows[starts]
+    for k, matrix in enumerate(cells):
+        rec[f"comma{k}"] = _COMMA
+        if matrix.shape[1]:
+            rec[f"cell{k}"] = np.ascontiguousarray(matrix, dtype=np.uint8).view(f"V{matrix.shape[1]}")[:, 0]
+    rec["newline"] = _NEWLINE
+    full &= np.take(_row_masks(width, full.shape[1]), lengths).view(np.uint8).reshape(full.shape)
+    return full[full != 0].data
+
+
+@functools.lru_cache(maxsize=8)
+def _row_masks(width: int, total: int) -> np.ndarray:
+    """Items of ``total`` bytes, one per row length L: 0xFF over the row's L bytes and the cells
+    after the window, 0 over the rest of the window."""
+    masks = np.full((width + 1, total), 0xFF, dtype=np.uint8)
+    masks[:, :width][np.arange(width)[None, :] >= np.arange(width + 1)[:, None]] = 0
+    return masks.view(f"V{total}").reshape(-1)
 
 
 def _append_scattered(buf: np.ndarray, ends: np.ndarray, tails: np.ndarray) -> memoryview:

@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.sessions.csv_chunks import CHUNK_BYTES, CsvHead, check_columns, read_chunks, read_head
+from canical.sessions.csv_chunks import CsvHead, check_columns, count_lines, read_chunks, read_head
 from canical.sessions.csv_file import TIME_COLUMN, CsvTable
 from canical.sessions.session import RowMeans
 
@@ -33,17 +33,6 @@ MIN_ROW_BYTES = 6
 def samples_per_mean(rows: int, bound: int) -> int:
     """The smallest ``k`` whose means of ``rows`` samples number at most ``bound``."""
     return max(1, -(-rows // bound))
-
-
-def count_lines(head: CsvHead) -> int:
-    """Lines after the header (blank ones too), counted a block at a time without parsing."""
-    lines, last = 0, b"\n"
-    with open(head.path, "rb") as f:
-        f.seek(head.data_offset)
-        while block := f.read(CHUNK_BYTES):
-            lines += block.count(b"\n")
-            last = block[-1:]
-    return lines + (last != b"\n")
 
 
 def read_row_means(
@@ -150,8 +139,10 @@ class _Reducer:
         """The whole read's check (``session_from_table``), on the samples before they are averaged."""
         if time_s is None or not time_s.size:
             return
-        back = np.flatnonzero(np.diff(np.concatenate([[self.last_time], time_s])) < 0)
-        if back.size:
+        # One comparison of each sample with the one before (no joined copy, no differences):
+        # the line is looked for only when some sample is earlier than the one before it.
+        if time_s[0] < self.last_time or bool(np.any(time_s[1:] < time_s[:-1])):
+            back = np.flatnonzero(np.diff(np.concatenate([[self.last_time], time_s])) < 0)
             line = self.head.first_data_line + first_row + int(back[0])
             raise CanicalError(f"{self.head.path}: line {line}: time_s goes backwards")
         self.last_time = float(time_s[-1])

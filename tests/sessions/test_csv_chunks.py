@@ -38,6 +38,51 @@ def test_same_columns_as_read_table(tmp_path, text):
     assert read_session(path).raw.tobytes() == whole.columns["raw"].tobytes()
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_rows_far_shorter_after_the_first_block_enlarge_the_columns(tmp_path, seed):
+    """The columns are sized from the first block's bytes per row: a file whose later rows are
+    shorter holds more rows than that; they are all read, in order."""
+    import numpy as np
+
+    rng = np.random.default_rng(seed)
+    long_rows = [f"{i / 1000:.9f},{rng.normal():.12f},{rng.integers(-10**9, 10**9)}" for i in range(300)]
+    short_rows = [f"{300 + i},{i % 7},{i % 5}" for i in range(int(rng.integers(2000, 4000)))]
+    path = tmp_path / "s.csv"
+    path.write_text("time_s,ref_dps,raw\n" + "\n".join(long_rows + short_rows) + "\n")
+    whole = read_table(path)
+    blocks = csv_chunks.read_columns(path)
+    for name, values in whole.columns.items():
+        assert blocks.columns[name].tobytes() == values.tobytes()
+
+
+@pytest.mark.parametrize("text", [
+    pytest.param(TEXT, id="plain"),
+    pytest.param(TEXT.replace("\n", "\r", 1), id="read whole"),
+])
+def test_converted_block_by_block_as_the_whole(tmp_path, text):
+    """``convert`` sees the blocks in order and keeps what it returns: a running sum over the
+    blocks is the running sum of the whole column."""
+    import numpy as np
+
+    path = tmp_path / "s.csv"
+    path.write_bytes(text.encode())
+    total = [0.0]
+    seen = []
+
+    def running(columns):
+        seen.append(len(columns["raw"]))
+        out = total[0] + np.cumsum(columns["raw"])
+        total[0] = float(out[-1])
+        return {"time_s": columns["time_s"], "sum": out}
+
+    got = csv_chunks.read_columns(path, ["time_s", "raw"], convert=running)
+    whole = read_table(path)
+    assert list(got.columns) == ["time_s", "sum"]
+    assert got.columns["time_s"].tobytes() == whole.columns["time_s"].tobytes()
+    np.testing.assert_allclose(got.columns["sum"], np.cumsum(whole.columns["raw"]), rtol=0, atol=1e-9)
+    assert sum(seen) == len(whole.columns["raw"]) and (len(seen) > 1) == ("\r" not in text)
+
+
 @pytest.mark.parametrize("change", [
     lambda t: t.replace("\n4.0", "\n4.x", 1),
     lambda t: t.replace("\n5.00,", "\n5.00,,", 1),
