@@ -82,12 +82,7 @@ def test_learned_set_corrects_sample_by_sample_as_in_blocks_and_is_drawn(tmp_pat
     assert any("smooth_load" in p.name and p.stat().st_size > 0 for p in written)
     splines = [t for t in result.coefficients.terms if t["feature"] == "spline"]
     assert len(splines) == 1, "the saturating effect is learned as a spline, written as one term"
-    corrector = Corrector(result.coefficients)
-    inputs = {"load": session.aux["load"][:3000], "time_s": session.time_s[:3000]}
-    block, _ = corrector.correct(session.raw[:3000], inputs)
-    one = [corrector.correct_one(session.raw[i], {k: float(v[i]) for k, v in inputs.items()})[0]
-           for i in range(3000)]
-    assert np.array_equal(block, np.array(one))
+    assert_sample_by_sample_as_in_blocks(result, session, "load")
 
 
 def test_build_candidates_offers_no_smooth_form_for_a_stepped_channel() -> None:
@@ -118,9 +113,14 @@ def test_rate_coefficient_written_as_one_term_corrects_sample_by_sample_and_is_d
     assert len(by_rate) == 1, "the learned coefficient in rate is written as one term"
     written = write_plots(result.loop, tmp_path)
     assert any("smooth_temp_c_rate" in p.name and p.stat().st_size > 0 for p in written)
+    assert_sample_by_sample_as_in_blocks(result, session, "temp_c")
+
+
+def assert_sample_by_sample_as_in_blocks(result, session, channel: str, n: int = 3000) -> None:
+    """The written set corrects the session's first ``n`` samples one at a time exactly as in a block."""
     corrector = Corrector(result.coefficients)
-    inputs = {"temp_c": session.aux["temp_c"][:3000], "time_s": session.time_s[:3000]}
-    block, _ = corrector.correct(session.raw[:3000], inputs)
+    inputs = {channel: session.aux[channel][:n], "time_s": session.time_s[:n]}
+    block, _ = corrector.correct(session.raw[:n], inputs)
     one = [corrector.correct_one(session.raw[i], {k: float(v[i]) for k, v in inputs.items()})[0]
-           for i in range(3000)]
+           for i in range(n)]
     assert np.array_equal(block, np.array(one))
