@@ -200,6 +200,9 @@ def overlapping_adev(record: np.ndarray, sample_rate_hz: float,
 POWERS = {"arw": -1.0, "bias_instability": 0.0, "rrw": 1.0}
 DOMINANT_SHARE = 0.5  # a term is seen where it makes at least this share of the variance
 MIN_SPAN = 3.0  # ... over τ spanning at least this factor: a line is not drawn through a bump
+#: ... and is told from nothing by this many of its errors where it is known best: the curve's
+#: tail has few clusters, and a wiggle there seen at two errors over a dozen τ is chance.
+CLAIM_SIGMAS = 3.0
 #: Rate random walk, the slow wander, must rise as τ^+1/2 over a decade of τ that reaches its
 #: read-out τ (3 s): a rise over less, or only at shorter τ, is what a drift, a rate ramp or a
 #: change of temperature makes in a short record as well.
@@ -293,8 +296,12 @@ def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, n
         i = int(np.argmin(np.where(seen, e, np.inf)))
         value = float(level(a[key])) * to_unit
         rel = 2.0 * float(e[i] / share[i])
-        return NoiseTerm(name, unit, True, value, value * max(1.0 - rel, 0.0), value * (1.0 + rel),
-                         float(curve.tau_s[i]), int(curve.clusters[i]), "")
+        if rel * CLAIM_SIGMAS / 2.0 < 1.0:
+            return NoiseTerm(name, unit, True, value, value * max(1.0 - rel, 0.0), value * (1.0 + rel),
+                             float(curve.tau_s[i]), int(curve.clusters[i]), "")
+        why = (f"the curve's share of it between tau {float(curve.tau_s[seen].min()):.3g} and "
+               f"{float(curve.tau_s[seen].max()):.3g} s is within {CLAIM_SIGMAS:g} of its errors of none: "
+               "a longer record is needed")
     bound_var = (curve.adev * (1.0 + 2.0 * e)) ** 2 / curve.tau_s**p
     i = int(np.argmin(bound_var))
     value = float(level(bound_var[i])) * to_unit

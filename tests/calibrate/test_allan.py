@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from support.allan_noise import flicker_rate, rate_random_walk, rrw_for_crossover, white_rate
 
@@ -22,6 +22,7 @@ from canical.calibrate.noise_records import name_a_rise
 
 @settings(max_examples=10, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), arw=st.floats(0.05, 2.0))
+@example(seed=2894, arw=1.0)  # its tail wiggles up at tau 64-200 s: seen at two errors, not at three
 def test_white_rate_noise_gives_its_arw_and_nothing_else(seed: int, arw: float) -> None:
     rng = np.random.default_rng(seed)
     fs = 100.0
