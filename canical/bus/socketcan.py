@@ -65,21 +65,21 @@ def raw_socket_of(bus: object) -> socket.socket | None:
     return sock if usable else None
 
 
-def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) -> int | None:
+def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) -> bool:
     """Ask for a receive buffer of ``size_bytes`` on the bus's SocketCAN socket: beyond the
-    system's cap where the process may (``SO_RCVBUFFORCE``), within it otherwise. Returns the
-    size the kernel granted (None: not a SocketCAN bus, or refused; the default then stays)."""
+    system's cap where the process may (``SO_RCVBUFFORCE``), within it otherwise (the kernel
+    then grants up to ``net.core.rmem_max``). False: not a SocketCAN bus, or refused; the
+    default buffer stays."""
     sock = getattr(bus, "socket", None)
     if sock is None or getattr(sock, "family", None) != socket.AF_CAN:
-        return None
+        return False
     for option in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
         try:
             sock.setsockopt(socket.SOL_SOCKET, option, size_bytes)
         except OSError:
             continue
-        granted: int = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-        return granted
-    return None
+        return True
+    return False
 
 
 def set_receive_timeout(sock: socket.socket, wait_s: float) -> float:

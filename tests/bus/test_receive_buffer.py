@@ -19,7 +19,7 @@ def test_a_bus_without_a_socketcan_socket_is_left_as_it_is() -> None:
     import can
 
     with can.Bus(interface="virtual", channel="buffer-test") as bus:
-        assert enlarge_receive_buffer(bus) is None
+        assert enlarge_receive_buffer(bus) is False
 
 
 @pytest.mark.vcan
