@@ -85,6 +85,12 @@ def _column(inputs: Block, name: str | None) -> np.ndarray:
     return np.asarray(inputs[name], dtype=float)
 
 
+def _offset_times(term: Term, inputs: Block, factor: np.ndarray) -> np.ndarray:
+    """(v − ref)·factor for a block: a channel's level acting through a function of the output."""
+    out: np.ndarray = (_column(inputs, term.channel) - term.reference) * factor
+    return out
+
+
 def share(term: Term, x: str) -> str:
     """The compiled line adding ``term``'s share c·x (bias) or c·x·ΔV (scale) to the shift."""
     return f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")
@@ -243,7 +249,8 @@ class ChannelSquare(ChannelKind):
         return f"({channel})²"
 
     def reach(self, term: Term, inputs: float) -> float:
-        return (inputs + abs(term.reference)) ** 2
+        x = inputs + abs(term.reference)
+        return x * x  # a float product overflows to inf (refused as not finite); ** would raise
 
 
 class ChannelLagged(ChannelKind):
@@ -343,9 +350,7 @@ class ChannelGated(ChannelKind):
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         if dv is None:
             raise ValueError("a gated term needs ΔV = raw − V0")
-        x = _column(inputs, term.channel) - term.reference
-        gated: np.ndarray = x * rate_gate(dv, term.threshold_raw or 1.0)
-        return gated
+        return _offset_times(term, inputs, rate_gate(dv, term.threshold_raw or 1.0))
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         return (float(inputs[term.channel]) - term.reference) * gate_one(dv, term.threshold_raw)  # type: ignore[index,arg-type]
@@ -439,8 +444,17 @@ def spline_code(term: Term, variable: str) -> list[str]:
 def spline_reach(term: Term) -> float:
     """The largest |S|: Σ|a_j|·h^j of the largest segment (S is flat beyond the knots)."""
     knots, pieces = term.knots or (0.0, 0.0), term.pieces or ()
-    return max((sum(abs(a) * (b - k) ** j for j, a in enumerate(row))
-                for k, b, row in zip(knots[:-1], knots[1:], pieces, strict=True)), default=0.0)
+    return max((_poly_bound(row, b - k) for k, b, row in zip(knots[:-1], knots[1:], pieces, strict=True)),
+               default=0.0)
+
+
+def _poly_bound(row: tuple[float, ...], h: float) -> float:
+    """Σ|a_j|·h^j by products, which overflow to inf (refused as not finite) where ** raises."""
+    total, power = 0.0, 1.0
+    for a in row:
+        total += abs(a) * power if a else 0.0  # 0·inf would be nan
+        power *= h
+    return total
 
 
 class ChannelRateSpline(ChannelKind):
@@ -461,10 +475,8 @@ class ChannelRateSpline(ChannelKind):
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         if dv is None:
             raise ValueError("a rate_spline term needs ΔV = raw − V0")
-        offset = _column(inputs, term.channel) - term.reference
-        r = spline_values(term.knots or (), term.pieces or (), np.asarray(dv, dtype=float))
-        out: np.ndarray = offset * r
-        return out
+        return _offset_times(term, inputs, spline_values(term.knots or (), term.pieces or (),
+                                                         np.asarray(dv, dtype=float)))
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         offset = float(inputs[term.channel]) - term.reference  # type: ignore[index]
