@@ -767,8 +767,6 @@ def _simpler_forms(name: str, channel: str) -> tuple[str, ...]:
         CHANNEL_SPLINE.label(channel): (level,),
         CHANNEL_RATE_SPLINE.label(channel): (level, gated_name(channel)),
     }
-    if name.startswith("lag("):  # the lag's name may carry its τ
-        name = lag
     return nested.get(name, ())
 
 
