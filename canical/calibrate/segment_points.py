@@ -21,7 +21,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import find_peaks
 
 from canical.calibrate.fit_points import FitPoints
 
@@ -51,10 +50,44 @@ def residual_extrema(
     floor = prominence_sigma * float(np.median(noise)) if noise.size else 0.0
     found: list[Extremum] = []
     for sign in (1.0, -1.0):
-        peaks, props = find_peaks(sign * residual, prominence=max(floor, 1e-15))
-        for i, p in zip(peaks, props["prominences"], strict=True):
-            found.append(Extremum(float(rate[i]), float(dv[i]), float(p), source))
+        for i in local_maxima(sign * residual):
+            p = prominence(sign * residual, i)
+            if p >= max(floor, 1e-15):
+                found.append(Extremum(float(rate[i]), float(dv[i]), p, source))
     return sorted(found, key=lambda e: -e.prominence_dps)
+
+
+def local_maxima(x: np.ndarray) -> list[int]:
+    """Interior maxima of ``x``, a flat top counted once at its middle (the rule of
+    ``scipy.signal.find_peaks``).
+
+    Why by hand: importing scipy.signal takes half a second of every calibration, and a residual
+    has a few dozen points.
+    """
+    peaks, i, last = [], 1, x.size - 1
+    while i < last:
+        if x[i - 1] < x[i]:
+            ahead = i + 1
+            while ahead < last and x[ahead] == x[i]:
+                ahead += 1
+            if x[ahead] < x[i]:
+                peaks.append((i + ahead - 1) // 2)
+                i = ahead
+        i += 1
+    return peaks
+
+
+def prominence(x: np.ndarray, peak: int) -> float:
+    """How far the peak rises above the higher of the lowest points on either side before
+    ``x`` rises above it (or ends): ``scipy.signal.peak_prominences``' definition."""
+    top = x[peak]
+    left = peak
+    while left > 0 and x[left - 1] <= top:
+        left -= 1
+    right = peak
+    while right < x.size - 1 and x[right + 1] <= top:
+        right += 1
+    return float(top - max(x[left:peak + 1].min(), x[peak:right + 1].min()))
 
 
 def global_quadratic_residual(points: FitPoints) -> np.ndarray:

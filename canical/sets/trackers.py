@@ -206,8 +206,6 @@ def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarra
     even = np.abs(dt - step) <= 1e-6 * step
     if np.count_nonzero(even) < EVEN_RUN:
         return _slope_state_in_blocks(raw, time_s, tau_s)
-    from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
-
     a = 1.0 - math.exp(-step / tau_s)
     with np.errstate(divide="ignore", invalid="ignore"):  # a step that does not advance is skipped
         quotient = np.diff(raw) / dt
@@ -216,7 +214,7 @@ def slope_filter(raw: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarra
     edges = np.flatnonzero(np.diff(even.astype(np.int8))) + 1
     for lo, hi in zip([0, *edges.tolist()], [*edges.tolist(), dt.size], strict=True):
         if even[lo] and hi - lo >= EVEN_RUN:
-            y, _ = lfilter([a], [1.0, a - 1.0], quotient[lo:hi], zi=[(1.0 - a) * value])
+            y = one_pole(quotient[lo:hi], a, value)
         else:  # uneven, or too short a stretch to be worth a filter call: the tracker's steps
             y = np.empty(hi - lo)
             for i, (d, q) in enumerate(zip(dt[lo:hi].tolist(), quotient[lo:hi].tolist(), strict=True)):
@@ -284,10 +282,58 @@ def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarr
     dt = np.diff(time_s[k - 1 :])
     step = float(np.median(dt))
     if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
-        from scipy.signal import lfilter  # here: the daemon (canical serve) must not load scipy
-
-        a = 1.0 - np.exp(-step / tau_s)
-        out[k:] = lfilter([a], [1.0, a - 1.0], values[k:], zi=[(1.0 - a) * out[k - 1]])[0]
+        out[k:] = one_pole(values[k:], 1.0 - math.exp(-step / tau_s), float(out[k - 1]))
         return out
     tracker = ChannelTracker(tau_s)
     return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
+
+
+#: Samples a row of :func:`one_pole`'s matrix product takes.
+ONE_POLE_CHUNK = 16
+
+
+def one_pole(x: np.ndarray, a: float, before: float = 0.0) -> np.ndarray:
+    """y[n] = a·x[n] + (1 − a)·y[n−1] from y[−1] = ``before``: first-order smoothing of a whole
+    record (``scipy.signal.lfilter([a], [1, a − 1], x, zi=[(1 − a)·before])``, equal within rounding).
+
+    Why not lfilter: importing scipy.signal takes half a second of every calibration. The record
+    is cut into rows of :data:`ONE_POLE_CHUNK` samples; one matrix product smooths every row from
+    rest (its weights a·(1 − a)^k, none above 1, so nothing grows), and what each row's end carries
+    into the next is the same smoothing of the rows' ends with (1 − a)^16, done the same way.
+    """
+    x = np.asarray(x, dtype=float)
+    bad = np.flatnonzero(~np.isfinite(x))
+    if bad.size:  # a row's product would spread it to the samples before it: finite up to there
+        head = _smooth(x[: bad[0]], a, 1.0 - a, before)
+        last = float(head[-1]) if head.size else before
+        return np.concatenate((head, _smooth(x[bad[0]:], a, 1.0 - a, last)))
+    return _smooth(x, a, 1.0 - a, before)
+
+
+def _smooth(x: np.ndarray, gain: float, keep: float, before: float) -> np.ndarray:
+    """y[n] = gain·x[n] + keep·y[n−1] from y[−1] = ``before`` (see :func:`one_pole`)."""
+    size, out = ONE_POLE_CHUNK, np.empty(x.size)
+    whole = x.size - x.size % size if x.size >= 4 * size else 0
+    y = before
+    if whole:
+        j = np.arange(size)
+        decay = _powers(keep, j + 1)  # decay[k] = keep^(k+1)
+        lower = j[:, None] >= j[None, :]
+        weights = np.where(lower, gain * _powers(keep, np.where(lower, j[:, None] - j[None, :], 0)), 0.0)
+        rows = out[:whole].reshape(-1, size)
+        np.matmul(x[:whole].reshape(-1, size), weights.T, out=rows)
+        ends = _smooth(rows[:, -1].copy(), 1.0, float(decay[-1]), before)  # each row's true end
+        rows[1:] += np.multiply.outer(ends[:-1], decay)
+        rows[0] += before * decay
+        y = float(ends[-1])
+    for i in range(whole, x.size):
+        y = gain * float(x[i]) + keep * y
+        out[i] = y
+    return out
+
+
+def _powers(base: float, exponents: np.ndarray) -> np.ndarray:
+    """base^exponents, those below 1e-300 made 0 (subnormal numbers make products crawl)."""
+    p: np.ndarray = np.power(base, exponents, dtype=float)
+    p[p < 1e-300] = 0.0
+    return p

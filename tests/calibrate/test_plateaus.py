@@ -207,3 +207,16 @@ def test_near_correlation_is_the_full_correlation_near_zero_lag(n, reach, block)
     near = np.abs(correlation_lags(n, n)) <= reach
     np.testing.assert_allclose(near_correlation(x, y, reach, block), full[near], rtol=0,
                                atol=1e-12 * np.abs(full).max())
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 300), st.integers(1, 300), st.integers(0, 2**31))
+def test_full_correlation_is_scipys(m, p, seed):
+    from scipy.signal import correlate
+
+    from canical.calibrate.plateaus import full_correlation
+
+    rng = np.random.default_rng(seed)
+    x, y = rng.normal(size=m), rng.normal(size=p)
+    want = correlate(x, y, mode="full", method="direct")
+    np.testing.assert_allclose(full_correlation(x, y), want, rtol=0, atol=1e-12 * (np.abs(want).max() + 1))

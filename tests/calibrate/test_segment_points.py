@@ -1,9 +1,17 @@
 """Segment points from residual extrema: the paper's rule, robust to noise."""
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from canical.calibrate.fit_points import FitPoints
-from canical.calibrate.segment_points import choose_knots, rate_noise, residual_extrema
+from canical.calibrate.segment_points import (
+    choose_knots,
+    local_maxima,
+    prominence,
+    rate_noise,
+    residual_extrema,
+)
 from canical.pipeline import CalibrateOptions, fit_base
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_session
@@ -83,3 +91,16 @@ def test_a_measured_references_jitter_makes_no_segment_points():
 
     assert spurious(known=True) <= 5  # 2 of 40 seen
     assert spurious(known=False) >= 30  # 40 of 40 seen
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.integers(-4, 4), min_size=0, max_size=40), st.floats(0.0, 3.0))
+def test_extrema_are_scipys_peaks_with_their_prominences(values, floor):
+    """Small integers make flat tops and ties, where the rule for a peak is easiest to get wrong."""
+    from scipy.signal import find_peaks
+
+    x = np.asarray(values, dtype=float)
+    want, props = find_peaks(x, prominence=max(floor, 1e-15))
+    got = [i for i in local_maxima(x) if prominence(x, i) >= max(floor, 1e-15)]
+    assert got == list(want)
+    assert [prominence(x, i) for i in got] == list(props["prominences"])
