@@ -17,14 +17,17 @@ import io
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.frames.frame_match import J1939Source
 from canical.sessions.csv_chunks import read_head, read_header
 from canical.sessions.csv_file import TIME_COLUMN, read_table
 from canical.sessions.session import Session
+
+if TYPE_CHECKING:  # cantools, which the frame module loads, only where frames are read
+    from canical.frames.frame_match import J1939Source
 
 AXES = ("x", "y", "z")
 RAW_COLUMNS = ("raw_x", "raw_y", "raw_z")
