@@ -89,9 +89,6 @@ class NoiseTerm:
 
 
 OADEV_BLOCK = 1 << 15  # samples of a second difference squared and summed at a time (in the cache)
-#: Samples times cluster sizes above which the sums are shared with a second thread (a record of
-#: minutes or more; below, starting a thread costs more than it saves).
-OADEV_THREADED_ABOVE = 1 << 26
 
 
 def allan_deviation(
@@ -158,39 +155,36 @@ def overlapping_adev(record: np.ndarray, sample_rate_hz: float,
     phase[1:] *= 1.0 / float(sample_rate_hz)
     m_all = np.unique(np.asarray(m_values, dtype=int))
     m_all = m_all[(m_all > 0) & (m_all < phase.size)]
-    devs = np.zeros(m_all.size)
-    ns = np.zeros(m_all.size)
-
-    def cluster_sizes(ks: range) -> None:
-        block = np.empty(OADEV_BLOCK)
-        for k in ks:
-            m = int(m_all[k])
-            n = max(phase.size - 2 * m, 1)
-            total = 0.0
-            for a in range(0, n, OADEV_BLOCK):
-                b = min(a + OADEV_BLOCK, n)
-                v = block[: b - a]  # phase[2m+i] - 2·phase[m+i] + phase[i], the same sums in place
-                np.multiply(phase[m + a : m + b], -2.0, out=v)
-                v += phase[2 * m + a : 2 * m + b]
-                v += phase[a:b]
-                total += float(v @ v)
-            devs[k] = np.sqrt(total / (2.0 * n)) / m * sample_rate_hz
-            ns[k] = n
-
-    # A long record's sums take seconds, and numpy lets go of the interpreter while it makes
-    # them: every other cluster size summed on a second thread (each size's sum made by one
-    # thread in the same order, so the values are the same as on one).
-    if phase.size * m_all.size < OADEV_THREADED_ABOVE:
-        cluster_sizes(range(m_all.size))
-    else:
-        from concurrent.futures import ThreadPoolExecutor
-
-        with ThreadPoolExecutor(max_workers=1) as pool:
-            other = pool.submit(cluster_sizes, range(1, m_all.size, 2))
-            cluster_sizes(range(0, m_all.size, 2))
-            other.result()
+    n_all = np.maximum(phase.size - 2 * m_all, 1)
+    totals = _second_difference_sums(phase, m_all, n_all)
+    devs = np.sqrt(totals / (2.0 * n_all)) / m_all * sample_rate_hz
+    ns = n_all.astype(float)
     keep = ns > 1
     return m_all[keep], devs[keep], ns[keep]
+
+
+def _second_difference_sums(phase: np.ndarray, m_all: np.ndarray, n_all: np.ndarray) -> np.ndarray:
+    """Σᵢ (phase[i+2m] − 2·phase[i+m] + phase[i])² over i < n, for each m and its n.
+
+    Block by block, every cluster size in turn: a block of the phase is read from memory once
+    for all sizes (it stays in the cache), the blocks m and 2m later once per size, a third
+    less of what bounds the time. Each size's sum runs over the same blocks in the same order
+    whatever the other sizes.
+    """
+    block = np.empty(OADEV_BLOCK)
+    totals = np.zeros(m_all.size)
+    sizes = list(enumerate(zip(m_all.tolist(), n_all.tolist(), strict=True)))
+    for a in range(0, int(n_all.max(initial=0)), OADEV_BLOCK):
+        for k, (m, n) in sizes:
+            if a >= n:
+                continue
+            b = min(a + OADEV_BLOCK, n)
+            v = block[: b - a]  # the second difference made in place
+            np.multiply(phase[m + a : m + b], -2.0, out=v)
+            v += phase[2 * m + a : 2 * m + b]
+            v += phase[a:b]
+            totals[k] += float(v @ v)
+    return totals
 
 
 # Allan variance of each IEEE 952 term is a power of τ: σ² = Σ A_p·τ^p, slopes −1/2, 0, +1/2 in σ.

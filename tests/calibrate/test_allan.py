@@ -144,22 +144,3 @@ def test_overlapping_adev_in_blocks_is_allantools(n, monkeypatch):
     np.testing.assert_array_equal(got_m, np.round(taus * 1000.0).astype(int))
     np.testing.assert_allclose(devs, want, rtol=1e-12)
     np.testing.assert_array_equal(ns, want_ns)
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_overlapping_adev_shared_with_a_thread_is_the_same_bits(seed, monkeypatch):
-    """A long record's cluster sizes are summed on two threads: each size by one of them, in the
-    same order, so the deviations are those of one thread to the last bit."""
-    from canical.calibrate import allan
-
-    monkeypatch.setattr(allan, "OADEV_BLOCK", 1000)
-    rng = np.random.default_rng(seed)
-    n = int(rng.integers(20_000, 60_000))
-    record = rng.normal(0, 0.1, n) + np.cumsum(rng.normal(0, 1e-4, n))
-    m = np.unique(np.round(np.logspace(0, np.log10(n // 2), 25)).astype(int))
-    monkeypatch.setattr(allan, "OADEV_THREADED_ABOVE", 1 << 62)
-    one = allan.overlapping_adev(record, 1000.0, m)
-    monkeypatch.setattr(allan, "OADEV_THREADED_ABOVE", 0)
-    two = allan.overlapping_adev(record, 1000.0, m)
-    for a, b in zip(one, two, strict=True):
-        assert a.tobytes() == b.tobytes()
