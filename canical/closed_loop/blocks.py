@@ -13,6 +13,13 @@ computed on the samples, in time order, as the run time would, and only then
 averaged per block: :class:`ChannelSamples` does that on demand and caches it.
 So is a channel gated by the rate (its level times a gate of the sample's own ΔV,
 which is not the gate of the block's mean ΔV near the knee).
+
+A smooth function S of a channel's lag or of its smoothed rate of change is taken of the
+block's mean lag (or rate): S of the mean, not the mean of S. Why: S changes with the knots and
+pieces of every basis function and τ with every step of its search, and S per sample costs a
+pass over the whole record each time (minutes per session); within a block of a few seconds a
+lag of τ ≥ 5 s hardly moves, so the two differ by S's curvature times the lag's variance within
+the block, far below the noise. The run time evaluates S per sample, as the set says.
 """
 
 from __future__ import annotations
@@ -30,6 +37,7 @@ from canical.sets.term_kinds import (
     CHANNEL_GATED,
     CHANNEL_LAG,
     CHANNEL_RATE_SPLINE,
+    ChannelTransformSpline,
     spline_values,
 )
 from canical.sets.terms import Term, lag_filter, rate_gate
@@ -144,7 +152,8 @@ class Blocks:
         )
 
     def channel_feature(self, term: Term) -> np.ndarray:
-        """Block means of a channel transform computed on samples (lag, derivative, direction, gated)."""
+        """Block means of a channel transform computed on samples (lag, derivative, direction, gated);
+        for a smooth function of the lag or of the derivative, that function of their block means."""
         if self.samples is None:
             raise ValueError("these blocks were built without their samples")
         rows = slice(None) if self.rows is None else self.rows
@@ -157,6 +166,9 @@ class Blocks:
         if spec is CHANNEL_DIRECTION:
             return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
         y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
+        if isinstance(spec, ChannelTransformSpline):
+            x = (self.aux[ch] - y) / (term.tau_s or 1.0) if spec.derivative else y
+            return spline_values(term.knots or (), term.pieces or (), x)
         if spec is CHANNEL_LAG:
             return y - term.reference
         return (self.aux[ch] - y) / (term.tau_s or 1.0)

@@ -77,6 +77,8 @@ def variable_label(name: str) -> str:
         channel = name.removeprefix(LEVEL_PREFIX)
         return f"{channel} ({channel_unit(channel)})"
     smooth = re.fullmatch(r"smooth\((.+?)(?: × rate)?\)", name)
+    if smooth and smooth.group(1).startswith(("lag(", "d/dt ")):  # of a transform: drawn against it
+        return variable_label(smooth.group(1))
     if smooth:  # a learned function of the channel: drawn against the channel itself
         return f"{smooth.group(1)} ({channel_unit(smooth.group(1))})"
     if name.startswith(WARMUP_NAME):

@@ -20,6 +20,7 @@ from canical.sets.term_kinds import (
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_LAG_SPLINE,
     CHANNEL_OFFSET,
     CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
@@ -213,6 +214,11 @@ _SATURATING = fx.SaturatingEffect()
 _RATE_TC = fx.RateDependentTemperatureEffect()
 _SENSITIVITY = GyroModel().sensitivity
 FOUR_TEMPERATURES = {"temp_c": env.temperature_steps((-10.0, 10.0, 30.0, 50.0)), **DISTRACTORS}
+_LAGGED_SATURATING = fx.LaggedSaturatingEffect()
+#: A chamber stepped through ten temperatures in random order, each held 90 s: the die follows
+#: with τ = 90 s, so its temperature sweeps the range between the chamber's levels.
+TEN_TEMPERATURES = {"temp_c": env.temperature_steps(tuple(np.linspace(-10.0, 50.0, 10)), period_s=90.0),
+                    **DISTRACTORS}
 #: Smooth effects of a channel (issue 21), scored over several seeds by the closed loop's tests:
 #: a square over a wide range (on the list, as level + square) and a saturating function (on no
 #: list: the smooth form must learn it). Kept apart from :data:`SCENARIOS`, whose figures the
@@ -236,6 +242,11 @@ SMOOTH_SCENARIOS: tuple[Scenario, ...] = (
              oracle_terms=(_spline_of(lambda dv: _RATE_TC.shape(dv / _SENSITIVITY) * dv,
                                       -1.2 * 60 * _SENSITIVITY, 1.2 * 60 * _SENSITIVITY, "temp_c",
                                       spec=CHANNEL_RATE_SPLINE, reference=_RATE_TC.reference_c),)),
+    # Told: a spline through the tanh of the lag at 64 knots, its τ estimated as the loop's is.
+    Scenario("bias saturating with the die's lagged temperature: 0.1 dps tanh((lag90(T) - 25)/8), 10 levels",
+             (_LAGGED_SATURATING,), TEN_TEMPERATURES, expect=("smooth(lag(temp_c))",),
+             oracle_terms=(_spline_of(_LAGGED_SATURATING.shape, -15.0, 55.0, "temp_c",
+                                      spec=CHANNEL_LAG_SPLINE, tau_s=_LAGGED_SATURATING.tau_s),)),
 )
 
 # A sensor whose error follows a variable nobody recorded: no candidate can represent it.
