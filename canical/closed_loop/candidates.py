@@ -96,6 +96,9 @@ SMOOTH_MAX_INTERIOR = 5
 SMOOTH_MIN_LEVELS = 8
 SMOOTH_LEVELS_PER_KNOT = 3
 SMOOTH_LEVEL_SHARE = 0.005
+# A smooth form of a channel's lag only where its plateau levels spread this many times the
+# noise of a plateau's mean.
+LEVELS_RESOLVED = 10.0
 # A channel's coefficient smooth in rate: fewer interior knots, since each basis function's
 # coefficient rests on the channel's spread among the plateaus in its span of rates only.
 RATE_SMOOTH_MAX_INTERIOR = 2
@@ -416,8 +419,9 @@ def _transform_smooth(blocks: Blocks, name: str, tau_lag: float, tau_d: float | 
     resolve the rate above the channel's noise, whose smooth form would be one of noise),
     where there are levels enough for a spline."""
     out = []
-    lag = transform_smooth_terms(CHANNEL_LAG_SPLINE, name, plateau_levels(blocks, name), tau_lag, even=True)
-    if lag:
+    levels = plateau_levels(blocks, name)
+    lag = transform_smooth_terms(CHANNEL_LAG_SPLINE, name, levels, tau_lag, even=True)
+    if lag and _levels_resolved(blocks, name, levels):
         out.append(Candidate(CHANNEL_LAG_SPLINE.label(name), CHANNEL, name, lag))
     if tau_d is not None:
         rate = feature(Term.of(CHANNEL_DERIVATIVE, "bias", 0.0, channel=name, tau_s=tau_d), blocks)
@@ -427,6 +431,17 @@ def _transform_smooth(blocks: Blocks, name: str, tau_lag: float, tau_d: float | 
             out.append(Candidate(CHANNEL_DERIVATIVE_SPLINE.label(name), CHANNEL, name, derivative))
     return out
 
+
+
+def _levels_resolved(blocks: Blocks, name: str, levels: np.ndarray) -> bool:
+    """Whether the channel's plateau levels differ by more than the noise of a plateau's mean
+    (``LEVELS_RESOLVED`` times): a channel of noise about a constant has a constant lag, and a
+    smooth form of it would fit that noise (and cost a τ search each time it is scored)."""
+    samples = blocks.samples
+    assert samples is not None
+    per_plateau = float(np.sum(samples.stops - samples.starts)) / max(levels.size, 1)
+    noise = sample_noise(samples.values[name]) / np.sqrt(max(per_plateau, 1.0))
+    return float(np.std(levels)) > LEVELS_RESOLVED * noise
 
 
 def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple[Term, ...]:

@@ -388,11 +388,21 @@ def spline_one(knots: tuple[float, ...], pieces: tuple[tuple[float, ...], ...], 
 def spline_values(knots: tuple[float, ...], pieces: tuple[tuple[float, ...], ...],
                   v: np.ndarray) -> np.ndarray:
     """S(v) for a block of samples, element by element what :func:`spline_one` gives."""
+    return spline_horner(pieces, *spline_segments(knots, v))
+
+
+def spline_segments(knots: tuple[float, ...], v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first half of :func:`spline_values`: each value's segment i and u = w − knot i, which
+    every spline on these knots shares (the closed loop keeps them for a basis of many splines)."""
     k = np.asarray(knots, dtype=float)
-    a = np.asarray(pieces, dtype=float)
     w = np.where(v < k[0], k[0], np.where(v > k[-1], k[-1], v))
-    i = np.clip(np.searchsorted(k, w, side="right") - 1, 0, len(pieces) - 1)
-    u = w - k[i]
+    i = np.clip(np.searchsorted(k, w, side="right") - 1, 0, len(knots) - 2)
+    return i, w - k[i]
+
+
+def spline_horner(pieces: tuple[tuple[float, ...], ...], i: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The second half of :func:`spline_values`: the cubic of segment i at u."""
+    a = np.asarray(pieces, dtype=float)
     out: np.ndarray = ((a[i, 3] * u + a[i, 2]) * u + a[i, 1]) * u + a[i, 0]
     return out
 
