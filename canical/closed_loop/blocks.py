@@ -115,7 +115,7 @@ class ChannelSamples:
         """Samples per coarse window: ``COARSE_STEP_S`` at the median spacing, at least one."""
         steps = np.diff(self.time_s[: 1 + min(self.time_s.size - 1, 10_000)])
         spacing = float(np.median(steps)) if steps.size else 0.0
-        return max(1, int(round(COARSE_STEP_S / spacing))) if spacing > 0 else 1
+        return max(1, round(COARSE_STEP_S / spacing)) if spacing > 0 else 1
 
     def _coarse_times(self) -> tuple[np.ndarray, np.ndarray]:
         """The time of each coarse window's last sample, and each block's mean time."""
