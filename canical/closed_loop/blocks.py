@@ -14,15 +14,16 @@ averaged per block: :class:`ChannelSamples` does that on demand and caches it.
 So is a channel gated by the rate (its level times a gate of the sample's own ΔV,
 which is not the gate of the block's mean ΔV near the knee).
 
-A smooth function S of a channel's lag or of its smoothed rate of change is taken of the
-block's mean lag (or rate): S of the mean, not the mean of S. Why: S changes with the knots and
-pieces of every basis function and τ with every step of its search, and S per sample costs a
-pass over the whole record each time (minutes per session); within a block of a few seconds a
-lag of τ ≥ 5 s hardly moves, so the two differ by S's curvature times the lag's variance within
-the block, far below the noise. For the same reason the lag whose τ the smooth form searches
-runs on the channel's means over windows of ``COARSE_STEP_S`` (a few thousand steps instead of
-a pass over every sample per τ), read at each block's mean time. The run time evaluates the lag
-and S per sample, as the set says.
+A smooth function S of a channel's lag is taken of the block's mean lag: S of the mean, not the
+mean of S. Why: τ changes with every step of its search, and S per sample costs a pass over the
+whole record for each τ and basis function (minutes per session); within a block of a few
+seconds a lag of τ ≥ 5 s hardly moves, so the two differ by S's curvature times the lag's
+variance within the block, far below the noise. For the same reason the lag whose τ the smooth
+form searches runs on the channel's means over windows of ``COARSE_STEP_S`` (a few thousand
+steps instead of a pass over every sample per τ), read at each block's mean time. A smooth
+function of the channel's rate of change, whose τ is fixed, is averaged sample by sample (a
+transient can cross S's bend within a block). The run time evaluates the lag and S per sample,
+as the set says.
 """
 
 from __future__ import annotations
@@ -93,12 +94,19 @@ class ChannelSamples:
             self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
         return self.cache[key]
 
-    def level_means(self, channel: str) -> np.ndarray:
-        """Block means of the channel itself (all blocks)."""
-        key = ("level", channel)
+    def derivative_spline_means(self, term: Term) -> np.ndarray:
+        """Block means of S((v − y)/τ) sample by sample (all blocks): the derivative's τ is not
+        searched, so each sample's segment is found once per basis and kept; S of a block's mean
+        rate would miss a transient S bends over within the block."""
+        tau = float(term.tau_s or 1.0)
+        key = ("derivative_segments", term.channel, tau, term.knots)
         if key not in self.cache:
-            self.cache[key] = self.means(self.values[channel])
-        return self.cache[key]
+            values = self.values[term.channel or ""]
+            rate = (values - lag_filter(values, self.time_s, tau)) / tau
+            i, u = spline_segments(term.knots or (), rate)
+            self.cache[key] = np.vstack([i.astype(float), u])
+        seg = self.cache[key]
+        return self.means(spline_horner(term.pieces or (), seg[0].astype(int), seg[1]))
 
     def coarse_lag_means(self, channel: str, tau_s: float) -> np.ndarray:
         """The channel's lag y with time constant τ at each block's mean time (all blocks), run on
@@ -230,10 +238,8 @@ class Blocks:
         if isinstance(spec, ChannelTransformSpline):  # of the lag (τ searched: the coarse lag) or rate
             tau = term.tau_s or 1.0
             if spec.derivative:
-                x = (self.samples.level_means(ch) - self.samples.lag_means(ch, tau)) / tau
-            else:
-                x = self.samples.coarse_lag_means(ch, tau)
-            return self.samples.spline_at(term, x)[rows]
+                return self.samples.derivative_spline_means(term)[rows]
+            return self.samples.spline_at(term, self.samples.coarse_lag_means(ch, tau))[rows]
         y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
         if spec is CHANNEL_LAG:
             return y - term.reference
