@@ -119,7 +119,8 @@ change (hysteresis), `gated` its level acting only beyond a knee in the output, 
 cubic of it learned by the closed loop (`knots`, `pieces`; flat beyond the end knots),
 `rate_spline` its level times a piecewise cubic of ΔV (a coefficient changing with rate; same
 `knots`, `pieces`), `lag_spline` a piecewise cubic of its lag (τ) and `derivative_spline` one of its
-rate of change smoothed over τ (same `knots`, `pieces`); `time` (input `time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
+rate of change smoothed over τ (same `knots`, `pieces`); `time` (input `time_s`, time since
+power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
 `direction` (of the raw output) — `sign` its last significant rise or fall, `slope` its rate of
 change. The kinds this canical accepts:"""
 
