@@ -99,14 +99,17 @@ class ChannelSamples:
         searched, so each sample's segment is found once per basis and kept; S of a block's mean
         rate would miss a transient S bends over within the block."""
         tau = float(term.tau_s or 1.0)
-        key = ("derivative_segments", term.channel, tau, term.knots)
+        key = ("derivative_spline", term.channel, tau, term.knots, term.pieces)
         if key not in self.cache:
-            values = self.values[term.channel or ""]
-            rate = (values - lag_filter(values, self.time_s, tau)) / tau
-            i, u = spline_segments(term.knots or (), rate)
-            self.cache[key] = np.vstack([i.astype(float), u])
-        seg = self.cache[key]
-        return self.means(spline_horner(term.pieces or (), seg[0].astype(int), seg[1]))
+            segments = ("derivative_segments", term.channel, tau, term.knots)
+            if segments not in self.cache:
+                values = self.values[term.channel or ""]
+                rate = (values - lag_filter(values, self.time_s, tau)) / tau
+                i, u = spline_segments(term.knots or (), rate)
+                self.cache[segments] = np.vstack([i.astype(float), u])
+            seg = self.cache[segments]
+            self.cache[key] = self.means(spline_horner(term.pieces or (), seg[0].astype(int), seg[1]))
+        return self.cache[key]
 
     def coarse_lag_means(self, channel: str, tau_s: float) -> np.ndarray:
         """The channel's lag y with time constant τ at each block's mean time (all blocks), run on
@@ -222,8 +225,8 @@ class Blocks:
         )
 
     def channel_feature(self, term: Term) -> np.ndarray:
-        """Block means of a channel transform computed on samples (lag, derivative, direction, gated);
-        for a smooth function of the lag or of the derivative, that function of their block means."""
+        """Block means of a channel transform computed on samples (lag, derivative, direction, gated,
+        a smooth function of the derivative); a smooth function of the lag, of its block mean."""
         if self.samples is None:
             raise ValueError("these blocks were built without their samples")
         rows = slice(None) if self.rows is None else self.rows

@@ -27,9 +27,10 @@ feels a channel other than directly:
   channel's level and square, so where the two tie the level is taken (see
   :mod:`canical.closed_loop.search`). Clean sensors and effects on the list add no spline.
 * ``smooth(lag(<ch>))`` — the same smooth form of the channel's lag, τ estimated as the lag's
-  (a bias saturating with the temperature the die feels late), knots at quantiles of the
-  channel's plateau levels (the range the lag moves in); it nests the lag, the smooth form of
-  the level and the level. ``smooth(d/dt <ch>)`` — of its rate of change smoothed over the
+  (a bias saturating with the temperature the die feels late), knots evenly spaced over the
+  span of the channel's plateau levels (the range the lag moves in), built only where those
+  levels stand out of the channel's noise; it nests the lag, the smooth form of the level and
+  the level. ``smooth(d/dt <ch>)`` — of its rate of change smoothed over the
   derivative's window (a transient whose size is not proportional to the rate), knots at
   quantiles of the plateau means of that rate, built only where the window resolves the rate
   above the channel's noise; it nests the rate of change.
@@ -430,7 +431,6 @@ def _transform_smooth(blocks: Blocks, name: str, tau_lag: float, tau_d: float | 
         if derivative:
             out.append(Candidate(CHANNEL_DERIVATIVE_SPLINE.label(name), CHANNEL, name, derivative))
     return out
-
 
 
 def _levels_resolved(blocks: Blocks, name: str, levels: np.ndarray) -> bool:
