@@ -183,6 +183,25 @@ def test_lagged_saturation_written_as_one_term_corrects_sample_by_sample_and_is_
     np.testing.assert_allclose(term.spec.values(term, inputs, session.raw, None),
                                spline_values(term.knots or (), term.pieces or (), lag), rtol=0, atol=1e-9)
     x, label = variable_of("smooth(lag(temp_c))", result.loop.blocks, result.loop)
-    assert label == "lag(temp_c) (°C)" and x.shape == (len(result.loop.blocks),)
+    assert label == "lag(temp_c) (°C)"
+    # drawn against the lag with the τ the fit found
+    assert result.loop.blocks.samples is not None
+    np.testing.assert_allclose(x, result.loop.blocks.samples.lag_means("temp_c", term.tau_s or 0.0))
     assert any("smooth_lag" in p.name and p.stat().st_size > 0 for p in write_plots(result.loop, tmp_path))
+    assert_sample_by_sample_as_in_blocks(result, session, "temp_c")
+
+
+def test_saturating_transient_written_as_one_derivative_spline_corrects_sample_by_sample() -> None:
+    scenario = next(s for s in SMOOTH_SCENARIOS if "smooth(d/dt temp_c)" in s.expect)
+    session = scenario.session(seed=0, dwell_s=8.0)
+    result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
+    assert result.loop is not None and "smooth(d/dt temp_c)" in [e.name for e in result.loop.effects]
+    written = [t for t in result.coefficients.terms if t["feature"] == "derivative_spline"]
+    assert len(written) == 1, "the learned shape of the rate of change is written as one term"
+    term = term_from_dict(written[0])
+    inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
+    values = session.aux["temp_c"]
+    rate = (values - lag_filter(values, session.time_s, term.tau_s or 0.0)) / (term.tau_s or 1.0)
+    np.testing.assert_allclose(term.spec.values(term, inputs, session.raw, None),
+                               spline_values(term.knots or (), term.pieces or (), rate), rtol=0, atol=1e-9)
     assert_sample_by_sample_as_in_blocks(result, session, "temp_c")
