@@ -115,9 +115,16 @@ enum {
 /* A channel's level beyond a knee in |dv| (canical.sets.terms "gated"): its own code, apart from the list. */
 enum { CE_TERM_CHANNEL_GATED = 64 };
 
-/* Piecewise cubics (canical.sets.term_kinds.ChannelSpline): S(v) of the channel, and the channel's
- * offset times R(dV) of the output (ChannelRateSpline); both through spline_at(). */
-enum { CE_TERM_CHANNEL_SPLINE = 65, CE_TERM_CHANNEL_RATE_SPLINE = 66 };
+/* Piecewise cubics (canical.sets.term_kinds.ChannelSpline): S(v) of the channel, the channel's
+ * offset times R(dV) of the output (ChannelRateSpline), and S of the channel's lag y or of its
+ * smoothed rate of change (v - y)/tau (ChannelLagSpline, ChannelDerivativeSpline: the lag's state,
+ * as CE_TERM_CHANNEL_LAG keeps it); all through spline_at(). */
+enum {
+    CE_TERM_CHANNEL_SPLINE = 65,
+    CE_TERM_CHANNEL_RATE_SPLINE = 66,
+    CE_TERM_CHANNEL_LAG_SPLINE = 67,
+    CE_TERM_CHANNEL_DERIVATIVE_SPLINE = 68
+};
 
 #define NEEDS_CHANNEL 1u
 #define NEEDS_TAU 2u
@@ -140,6 +147,8 @@ static const term_spec TERM_SPECS[] = {
     {"channel", "direction", CE_TERM_CHANNEL_DIRECTION, NEEDS_CHANNEL | NEEDS_THRESHOLD},
     {"channel", "spline", CE_TERM_CHANNEL_SPLINE, NEEDS_CHANNEL | NEEDS_SPLINE},
     {"channel", "rate_spline", CE_TERM_CHANNEL_RATE_SPLINE, NEEDS_CHANNEL | NEEDS_SPLINE},
+    {"channel", "lag_spline", CE_TERM_CHANNEL_LAG_SPLINE, NEEDS_CHANNEL | NEEDS_TAU | NEEDS_SPLINE},
+    {"channel", "derivative_spline", CE_TERM_CHANNEL_DERIVATIVE_SPLINE, NEEDS_CHANNEL | NEEDS_TAU | NEEDS_SPLINE},
     {"time", "warmup", CE_TERM_TIME_WARMUP, NEEDS_TAU},
     {"time", "linear", CE_TERM_TIME_LINEAR, 0u},
     {"direction", "sign", CE_TERM_DIRECTION_SIGN, NEEDS_THRESHOLD},
@@ -1488,6 +1497,11 @@ static float term_feature(ce_term *t, const ce_spline *splines, const ce_sample 
         return spline_at(&splines[t->spline], in->inputs[t->input]);
     case CE_TERM_CHANNEL_RATE_SPLINE: /* (v - ref) R(dV); R's knots are raw counts: compared with raw */
         return (in->inputs[t->input] - t->reference) * spline_at(&splines[t->spline], in->raw);
+    case CE_TERM_CHANNEL_LAG_SPLINE: /* S(y): the lag's steps, then its float pair y rounded once */
+        (void)channel_lag_gap(t, in->inputs[t->input], in->time_ms);
+        return spline_at(&splines[t->spline], t->y + t->y_err);
+    case CE_TERM_CHANNEL_DERIVATIVE_SPLINE: /* S((v - y) / tau) */
+        return spline_at(&splines[t->spline], channel_lag_gap(t, in->inputs[t->input], in->time_ms) * t->inv_tau);
     case CE_TERM_CHANNEL_GATED: /* (v - ref) * max(|dv| - knee, 0) / max(|dv|, knee) */
         x = dv < 0.0f ? -dv : dv;
         return x > t->threshold ? (in->inputs[t->input] - t->reference) * ((x - t->threshold) / x) : 0.0f;

@@ -13,6 +13,17 @@ computed on the samples, in time order, as the run time would, and only then
 averaged per block: :class:`ChannelSamples` does that on demand and caches it.
 So is a channel gated by the rate (its level times a gate of the sample's own ΔV,
 which is not the gate of the block's mean ΔV near the knee).
+
+A smooth function S of a channel's lag is taken of the block's mean lag: S of the mean, not the
+mean of S. Why: τ changes with every step of its search, and S per sample costs a pass over the
+whole record for each τ and basis function (minutes per session); within a block of a few
+seconds a lag of τ ≥ 5 s hardly moves, so the two differ by S's curvature times the lag's
+variance within the block, far below the noise. For the same reason the lag whose τ the smooth
+form searches runs on the channel's means over windows of ``COARSE_STEP_S`` (a few thousand
+steps instead of a pass over every sample per τ), read at each block's mean time. A smooth
+function of the channel's rate of change, whose τ is fixed, is averaged sample by sample (a
+transient can cross S's bend within a block). The run time evaluates the lag and S per sample,
+as the set says.
 """
 
 from __future__ import annotations
@@ -29,7 +40,11 @@ from canical.sets.term_kinds import (
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_LAG_SPLINE,
     CHANNEL_RATE_SPLINE,
+    ChannelTransformSpline,
+    spline_horner,
+    spline_segments,
     spline_values,
 )
 from canical.sets.terms import Term, lag_filter, rate_gate
@@ -37,6 +52,8 @@ from canical.sets.trackers import direction_steps, slope_filter
 
 BLOCK_S = 2.0
 SLOPE_TAU_S = 0.5
+#: Seconds of samples one step of the coarse lag averages (see the module's docstring).
+COARSE_STEP_S = 0.25
 
 
 @dataclass(frozen=True)
@@ -61,7 +78,7 @@ class ChannelSamples:
         sample in Python and cost far more to redo than a lag or a gate.
         """
         if len(self.cache) > 512:
-            searched = (CHANNEL_LAG, CHANNEL_GATED, CHANNEL_RATE_SPLINE)
+            searched = (CHANNEL_LAG, CHANNEL_GATED, CHANNEL_RATE_SPLINE, CHANNEL_LAG_SPLINE, "segments")
             for key in [k for k in self.cache if k[0] in searched]:
                 del self.cache[key]
 
@@ -76,6 +93,70 @@ class ChannelSamples:
             self._make_room()
             self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
         return self.cache[key]
+
+    def derivative_spline_means(self, term: Term) -> np.ndarray:
+        """Block means of S((v − y)/τ) sample by sample (all blocks): the derivative's τ is not
+        searched, so each sample's segment is found once per basis and kept; S of a block's mean
+        rate would miss a transient S bends over within the block."""
+        tau = float(term.tau_s or 1.0)
+        key = ("derivative_spline", term.channel, tau, term.knots, term.pieces)
+        if key not in self.cache:
+            segments = ("derivative_segments", term.channel, tau, term.knots)
+            if segments not in self.cache:
+                values = self.values[term.channel or ""]
+                rate = (values - lag_filter(values, self.time_s, tau)) / tau
+                i, u = spline_segments(term.knots or (), rate)
+                self.cache[segments] = np.vstack([i.astype(float), u])
+            seg = self.cache[segments]
+            self.cache[key] = self.means(spline_horner(term.pieces or (), seg[0].astype(int), seg[1]))
+        return self.cache[key]
+
+    def coarse_lag_means(self, channel: str, tau_s: float) -> np.ndarray:
+        """The channel's lag y with time constant τ at each block's mean time (all blocks), run on
+        its means over windows of ``COARSE_STEP_S`` (whole windows; the lag of window means is the
+        lag of the samples at each window's end where the channel holds within a window)."""
+        key = (CHANNEL_LAG_SPLINE, channel, float(tau_s))
+        if key not in self.cache:
+            self._make_room()
+            times, at = self._coarse_times()
+            self.cache[key] = np.interp(at, times, lag_filter(self._coarse_values(channel), times, tau_s))
+        return self.cache[key]
+
+    def _coarse_step(self) -> int:
+        """Samples per coarse window: ``COARSE_STEP_S`` at the median spacing, at least one."""
+        steps = np.diff(self.time_s[: 1 + min(self.time_s.size - 1, 10_000)])
+        spacing = float(np.median(steps)) if steps.size else 0.0
+        return max(1, round(COARSE_STEP_S / spacing)) if spacing > 0 else 1
+
+    def _coarse_times(self) -> tuple[np.ndarray, np.ndarray]:
+        """The time of each coarse window's last sample, and each block's mean time."""
+        if ("coarse_t",) not in self.cache:
+            per = self._coarse_step()
+            n = (self.time_s.size // per) * per or self.time_s.size
+            self.cache[("coarse_t",)] = self.time_s[per - 1 : n : per] if n >= per else self.time_s[-1:]
+            self.cache[("block_t",)] = self.means(self.time_s)
+        return self.cache[("coarse_t",)], self.cache[("block_t",)]
+
+    def _coarse_values(self, channel: str) -> np.ndarray:
+        """The channel's mean over each coarse window."""
+        key = ("coarse_v", channel)
+        if key not in self.cache:
+            per = self._coarse_step()
+            values = self.values[channel]
+            n = (values.size // per) * per
+            self.cache[key] = values[:n].reshape(-1, per).mean(axis=1) if n else values[-1:]
+        return self.cache[key]
+
+    def spline_at(self, term: Term, x: np.ndarray) -> np.ndarray:
+        """S of a transform spline's variable ``x`` at all blocks; each value's segment kept per
+        (channel, kind, τ, knots), which a basis's terms share."""
+        key = ("segments", term.channel, term.feature, float(term.tau_s or 0.0), term.knots)
+        if key not in self.cache:
+            self._make_room()
+            i, u = spline_segments(term.knots or (), x)
+            self.cache[key] = np.vstack([i.astype(float), u])
+        seg = self.cache[key]
+        return spline_horner(term.pieces or (), seg[0].astype(int), seg[1])
 
     def gated_means(self, channel: str, reference: float, knee_raw: float) -> np.ndarray:
         """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks)."""
@@ -144,7 +225,8 @@ class Blocks:
         )
 
     def channel_feature(self, term: Term) -> np.ndarray:
-        """Block means of a channel transform computed on samples (lag, derivative, direction, gated)."""
+        """Block means of a channel transform computed on samples (lag, derivative, direction, gated,
+        a smooth function of the derivative); a smooth function of the lag, of its block mean."""
         if self.samples is None:
             raise ValueError("these blocks were built without their samples")
         rows = slice(None) if self.rows is None else self.rows
@@ -156,6 +238,11 @@ class Blocks:
             return self.samples.rate_spline_means(term)[rows]
         if spec is CHANNEL_DIRECTION:
             return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
+        if isinstance(spec, ChannelTransformSpline):  # of the lag (τ searched: the coarse lag) or rate
+            tau = term.tau_s or 1.0
+            if spec.derivative:
+                return self.samples.derivative_spline_means(term)[rows]
+            return self.samples.spline_at(term, self.samples.coarse_lag_means(ch, tau))[rows]
         y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
         if spec is CHANNEL_LAG:
             return y - term.reference

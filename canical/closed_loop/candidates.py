@@ -26,6 +26,14 @@ feels a channel other than directly:
   held-out plateaus, F-test (charged for every basis column) and paired tests; it nests the
   channel's level and square, so where the two tie the level is taken (see
   :mod:`canical.closed_loop.search`). Clean sensors and effects on the list add no spline.
+* ``smooth(lag(<ch>))`` — the same smooth form of the channel's lag, τ estimated as the lag's
+  (a bias saturating with the temperature the die feels late), knots evenly spaced over the
+  span of the channel's plateau levels (the range the lag moves in), built only where those
+  levels stand out of the channel's noise; it nests the lag, the smooth form of the level and
+  the level. ``smooth(d/dt <ch>)`` — of its rate of change smoothed over the
+  derivative's window (a transient whose size is not proportional to the rate), knots at
+  quantiles of the plateau means of that rate, built only where the window resolves the rate
+  above the channel's noise; it nests the rate of change.
 
 Time since power-on brings a warm-up 1 − exp(−t/τ) with τ estimated and a
 linear drift; the table brings the direction of approach (the raw signal's last
@@ -47,9 +55,11 @@ from canical.robust_stats import mad_sigma
 from canical.sets.term_kinds import (
     CHANNEL,
     CHANNEL_DERIVATIVE,
+    CHANNEL_DERIVATIVE_SPLINE,
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_LAG_SPLINE,
     CHANNEL_OFFSET,
     CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
@@ -87,6 +97,9 @@ SMOOTH_MAX_INTERIOR = 5
 SMOOTH_MIN_LEVELS = 8
 SMOOTH_LEVELS_PER_KNOT = 3
 SMOOTH_LEVEL_SHARE = 0.005
+# A smooth form of a channel's lag only where its plateau levels spread this many times the
+# noise of a plateau's mean.
+LEVELS_RESOLVED = 10.0
 # A channel's coefficient smooth in rate: fewer interior knots, since each basis function's
 # coefficient rests on the channel's spread among the plateaus in its span of rates only.
 RATE_SMOOTH_MAX_INTERIOR = 2
@@ -98,7 +111,7 @@ SLOPE_NAME = "rate-of-change"
 # The nonlinear parameter a fit estimates for each kind that has one (see :func:`tau_groups`):
 # a time constant, shared by all warm-up terms and by a channel's lag terms, or a gated channel's knee.
 WARMUP_GROUP: tuple[str, str | None] = (TIME_WARMUP.feature, None)
-GROUPED = (TIME_WARMUP, CHANNEL_LAG, CHANNEL_GATED)
+GROUPED = (TIME_WARMUP, CHANNEL_LAG, CHANNEL_GATED, CHANNEL_LAG_SPLINE)
 
 
 @dataclass(frozen=True)
@@ -142,6 +155,8 @@ BLOCK_FEATURES: dict[TermKind, Callable[[Term, Blocks], np.ndarray]] = {
     CHANNEL_DIRECTION: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_GATED: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_RATE_SPLINE: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_LAG_SPLINE: lambda term, blocks: blocks.channel_feature(term),
+    CHANNEL_DERIVATIVE_SPLINE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_SPLINE: lambda term, blocks: spline_values(term.knots or (), term.pieces or (),
                                                        blocks.aux[term.channel or ""]),
     TIME_WARMUP: _warmup,
@@ -271,6 +286,29 @@ def smooth_terms(channel: str, levels: np.ndarray, form: str = "bias") -> tuple[
                  for p in pieces[1:])
 
 
+def transform_smooth_terms(spec: TermKind, channel: str, levels: np.ndarray, tau_s: float,
+                           even: bool) -> tuple[Term, ...]:
+    """The cubic B-spline basis of a transform of ``channel`` (``spec`` a ``lag_spline`` or
+    ``derivative_spline`` with its ``tau_s``) over the span of ``levels``, the range the transform
+    moves in, as :func:`smooth_terms` builds it, with interior knots evenly spaced (``even``: a lag
+    sweeps the whole range between the channel's levels, which cluster where the channel held) or
+    at the levels' quantiles.
+
+    The middle basis function is left out, not the first: at a long τ the lag never reaches the
+    ends of the channel's range, and on data that miss the left-out function's support the
+    others sum to one there, a column the rate model's constant already is (the fit's
+    coefficients then run off; seen: held-out rms 10¹⁷ at the true τ). Every lag passes through
+    the middle of the range, a rate of change through zero.
+    """
+    basis = bspline_basis(levels, even=even)
+    if basis is None:
+        return ()
+    breaks, pieces = basis
+    middle = len(pieces) // 2
+    return tuple(Term.of(spec, "bias", 0.0, channel=channel, knots=breaks, pieces=p, tau_s=tau_s)
+                 for j, p in enumerate(pieces) if j != middle)
+
+
 def rate_smooth_terms(channel: str, reference: float, dv_levels: np.ndarray) -> tuple[Term, ...]:
     """The channel's level times each cubic B-spline basis function of ΔV over the span of the
     plateaus' ``dv_levels``: a coefficient of the channel that changes smoothly with rate (a
@@ -285,12 +323,12 @@ def rate_smooth_terms(channel: str, reference: float, dv_levels: np.ndarray) -> 
                          knots=breaks, pieces=p) for p in pieces)
 
 
-def bspline_basis(levels: np.ndarray, max_interior: int = SMOOTH_MAX_INTERIOR
+def bspline_basis(levels: np.ndarray, max_interior: int = SMOOTH_MAX_INTERIOR, even: bool = False
                   ) -> tuple[tuple[float, ...], list[tuple[tuple[float, ...], ...]]] | None:
     """The breaks and each basis function's pieces (piecewise-polynomial form) of a cubic B-spline
-    over the span of ``levels`` with interior knots at their quantiles, one more per
-    SMOOTH_LEVELS_PER_KNOT distinct levels up to ``max_interior``; None when the levels are too
-    few to fit one."""
+    over the span of ``levels`` with interior knots at their quantiles (``even``: evenly spaced),
+    one more per SMOOTH_LEVELS_PER_KNOT distinct levels up to ``max_interior``; None when the
+    levels are too few to fit one."""
     levels = np.sort(np.asarray(levels, dtype=float))
     span = float(levels[-1] - levels[0]) if levels.size else 0.0
     if not span > 0:
@@ -300,7 +338,8 @@ def bspline_basis(levels: np.ndarray, max_interior: int = SMOOTH_MAX_INTERIOR
     if n_interior < 1:
         return None
     lo, hi = float(levels[0]), float(levels[-1])
-    interior = np.quantile(levels, np.linspace(0.0, 1.0, n_interior + 2)[1:-1])
+    shares = np.linspace(0.0, 1.0, n_interior + 2)[1:-1]
+    interior = lo + shares * (hi - lo) if even else np.quantile(levels, shares)
     breaks = np.unique(np.concatenate([[lo], interior, [hi]]))
     knots = np.concatenate([[lo] * 3, breaks, [hi] * 3])
     n_basis = knots.size - 4
@@ -322,11 +361,16 @@ def sample_noise(values: np.ndarray) -> float:
 
 
 def derivative_window(blocks: Blocks, channel: str) -> float:
-    """The derivative's smoothing τ: the shortest at which noise no longer dominates it.
+    """The derivative's smoothing τ: the shortest at which noise no longer dominates it."""
+    return _derivative_window(blocks, channel)[0]
+
+
+def _derivative_window(blocks: Blocks, channel: str) -> tuple[float, bool]:
+    """The derivative's window, and whether at it the noise is a small share (resolved).
 
     Per block, the derivative (v − y)/τ carries the channel's noise σ divided by
     τ·sqrt(samples per block); the window is the shortest for which that is a
-    small share of the derivative's spread over the session.
+    small share of the derivative's spread over the session (else the longest tried).
     """
     samples = blocks.samples
     assert samples is not None
@@ -335,8 +379,8 @@ def derivative_window(blocks: Blocks, channel: str) -> float:
     for tau in DERIVATIVE_WINDOWS_S:
         d = feature(Term.of(CHANNEL_DERIVATIVE, "bias", 0.0, channel=channel, tau_s=tau), blocks)
         if sigma / (tau * np.sqrt(per_block)) <= DERIVATIVE_NOISE_SHARE * float(np.std(d)):
-            return tau
-    return DERIVATIVE_WINDOWS_S[-1]
+            return tau, True
+    return DERIVATIVE_WINDOWS_S[-1], False
 
 
 def direction_threshold(values: np.ndarray) -> float:
@@ -354,7 +398,7 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
     gated = [Candidate(CHANNEL_GATED.label(name), CHANNEL, name,
                        _gated_terms(name, ref, float(np.ptp(values)), float(np.sqrt(knees[0] * knees[-1]))))
              ] if knees.size else []
-    tau_d = derivative_window(blocks, name)
+    tau_d, resolved = _derivative_window(blocks, name)
     tau_lag = float(np.sqrt(lag_grid(duration_s)[0] * lag_grid(duration_s)[-1]))
     thr = direction_threshold(values)
     return [
@@ -365,8 +409,39 @@ def _transform_candidates(blocks: Blocks, name: str, ref: float, duration_s: flo
         Candidate(CHANNEL_DIRECTION.label(name), CHANNEL, name,
                   _pair(CHANNEL_DIRECTION, channel=name, threshold_raw=thr)),
         *gated,
+        *_transform_smooth(blocks, name, tau_lag, tau_d if resolved else None),
     ]
 
+
+def _transform_smooth(blocks: Blocks, name: str, tau_lag: float, tau_d: float | None) -> list[Candidate]:
+    """The smooth forms of the channel's lag (τ estimated as the lag's; knots over the channel's
+    plateau levels, the range its lag moves in, evenly spaced) and of its rate of change (the derivative's
+    window ``tau_d``; knots over the plateau means of that rate; None: the window does not
+    resolve the rate above the channel's noise, whose smooth form would be one of noise),
+    where there are levels enough for a spline."""
+    out = []
+    levels = plateau_levels(blocks, name)
+    lag = transform_smooth_terms(CHANNEL_LAG_SPLINE, name, levels, tau_lag, even=True)
+    if lag and _levels_resolved(blocks, name, levels):
+        out.append(Candidate(CHANNEL_LAG_SPLINE.label(name), CHANNEL, name, lag))
+    if tau_d is not None:
+        rate = feature(Term.of(CHANNEL_DERIVATIVE, "bias", 0.0, channel=name, tau_s=tau_d), blocks)
+        derivative = transform_smooth_terms(CHANNEL_DERIVATIVE_SPLINE, name, plateau_means(blocks, rate),
+                                            tau_d, even=False)
+        if derivative:
+            out.append(Candidate(CHANNEL_DERIVATIVE_SPLINE.label(name), CHANNEL, name, derivative))
+    return out
+
+
+def _levels_resolved(blocks: Blocks, name: str, levels: np.ndarray) -> bool:
+    """Whether the channel's plateau levels differ by more than the noise of a plateau's mean
+    (``LEVELS_RESOLVED`` times): a channel of noise about a constant has a constant lag, and a
+    smooth form of it would fit that noise (and cost a τ search each time it is scored)."""
+    samples = blocks.samples
+    assert samples is not None
+    per_plateau = float(np.sum(samples.stops - samples.starts)) / max(levels.size, 1)
+    noise = sample_noise(samples.values[name]) / np.sqrt(max(per_plateau, 1.0))
+    return float(np.std(levels)) > LEVELS_RESOLVED * noise
 
 
 def _gated_terms(name: str, ref: float, spread: float, knee_raw: float) -> tuple[Term, ...]:

@@ -71,9 +71,11 @@ from canical.models.segmented_inverse import fit_segmented_inverse
 from canical.sets.term_kinds import (
     CHANNEL,
     CHANNEL_DERIVATIVE,
+    CHANNEL_DERIVATIVE_SPLINE,
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_LAG_SPLINE,
     CHANNEL_OFFSET,
     CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
@@ -527,9 +529,10 @@ def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
 
 def _describe_effect(eff: Effect, final_fit: Fit) -> str:
     """A readable name with the final time constant: lag(temp_c, τ=140 s), temp_c × (|rate| > 30 dps)."""
-    lagged = [t for t in final_fit.terms if t.channel == eff.channel and t.spec is CHANNEL_LAG]
+    lagged = [t for t in final_fit.terms if t.channel == eff.channel
+              and t.spec is (CHANNEL_LAG_SPLINE if eff.name.startswith("smooth(lag(") else CHANNEL_LAG)]
     gated = [t for t in final_fit.terms if t.channel == eff.channel and t.spec is CHANNEL_GATED]
-    is_lag = lagged and eff.name.startswith("lag(")
+    is_lag = lagged and eff.name.startswith(("lag(", "smooth(lag("))
     description = lagged[0].describe() if is_lag else eff.name
     if gated and eff.name == gated_name(eff.channel or ""):
         description = gated_name(eff.channel or "", knee_dps(final_fit.poly, gated[0].threshold_raw))
@@ -757,7 +760,8 @@ def _nests(general: Candidate, simple: Candidate) -> bool:
     """True when ``simple`` is ``general`` in a limit (a channel's level is its lag at τ → 0,
     and its rate-gated form at knee → 0; a linear drift is a warm-up at τ → ∞); a smooth form
     holds what a spline with knots everywhere holds: a channel's smooth form its level and
-    square, its smooth coefficient in rate its level and its rate-gated level."""
+    square, its smooth coefficient in rate its level and its rate-gated level, the smooth form of
+    its lag the lag, the smooth form of the level and the level, that of its rate of change the rate."""
     if general.name == WARMUP_NAME and simple.name == DRIFT_NAME:
         return True
     if general.kind != CHANNEL or simple.kind != CHANNEL or general.channel != simple.channel:
@@ -774,6 +778,8 @@ def _simpler_forms(name: str, channel: str) -> tuple[str, ...]:
         gated_name(channel): (level,),
         CHANNEL_SPLINE.label(channel): (level,),
         CHANNEL_RATE_SPLINE.label(channel): (level, gated_name(channel)),
+        CHANNEL_LAG_SPLINE.label(channel): (level, lag, CHANNEL_SPLINE.label(channel)),
+        CHANNEL_DERIVATIVE_SPLINE.label(channel): (CHANNEL_DERIVATIVE.label(channel),),
     }
     return nested.get(name, ())
 

@@ -33,6 +33,8 @@ import numpy as np
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
 from canical.robust_stats import mad_sigma
+from canical.sets.term_kinds import CHANNEL_DERIVATIVE, CHANNEL_LAG, ChannelTransformSpline
+from canical.sets.terms import Term
 
 # Clean simulated sensors (white noise, or with bias instability and rate random
 # walk) leave 1.0-1.4x the floor on held-out plateaus; an unexplained effect the
@@ -63,11 +65,19 @@ def _sensitivity(blocks: Blocks) -> float:
 
 def candidate_variables(candidates: list[Candidate], blocks: Blocks) -> dict[str, np.ndarray]:
     """Each candidate's variable at the blocks (its first term's feature; a smooth candidate's, its
-    channel: its first term is one basis function of it), and time since power-on."""
+    channel, or the lag or rate of change it is a function of: its first term is one basis
+    function of it), and time since power-on."""
     out = {"time since power-on": blocks.time_s}
     for cand in candidates:
-        smooth = cand.terms[0].spec.needs_spline and cand.channel is not None
-        out[cand.name] = blocks.aux[cand.channel or ""] if smooth else feature(cand.terms[0], blocks)
+        first = cand.terms[0]
+        if isinstance(first.spec, ChannelTransformSpline):
+            lagged = CHANNEL_DERIVATIVE if first.spec.derivative else CHANNEL_LAG
+            out[cand.name] = feature(Term.of(lagged, "bias", 0.0, channel=first.channel, tau_s=first.tau_s),
+                                     blocks)
+        elif first.spec.needs_spline and cand.channel is not None:
+            out[cand.name] = blocks.aux[cand.channel]
+        else:
+            out[cand.name] = feature(first, blocks)
     return out
 
 

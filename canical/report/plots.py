@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import io
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import matplotlib
@@ -77,6 +78,8 @@ def variable_label(name: str) -> str:
         channel = name.removeprefix(LEVEL_PREFIX)
         return f"{channel} ({channel_unit(channel)})"
     smooth = re.fullmatch(r"smooth\((.+?)(?: × rate)?\)", name)
+    if smooth and smooth.group(1).startswith(("lag(", "d/dt ")):  # of a transform: drawn against it
+        return variable_label(smooth.group(1))
     if smooth:  # a learned function of the channel: drawn against the channel itself
         return f"{smooth.group(1)} ({channel_unit(smooth.group(1))})"
     if name.startswith(WARMUP_NAME):
@@ -94,6 +97,11 @@ def variable_of(name: str, blocks: Blocks, loop: LoopResult | None = None) -> tu
     """The x-axis for a candidate: its channel (or its transform), time since power-on, or direction."""
     cand = next((c for c in (loop.candidates if loop else []) if c.name == name), None)
     if cand is not None and not name.startswith((LEVEL_PREFIX, TIME, DIRECTION_NAME, SLOPE_NAME)):
+        # a smooth form of a lag is drawn against the lag with the τ the fit found, not the start's
+        fitted = next((t for t in (loop.fit.terms if loop else ()) if t.spec is cand.terms[0].spec
+                       and t.channel == cand.channel and t.spec.needs_tau), None)
+        if fitted is not None:
+            cand = cand.with_terms(tuple(replace(t, tau_s=fitted.tau_s) for t in cand.terms))
         return candidate_variables([cand], blocks)[name], variable_label(name)
     if name.startswith(LEVEL_PREFIX):
         return blocks.aux[name.removeprefix(LEVEL_PREFIX)], variable_label(name)

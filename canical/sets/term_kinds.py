@@ -388,11 +388,21 @@ def spline_one(knots: tuple[float, ...], pieces: tuple[tuple[float, ...], ...], 
 def spline_values(knots: tuple[float, ...], pieces: tuple[tuple[float, ...], ...],
                   v: np.ndarray) -> np.ndarray:
     """S(v) for a block of samples, element by element what :func:`spline_one` gives."""
+    return spline_horner(pieces, *spline_segments(knots, v))
+
+
+def spline_segments(knots: tuple[float, ...], v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first half of :func:`spline_values`: each value's segment i and u = w − knot i, which
+    every spline on these knots shares (the closed loop keeps them for a basis of many splines)."""
     k = np.asarray(knots, dtype=float)
-    a = np.asarray(pieces, dtype=float)
     w = np.where(v < k[0], k[0], np.where(v > k[-1], k[-1], v))
-    i = np.clip(np.searchsorted(k, w, side="right") - 1, 0, len(pieces) - 1)
-    u = w - k[i]
+    i = np.clip(np.searchsorted(k, w, side="right") - 1, 0, len(knots) - 2)
+    return i, w - k[i]
+
+
+def spline_horner(pieces: tuple[tuple[float, ...], ...], i: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The second half of :func:`spline_values`: the cubic of segment i at u."""
+    a = np.asarray(pieces, dtype=float)
     out: np.ndarray = ((a[i, 3] * u + a[i, 2]) * u + a[i, 1]) * u + a[i, 0]
     return out
 
@@ -494,6 +504,62 @@ class ChannelRateSpline(ChannelKind):
 
     def reach(self, term: Term, inputs: float) -> float:
         return (inputs + abs(term.reference)) * spline_reach(term)
+
+
+class ChannelTransformSpline(ChannelLagged):
+    """x = S(y): a piecewise cubic (as :class:`ChannelSpline`: ``knots``, ``pieces``, flat beyond
+    the end knots) of one of the channel's lagged transforms, y its lagged level (``lag_spline``)
+    or its rate of change smoothed over τ (``derivative_spline``): a smooth effect of what the die
+    feels late, e.g. a bias saturating with a temperature that follows the chamber's with τ.
+    The transform's state is the lag's :class:`ChannelTracker` with reference 0 (so y is the lag
+    itself; ``reference`` plays no part), and S is :func:`spline_one` of its output: the same
+    operations as the lag or derivative kind, then those of the spline kind. The C evaluator runs
+    the lag's steps, then ``spline_at`` of y.
+    """
+
+    needs_spline = True
+
+    def tracker(self, term: Term) -> ChannelTracker:
+        return ChannelTracker(term.tau_s or 1.0, 0.0, self.derivative)
+
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray:
+        y = super().values_from(term, tracker, inputs, raw, dv)
+        return spline_values(term.knots or (), term.pieces or (), y)
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return spline_one(term.knots or (), term.pieces or (), super().one(term, tracker, raw, dv, inputs))
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        return [*spline_code(term, super().code_x(term, names)),
+                f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
+
+    def reach(self, term: Term, inputs: float) -> float:
+        return spline_reach(term)
+
+    def describe(self, term: Term) -> str:
+        return self.label(term.channel or "?", term.tau_s)
+
+
+class ChannelLagSpline(ChannelTransformSpline):
+    """x = S(y), y the channel through a first-order lag τ (:class:`ChannelLag` without its reference)."""
+
+    feature = "lag_spline"
+    c_name = "CE_TERM_CHANNEL_LAG_SPLINE"
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"smooth({CHANNEL_LAG.label(channel, tau_s)})"
+
+
+class ChannelDerivativeSpline(ChannelTransformSpline):
+    """x = S(d), d = (v − y)/τ the channel's rate of change smoothed with τ (:class:`ChannelDerivative`)."""
+
+    feature = "derivative_spline"
+    c_name = "CE_TERM_CHANNEL_DERIVATIVE_SPLINE"
+    derivative = True
+
+    def label(self, channel: str, tau_s: float | None = None) -> str:
+        return f"smooth({CHANNEL_DERIVATIVE.label(channel, tau_s)})"
 
 
 def gated_name(channel: str, knee_dps: float | None = None) -> str:
@@ -637,6 +703,8 @@ CHANNEL_DIRECTION = ChannelDirection()
 CHANNEL_GATED = ChannelGated()
 CHANNEL_SPLINE = ChannelSpline()
 CHANNEL_RATE_SPLINE = ChannelRateSpline()
+CHANNEL_LAG_SPLINE = ChannelLagSpline()
+CHANNEL_DERIVATIVE_SPLINE = ChannelDerivativeSpline()
 TIME_WARMUP = TimeWarmup()
 TIME_LINEAR = TimeLinear()
 DIRECTION_SIGN = DirectionSign()
@@ -645,7 +713,7 @@ DIRECTION_SLOPE = DirectionSlope()
 #: Every kind this canical version reads, in the order error messages list them.
 ALL: tuple[TermKind, ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNEL_DERIVATIVE,
                              CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_SPLINE, CHANNEL_RATE_SPLINE,
-                             TIME_WARMUP, TIME_LINEAR,
+                             CHANNEL_LAG_SPLINE, CHANNEL_DERIVATIVE_SPLINE, TIME_WARMUP, TIME_LINEAR,
                              DIRECTION_SIGN, DIRECTION_SLOPE)
 _BY_KEY = {k.key: k for k in ALL}
 #: The features of each kind, as the set file names them.

@@ -27,7 +27,10 @@ coefficient means the output rises with temperature. Features:
   bias that switches on with rate; and ``spline`` x = S(v), a piecewise cubic of the
   channel learned from the data (``knots``, ``pieces``; flat beyond the end knots): a
   smooth effect whose form is none of the above (the C evaluator runs it too: a
-  binary search over the knots and the same cubic, in float32);
+  binary search over the knots and the same cubic, in float32); ``rate_spline``
+  x = (v − ref)·R(ΔV), its level times a piecewise cubic of the output; ``lag_spline``
+  x = S(y) and ``derivative_spline`` x = S((v − y)/τ), the same piecewise cubic of the
+  channel's lag or of its smoothed rate of change (τ and ``time_s`` as for ``lag``);
 * ``time`` — time since power-on t (input ``time_s``): ``warmup`` x = 1 − exp(−t/τ),
   ``linear`` x = t;
 * ``direction`` — how the rate got where it is. ``sign``: the direction of the last
@@ -218,7 +221,7 @@ def _spline_fields(d: Mapping[str, Any], where: str
 
 def spline_group(t: Term) -> tuple[Any, ...]:
     """What the basis functions of one learned spline share: all but their pieces and coefficient."""
-    return (t.kind, t.feature, t.channel, t.form, t.reference, t.knots)
+    return (t.kind, t.feature, t.channel, t.form, t.reference, t.tau_s, t.knots)
 
 
 def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:

@@ -127,6 +127,47 @@ class LaggedTemperatureEffect:
 
 
 @dataclass(frozen=True)
+class LaggedSaturatingEffect:
+    """A bias saturating with the temperature the die feels late, A·tanh((lag_τ(T) − centre)/width):
+    a smooth function of a channel's lag, in a form on no list."""
+
+    channel: str = "temp_c"
+    tau_s: float = 90.0
+    amplitude_dps: float = 0.1
+    centre_c: float = 25.0
+    width_c: float = 8.0
+
+    def shape(self, lagged_c: np.ndarray) -> np.ndarray:
+        out: np.ndarray = np.tanh((np.asarray(lagged_c, dtype=float) - self.centre_c) / self.width_c)
+        return out
+
+    def errors(self, time_s, rate_dps, aux):
+        lagged = _lag(aux[self.channel], time_s, self.tau_s)
+        return self.amplitude_dps * self.shape(lagged), np.zeros_like(lagged)
+
+
+@dataclass(frozen=True)
+class SaturatingTransientEffect:
+    """A thermal transient that saturates: A·tanh(d/s), d = (T − lag_τ(T))/τ the temperature's rate
+    of change smoothed over τ (as a derivative term computes it): a smooth function of a rate
+    of change, in a form on no list."""
+
+    channel: str = "temp_c"
+    tau_s: float = 3.0
+    amplitude_dps: float = 0.08
+    scale_c_per_s: float = 0.1
+
+    def shape(self, rate_c_per_s: np.ndarray) -> np.ndarray:
+        out: np.ndarray = np.tanh(np.asarray(rate_c_per_s, dtype=float) / self.scale_c_per_s)
+        return out
+
+    def errors(self, time_s, rate_dps, aux):
+        v = np.asarray(aux[self.channel], dtype=float)
+        rate = (v - _lag(v, time_s, self.tau_s)) / self.tau_s
+        return self.amplitude_dps * self.shape(rate), np.zeros_like(rate)
+
+
+@dataclass(frozen=True)
 class TemperatureHysteresisEffect:
     """An offset whose sign follows whether temperature last rose or fell (heating vs cooling)."""
 

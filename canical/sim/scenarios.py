@@ -17,9 +17,11 @@ import numpy as np
 from canical.sessions.session import Session
 from canical.sets.term_kinds import (
     CHANNEL_DERIVATIVE,
+    CHANNEL_DERIVATIVE_SPLINE,
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
+    CHANNEL_LAG_SPLINE,
     CHANNEL_OFFSET,
     CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
@@ -215,6 +217,12 @@ _SATURATING = fx.SaturatingEffect()
 _RATE_TC = fx.RateDependentTemperatureEffect()
 _SENSITIVITY = GyroModel().sensitivity
 FOUR_TEMPERATURES = {"temp_c": env.temperature_steps((-10.0, 10.0, 30.0, 50.0)), **DISTRACTORS}
+_LAGGED_SATURATING = fx.LaggedSaturatingEffect()
+_SATURATING_TRANSIENT = fx.SaturatingTransientEffect()
+#: A chamber stepped through ten temperatures in random order, each held 90 s: the die follows
+#: with τ = 90 s, so its temperature sweeps the range between the chamber's levels.
+TEN_TEMPERATURES = {"temp_c": env.temperature_steps(tuple(np.linspace(-10.0, 50.0, 10)), period_s=90.0),
+                    **DISTRACTORS}
 #: Smooth effects of a channel (issue 21), scored over several seeds by the closed loop's tests:
 #: a square over a wide range (on the list, as level + square) and a saturating function (on no
 #: list: the smooth form must learn it). Kept apart from :data:`SCENARIOS`, whose figures the
@@ -238,6 +246,20 @@ SMOOTH_SCENARIOS: tuple[Scenario, ...] = (
              oracle_terms=(_spline_of(lambda dv: _RATE_TC.shape(dv / _SENSITIVITY) * dv,
                                       -1.2 * 60 * _SENSITIVITY, 1.2 * 60 * _SENSITIVITY, "temp_c",
                                       spec=CHANNEL_RATE_SPLINE, reference=_RATE_TC.reference_c),)),
+    # Told: a spline through the tanh of the lag at 64 knots, its τ estimated as the loop's is.
+    Scenario("bias saturating with the die's lagged temperature: 0.1 dps tanh((lag90(T) - 25)/8), 10 levels",
+             (_LAGGED_SATURATING,), TEN_TEMPERATURES, expect=("smooth(lag(temp_c))",),
+             oracle_terms=(_spline_of(_LAGGED_SATURATING.shape, -15.0, 55.0, "temp_c",
+                                      spec=CHANNEL_LAG_SPLINE, tau_s=_LAGGED_SATURATING.tau_s),)),
+    # Told: a spline through the tanh of the rate of change at 64 knots, with the true τ (3 s; the
+    # loop's window is chosen from the channel's noise). The sign of the change is the tanh's
+    # limit of zero width, a form of the same rate: where it takes up what the window's τ leaves,
+    # the attribution is as right.
+    Scenario("thermal transient saturating: 0.08 dps tanh(dT/dt / 0.1 C/s), temperature cycling",
+             (_SATURATING_TRANSIENT,), TEMP_CYCLE, expect=("smooth(d/dt temp_c)",),
+             also_right=(("smooth(d/dt temp_c)", "sign d/dt temp_c"),),
+             oracle_terms=(_spline_of(_SATURATING_TRANSIENT.shape, -0.6, 0.6, "temp_c",
+                                      spec=CHANNEL_DERIVATIVE_SPLINE, tau_s=_SATURATING_TRANSIENT.tau_s),)),
 )
 
 # A sensor whose error follows a variable nobody recorded: no candidate can represent it.

@@ -81,17 +81,19 @@ FIELDS: tuple[Field, ...] = (
     Field("terms[].coefficient", "number", "c, the sensor's own sensitivity to x"),
     Field("terms[].channel", "text", "`channel` kind: the input's name (a CSV column, a configured input)"),
     Field("terms[].reference", "number", "the value of the variable where the term is zero"),
-    Field("terms[].tau_s", "positive number", "time constant of a lag, derivative, warm-up or slope"),
+    Field("terms[].tau_s", "positive number",
+          "time constant of a lag, derivative, warm-up or slope (and of a lag or derivative spline)"),
     Field(
         "terms[].threshold_raw",
         "positive number",
         "threshold of a direction tracker, or the knee of a gated term, in the units the feature names",
     ),
     Field("terms[].knots", "list of 2 to 64 increasing numbers",
-          "`spline` and `rate_spline` only: the segment ends of the piecewise cubic, of the channel or of "
-          "ΔV in raw units (flat beyond the ends)"),
+          "`spline`, `rate_spline`, `lag_spline` and `derivative_spline` only: the segment ends of the "
+          "piecewise cubic, of the channel, of ΔV in raw units, of the channel's lag or of its rate of "
+          "change (flat beyond the ends)"),
     Field("terms[].pieces", "one list of 4 numbers per segment",
-          "`spline` and `rate_spline` only: a0 a1 a2 a3 of a0 + a1·u + a2·u² + a3·u³ with u = its variable "
+          "the spline features only: a0 a1 a2 a3 of a0 + a1·u + a2·u² + a3·u³ with u = its variable "
           "− the segment's first knot"),
     Field(
         "fit",
@@ -116,7 +118,9 @@ Effects act on the sensor's output, so a term corrects ΔV before the rate model
 change (hysteresis), `gated` its level acting only beyond a knee in the output, `spline` a piecewise
 cubic of it learned by the closed loop (`knots`, `pieces`; flat beyond the end knots),
 `rate_spline` its level times a piecewise cubic of ΔV (a coefficient changing with rate; same
-`knots`, `pieces`); `time` (input `time_s`, time since power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
+`knots`, `pieces`), `lag_spline` a piecewise cubic of its lag (τ) and `derivative_spline` one of its
+rate of change smoothed over τ (same `knots`, `pieces`); `time` (input `time_s`, time since
+power-on) — `warmup` 1 − exp(−t/τ), `linear` t;
 `direction` (of the raw output) — `sign` its last significant rise or fall, `slope` its rate of
 change. The kinds this canical accepts:"""
 

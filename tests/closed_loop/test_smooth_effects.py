@@ -4,6 +4,7 @@ on clean sensors whose channels range as widely."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,16 +14,20 @@ from canical.closed_loop.candidates import (
     CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
     build_candidates,
+    feature,
     rate_smooth_terms,
     smooth_terms,
+    transform_smooth_terms,
 )
 from canical.evaluation import score_scenario
 from canical.pipeline import CalibrateOptions, calibrate
 from canical.report.plots import variable_label, variable_of, write_plots
 from canical.sets.corrector import Corrector
+from canical.sets.term_kinds import CHANNEL_DERIVATIVE_SPLINE, CHANNEL_LAG_SPLINE, spline_values
+from canical.sets.terms import lag_filter, term_from_dict
 from canical.sim import environment as env
 from canical.sim.gyro import GyroModel
-from canical.sim.scenarios import DISTRACTORS, SMOOTH_SCENARIOS
+from canical.sim.scenarios import DISTRACTORS, SMOOTH_SCENARIOS, _spline_of
 from canical.sim.sessions import paper_rates, sweep_session
 
 SEEDS = range(5)
@@ -131,3 +136,79 @@ def assert_sample_by_sample_as_in_blocks(result, session, channel: str, n: int =
     one = [corrector.correct_one(session.raw[i], {k: float(v[i]) for k, v in inputs.items()})[0]
            for i in range(n)]
     assert np.array_equal(block, np.array(one))
+
+
+def test_transform_basis_leaves_the_middle_out_with_even_knots() -> None:
+    levels = np.random.default_rng(3).choice(np.linspace(-10.0, 50.0, 10), 60) + np.linspace(0.0, 0.5, 60)
+    terms = transform_smooth_terms(CHANNEL_LAG_SPLINE, "temp_c", levels, 40.0, even=True)
+    assert terms and all(t.spec is CHANNEL_LAG_SPLINE and t.tau_s == 40.0 for t in terms)
+    knots = np.asarray(terms[0].knots)
+    assert np.allclose(np.diff(knots), np.diff(knots)[0])  # evenly spaced over the levels' span
+    v = np.linspace(knots[0], knots[-1], 401)
+    total = sum(spline_values(t.knots or (), t.pieces or (), v) for t in terms)
+    # all basis functions but the middle one: one at both ends, less than one in the middle
+    assert total[0] == pytest.approx(1.0) and total[-1] == pytest.approx(1.0)
+    assert total[200] < 0.9
+
+
+@pytest.mark.parametrize("derivative", [False, True])
+def test_block_feature_of_a_transform_spline_is_close_to_the_block_mean_of_it(derivative: bool) -> None:
+    """The loop takes S of the block's mean lag (on the coarse lag) or rate, not the block mean
+    of S per sample: on a lagged-temperature session the two differ by far less than S's range."""
+    scenario = next(s for s in SMOOTH_SCENARIOS if "smooth(lag(temp_c))" in s.expect)
+    session = scenario.session(seed=0, dwell_s=8.0)
+    result = calibrate(session, CalibrateOptions(extend=True), sensor_id="S", axis="z")
+    assert result.loop is not None
+    blocks = result.loop.blocks
+    spec = CHANNEL_DERIVATIVE_SPLINE if derivative else CHANNEL_LAG_SPLINE
+    levels = np.array([-0.05, 0.05]) if derivative else np.array([-10.0, 50.0])
+    fn = (lambda x: np.tanh(x / 0.02)) if derivative else scenario.effects[0].shape
+    term = replace(_spline_of(fn, *levels, "temp_c", spec=spec, tau_s=15.0 if derivative else 90.0),
+                   coefficient=1.0)
+    at_blocks = feature(term, blocks)
+    inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
+    per_sample = spec.values(term, inputs, session.raw, None)
+    assert blocks.samples is not None
+    exact = blocks.samples.means(per_sample)
+    assert np.max(np.abs(at_blocks - exact)) < 0.02 * np.ptp(exact)
+    assert np.ptp(exact) > 0.5  # S moves over the session: the comparison has something to see
+
+
+def test_lagged_saturation_written_as_one_term_corrects_sample_by_sample_and_is_drawn(tmp_path: Path) -> None:
+    scenario = next(s for s in SMOOTH_SCENARIOS if "smooth(lag(temp_c))" in s.expect)
+    session = scenario.session(seed=1, dwell_s=8.0)
+    result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
+    assert result.loop is not None and [e.name for e in result.loop.effects] == ["smooth(lag(temp_c))"]
+    assert result.loop.effects[0].description.startswith("smooth(lag(temp_c, τ=")
+    written = [t for t in result.coefficients.terms if t["feature"] == "lag_spline"]
+    assert len(written) == 1, "the learned shape of the lag is written as one term"
+    assert 60.0 < written[0]["tau_s"] < 130.0  # the die's τ is 90 s
+    term = term_from_dict(written[0])
+    inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
+    lag = lag_filter(session.aux["temp_c"], session.time_s, term.tau_s or 0.0)
+    # x is S of the lag, sample by sample: S through the lag a lag term computes
+    np.testing.assert_allclose(term.spec.values(term, inputs, session.raw, None),
+                               spline_values(term.knots or (), term.pieces or (), lag), rtol=0, atol=1e-9)
+    x, label = variable_of("smooth(lag(temp_c))", result.loop.blocks, result.loop)
+    assert label == "lag(temp_c) (°C)"
+    # drawn against the lag with the τ the fit found
+    assert result.loop.blocks.samples is not None
+    np.testing.assert_allclose(x, result.loop.blocks.samples.lag_means("temp_c", term.tau_s or 0.0))
+    assert any("smooth_lag" in p.name and p.stat().st_size > 0 for p in write_plots(result.loop, tmp_path))
+    assert_sample_by_sample_as_in_blocks(result, session, "temp_c")
+
+
+def test_saturating_transient_written_as_one_derivative_spline_corrects_sample_by_sample() -> None:
+    scenario = next(s for s in SMOOTH_SCENARIOS if "smooth(d/dt temp_c)" in s.expect)
+    session = scenario.session(seed=0, dwell_s=8.0)
+    result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
+    assert result.loop is not None and "smooth(d/dt temp_c)" in [e.name for e in result.loop.effects]
+    written = [t for t in result.coefficients.terms if t["feature"] == "derivative_spline"]
+    assert len(written) == 1, "the learned shape of the rate of change is written as one term"
+    term = term_from_dict(written[0])
+    inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
+    values = session.aux["temp_c"]
+    rate = (values - lag_filter(values, session.time_s, term.tau_s or 0.0)) / (term.tau_s or 1.0)
+    np.testing.assert_allclose(term.spec.values(term, inputs, session.raw, None),
+                               spline_values(term.knots or (), term.pieces or (), rate), rtol=0, atol=1e-9)
+    assert_sample_by_sample_as_in_blocks(result, session, "temp_c")

@@ -44,8 +44,11 @@ def with_terms(cset: CoefficientSet, terms: list[dict]) -> CoefficientSet:
 
 
 def spline_set(axis: str, family: int = 0) -> CoefficientSet:
-    """The axis's set with a spline of temperature in bias and in scale form."""
-    return with_terms(imu_set(axis, family), [ALL_TERMS["channel-spline"], ALL_TERMS["channel-spline-scale"]])
+    """The axis's set with a spline of temperature in bias and in scale form, and one of its lag and
+    of its rate of change (the lag's state on the device, then the spline): four spline terms."""
+    return with_terms(imu_set(axis, family), [ALL_TERMS["channel-spline"], ALL_TERMS["channel-spline-scale"],
+                                              ALL_TERMS["channel-lag-spline"],
+                                              ALL_TERMS["channel-derivative-spline"]])
 
 
 def wide_spline(rng: np.random.Generator, knots: int = MAX_SPLINE_KNOTS) -> dict:

@@ -48,7 +48,7 @@ def terms(draw) -> dict:
     if kind == "channel":
         term["channel"] = draw(st.sampled_from(INPUTS))
         term["reference"] = draw(finite)
-    if feature in ("warmup", "slope", "lag", "derivative"):
+    if lookup(kind, feature).needs_tau:  # type: ignore[union-attr]
         term["tau_s"] = draw(st.floats(0.01, 500.0))
     if feature in ("sign", "gated"):
         term["threshold_raw"] = draw(st.floats(0.5, 500.0))
@@ -246,6 +246,9 @@ def test_channel_terms_with_state_or_gate_are_compiled(feature: str) -> None:
              "out_of_span": "linear-extrapolation"}
     term = {"kind": "channel", "channel": "temp_c", "feature": feature, "form": "scale",
             "coefficient": 0.01, "reference": 25.0, "tau_s": 2.0, "threshold_raw": 0.5}
+    if lookup("channel", feature).needs_spline:  # type: ignore[union-attr]  # of the lag, or of its rate
+        knots = [20.0, 24.0, 31.0] if feature == "lag_spline" else [-0.3, 0.05, 0.3]
+        term.update(knots=knots, pieces=[[0.5, -0.25, 0.125, -0.0625], [-0.3, 0.1, 0.05, -0.01]])
     offset = {"kind": "channel", "channel": "temp_c", "feature": "offset", "form": "bias", "coefficient": 0.1,
               "reference": 25.0}
     cset = CoefficientSet("s", "x", 0.0, model, (offset, term))

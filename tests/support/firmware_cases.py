@@ -74,6 +74,19 @@ def _rate_shape_slope(dv: float) -> float:
     return 1.5 / 12000.0 / float(np.cosh(dv / 12000.0)) ** 2
 
 
+#: Knots of the derivative spline (deg C/s): the stream's temperature changes by up to some
+#: 0.05 C/s, its noise over τ = 2.5 s adds as much.
+DERIVATIVE_KNOTS = [-0.1, -0.05, -0.02, 0.0, 0.02, 0.05, 0.1]
+
+
+def _transient(d: float) -> float:
+    return 40.0 * float(np.tanh(d / 0.04))
+
+
+def _transient_slope(d: float) -> float:
+    return 1000.0 / float(np.cosh(d / 0.04)) ** 2
+
+
 def saturating_spline(knots: list[float]) -> dict:
     """A bias spline of temperature through 60·tanh((T − 25)/10) counts on ``knots``."""
     return {"kind": "channel", "channel": "temp_c", "feature": "spline", "form": "bias", "coefficient": 1.0,
@@ -173,6 +186,17 @@ TERMS = {
         "knots": RATE_KNOTS,
         "pieces": hermite_pieces(RATE_KNOTS, _rate_shape, _rate_shape_slope),
     },
+    "channel-lag-spline": dict(saturating_spline(SPLINE_KNOTS), feature="lag_spline", tau_s=90.0),
+    "channel-derivative-spline": {  # a thermal transient that saturates with the rate of change
+        "kind": "channel",
+        "channel": "temp_c",
+        "feature": "derivative_spline",
+        "form": "scale",
+        "coefficient": 2e-5,
+        "tau_s": 2.5,
+        "knots": DERIVATIVE_KNOTS,
+        "pieces": hermite_pieces(DERIVATIVE_KNOTS, _transient, _transient_slope),
+    },
 }
 
 #: The stateful channel transforms in their other form (TERMS holds one form of each).
@@ -182,6 +206,8 @@ OTHER_FORMS = {
     "channel-direction-scale": dict(TERMS["channel-direction"], form="scale", coefficient=3e-4),
     "channel-spline-scale": dict(TERMS["channel-spline"], form="scale", coefficient=2e-5),
     "channel-rate-spline-scale": dict(TERMS["channel-rate-spline"], form="scale", coefficient=1e-4),
+    "channel-lag-spline-scale": dict(TERMS["channel-lag-spline"], form="scale", coefficient=2e-5),
+    "channel-derivative-spline-bias": dict(TERMS["channel-derivative-spline"], form="bias", coefficient=1.0),
 }
 ALL_TERMS = {**TERMS, **OTHER_FORMS}
 

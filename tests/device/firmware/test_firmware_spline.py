@@ -22,7 +22,7 @@ from support.firmware_build import (
     python_verdict,
     steepest_slope,
 )
-from support.firmware_cases import ALL_TERMS, model_set, stream
+from support.firmware_cases import ALL_TERMS, hermite_pieces, model_set, stream
 
 from canical.device.bank_payload import encode_set
 from canical.device.firmware_eval import FirmwareCorrector
@@ -298,3 +298,83 @@ def test_a_learned_smooth_effect_runs_on_the_device_as_apply(lib, effect):
     bound = sum(shift_bound(t, dv_max, inputs[t["channel"]], cset.v0) for t in splines)
     worst = float(np.max(np.abs(rate - expected)))
     assert worst <= TOLERANCE_DPS + steepest_slope(cset) * bound, worst
+
+
+# ----------------------------------------------------------------------------------------------
+# The smooth form of a lag or of a rate of change: the lag's state, then spline_at
+# ----------------------------------------------------------------------------------------------
+#
+# x = S(y) (lag_spline) or S((v − y)/τ) (derivative_spline). The device's variable differs from
+# canical's by δ: for a lag, v reaches it as float32 (ε·max|v|), y is the lag of those (weights
+# summing to 1: ε·max|v|), and the float pair y is rounded once into spline_at (ε·max|v|), a few
+# ε·R more for the lag's steps (R the spread of v): δ ≤ ε·(3·max|v| + 6R); for a rate of change
+# δ is the derivative's own (test_firmware_accuracy.derivative_shift_bound): ε·(2·max|v| + 8R)/τ
+# plus 2ε·R/τ. S is continuous here (Hermite pieces), so a δ across a knot moves S by at most
+# M₁·δ (M₁ = max Σ j|a_j|·h^(j−1)) whatever segment each side chose; the spline's own steps add
+# 13ε·M as above and the share 2ε·|c|·M (bias) or 5ε·|c|·M·|ΔV| (scale).
+
+TRANSFORM_SPLINES = ("lag_spline", "derivative_spline")
+
+
+def transform_shift_bound(term: dict, values: np.ndarray, dv_max: float) -> float:
+    """The largest float32 error of a lag or derivative spline's share of ΔV (counts), as derived above."""
+    knots = np.asarray(term["knots"])
+    pieces = np.abs(np.asarray(term["pieces"]))
+    h = np.diff(knots)[:, None]
+    m = float(np.max(np.sum(pieces * h ** np.arange(4), axis=1)))
+    m1 = float(np.max(np.sum(pieces[:, 1:] * np.arange(1, 4) * h ** np.arange(3), axis=1)))
+    v_max, spread = float(np.max(np.abs(values))), float(np.ptp(values))
+    if term["feature"] == "lag_spline":
+        delta = EPS32 * (3.0 * v_max + 6.0 * spread)
+    else:
+        delta = EPS32 * (2.0 * v_max + 10.0 * spread) / term["tau_s"]
+    dx = m1 * delta + 13.0 * EPS32 * m
+    c = abs(term["coefficient"])
+    if term["form"] == "bias":
+        return c * (dx + 2.0 * EPS32 * m)
+    return c * dv_max * (dx + 5.0 * EPS32 * m)
+
+
+@st.composite
+def transform_spline_terms(draw) -> dict:
+    """A lag or derivative spline: 2 to 64 knots over (or beyond) the variable's range, a
+    continuous S through a random saturating curve (Hermite pieces), any τ, either form."""
+    feature = draw(st.sampled_from(TRANSFORM_SPLINES))
+    n = draw(st.integers(2, MAX_SPLINE_KNOTS))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    scale = 20.0 if feature == "lag_spline" else 0.05  # °C, or °C/s
+    centre = 25.0 if feature == "lag_spline" else 0.0
+    knots = np.unique(rng.uniform(centre - 1.5 * scale, centre + 1.5 * scale, n))
+    if knots.size < 2:
+        knots = np.array([centre - scale, centre + scale])
+    amp, mid = rng.uniform(-60.0, 60.0), centre + rng.uniform(-0.5, 0.5) * scale
+    width = scale * rng.uniform(0.1, 1.0)
+    pieces = hermite_pieces(knots.tolist(), lambda x: amp * np.tanh((x - mid) / width),
+                     lambda x: amp / width / np.cosh((x - mid) / width) ** 2)
+    form = draw(st.sampled_from(("bias", "scale")))
+    return {"kind": "channel", "feature": feature, "channel": "temp_c", "form": form,
+            "coefficient": draw(st.floats(-1.0, 1.0)) * (1.0 if form == "bias" else 4e-5),
+            "tau_s": draw(st.floats(0.5, 300.0)), "knots": knots.tolist(), "pieces": pieces}
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(term=transform_spline_terms(), seed=st.integers(0, 1000))
+def test_property_a_lag_or_derivative_spline_evaluates_like_canical(lib_for_hypothesis, term, seed):
+    """Any smooth form of a channel's lag or rate of change: the C evaluator (the lag's state, then
+    spline_at) within the derived float32 bound of canical's rates, the same out-of-span flags
+    (except where the shift's own bound straddles a span edge)."""
+    cset = with_term(term)
+    raw, inputs = stream(cset, 4000, seed=seed)
+    expected, expected_oos = Corrector(cset).correct(raw, inputs)
+    rate, oos = FirmwareCorrector(cset, lib=lib_for_hypothesis).correct(raw, inputs)
+    dv = raw - cset.v0
+    bound = transform_shift_bound(term, inputs["temp_c"], float(np.max(np.abs(dv))))
+    parsed = term_from_dict(term)
+    x = parsed.spec.values(parsed, inputs, raw, dv)
+    shift = term["coefficient"] * (x * dv if term["form"] == "scale" else x)
+    lo, hi = cset.span_raw
+    edge = np.minimum(np.abs(raw - shift - lo), np.abs(raw - shift - hi)) <= bound
+    np.testing.assert_array_equal(oos[~edge], expected_oos[~edge])
+    worst = float(np.max(np.abs(rate - expected)))
+    allowed = TOLERANCE_DPS + steepest_slope(cset) * bound
+    assert worst <= allowed, f"largest difference {worst:.3e} deg/s, bound {allowed:.3e}"
