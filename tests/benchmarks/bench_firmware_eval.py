@@ -88,6 +88,8 @@ TERM_OPS: dict[TermKind, int] = {
     term_kinds.CHANNEL_LAG: LAG_GAP + 2, term_kinds.CHANNEL_DERIVATIVE: LAG_GAP + 1,
     term_kinds.CHANNEL_DIRECTION: 8, term_kinds.CHANNEL_GATED: 7, term_kinds.CHANNEL_SPLINE: SPLINE,
     term_kinds.CHANNEL_RATE_SPLINE: SPLINE + 2,  # then (v - ref) and the product
+    term_kinds.CHANNEL_LAG_SPLINE: LAG_GAP + 1 + SPLINE,  # the lag v - gap, then S of it
+    term_kinds.CHANNEL_DERIVATIVE_SPLINE: LAG_GAP + 1 + SPLINE,  # the gap times 1/τ, then S of it
 }  # fmt: skip
 # kinds the C evaluator refuses (c_name None) have no cost there
 _UNCOUNTED = [k for k in term_kinds.ALL if k.c_name is not None and k not in TERM_OPS]
