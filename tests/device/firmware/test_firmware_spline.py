@@ -137,6 +137,19 @@ def channel_values(term: dict, n: int, rng: np.random.Generator) -> np.ndarray:
     return v.astype(np.float32).astype(float)
 
 
+def assert_like_canical(cset, raw: np.ndarray, shift: np.ndarray, bound: float,
+                        got: tuple[np.ndarray, np.ndarray], expected: tuple[np.ndarray, np.ndarray]) -> None:
+    """The C evaluator's rates within the derived float32 ``bound`` of canical's (through the set's
+    steepest slope), the same out-of-span flags except where ``shift ± bound`` straddles a span edge."""
+    (rate, oos), (want, want_oos) = got, expected
+    lo, hi = cset.span_raw
+    edge = np.minimum(np.abs(raw - shift - lo), np.abs(raw - shift - hi)) <= bound
+    np.testing.assert_array_equal(oos[~edge], want_oos[~edge])
+    worst = float(np.max(np.abs(rate - want)))
+    allowed = TOLERANCE_DPS + steepest_slope(cset) * bound
+    assert worst <= allowed, f"largest difference {worst:.3e} deg/s, bound {allowed:.3e}"
+
+
 @settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(term=spline_terms(), seed=st.integers(0, 1000))
 def test_property_any_spline_evaluates_like_canical(lib_for_hypothesis, term, seed):
@@ -158,12 +171,7 @@ def test_property_any_spline_evaluates_like_canical(lib_for_hypothesis, term, se
     bound = shift_bound(term, float(np.max(np.abs(dv))), inputs["temp_c"], cset.v0)
     x = term_x(term, inputs["temp_c"], dv)
     shift = term["coefficient"] * (x * dv if term["form"] == "scale" else x)
-    lo, hi = cset.span_raw
-    edge = np.minimum(np.abs(raw - shift - lo), np.abs(raw - shift - hi)) <= bound
-    np.testing.assert_array_equal(oos[~edge], expected_oos[~edge])
-    worst = float(np.max(np.abs(rate - expected)))
-    allowed = TOLERANCE_DPS + steepest_slope(cset) * bound
-    assert worst <= allowed, f"largest difference {worst:.3e} deg/s, bound {allowed:.3e}"
+    assert_like_canical(cset, raw, shift, bound, (rate, oos), (expected, expected_oos))
 
 
 def test_the_bound_is_not_vacuous_a_wrong_segment_breaks_it(lib):
@@ -375,9 +383,4 @@ def test_property_a_lag_or_derivative_spline_evaluates_like_canical(lib_for_hypo
     parsed = term_from_dict(term)
     x = parsed.spec.values(parsed, inputs, raw, dv)
     shift = term["coefficient"] * (x * dv if term["form"] == "scale" else x)
-    lo, hi = cset.span_raw
-    edge = np.minimum(np.abs(raw - shift - lo), np.abs(raw - shift - hi)) <= bound
-    np.testing.assert_array_equal(oos[~edge], expected_oos[~edge])
-    worst = float(np.max(np.abs(rate - expected)))
-    allowed = TOLERANCE_DPS + steepest_slope(cset) * bound
-    assert worst <= allowed, f"largest difference {worst:.3e} deg/s, bound {allowed:.3e}"
+    assert_like_canical(cset, raw, shift, bound, (rate, oos), (expected, expected_oos))
