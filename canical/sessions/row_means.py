@@ -23,8 +23,9 @@ from canical.sessions.csv_chunks import CsvHead, check_columns, count_lines, rea
 from canical.sessions.csv_file import TIME_COLUMN, CsvTable
 from canical.sessions.session import RowMeans
 
-#: Sessions with more rows than this are read as means (about 400 MB of calibration at most).
-REDUCE_ABOVE_ROWS = 4_000_000
+#: Sessions with more rows than this are read as means (about 300 MB of calibration at most). A
+#: mean of a few samples at 1 kHz is a few milliseconds; plateaus and blocks are seconds long.
+REDUCE_ABOVE_ROWS = 2_000_000
 #: The fewest bytes a session row can take ("0,0,0" and its newline): a file smaller than the
 #: bound times this cannot exceed the bound, and its lines are not counted.
 MIN_ROW_BYTES = 6
