@@ -28,6 +28,7 @@ from support.daemon_fixtures import (
     write_config,
     write_sets,
 )
+from support.systemd_guest import wait_until
 
 from canical.atomic_file import write_text_atomic
 from canical.frames.codec import load_dbc
@@ -293,14 +294,6 @@ def test_faults_counted_and_ignored(vcan_channel: str, tmp_path: Path, db) -> No
     assert page2["StaleFrames"] == 5
 
 
-def _wait_reopened(daemon: DaemonProcess, timeout: float) -> None:
-    """Wait until the daemon logs that it reopened the interface; its back-off may take 2 s."""
-    end = time.monotonic() + timeout
-    while "reopened" not in daemon.log():
-        assert time.monotonic() < end, f"the daemon did not reopen the interface:\n{daemon.log()}"
-        time.sleep(0.05)
-
-
 def test_interface_down_and_up_survived(vcan_channel: str, tmp_path: Path, db) -> None:
     """ip link down/up under a running daemon: it reopens the interface and corrects again."""
     write_sets(tmp_path)
@@ -317,7 +310,8 @@ def test_interface_down_and_up_survived(vcan_channel: str, tmp_path: Path, db) -
         subprocess.run(["ip", "link", "set", vcan_channel, "down"], check=True)
         time.sleep(1.5)
         subprocess.run(["ip", "link", "set", vcan_channel, "up"], check=True)
-        _wait_reopened(daemon, timeout=20)  # frames sent before the reopen are not the daemon's to see
+        # frames sent before the reopen are not the daemon's to see; its back-off may take 2 s
+        wait_until("the daemon to reopen the interface", lambda: "reopened" in daemon.log(), 20, 0.05)
         with _bus(vcan_channel) as tx:
             send_paced(tx, stream.frames[half:], RATE_HZ)
         out = rec.wait_count(rate_id, 400, timeout=20)
