@@ -184,9 +184,13 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         say(f"pushed over SDO in {pushed.timings_s['total']:.3f} s "
             f"({pushed.bytes_written} bytes downloaded in {pushed.timings_s['download']:.3f} s); "
             f"device runs {pushed.status.describe()}")
-        window = FieldWindow(new_tag, o.sample_rate_hz, n_pass, o.field_samples, o.field_pass)
+        rule = NewSetRule.after(rec, new_tag, o.axis, pushed_at_s=time.monotonic())
+        if rule.ambiguous:
+            say(f"  the set before had the same 4-bit tag ({new_tag}): frames count as the new set's "
+                "only once the push has returned")
+        window = FieldWindow(rule, o.sample_rate_hz, n_pass, o.field_samples, o.field_pass)
         live = record(bus, frames, until=window)
-        first = _first_tagged(live, new_tag)
+        first = _first_with_new_set(live, rule)
         latency = float(live.array("received_s")[first] - t_push)
         say(f"first frame corrected on the device with the new set {latency:.3f} s after the push began "
             f"(device sample {window.first_tagged})")
@@ -259,6 +263,40 @@ def _pass_samples(o: BusDemoOptions) -> int:
     return len(t)
 
 
+@dataclass(frozen=True)
+class NewSetRule:
+    """Which recorded frames the device corrected with the new set.
+
+    IMU_RATE names the running sets by a 4-bit tag only, so one new set in 16 has the tag of
+    the sets before it; a factory-fresh device's "no set" tag among them. A frame counts when
+    it carries the new tag and a rate for the axis (not "uncalibrated"); where the set before
+    also corrected the axis under the same tag (``ambiguous``), only frames received once the
+    push had returned count: the device switched on activation, before the push's last step.
+    """
+
+    tag: int
+    axis: str
+    not_before_s: float  # time.monotonic() of receipt; -inf unless ambiguous
+
+    @classmethod
+    def after(cls, before: Recording, tag: int, axis: str, *, pushed_at_s: float) -> NewSetRule:
+        """The rule for a push that returned at ``pushed_at_s``; ``before``: frames recorded before it."""
+        tags = before.array("device_tag")
+        rates = before.array(f"device_rate_{axis}")
+        old = np.flatnonzero(np.isfinite(tags))
+        same = bool(old.size) and tags[old[-1]] == tag and bool(np.isfinite(rates[old[-1]]))
+        return cls(tag, axis, pushed_at_s if same else -math.inf)
+
+    @property
+    def ambiguous(self) -> bool:
+        return math.isfinite(self.not_before_s)
+
+    def carries(self, cols: dict[str, list[float]], i: int) -> bool:
+        """Whether recorded sample ``i`` was corrected with the new set."""
+        return (cols["device_tag"][i] == self.tag and math.isfinite(cols[f"device_rate_{self.axis}"][i])
+                and cols["received_s"][i] >= self.not_before_s)
+
+
 class FieldWindow:
     """Which recorded samples the live comparison uses: by the device's sample index, not arrival.
 
@@ -267,8 +305,10 @@ class FieldWindow:
     Called with the recording so far, it says when the window is complete.
     """
 
-    def __init__(self, tag: int, fs_hz: float, pass_samples: int, n: int, pass_index: int | None) -> None:
-        self.tag, self.fs, self.pass_samples, self.n = tag, fs_hz, pass_samples, n
+    def __init__(
+        self, rule: NewSetRule, fs_hz: float, pass_samples: int, n: int, pass_index: int | None
+    ) -> None:
+        self.rule, self.fs, self.pass_samples, self.n = rule, fs_hz, pass_samples, n
         self.wanted_pass = pass_index
         self.start: int | None = None  # first sample index of the window
         self.first_tagged: int | None = None  # sample index of the first frame with the new set
@@ -285,7 +325,7 @@ class FieldWindow:
             k = self._index(cols["time_s"][i])
             if k is None:
                 continue
-            if self.first_tagged is None and cols["device_tag"][i] == self.tag:
+            if self.first_tagged is None and self.rule.carries(cols, i):
                 self.first_tagged = k
                 if self.wanted_pass is None:
                     self.start = k
@@ -320,11 +360,11 @@ class FieldWindow:
                 "new set ran, a slow machine; the figures below differ from the README's)")
 
 
-def _first_tagged(rec: Recording, tag: int) -> int:
-    hits = np.flatnonzero(rec.array("device_tag") == tag)
-    if not hits.size:
+def _first_with_new_set(rec: Recording, rule: NewSetRule) -> int:
+    hit = next((i for i in range(len(rec)) if rule.carries(rec.columns, i)), None)
+    if hit is None:
         raise CanicalError("the device never corrected with the new set")
-    return int(hits[0])
+    return hit
 
 
 def _field_session(rec: Recording, keep: np.ndarray, axis: str, sensor: str):
