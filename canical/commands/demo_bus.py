@@ -190,8 +190,7 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
                 "only once the push has returned")
         window = FieldWindow(rule, o.sample_rate_hz, n_pass, o.field_samples, o.field_pass)
         live = record(bus, frames, until=window)
-        first = _first_with_new_set(live, rule)
-        latency = float(live.array("received_s")[first] - t_push)
+        latency = float(live.array("received_s")[window.first_row()] - t_push)
         say(f"first frame corrected on the device with the new set {latency:.3f} s after the push began "
             f"(device sample {window.first_tagged})")
 
@@ -312,6 +311,7 @@ class FieldWindow:
         self.wanted_pass = pass_index
         self.start: int | None = None  # first sample index of the window
         self.first_tagged: int | None = None  # sample index of the first frame with the new set
+        self._first_row: int | None = None  # and its row in the recording
         self._seen = 0
 
     def _index(self, t: float) -> int | None:
@@ -326,7 +326,7 @@ class FieldWindow:
             if k is None:
                 continue
             if self.first_tagged is None and self.rule.carries(cols, i):
-                self.first_tagged = k
+                self.first_tagged, self._first_row = k, i
                 if self.wanted_pass is None:
                     self.start = k
                 else:  # the wanted pass, or the first to begin after the set was running
@@ -335,6 +335,12 @@ class FieldWindow:
             if self.start is not None and k >= self.start + self.n:
                 return True
         return False
+
+    def first_row(self) -> int:
+        """The recording's row of the first frame corrected with the new set."""
+        if self._first_row is None:
+            raise CanicalError("the device never corrected with the new set")
+        return self._first_row
 
     def _begun(self) -> int:
         """The window's first sample; a recording that stopped before it began compares nothing."""
@@ -358,13 +364,6 @@ class FieldWindow:
             return f"compared: {where} (table pass {used}, chosen by sample index: the same every run)"
         return (f"compared: {where} (table pass {used}: pass {self.wanted_pass} had begun before the "
                 "new set ran, a slow machine; the figures below differ from the README's)")
-
-
-def _first_with_new_set(rec: Recording, rule: NewSetRule) -> int:
-    hit = next((i for i in range(len(rec)) if rule.carries(rec.columns, i)), None)
-    if hit is None:
-        raise CanicalError("the device never corrected with the new set")
-    return hit
 
 
 def _field_session(rec: Recording, keep: np.ndarray, axis: str, sensor: str):
