@@ -26,8 +26,10 @@ if [ "${#need[@]}" -gt 0 ]; then
   fi
 fi
 
-python3 -m pip install -q --disable-pip-version-check -e '.[test,docs]'
+# --upgrade-strategy eager: the newest versions pyproject.toml allows, as a fresh machine gets them, not
+# whatever an older run left installed (a machine that kept an old pytest passed where a new one failed)
+python3 -m pip install -q --disable-pip-version-check --upgrade --upgrade-strategy eager -e '.[test,docs]'
 ruff check canical tests docs
 python3 -m mypy
 python3 -m mkdocs build --strict --quiet
-python3 -m pytest -q -p no:cacheprovider "$@"
+python3 -m pytest -q -p no:cacheprovider --durations=15 "$@"
