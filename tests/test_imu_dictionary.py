@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from canical.errors import CanicalError
-from canical.imu_dictionary import AXES, default_value, imu_objects, member, object_dictionary
+from canical.frames.imu_dictionary import AXES, default_value, imu_objects, member, object_dictionary
 
 
 def test_record_members_and_defaults() -> None:

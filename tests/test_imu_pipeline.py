@@ -8,8 +8,8 @@ recovered, and on plateaus where all three axes turn at once the IMU set's error
 import numpy as np
 import pytest
 
-from canical.imu_pipeline import calibrate_imu
-from canical.pipeline import CalibrateOptions
+from canical.calibration.imu_pipeline import calibrate_imu
+from canical.calibration.pipeline import CalibrateOptions
 from canical.sim.triad import axis_session, multi_axis_rates, multi_axis_session, random_triad
 
 SEEDS = range(5)

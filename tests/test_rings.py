@@ -18,20 +18,17 @@ PACKAGE = Path(__file__).resolve().parents[1] / "canical"
 
 #: Bottom to top. A name is a package (``models``) or a module at the package root.
 RINGS: tuple[tuple[str, ...], ...] = (
-    ("errors", "progress", "bus_outage", "robust_stats"),
-    ("yaml_text", "output_plan", "imu_dictionary"),
-    ("atomic_file",),
+    ("errors", "progress", "bus_outage"),
+    ("files",),
     ("models", "frames"),
     ("calibrate", "sessions", "tracking"),
     ("sets",),
     ("closed_loop", "sim"),
-    ("calibration_report",),
-    ("pipeline", "report"),
-    ("evaluation", "imu_pipeline"),
+    ("calibration",),
+    ("report",),
     ("device",),
     ("bus",),
     ("commands",),
-    ("trials",),
     ("__main__",),
 )
 RANK = {name: level for level, names in enumerate(RINGS) for name in names}

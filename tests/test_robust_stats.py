@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canical import robust_stats
+from canical.models import robust_stats
 
 
 def numpy_median_step(t: np.ndarray, default: float) -> float:

@@ -19,12 +19,12 @@ from typing import Any
 from cantools.database.can import Database, Message
 
 from canical.errors import CanicalError
+from canical.files.yaml_text import parse_yaml
 from canical.frames.codec import load_dbc
 from canical.frames.dbc_files import DbcSet, dbc_label, require_sound
 from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
 from canical.sessions.canlog_format import HELD_AXIS_PREFIX
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
-from canical.yaml_text import parse_yaml
 
 AXES = ("x", "y", "z")
 #: Signals of the corrected frame, by role; per-axis names end in the axis letter (RateX...).

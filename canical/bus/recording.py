@@ -21,8 +21,8 @@ import numpy as np
 
 from canical.bus.socketcan import enlarge_receive_buffer
 from canical.errors import CanicalError
+from canical.frames.imu_dictionary import AXES
 from canical.frames.imu_frames import ImuFrames
-from canical.imu_dictionary import AXES
 from canical.sessions.session import Session
 
 COLUMNS = ("received_s", "time_s", "temp_c", "supply_v", "ref_dps", "table_axis", "settled", "counter",

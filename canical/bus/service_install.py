@@ -22,8 +22,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from canical.atomic_file import atomic_writer
 from canical.errors import CanicalError
+from canical.files.atomic_file import atomic_writer
 
 UNITS = ("canical@.service", "canical-can@.service", "canical-imu-emulator@.service")
 EXAMPLE_CONFIG = "canical-can0.yaml"

@@ -19,7 +19,7 @@ The estimation, and why:
    ``cov(C_ik, C_jl) = Σ_ij [(ΩᵀΩ)⁻¹]_kl``, carried to ``M`` by ``dM = −M dC M``, which gives
    ``var(M_ab) = (m_aᵀ Σ m_a)(n_bᵀ (ΩᵀΩ)⁻¹ n_b)`` with ``m_a`` row a and ``n_b`` column b of M.
 
-4. **Then a joint refit** (:mod:`canical.imu_pipeline`): step 1 is consistent (a channel's own
+4. **Then a joint refit** (:mod:`canical.calibration.imu_pipeline`): step 1 is consistent (a channel's own
    session carries no coupling), but the other sessions read each axis's model only at a few
    deg/s, where its own session has few plateaus; refitting each model with those plateaus
    (targets from C) and C through the new models lowers the error there.

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from canical.robust_stats import median_step, time_steps
+from canical.models.robust_stats import median_step, time_steps
 
 GAP_FACTOR = 1.5  # a step longer than this many sample intervals is a gap (rows lost)
 MIN_RECORD = 6  # samples: three independent clusters of two

@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.robust_stats import mad_sigma, median_step
+from canical.models.robust_stats import mad_sigma, median_step
 
 MIN_WINDOW_S = 0.5  # shortest window over which steadiness is judged
 WINDOW_UPDATES = 8  # ...and at least this many reference updates
@@ -135,7 +135,7 @@ def reference_update_s(time_s: np.ndarray, ref_dps: np.ndarray, row_step: float 
     A reference sent at 10 Hz and joined to 100 Hz sensor rows repeats each value ten times;
     its changes are then 0.1 s apart on ramps (and wherever it has noise). Spacings longer
     than a second are plateaus of a noiseless reference, not holding. ``row_step``: the rows'
-    :func:`~canical.robust_stats.median_step` (0.0 when time never advances) where the caller has
+    :func:`~canical.models.robust_stats.median_step` (0.0 when time never advances) where the caller has
     it (a long session's takes a while to make).
     """
     t = np.asarray(time_s, dtype=float)

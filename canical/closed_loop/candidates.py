@@ -51,7 +51,7 @@ import numpy as np
 from scipy.interpolate import BSpline
 
 from canical.closed_loop.blocks import SLOPE_TAU_S, Blocks
-from canical.robust_stats import mad_sigma
+from canical.models.robust_stats import mad_sigma
 from canical.sets.term_kinds import (
     CHANNEL,
     CHANNEL_DERIVATIVE,

@@ -32,7 +32,7 @@ import numpy as np
 
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
-from canical.robust_stats import mad_sigma
+from canical.models.robust_stats import mad_sigma
 from canical.sets.term_kinds import CHANNEL_DERIVATIVE, CHANNEL_LAG, ChannelTransformSpline
 from canical.sets.terms import Term
 

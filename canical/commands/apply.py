@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
-from canical.output_plan import output_plan
+from canical.files.output_plan import output_plan
 from canical.progress import Progress
 from canical.sessions.canlog_format import CANLOG_FORMATS
 
@@ -127,7 +127,7 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
 
     import numpy as np
 
-    from canical.atomic_file import atomic_writer
+    from canical.files.atomic_file import atomic_writer
     from canical.sessions.csv_chunks import read_chunks
     from canical.sessions.fixed_cells import append_cells
 
@@ -223,7 +223,7 @@ def print_applied(args: argparse.Namespace, corrector: Corrector, n_rows: int, n
 def write_rows(path: str, table, rate: np.ndarray, oos: np.ndarray,
                extra: dict[str, np.ndarray] | None = None) -> None:
     """Echo the input rows with the new columns, atomically, in chunks with progress."""
-    from canical.atomic_file import atomic_writer
+    from canical.files.atomic_file import atomic_writer
 
     extra = extra or {}
     progress = Progress("apply", len(table.rows))
@@ -298,8 +298,8 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
     """
     import numpy as np
 
-    from canical.atomic_file import atomic_writer
     from canical.commands.canlog_args import canlog_source
+    from canical.files.atomic_file import atomic_writer
     from canical.sessions.canlog import TIME_INPUT, read_canlog
 
     cset = corrector.cset
@@ -364,7 +364,7 @@ def _apply_canlog_stream(args: argparse.Namespace, corrector: Corrector, source,
     the whole log at once gives (:func:`run_canlog` without ``--track-bias``)."""
     import numpy as np
 
-    from canical.atomic_file import atomic_writer
+    from canical.files.atomic_file import atomic_writer
     from canical.sessions.canlog import TIME_INPUT, stream_canlog
 
     cset = corrector.cset

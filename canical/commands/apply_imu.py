@@ -68,7 +68,7 @@ def apply_imu_set(args: argparse.Namespace) -> int:
 def write_rows(path: str, table, rates, flags, bias=None) -> None:
     """Echo the input rows with the six new columns (nine with the tracked bias), atomically, in
     chunks with progress."""
-    from canical.atomic_file import atomic_writer
+    from canical.files.atomic_file import atomic_writer
 
     progress = Progress("apply", len(table.rows))
     with atomic_writer(path) as out:
@@ -96,9 +96,9 @@ def apply_imu_canlog(args: argparse.Namespace, corrector) -> int:
     """
     import numpy as np
 
-    from canical.atomic_file import atomic_writer
     from canical.commands.apply import use_daemon_tracking
     from canical.commands.canlog_args import canlog_source
+    from canical.files.atomic_file import atomic_writer
     from canical.sessions.canlog import TIME_INPUT
 
     imu = corrector.imu

@@ -9,12 +9,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from canical.calibration_report import CalibrationReport
+from canical.calibration.calibration_report import CalibrationReport
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
+from canical.files.output_plan import output_plan
 from canical.models import MODEL_KINDS
-from canical.output_plan import output_plan
 from canical.progress import Progress
 from canical.sessions.canlog_format import CANLOG_FORMATS
 
@@ -184,8 +184,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def calibrate_session(args: argparse.Namespace) -> int:
-    from canical.atomic_file import write_text_atomic
-    from canical.pipeline import calibrate
+    from canical.calibration.pipeline import calibrate
+    from canical.files.atomic_file import write_text_atomic
     from canical.sessions.canlog_format import is_canlog
     from canical.sessions.csv_file import read_session
     from canical.sessions.session import RAW_UNITS
@@ -243,7 +243,7 @@ def calibrate_session(args: argparse.Namespace) -> int:
 
 def calibrate_options(args: argparse.Namespace):
     """The fitting options the command line chose (single-axis and three-axis flows alike)."""
-    from canical.pipeline import CalibrateOptions
+    from canical.calibration.pipeline import CalibrateOptions
 
     return CalibrateOptions(
         model=args.model,
@@ -267,7 +267,7 @@ def report_json(report: CalibrationReport) -> str:
 
 def write_report_dir(directory: Path, report: CalibrationReport, loop: LoopResult | None) -> None:
     """report.json, report.md and the plots, side by side."""
-    from canical.atomic_file import make_dirs, write_text_atomic
+    from canical.files.atomic_file import make_dirs, write_text_atomic
     from canical.report.allan_plot import write_allan_plot
     from canical.report.markdown import render
     from canical.report.plots import write_plots

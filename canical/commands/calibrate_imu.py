@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from canical.errors import CanicalError
-from canical.output_plan import output_plan
+from canical.files.output_plan import output_plan
 from canical.progress import Progress
 
 AXES = ("x", "y", "z")
@@ -50,9 +50,9 @@ def run_imu(args: argparse.Namespace) -> int:
 
 
 def calibrate_triad(args: argparse.Namespace) -> int:
-    from canical.atomic_file import write_text_atomic
+    from canical.calibration.imu_pipeline import calibrate_imu
     from canical.commands.calibrate import calibrate_options
-    from canical.imu_pipeline import calibrate_imu
+    from canical.files.atomic_file import write_text_atomic
     from canical.sessions.canlog_format import is_canlog
     from canical.sessions.triad_session import read_triad_session
     from canical.sets import imu_set
@@ -98,7 +98,7 @@ def read_triad_log_args(args: argparse.Namespace, path: str):
 
 
 def write_report_dir(directory: Path, report: dict[str, Any]) -> None:
-    from canical.atomic_file import make_dirs, write_text_atomic
+    from canical.files.atomic_file import make_dirs, write_text_atomic
     from canical.report.imu_report import FIGURE, render, write_coupling_plot
 
     make_dirs(directory)

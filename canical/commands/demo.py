@@ -20,9 +20,9 @@ import argparse
 from dataclasses import replace
 from pathlib import Path
 
-from canical.atomic_file import make_dirs, write_text_atomic
 from canical.commands import COMMANDS
-from canical.output_plan import output_plan
+from canical.files.atomic_file import make_dirs, write_text_atomic
+from canical.files.output_plan import output_plan
 
 # The simulator and the fitting modules (numpy, scipy, matplotlib) are imported where they are
 # used, so that `--help` and argument errors answer at once.
@@ -46,9 +46,9 @@ def demo(args: argparse.Namespace) -> int:
     """All parts; the files appear in ``--out`` together when the demo has succeeded."""
     import numpy as np
 
+    from canical.calibration.evaluation import compare_models, held_out_set_errors, validation_record
+    from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.commands.calibrate import report_json
-    from canical.evaluation import compare_models, held_out_set_errors, validation_record
-    from canical.pipeline import CalibrateOptions, calibrate
     from canical.sessions.csv_file import format_session
     from canical.sets import coefficient_file
     from canical.sim.sessions import between_rates_session, constant_session, paper_session
@@ -113,9 +113,9 @@ def triad_demo(out: Path, seed: int) -> Path:
 
     import numpy as np
 
+    from canical.calibration.imu_pipeline import calibrate_imu
+    from canical.calibration.pipeline import CalibrateOptions
     from canical.commands.calibrate_imu import write_report_dir
-    from canical.imu_pipeline import calibrate_imu
-    from canical.pipeline import CalibrateOptions
     from canical.sessions.triad_session import format_triad_session
     from canical.sets import imu_set
     from canical.sim.triad import axis_session, multi_axis_rates, multi_axis_session, random_triad
@@ -149,8 +149,8 @@ def triad_demo(out: Path, seed: int) -> Path:
 
 def closed_loop_demo(out: Path, seed: int) -> Path:
     """Part 2: an undeclared effect, found and corrected; returns the coefficient file written."""
+    from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.commands.calibrate import write_report_dir
-    from canical.pipeline import CalibrateOptions, calibrate
     from canical.sessions.csv_file import format_session
     from canical.sets import coefficient_file
     from canical.sim.scenarios import SCENARIOS

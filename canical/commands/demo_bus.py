@@ -34,16 +34,16 @@ from pathlib import Path
 
 import numpy as np
 
-from canical.atomic_file import make_dirs, write_text_atomic
 from canical.bus.recording import Recording, open_recorder_bus, record
 from canical.calibrate.plateaus import span_means
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.device.can_network import open_network, sdo_client_filters, sdo_server_filters
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.device.sdo_download import ImuClient, PushResult, push_sets
 from canical.errors import CanicalError
+from canical.files.atomic_file import make_dirs, write_text_atomic
+from canical.frames.imu_dictionary import AXES, sensor_id_for_serial
 from canical.frames.imu_frames import ImuFrames, set_tag
-from canical.imu_dictionary import AXES, sensor_id_for_serial
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sessions.csv_file import format_session, read_table
 from canical.sets import coefficient_file
 from canical.sets.coefficient_file import set_crc

@@ -27,8 +27,8 @@ from canical.device.can_network import (
     sdo_server_filters,
 )
 from canical.errors import CanicalError
-from canical.imu_dictionary import AXES
-from canical.output_plan import check_dir, check_file
+from canical.files.output_plan import check_dir, check_file
+from canical.frames.imu_dictionary import AXES
 
 if TYPE_CHECKING:
     from canical.sim.gyro import Effect

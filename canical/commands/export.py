@@ -64,7 +64,7 @@ def _rated_range(text: str) -> float:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical.output_plan import output_plan
+    from canical.files.output_plan import output_plan
 
     with output_plan(args.output):
         return export_dcf(args)
@@ -75,12 +75,12 @@ def export_dcf(args: argparse.Namespace) -> int:
 
     from canopen.objectdictionary import ODVariable
 
-    from canical.atomic_file import write_text_atomic
     from canical.commands.push import load_imu_set, load_sets
     from canical.device.bank_payload import encode_coupling
     from canical.device.dcf_export import bank_values, dcf_text
     from canical.errors import CanicalError
-    from canical.imu_dictionary import (
+    from canical.files.atomic_file import write_text_atomic
+    from canical.frames.imu_dictionary import (
         default_value,
         eds_path,
         imu_objects,

@@ -38,7 +38,7 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from canical.output_plan import output_plan
+    from canical.files.output_plan import output_plan
 
     with output_plan(args.plot, args.json):
         return characterise(args)
@@ -71,7 +71,7 @@ def characterise(args: argparse.Namespace) -> int:
 
         write_allan_plot(analysis, args.plot, f"Allan deviation, {args.record}")
     if args.json:
-        from canical.atomic_file import write_text_atomic
+        from canical.files.atomic_file import write_text_atomic
 
         write_text_atomic(args.json, text)
     print("\n".join(describe(analysis)))

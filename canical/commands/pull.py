@@ -16,8 +16,8 @@ from canical.commands import COMMANDS
 from canical.commands.push import add_node_arguments
 from canical.device.can_network import bus_options, network_on, quiet_canopen_logging, sdo_client_filters
 from canical.errors import CanicalError
-from canical.imu_dictionary import AXES
-from canical.output_plan import output_plan
+from canical.files.output_plan import output_plan
+from canical.frames.imu_dictionary import AXES
 
 
 def register(sub) -> None:

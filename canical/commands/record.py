@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
 from canical.errors import CanicalError
-from canical.output_plan import cannot_write, output_plan
+from canical.files.output_plan import cannot_write, output_plan
 from canical.sessions.canlog_format import CANLOG_FORMATS, CANLOG_SUFFIXES, log_format, require_log_support
 
 if TYPE_CHECKING:

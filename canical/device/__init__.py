@@ -5,7 +5,7 @@ device's banks A/B per axis, :mod:`.sdo_download` pushes and pulls sets over SDO
 :mod:`.can_network` opens the CANopen network, :mod:`.emulated_imu` is the emulated node
 (streaming simulated frames, evaluating with the C firmware through :mod:`.firmware_eval`),
 :mod:`.dcf_export` writes sets as a DCF. The object dictionary itself is the ground floor's
-:mod:`canical.imu_dictionary`, because sets and frames need its names too.
+:mod:`canical.frames.imu_dictionary`, because sets and frames need its names too.
 """
 
 # The package's public face: the submodules (and names) other rings and the tests import;

@@ -44,10 +44,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from canical.atomic_file import write_text_atomic
 from canical.device.bank_payload import decode_coupling, decode_set, join_imu_set
 from canical.errors import CanicalError
-from canical.imu_dictionary import (
+from canical.files.atomic_file import write_text_atomic
+from canical.frames.imu_dictionary import (
     ABORT_DEVICE_STATE,
     ABORT_REFUSED,
     ABORT_TOO_LONG,

@@ -19,7 +19,7 @@ from __future__ import annotations
 import re
 
 from canical.device.bank_payload import CouplingPayload, encode_set
-from canical.imu_dictionary import BANKS, ImuObjects, pack_active
+from canical.frames.imu_dictionary import BANKS, ImuObjects, pack_active
 from canical.sets.coefficients import CoefficientSet
 
 _SECTION = re.compile(r"^\[([^\]]+)\]\s*$")

@@ -3,7 +3,7 @@
 It is what a real sensor would be to the rest of canical, on any python-can
 interface: it transmits the raw TPDOs (IMU_RAW, IMU_AUX; TABLE_REF too when it
 sits on a simulated rate table) from :mod:`canical.sim.imu_stream`, answers SDO
-on its object dictionary (:mod:`canical.imu_dictionary`), keeps its
+on its object dictionary (:mod:`canical.frames.imu_dictionary`), keeps its
 coefficient banks by the rules of :mod:`canical.device.coefficient_banks` in a state
 file so a restart (a power cycle) keeps what was stored, and on request
 (object "Correction mode" = 1) corrects its own raw samples with its active
@@ -42,8 +42,7 @@ from canopen.sdo import SdoAbortedError
 from canical.bus_outage import OUTAGE_LOG_EVERY_S, REOPEN_BACKOFF_S, Outage
 from canical.device.coefficient_banks import BankRefusal, BankStore
 from canical.errors import CanicalError
-from canical.frames.imu_frames import CHANNELS, ImuFrames, set_tag
-from canical.imu_dictionary import (
+from canical.frames.imu_dictionary import (
     ABORT_VALUE_RANGE,
     AXES,
     RESTORE_SIGNATURE,
@@ -52,6 +51,7 @@ from canical.imu_dictionary import (
     object_dictionary,
     unpack_active,
 )
+from canical.frames.imu_frames import CHANNELS, ImuFrames, set_tag
 from canical.sets.admission import DeviceLimits
 from canical.sets.corrector import Corrector
 

@@ -52,7 +52,7 @@ from canical.device.bank_payload import (
 )
 from canical.device.can_network import DEFAULT_SDO_TIMEOUT_S
 from canical.errors import CanicalError
-from canical.imu_dictionary import (
+from canical.frames.imu_dictionary import (
     ABORT_DEVICE_STATE,
     ABORT_REFUSED,
     ABORT_TOO_LONG,

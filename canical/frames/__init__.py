@@ -13,5 +13,6 @@ __all__ = [
     "compiler",
     "dbc_files",
     "frame_match",
+    "imu_dictionary",
     "imu_frames",
 ]

@@ -25,7 +25,7 @@ import cantools
 from cantools.database.can import Database
 
 from canical.errors import CanicalError
-from canical.imu_dictionary import AXES, imu_objects
+from canical.frames.imu_dictionary import AXES, imu_objects
 
 #: IMU messages in TPDO order (TPDO1, TPDO2, TPDO3).
 TPDO_MESSAGES = ("IMU_RAW", "IMU_AUX", "IMU_RATE")

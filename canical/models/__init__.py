@@ -22,6 +22,7 @@ __all__ = [
     "RateModel",
     "forward_poly",
     "piecewise",
+    "robust_stats",
     "segmented_inverse",
     "segmented_linear",
 ]

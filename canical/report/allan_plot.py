@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canical.atomic_file import write_bytes_atomic
+from canical.files.atomic_file import write_bytes_atomic
 
 SQRT_HOUR = 60.0
 

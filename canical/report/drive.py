@@ -17,7 +17,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canical.atomic_file import make_dirs, write_bytes_atomic, write_text_atomic
+from canical.files.atomic_file import make_dirs, write_bytes_atomic, write_text_atomic
 from canical.tracking.explain import OFFSETS, chosen, explain
 from canical.tracking.replay import Replay
 

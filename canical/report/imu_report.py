@@ -1,7 +1,7 @@
 """The report of a triad calibration: the coupling as a table and a heatmap, the errors per axis.
 
 Works on the report's plain content (``report.json``, built by
-:meth:`canical.imu_pipeline.ImuCalibration.report_dict`): the markdown page and one figure,
+:meth:`canical.calibration.imu_pipeline.ImuCalibration.report_dict`): the markdown page and one figure,
 ``coupling.png``: left, the coupling matrix as an annotated heatmap (each off-diagonal term in %
 and mrad, ± its standard error); right, per axis, the held-out plateau error before and after
 the coupling, as bars (single-axis sessions pooled, and the multi-axis motion when there is one).
@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canical.atomic_file import write_bytes_atomic
+from canical.files.atomic_file import write_bytes_atomic
 
 AXES = ("x", "y", "z")
 FIGURE = "coupling.png"

@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from canical.calibration_report import CalibrationReport
+    from canical.calibration.calibration_report import CalibrationReport
     from canical.closed_loop.findings import Confound
     from canical.closed_loop.unexplained import Unexplained
 

@@ -25,12 +25,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from canical.atomic_file import make_dirs, write_bytes_atomic
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import DIRECTION_NAME, SLOPE_NAME, WARMUP_NAME
 from canical.closed_loop.findings import Confound, Effect
 from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
+from canical.files.atomic_file import make_dirs, write_bytes_atomic
 from canical.sets.term_kinds import CHANNEL_OFFSET, CHANNEL_RATE_SPLINE, TIME
 from canical.sets.terms import term_from_dict
 

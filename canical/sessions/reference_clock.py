@@ -33,7 +33,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.robust_stats import mad_sigma
+from canical.models.robust_stats import mad_sigma
 
 GRID_S = 0.05  # common grid of the coarse search
 SMOOTH_S = 0.25  # each grid point is the mean over this window

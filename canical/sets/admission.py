@@ -5,7 +5,7 @@ Both ``canical push`` (before it writes anything) and the device (when asked to
 activate a bank) refuse a set when:
 
 * its ``sensor.id`` is not this device's serial number as decimal text
-  (:func:`canical.imu_dictionary.sensor_id_for_serial`): a calibration of
+  (:func:`canical.frames.imu_dictionary.sensor_id_for_serial`): a calibration of
   another sensor;
 * its axis is not the axis of the bank it sits in;
 * its span does not cover the sensor's rated range: the rates at the two edges
@@ -31,7 +31,7 @@ from itertools import pairwise
 
 import numpy as np
 
-from canical.imu_dictionary import sensor_id_for_serial
+from canical.frames.imu_dictionary import sensor_id_for_serial
 from canical.sets.coefficient_file import canonical_bytes
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.term_kinds import lookup

@@ -18,8 +18,9 @@ from typing import Any
 
 import yaml
 
-from canical.atomic_file import write_text_atomic
 from canical.errors import CanicalError
+from canical.files.atomic_file import write_text_atomic
+from canical.files.yaml_text import parse_yaml
 from canical.models import MODEL_KINDS
 from canical.sets.coefficients import (
     DEFAULT_RAW_UNITS,
@@ -30,7 +31,6 @@ from canical.sets.coefficients import (
 )
 from canical.sets.finite_outputs import check_finite_outputs
 from canical.sets.terms import term_from_dict
-from canical.yaml_text import parse_yaml
 
 
 def canonical_bytes(content: dict[str, Any]) -> bytes:

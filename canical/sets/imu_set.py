@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from canical.atomic_file import write_text_atomic
 from canical.errors import CanicalError
+from canical.files.atomic_file import write_text_atomic
+from canical.files.yaml_text import parse_yaml
 from canical.sets import coefficient_file
 from canical.sets.coefficients import SCHEMA_VERSION, CoefficientSet, finite
-from canical.yaml_text import parse_yaml
 
 IMU_SET_KIND = "imu-set"
 AXES = ("x", "y", "z")

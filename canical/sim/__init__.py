@@ -1,7 +1,7 @@
 """A virtual rate table and MEMS gyro, producing sessions in canical's CSV format.
 
 Imports only :mod:`canical.sets` (effects are written as terms), :mod:`canical.sessions` and
-the ground floor; the grid trials that run calibration on it are :mod:`canical.trials`.
+the ground floor; the grid trials that run calibration on it are :mod:`support.trials`.
 
 * :mod:`canical.sim.rate_table` — table motion: plateaus with finite acceleration between them;
 * :mod:`canical.sim.table_recording` — the table as real equipment records it: acceleration- and

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from canical.imu_dictionary import AXES
+from canical.frames.imu_dictionary import AXES
 from canical.sim.gyro import GyroModel
 from canical.sim.paired_noise import plateau_paired_noise
 from canical.sim.rate_table import constant_profile, step_profile

@@ -4,7 +4,7 @@ Why keyed by the set's id: what was learned is a correction on top of one set's 
 another set (a new calibration, another sensor) it means nothing and must not be used. Why a
 CRC: a file that was damaged (a disk fault, a hand edit) must be refused, not half-used. A
 missing, damaged or foreign file is never an error that stops the daemon: the tracker starts
-afresh and the reason is one line for the log. Writes go through :mod:`canical.atomic_file`,
+afresh and the reason is one line for the log. Writes go through :mod:`canical.files.atomic_file`,
 so a process killed mid-write leaves the old file or the new, never a mix.
 """
 
@@ -17,7 +17,7 @@ import zlib
 from dataclasses import dataclass
 from typing import Any
 
-from canical.atomic_file import write_text_atomic
+from canical.files.atomic_file import write_text_atomic
 from canical.tracking.estimate import AxisBias
 
 FORMAT = "canical-bias-state"

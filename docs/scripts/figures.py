@@ -39,8 +39,8 @@ def png(fig) -> bytes:
 def models_figure() -> bytes:
     """The paper's three models fitted on one session, judged on a second at rates between."""
     from canical.calibrate.cross_validation import prediction_errors
-    from canical.evaluation import PAPER_MODELS, held_out_points
-    from canical.pipeline import fit_base
+    from canical.calibration.evaluation import PAPER_MODELS, held_out_points
+    from canical.calibration.pipeline import fit_base
     from canical.sim.sessions import between_rates_session, paper_session
 
     train, test = paper_session(seed=0, dwell_s=3.0), between_rates_session(seed=1, dwell_s=3.0)
@@ -77,7 +77,7 @@ def models_figure() -> bytes:
 def segment_points_figure() -> bytes:
     """The paper's section IV: a global quadratic's residual, its prominent extrema, the segment points."""
     from canical.calibrate.segment_points import PROMINENCE_SIGMA, global_quadratic_residual, rate_noise
-    from canical.pipeline import CalibrateOptions, fit_base
+    from canical.calibration.pipeline import CalibrateOptions, fit_base
     from canical.sim.sessions import paper_session
 
     base = fit_base(
@@ -119,7 +119,7 @@ def segment_points_figure() -> bytes:
 
 def continuity_figure() -> bytes:
     """Free joins (the paper's) jump at a segment point; C0 joins meet, C1 joins also share slopes."""
-    from canical.pipeline import CalibrateOptions, fit_base
+    from canical.calibration.pipeline import CalibrateOptions, fit_base
     from canical.sim.sessions import paper_session
 
     session = paper_session(seed=0, dwell_s=3.0)
@@ -157,7 +157,7 @@ def continuity_figure() -> bytes:
 
 def closed_loop_figures() -> dict[str, bytes]:
     """The report's own plots for the demo's sensor with an undeclared temperature effect."""
-    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.report.plots import write_plots
     from canical.sim.scenarios import SCENARIOS
 

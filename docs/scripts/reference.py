@@ -202,7 +202,7 @@ def _od_row(index: str, sub: str, var) -> str:
 def object_dictionary_page(node_id: int = 0x10) -> str:
     import canopen
 
-    from canical.imu_dictionary import eds_path
+    from canical.frames.imu_dictionary import eds_path
 
     od = canopen.import_od(str(eds_path()), node_id)
     lines = [

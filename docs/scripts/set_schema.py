@@ -131,7 +131,7 @@ def example_text() -> str:
     """A real set, calibrated here from a simulated session (a fixed creation time: the page is stable)."""
     from dataclasses import replace
 
-    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.sets import coefficient_file
     from canical.sim.sessions import paper_session
 

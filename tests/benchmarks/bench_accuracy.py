@@ -11,8 +11,8 @@ import argparse
 
 import numpy as np
 
-from canical.evaluation import compare_models
-from canical.pipeline import CalibrateOptions
+from canical.calibration.evaluation import compare_models
+from canical.calibration.pipeline import CalibrateOptions
 from canical.sim.sessions import between_rates_session, paper_session
 
 VARIANTS = (

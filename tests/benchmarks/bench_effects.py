@@ -24,7 +24,7 @@ import argparse
 import statistics
 import time
 
-from canical.evaluation import EffectScore, score_scenario
+from canical.calibration.evaluation import EffectScore, score_scenario
 from canical.sim.scenarios import SCENARIOS, SMOOTH_SCENARIOS, UNEXPLAINED
 
 SEEDS = [0, 1, 2, 3, 4]

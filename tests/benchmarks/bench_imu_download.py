@@ -53,8 +53,8 @@ def run(args: argparse.Namespace) -> None:
     from canical.device.bank_payload import encode_set
     from canical.device.can_network import network_on, sdo_client_filters
     from canical.device.sdo_download import ImuClient, push_sets
+    from canical.frames.imu_dictionary import AXES
     from canical.frames.imu_frames import ImuFrames, set_tag
-    from canical.imu_dictionary import AXES
     from canical.sets import coefficient_file
     from canical.sets.coefficient_file import set_crc
 

@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.commands.cli import main as cli_main
-from canical.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.sessions.csv_file import format_session
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, paper_session, sweep_session

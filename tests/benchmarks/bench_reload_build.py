@@ -19,9 +19,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from support.daemon_fixtures import ALL_TERMS, write_config, write_sets
 
-from canical import yaml_text
 from canical.bus.active_sets import load_axis
 from canical.bus.daemon_config import load_config
+from canical.files import yaml_text
 from canical.sets.fast_corrector import compile_corrector
 
 

@@ -16,11 +16,15 @@ Run: python tests/benchmarks/bench_table_grid.py [--quick]
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from canical.trials.table_grid import GRID, HARSH, ideal_rms, pooled_ratio, score_over_seeds
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from support.trials.table_grid import GRID, HARSH, ideal_rms, pooled_ratio, score_over_seeds
 
 
 def main() -> None:

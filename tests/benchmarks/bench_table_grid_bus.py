@@ -3,12 +3,12 @@
 Every cell of the CSV grid (bench_table_grid.py) played by the emulated IMU on python-can's
 virtual bus, recorded to a candump log and calibrated from it, on a shorter programme than
 the CSV grid's (-60..60 deg/s in 3 deg/s steps and 8 s plateaus as there, but 50 samples/s; see
-canical.trials.table_grid_bus). Printed per cell: plateaus found of scheduled, rows on a rate
+support.trials.table_grid_bus). Printed per cell: plateaus found of scheduled, rows on a rate
 change that were used (the table's truth is known), raw frames recorded, the held-out rms
 pooled over seeds and its ratio to the same sensors (same seeds, same noise at the same
 plateau instants) on an ideal table through the same flow, the per-seed ratios, and the same
 ratio for the very same emulated passes calibrated without the bus (the emulator's samples as
-a session: canical.trials.table_grid_bus.stream_session), so the bus's own cost is the
+a session: support.trials.table_grid_bus.stream_session), so the bus's own cost is the
 difference of the last two columns.
 
 Run: python tests/benchmarks/bench_table_grid_bus.py [SEEDS, default 0,1,2,3,4] [--quick]
@@ -18,14 +18,17 @@ Run: python tests/benchmarks/bench_table_grid_bus.py [SEEDS, default 0,1,2,3,4] 
 from __future__ import annotations
 
 import argparse
+import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from canical.trials.table_grid import GRID, IDEAL
-from canical.trials.table_grid_bus import bus_cell, pooled_bus_ratio, stream_held_out_rms
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from support.trials.table_grid import GRID, IDEAL
+from support.trials.table_grid_bus import bus_cell, pooled_bus_ratio, stream_held_out_rms
 
 
 def main(seeds: tuple[int, ...], cells: int | None = None) -> None:

@@ -1,7 +1,7 @@
 """Three axes: multi-axis validation error with the coupling against per-axis calibration alone.
 
 A simulated triad per seed (coupling 0.4–2 %, per-axis nonlinearity, ±150 deg/s): three
-single-axis sessions (x, -y, z) calibrate it (``canical.imu_pipeline``); a multi-axis session
+single-axis sessions (x, -y, z) calibrate it (``canical.calibration.imu_pipeline``); a multi-axis session
 (12 plateaus of 3 s or the dwell, all three axes turning at once, up to ±120 deg/s), never
 fitted, judges it. Prints
 per seed the validation plateau error (rms and max over the three axes) of today's per-axis
@@ -17,8 +17,8 @@ import time
 
 import numpy as np
 
-from canical.imu_pipeline import calibrate_imu
-from canical.pipeline import CalibrateOptions
+from canical.calibration.imu_pipeline import calibrate_imu
+from canical.calibration.pipeline import CalibrateOptions
 from canical.sim.triad import axis_session, multi_axis_rates, multi_axis_session, random_triad
 
 

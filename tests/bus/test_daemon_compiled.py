@@ -19,10 +19,10 @@ import pytest
 from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_ERR_FLAG, CAN_RTR_FLAG
 from support.daemon_fixtures import ALL_TERMS, imu_stream, write_config, write_sets
 
-from canical import atomic_file
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
 from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
+from canical.files import atomic_file
 
 
 class StandInSocket:

@@ -31,11 +31,11 @@ from support.daemon_fixtures import (
 from test_daemon_bias_tracking import drive_frames
 from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
 
-from canical import atomic_file
 from canical.bus import bias_tracking
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
 from canical.errors import CanicalError
+from canical.files import atomic_file
 from canical.frames.codec import load_dbc
 from canical.sets import imu_set
 from canical.sets.imu_corrector import ImuCorrector

@@ -14,12 +14,12 @@ import pytest
 import yaml
 from support.daemon_fixtures import DBC, EXAMPLE_CONFIG, imu_stream, write_config, write_sets
 
-from canical.atomic_file import write_text_atomic
 from canical.bus import active_sets
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
 from canical.bus.sd_notify import Notifier
 from canical.errors import CanicalError
+from canical.files.atomic_file import write_text_atomic
 from canical.frames.codec import RateEncoder, StatusEncoder, load_dbc
 
 

@@ -30,12 +30,12 @@ import can
 import pytest
 from support.daemon_fixtures import ALL_TERMS, AXES, base_set, decode_stream, imu_stream, write_config
 
-from canical.atomic_file import write_text_atomic
 from canical.bus.active_sets import SOURCE_FILE, ActiveSets, AxisSet, build
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
 from canical.bus.reloads import Reload
 from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
+from canical.files.atomic_file import write_text_atomic
 from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector

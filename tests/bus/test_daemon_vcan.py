@@ -30,7 +30,7 @@ from support.daemon_fixtures import (
 )
 from support.systemd_guest import wait_until
 
-from canical.atomic_file import write_text_atomic
+from canical.files.atomic_file import write_text_atomic
 from canical.frames.codec import load_dbc
 from canical.sessions.csv_file import read_table
 

@@ -17,7 +17,7 @@ from support.daemon_fixtures import write_config, write_sets
 NOT_FOR_SERVE = (
     "matplotlib",
     "scipy",
-    "canical.pipeline",
+    "canical.calibration.pipeline",
     "canical.closed_loop.search",
     "canical.calibrate.model_fit",
     "canical.calibrate.model_selection",
@@ -28,7 +28,7 @@ NOT_FOR_SERVE = (
     "canical.sim",
     "canical.sessions.csv_file",
     "canical.sessions.canlog",
-    "canical.evaluation",
+    "canical.calibration.evaluation",
     "canical.device.emulated_imu",
 )
 

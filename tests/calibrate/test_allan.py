@@ -110,7 +110,7 @@ def test_the_calibration_names_the_temperature_behind_a_rise() -> None:
     """The demo's turntable session (temperature stepping with the chamber, an effect of it on
     the rate): its report claims no rate random walk from the zero-rate plateaus' seconds, and
     the note names the temperature change behind the rise."""
-    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.sim.scenarios import SCENARIOS
 
     scenario = next(s for s in SCENARIOS if s.name.startswith("temperature bias + scale"))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from canical.evaluation import compare_models, validation_record
+from canical.calibration.evaluation import compare_models, validation_record
 from canical.sim.sessions import between_rates_session, constant_session, paper_session
 
 

@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from canical.pipeline import CalibrateOptions, fit_base
+from canical.calibration.pipeline import CalibrateOptions, fit_base
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import sweep_session
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from canical.calibrate.rails import RailLimits, rail_plateaus
-from canical.pipeline import CalibrateOptions, find_plateaus, fit_base
+from canical.calibration.pipeline import CalibrateOptions, find_plateaus, fit_base
 from canical.sessions.canlog import signal_rail
 from canical.sessions.csv_file import format_session
 from canical.sessions.session import Rail, Session

@@ -12,7 +12,7 @@ from canical.calibrate.segment_points import (
     rate_noise,
     residual_extrema,
 )
-from canical.pipeline import CalibrateOptions, fit_base
+from canical.calibration.pipeline import CalibrateOptions, fit_base
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_session
 

@@ -12,15 +12,15 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from support.trials.table_grid import IDEAL, grid_rates
 
 from canical.calibrate.plateaus import observed_settling_s
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.commands.cli import main
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sessions.csv_file import format_session
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import recorded_sweep
 from canical.sim.table_recording import TableBehaviour
-from canical.trials.table_grid import IDEAL, grid_rates
 
 DWELL_S, FS_HZ = 8.0, 100.0
 OLD_RULE_S = 0.1 * DWELL_S  # 0.5 s or a tenth of the plateau

@@ -7,10 +7,10 @@ from hypothesis import strategies as st
 from support.sessions import write_session
 
 from canical.calibrate.plateaus import detect_plateaus
+from canical.calibration.evaluation import score_scenario
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.closed_loop.search import CONFOUND_ALPHA, better_p
 from canical.commands.cli import main
-from canical.evaluation import score_scenario
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
 from canical.sim import effects as fx

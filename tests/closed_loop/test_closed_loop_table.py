@@ -4,7 +4,7 @@ reference (0.02 deg/s rms jitter, 0.001 deg/s encoder steps)."""
 
 import pytest
 
-from canical.evaluation import score_scenario
+from canical.calibration.evaluation import score_scenario
 from canical.sim.scenarios import SCENARIOS
 from canical.sim.table_recording import TableBehaviour
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.closed_loop import blocks
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sessions.csv_file import format_session, read_session, read_table, session_from_table
 from canical.sets.trackers import direction_state, slope_state
 from canical.sim.gyro import GyroModel

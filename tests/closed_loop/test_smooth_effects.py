@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from canical.calibration.evaluation import score_scenario
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.closed_loop.candidates import (
     CHANNEL_RATE_SPLINE,
     CHANNEL_SPLINE,
@@ -19,8 +21,6 @@ from canical.closed_loop.candidates import (
     smooth_terms,
     transform_smooth_terms,
 )
-from canical.evaluation import score_scenario
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.report.plots import variable_label, variable_of, write_plots
 from canical.sets.corrector import Corrector
 from canical.sets.term_kinds import CHANNEL_DERIVATIVE_SPLINE, CHANNEL_LAG_SPLINE, spline_values

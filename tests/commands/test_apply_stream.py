@@ -126,7 +126,7 @@ def test_a_late_bad_block_leaves_no_output(tmp_path, seed):
 
 
 def test_a_failed_write_stops_the_run_and_leaves_no_output(tmp_path, monkeypatch):
-    from canical import atomic_file  # apply imports atomic_writer where it is used: patched here
+    from canical.files import atomic_file  # apply imports atomic_writer where it is used: patched here
 
     opened = atomic_file.atomic_writer
     writes = {"n": 0}

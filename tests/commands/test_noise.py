@@ -14,9 +14,9 @@ from support.allan_noise import flicker_rate, rate_random_walk
 from support.daemon_fixtures import DBC, write_sets
 from support.sessions import write_session
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.commands.cli import main
 from canical.frames.codec import load_dbc
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
 from canical.sim.gyro import GyroModel

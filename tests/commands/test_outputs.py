@@ -1,7 +1,7 @@
 """Outputs a command cannot write: one line naming the path, exit status 2, nothing written.
 
 Each command's outputs are checked before it writes any, staged while it runs and moved into
-place together (canical/output_plan.py); a full disk mid-write leaves nothing behind.
+place together (canical/files/output_plan.py); a full disk mid-write leaves nothing behind.
 """
 
 import errno
@@ -17,11 +17,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from support.sessions import write_session
 
-from canical import output_plan as plan_module
-from canical.atomic_file import write_text_atomic
 from canical.commands.cli import main
 from canical.errors import CanicalError
-from canical.output_plan import output_plan
+from canical.files import output_plan as plan_module
+from canical.files.atomic_file import write_text_atomic
+from canical.files.output_plan import output_plan
 from canical.sim.sessions import paper_session
 
 DBC = str(Path(__file__).resolve().parents[2] / "dbc" / "canical.dbc")

@@ -24,7 +24,7 @@ from support.imu_fixtures import SERIAL, imu_set, imu_sets
 from canical.device.bank_payload import encode_set
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.device.sdo_download import ImuClient, push_sets
-from canical.imu_dictionary import (
+from canical.frames.imu_dictionary import (
     AXES,
     STORE_SIGNATURE,
     eds_path,

@@ -24,7 +24,7 @@ import pytest
 from canical.device.can_network import network_on, sdo_client_filters
 from canical.device.sdo_download import ImuClient, push_sets
 from canical.errors import CanicalError
-from canical.imu_dictionary import AXES, imu_objects, pack_active
+from canical.frames.imu_dictionary import AXES, imu_objects, pack_active
 from canical.sets import coefficient_file
 from canical.sets.coefficient_file import set_crc
 

@@ -23,8 +23,7 @@ from canical.device.bank_payload import decode_set, encode_set
 from canical.device.coefficient_banks import LOCK_LEASE_S, BankRefusal, BankStore
 from canical.device.sdo_download import plan_push
 from canical.errors import CanicalError
-from canical.frames.imu_frames import ImuFrames, load_database, set_tag
-from canical.imu_dictionary import (
+from canical.frames.imu_dictionary import (
     ABORT_DEVICE_STATE,
     ABORT_REFUSED,
     ABORT_VALUE_RANGE,
@@ -39,6 +38,7 @@ from canical.imu_dictionary import (
     pack_active,
     unpack_active,
 )
+from canical.frames.imu_frames import ImuFrames, load_database, set_tag
 from canical.sets.admission import DeviceLimits, admission_problem
 from canical.sets.coefficient_file import canonical_bytes, set_crc
 

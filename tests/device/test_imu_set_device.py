@@ -27,7 +27,7 @@ from canical.device.bank_payload import CouplingPayload, decode_coupling, encode
 from canical.device.coefficient_banks import BankRefusal, BankStore
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.device.sdo_download import DeviceSilent, ImuClient, pull_imu_set, push_sets
-from canical.imu_dictionary import (
+from canical.frames.imu_dictionary import (
     ABORT_DEVICE_STATE,
     ABORT_REFUSED,
     ABORT_VALUE_RANGE,

@@ -25,7 +25,7 @@ from canical.device.bank_payload import decode_set, encode_set
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
 from canical.device.sdo_download import plan_push
 from canical.errors import CanicalError
-from canical.imu_dictionary import AXES, imu_objects
+from canical.frames.imu_dictionary import AXES, imu_objects
 from canical.sets import coefficient_file
 from canical.sets.admission import MAX_SPLINE_TERMS, MAX_TERMS, DeviceLimits, admission_problem
 from canical.sets.coefficient_file import set_crc

@@ -50,8 +50,8 @@ def _sets():
 
 
 def test_every_field_a_set_carries_is_documented_and_every_documented_field_occurs():
+    from canical.files.yaml_text import parse_yaml
     from canical.sets import coefficient_file
-    from canical.yaml_text import parse_yaml
 
     seen: set[str] = set()
     for cset in _sets():

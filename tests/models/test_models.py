@@ -5,10 +5,10 @@ import pytest
 
 from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.model_fit import ModelSpec, fit_model
+from canical.calibration.pipeline import CalibrateOptions, fit_base
 from canical.models.forward_poly import fit_forward_poly
 from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_inverse import fit_segmented_inverse
-from canical.pipeline import CalibrateOptions, fit_base
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_session
 

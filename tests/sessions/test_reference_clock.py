@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from support.table_clock import OwnClockCase, own_clock_case
 
+from canical.calibration.pipeline import CalibrateOptions, base_report, fit_base
 from canical.errors import CanicalError
-from canical.pipeline import CalibrateOptions, base_report, fit_base
 from canical.sessions.reference_clock import ClockFit, TableTrace, align_reference, join_reference
 
 #: The table's file: steps at 10 Hz, steps at 100 Hz, and ramps (1 deg/s²) at 10 Hz.

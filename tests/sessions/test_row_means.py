@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from support.table_clock import own_clock_case, table_csv
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.commands.cli import main
 from canical.errors import CanicalError
-from canical.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.sessions import csv_chunks, row_means
 from canical.sessions.csv_file import format_session, read_session, read_table, session_from_table
 from canical.sessions.session import Session

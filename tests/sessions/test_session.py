@@ -8,8 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.errors import CanicalError
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sessions.session import Session
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, sweep_session

@@ -5,8 +5,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.errors import CanicalError
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sets import coefficient_file, imu_set
 from canical.sets.corrector import Corrector
 from canical.sets.imu_corrector import ImuCorrector

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.frames.codec import load_dbc
-from canical.pipeline import CalibrateOptions, calibrate
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
 from canical.sim.gyro import GyroModel

@@ -13,7 +13,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from canical.pipeline import CalibrateOptions, calibrate
+from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.imu_set import ImuSet, as_matrix

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import functools
 
-from canical.imu_dictionary import AXES
-from canical.imu_pipeline import calibrate_imu
-from canical.pipeline import CalibrateOptions, calibrate
+from canical.calibration.imu_pipeline import calibrate_imu
+from canical.calibration.pipeline import CalibrateOptions, calibrate
+from canical.frames.imu_dictionary import AXES
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.imu_set import ImuSet
 from canical.sim.imu_stream import default_gyros

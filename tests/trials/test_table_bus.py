@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from support.daemon_fixtures import DBC
+from support.trials.table_grid_bus import bus_cell
 
 from canical.commands.cli import main
 from canical.sim.table_recording import TableBehaviour
-from canical.trials.table_grid_bus import bus_cell
 
 RATES = tuple(float(r) for r in range(-30, 31, 5))  # 13 plateaus, 0 included
 DWELL_S = 4.0

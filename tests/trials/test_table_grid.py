@@ -7,8 +7,7 @@ Figures: python tests/benchmarks/bench_table_grid.py
 """
 
 import pytest
-
-from canical.trials.table_grid import GRID, ideal_rms, pooled_ratio, score_over_seeds
+from support.trials.table_grid import GRID, ideal_rms, pooled_ratio, score_over_seeds
 
 
 @pytest.fixture(scope="module")

@@ -19,9 +19,8 @@ over the five. Real SocketCAN (vcan) runs a representative subset: tests/trials/
 from pathlib import Path
 
 import pytest
-
-from canical.trials.table_grid import GRID, IDEAL, SEEDS
-from canical.trials.table_grid_bus import BusCellResult, bus_cell, pooled_bus_ratio
+from support.trials.table_grid import GRID, IDEAL, SEEDS
+from support.trials.table_grid_bus import BusCellResult, bus_cell, pooled_bus_ratio
 
 SEED = 0
 

@@ -107,7 +107,7 @@ def test_emulated_imu_corrects_its_frames_with_the_firmware(caplog):
     import canopen
 
     from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
-    from canical.imu_dictionary import pack_active
+    from canical.frames.imu_dictionary import pack_active
 
     cset = term_set(tuple(TERMS))
     transforms = {t["feature"] for t in cset.terms if t["kind"] == "channel"}

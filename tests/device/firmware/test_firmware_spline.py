@@ -288,7 +288,7 @@ def test_a_learned_smooth_effect_runs_on_the_device_as_apply(lib, effect):
     """What the closed loop writes for a smooth effect (a channel's spline; a coefficient that
     changes with rate), corrected by the C evaluator on the session's own samples (channels as
     float32, as a device has them): within the derived bounds of apply, flags alike."""
-    from canical.pipeline import CalibrateOptions, calibrate
+    from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.sim.scenarios import SMOOTH_SCENARIOS
 
     scenario = next(s for s in SMOOTH_SCENARIOS if effect in s.expect)

@@ -4,7 +4,7 @@ The content goes to a temporary file in the target's directory, is flushed to
 disk, and is renamed over the target in one step. A crash or an error midway
 leaves the old file (or none) in place, never a truncated one.
 
-While a command's :class:`~canical.output_plan.OutputPlan` is open, the rename
+While a command's :class:`~canical.files.output_plan.OutputPlan` is open, the rename
 waits until the whole command has succeeded, together with its other outputs.
 """
 
@@ -17,7 +17,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
 
-from canical import output_plan
+from canical.files import output_plan
 
 
 @contextlib.contextmanager

@@ -24,7 +24,7 @@ from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_fe
 from canical.calibrate.rails import RailCheck, RailLimits, rail_plateaus
 from canical.calibrate.segment_points import rate_noise
 from canical.calibrate.zero_bias import zero_bias, zero_rate
-from canical.calibration_report import (
+from canical.calibration.calibration_report import (
     CalibrationReport,
     ErrorStats,
     LeftOutPlateau,

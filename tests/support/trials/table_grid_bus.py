@@ -1,6 +1,6 @@
 """The table grid through the bus flow: emulated IMU -> ``canical record`` -> ``canical calibrate``.
 
-Each cell of :data:`canical.trials.table_grid.GRID` is played by the emulated IMU
+Each cell of :data:`support.trials.table_grid.GRID` is played by the emulated IMU
 (:class:`canical.device.emulated_imu.EmulatedImu`, the device ``canical emulate`` runs) on
 python-can's in-process virtual bus: ramped, ringing table motion, ``TABLE_REF`` frames
 measured, held, late or on the table's own clock, IMU frames lost in bursts. ``canical
@@ -26,15 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
+from canical.calibration.pipeline import CalibrateOptions, calibrate, find_plateaus
 from canical.commands.cli import main
 from canical.device.can_network import open_network, sdo_server_filters
 from canical.device.emulated_imu import EmulatedImu, EmulatorConfig
-from canical.pipeline import CalibrateOptions, calibrate, find_plateaus
 from canical.sessions.canlog import read_canlog
 from canical.sessions.session import Session
 from canical.sim.imu_stream import StreamConfig, TableMotion, imu_blocks
 from canical.sim.table_recording import TableBehaviour, schedule
-from canical.trials.table_grid import rows_on_rate_changes
+from support.trials.table_grid import rows_on_rate_changes
 
 DBC = Path(__file__).resolve().parents[1] / "data" / "canical.dbc"
 #: The bus version's programme, shorter than the CSV grid's (every frame goes through python-can

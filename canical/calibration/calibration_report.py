@@ -1,6 +1,6 @@
 """The calibration report as one record: built once by the pipeline, read by name everywhere.
 
-:func:`canical.pipeline.calibrate` builds a :class:`CalibrationReport`; report.json is its
+:func:`canical.calibration.pipeline.calibrate` builds a :class:`CalibrationReport`; report.json is its
 :meth:`~CalibrationReport.to_dict`, report.md (:mod:`canical.report.markdown`) and the CLI's
 summary (:mod:`canical.commands.calibrate`) read its fields. One tree, so a field added or
 renamed is one change here that mypy follows to every reader, where a string-keyed dict

@@ -1,6 +1,6 @@
 """Calibrating a triad: three sessions in, one IMU set and the figures to trust it out.
 
-Pure: no files, no printing. Each axis's model comes from :func:`canical.pipeline.calibrate` on
+Pure: no files, no printing. Each axis's model comes from :func:`canical.calibration.pipeline.calibrate` on
 its own session's own channel (unchanged); every session's plateaus are then reduced to the true
 rate vector and the three per-axis corrected rates, and the coupling is fitted on the single-axis
 sessions' plateaus (:mod:`canical.calibrate.coupling`, which says which estimation and why).
@@ -30,7 +30,13 @@ import numpy as np
 
 from canical.calibrate.coupling import CouplingFit, angle_mrad, fit_coupling, held_out_corrected
 from canical.calibrate.plateaus import Plateaus
-from canical.pipeline import CalibrateOptions, CalibrationResult, ProgressFn, calibrate, find_plateaus
+from canical.calibration.pipeline import (
+    CalibrateOptions,
+    CalibrationResult,
+    ProgressFn,
+    calibrate,
+    find_plateaus,
+)
 from canical.sessions.session import Session
 from canical.sessions.triad_session import AXES, TriadSession, check_axes_covered
 from canical.sets.coefficients import CoefficientSet
@@ -243,7 +249,7 @@ def plateau_rates(session: TriadSession, sets: Sequence[CoefficientSet],
     """Plateau means of the true rate and of each channel corrected by its own axis's set.
 
     Raw values, time and auxiliary channels are averaged per plateau and corrected as samples, as
-    :func:`canical.evaluation.held_out_set_errors` judges a single-axis set.
+    :func:`canical.calibration.evaluation.held_out_set_errors` judges a single-axis set.
     """
     found = session_plateaus(session, options)
     groups = _groups(found, session, options)

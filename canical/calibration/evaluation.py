@@ -15,9 +15,9 @@ import numpy as np
 from canical.calibrate.cross_validation import prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.plateaus import detect_plateaus, plateau_means
+from canical.calibration.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.closed_loop.search import Scorer, Structure, plateau_folds, reselect_size
 from canical.models.piecewise import PiecewisePoly
-from canical.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector

@@ -16,7 +16,7 @@ from typing import TypedDict
 import numpy as np
 
 from canical.calibrate.plateaus import Plateaus
-from canical.pipeline import CalibrateOptions, CalibrationResult, calibrate
+from canical.calibration.pipeline import CalibrateOptions, CalibrationResult, calibrate
 from canical.sessions.session import Session
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_rates, recorded_sweep

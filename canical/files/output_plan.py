@@ -11,7 +11,7 @@ declares its outputs when it starts::
 Each output is checked at once: its folder exists (a declared folder: its nearest existing
 ancestor) and accepts a new file (a temporary is created and removed, which catches /proc,
 read-only and permission problems), and the target is not a folder or a device. While the
-plan is open, every atomic write (:mod:`canical.atomic_file`) in this thread to a declared
+plan is open, every atomic write (:mod:`canical.files.atomic_file`) in this thread to a declared
 output goes to a temporary file beside its target instead (other files, such as scratch
 files the command reads back, are written at once); when the block ends cleanly they are
 all renamed into place (missing folders made first), and when it raises, every temporary is
