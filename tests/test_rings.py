@@ -13,72 +13,7 @@ import functools
 from pathlib import Path
 
 import pytest
-
-PACKAGE = Path(__file__).resolve().parents[1] / "canical"
-
-#: Bottom to top. A name is a package (``models``) or a module at the package root.
-RINGS: tuple[tuple[str, ...], ...] = (
-    ("errors", "progress", "bus_outage"),
-    ("files",),
-    ("models", "frames"),
-    ("calibrate", "sessions", "tracking"),
-    ("sets",),
-    ("closed_loop", "sim"),
-    ("calibration",),
-    ("report",),
-    ("device",),
-    ("bus",),
-    ("commands",),
-    ("__main__",),
-)
-RANK = {name: level for level, names in enumerate(RINGS) for name in names}
-
-
-def unit_of(module: str) -> str:
-    """The ring member a dotted module belongs to: its first component below ``canical``."""
-    parts = module.split(".")
-    return parts[1] if len(parts) > 1 else ""  # "" = the root package (__version__)
-
-
-def module_name(path: Path) -> str:
-    rel = path.relative_to(PACKAGE.parent).with_suffix("")
-    parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
-    return ".".join(parts)
-
-
-def imports_of(path: Path) -> list[tuple[int, str]]:
-    """(line, dotted target) of every canical import in the file, relative ones resolved."""
-    this = module_name(path)
-    package = this if path.name == "__init__.py" else this.rpartition(".")[0]
-    found = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
-        if isinstance(node, ast.Import):
-            found += [(node.lineno, a.name) for a in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
-                base = ".".join([*anchor, *([base] if base else [])])
-            # "from canical import x": x may be a module of the root ring
-            found += [(node.lineno, f"{base}.{a.name}" if base == "canical" else base) for a in node.names]
-    return [(line, name) for line, name in found if name == "canical" or name.startswith("canical.")]
-
-
-def violations() -> list[str]:
-    out = []
-    for path in sorted(PACKAGE.rglob("*.py")):
-        src = unit_of(module_name(path))
-        for line, target in imports_of(path):
-            dst = unit_of(target)
-            if dst in ("", src) or dst == "__version__":
-                continue
-            if src not in RANK or dst not in RANK:
-                out.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {src or 'canical'} or {dst} "
-                           "is in no ring (add it to RINGS)")
-            elif RANK[dst] >= RANK[src]:
-                out.append(f"{path.relative_to(PACKAGE.parent)}:{line}: {src} imports {target} "
-                           f"({'a sibling' if RANK[dst] == RANK[src] else 'a ring above'})")
-    return out
+from support.import_graph import PACKAGE, RANK, module_name, unit_of, violations
 
 
 def test_every_import_runs_downward() -> None:
@@ -96,15 +31,14 @@ def test_each_ring_package_says_what_it_is_for(package: str) -> None:
     assert doc and len(doc.split()) >= 20, f"canical/{package}/__init__.py needs a docstring"
 
 
-def test_the_checker_sees_an_upward_import(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_the_checker_sees_an_upward_import(tmp_path: Path) -> None:
     """A models/ module importing calibrate/ is caught (the rule is not vacuous)."""
     fake = tmp_path / "canical"
     (fake / "models").mkdir(parents=True)
     (fake / "calibrate").mkdir()
     (fake / "models" / "bad.py").write_text("def f():\n    from canical.calibrate import plateaus\n")
     (fake / "calibrate" / "ok.py").write_text("from canical.models import piecewise\n")
-    monkeypatch.setattr(__import__(__name__), "PACKAGE", fake)
-    assert violations() == ["canical/models/bad.py:2: models imports canical.calibrate (a ring above)"]
+    assert violations(fake) == ["canical/models/bad.py:2: models imports canical.calibrate (a ring above)"]
 
 
 @functools.cache

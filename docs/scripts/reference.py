@@ -8,7 +8,8 @@ Each function returns one page as Markdown, read from the place the program itse
 * ``configuration_page``: the daemon's keys, from the table in :mod:`config_keys`, checked
   against what the configuration parser accepts (a key it accepts and the table lacks fails);
 * ``set_file_page``: the coefficient set file, from the table in :mod:`set_schema` and the
-  term kinds the set loader knows.
+  term kinds the set loader knows;
+* ``packages.page``: the package's rings and modules, from the import graph the ring test reads.
 
 The MkDocs hook (``docs/hooks/generate.py``) calls :func:`pages` at build time; run this file
 to write the pages into a folder instead: ``python docs/scripts/reference.py --out DIR``.
@@ -27,6 +28,7 @@ if str(ROOT) not in sys.path:
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import config_keys  # noqa: E402
+import packages  # noqa: E402
 import set_schema  # noqa: E402
 
 GENERATED_NOTE = (
@@ -317,6 +319,7 @@ def pages() -> dict[str, str]:
         "reference/set-file.md": set_file_page(),
         "reference/frames.md": frames_page(),
         "reference/object-dictionary.md": object_dictionary_page(),
+        "reference/packages.md": packages.page(),
     }
 
 
