@@ -119,7 +119,6 @@ class EmulatedImu:
                              for sub, what in ((c.content, "content"), (c.crc, "crc"), (c.status, "status"),
                                                (c.size, "size"), (c.imu_set_id, "imu_set_id"))}
         self.stop_event = threading.Event()
-        self.frames_sent = 0
         #: the active IMU set's coupling as the device runs it: the C evaluator's three-axis
         #: sample, or the matrix applied in Python (where the C library cannot); None: identity
         self.coupled: FirmwareImuCorrector | Matrix | None = None
@@ -323,7 +322,6 @@ class EmulatedImu:
                 with_ref = self.config.table_ref and table_frames is None
                 if with_ref and not send(*frames.table(w, axis, settled, k)):
                     return
-                self.frames_sent += 1
                 if not self.correction:
                     continue
                 if self.store.generation != generation:

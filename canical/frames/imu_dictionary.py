@@ -52,7 +52,6 @@ ABORT_REFUSED = 0x08000020  # data cannot be stored: the bank's content or CRC d
 ABORT_DEVICE_STATE = 0x08000022  # not now: the bank is active, or another download holds the lock
 ABORT_TOO_LONG = 0x06070012  # content longer than the bank's capacity
 ABORT_VALUE_RANGE = 0x06090030  # selector or signature value not allowed
-ABORT_NO_DATA = 0x08000024  # an empty bank read
 
 
 def sensor_id_for_serial(serial: int) -> str:

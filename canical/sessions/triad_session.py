@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from canical.errors import CanicalError
-from canical.sessions.csv_chunks import read_head, read_header
+from canical.sessions.csv_chunks import read_head
 from canical.sessions.csv_file import TIME_COLUMN, read_table
 from canical.sessions.session import Session
 
@@ -142,11 +142,6 @@ def read_triad_log(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str],
     rate[:, axis.index] = axis.sign * session.reference()
     meta = {k: v for k, v in session.meta.items() if k != "axis"}
     return TriadSession(session.time_s, raw, rate, axis, dict(session.aux), meta, name)
-
-
-def is_triad_csv(path: str | os.PathLike[str]) -> bool:
-    """Whether a CSV has the three raw columns of a triad (read: header only)."""
-    return all(c in read_header(path) for c in RAW_COLUMNS)
 
 
 def format_triad_session(session: TriadSession, *, float_format: str = "%.9g") -> str:
