@@ -2,7 +2,8 @@
 
 The content goes to a temporary file in the target's directory, is flushed to
 disk, and is renamed over the target in one step. A crash or an error midway
-leaves the old file (or none) in place, never a truncated one.
+leaves the old file (or none) in place, never a truncated one. The file gets the mode
+``open()`` would give it under the user's umask (not :func:`tempfile.mkstemp`'s 0600).
 
 While a command's :class:`~canical.files.output_plan.OutputPlan` is open, the rename
 waits until the whole command has succeeded, together with its other outputs.
@@ -32,6 +33,7 @@ def atomic_writer(path: str | os.PathLike[str], mode: str = "w") -> Iterator[IO]
     directory = target.parent if str(target.parent) else Path(".")
     fd, tmp_name = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=directory)
     try:
+        os.fchmod(fd, output_plan.user_file_mode())  # as open() would make it, not mkstemp's 0600
         with os.fdopen(fd, mode, newline="" if "b" not in mode else None) as handle:
             yield handle
             handle.flush()

@@ -94,6 +94,25 @@ def check_dir(path: PathLike) -> None:
     _probe(_existing_ancestor(target), path)
 
 
+def user_file_mode() -> int:
+    """The mode a new file gets from ``open()`` under this process's umask (0o644 under 022).
+
+    Why: :func:`tempfile.mkstemp` creates its file 0600 whatever the umask, so a set written with
+    it into ``/etc/canical`` was unreadable by the service's dynamic user. Read from
+    ``/proc/self/status`` where the kernel shows it; else set and restored at once.
+    """
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("Umask:"):
+                    return 0o666 & ~int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
 class OutputPlan:
     """The outputs of one command run: checked up front, staged while it runs, moved in at the end."""
 
@@ -141,6 +160,7 @@ class OutputPlan:
                                         suffix=_format_suffix(target), dir=where)
         except OSError as exc:
             raise cannot_write(path, _reason(exc)) from None
+        os.fchmod(fd, user_file_mode())
         os.close(fd)
         previous = self._staged.pop(target, None)
         if previous is not None:

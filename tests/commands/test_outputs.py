@@ -248,3 +248,27 @@ def test_export_unwritable_output(target, tmp_path, capsys):
     assert main(["export", "dcf", *paths, "-o", target]) == 2
     one_line_error(capsys, "export", target)
     assert not any(p.endswith(".dcf") for p in files_under(tmp_path))
+
+
+@pytest.fixture
+def umask():
+    """Set the process's umask for one test, and put the old one back."""
+    old = os.umask(0o022)
+    yield os.umask
+    os.umask(old)
+
+
+@pytest.mark.parametrize(("mask", "mode"), [(0o022, 0o644), (0o027, 0o640), (0o077, 0o600)])
+def test_written_files_take_the_users_umask(mask, mode, umask, session_csv, tmp_path):
+    """A set written into /etc/canical under umask 022 is readable by the service's user (it was
+    0600 whatever the umask: tempfile.mkstemp's mode), and 077 still keeps it private."""
+    umask(mask)
+    assert plan_module.user_file_mode() == mode
+    out, report = tmp_path / "z.yaml", tmp_path / "report"
+    assert main(["calibrate", str(session_csv), "-o", str(out), "--no-extend",
+                 "--report-dir", str(report)]) == 0
+    written = [out, *(p for p in report.rglob("*") if p.is_file())]
+    assert len(written) > 2
+    assert {p.name: p.stat().st_mode & 0o777 for p in written} == {p.name: mode for p in written}
+    write_text_atomic(tmp_path / "plain.txt", "x")  # outside a command's plan
+    assert (tmp_path / "plain.txt").stat().st_mode & 0o777 == mode
