@@ -62,8 +62,9 @@ class DaemonTracking:
         self.set_id, self.axes = combined_id, axes
         learned = None
         if self.config.state_file is not None:
-            loaded = state_file.load(self.config.state_file, combined_id, axes)
-            log.info("%s", loaded.note)
+            loaded = state_file.load(self.config.state_file, combined_id, axes,
+                                     state_file.StateLimits.of(self.config.settings.tracker))
+            log.log(logging.WARNING if loaded.refused else logging.INFO, "%s", loaded.note)
             learned = loaded.learned
         settings = self.config.settings
         if joint:

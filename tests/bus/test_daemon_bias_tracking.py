@@ -29,8 +29,12 @@ from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
 from canical.tracking import state_file
+from canical.tracking.config import TrackerConfig
+from canical.tracking.estimate import AxisBias
 from canical.tracking.fast_step import FastStep
 from canical.tracking.replay import replay
+
+LIMITS = state_file.StateLimits.of(TrackerConfig())
 
 FS = 100.0
 SETTINGS = {"enabled": True, "arw_deg_rt_h": 0.5, "state_file": "bias.json"}
@@ -162,7 +166,7 @@ def test_the_daemon_tracks_the_bias_as_apply_does(tmp_path: Path, stepped, compi
         tracking.save()
     assert "adopted" in caplog.text and "beyond the plausibility bound" in caplog.text
     assert f"z bias {status['z']['bias_dps']:+.4f}" in daemon.status_line()
-    loaded = state_file.load(tmp_path / "bias.json", daemon.sets.combined_id, ("x", "y", "z"))
+    loaded = state_file.load(tmp_path / "bias.json", daemon.sets.combined_id, ("x", "y", "z"), LIMITS)
     assert loaded.learned is not None and loaded.learned[2].updates == status["z"]["updates"]
     if not compiled:  # the status frame's page 3: each axis's learned bias, as sent on the bus
         sent: list[can.Message] = []
@@ -204,6 +208,32 @@ def test_a_restart_starts_from_the_saved_state_and_new_sets_afresh(tmp_path: Pat
         third._axes_plan(third.sets)
     assert "not this set" in caplog.text and "learning afresh" in caplog.text
 
+
+
+def test_an_implausible_saved_state_is_refused_with_a_warning(tmp_path: Path,
+                                                              caplog: pytest.LogCaptureFixture) -> None:
+    """A state file whose CRC is valid but whose bias is 100 deg/s was loaded and applied to every
+    frame; now the daemon starts afresh and says so at WARNING (a damaged file is not news)."""
+    import json
+    write_sets(tmp_path)
+    config = load_config(write_config(tmp_path, "trk", bias_tracking=SETTINGS))
+    first = Daemon(config, compiled=False)
+    first.load_sets()
+    path = tmp_path / SETTINGS["state_file"]
+    state_file.save(path, first.sets.combined_id, ("x", "y", "z"), [AxisBias(b0=0.3)] * 3)
+    body = {k: v for k, v in json.loads(path.read_text()).items() if k != "crc32"}
+    for state in body["states"]:
+        state["b0"] = 100.0
+    path.write_text(json.dumps({**body, "crc32": f"0x{state_file._crc(body):08x}"}))
+    with caplog.at_level(logging.INFO, logger="canical.serve"):
+        second = Daemon(config, compiled=False)
+        second.load_sets()
+        second._axes_plan(second.sets)
+    refused = [r for r in caplog.records if "learning afresh" in r.getMessage()]
+    assert [r.levelno for r in refused] == [logging.WARNING], caplog.text
+    assert "beyond ±1 deg/s" in refused[0].getMessage()
+    assert second.tracking is not None and second.tracking.trackers[2] is not None
+    assert second.tracking.trackers[2].status()[0].bias_dps == 0.0
 
 @pytest.mark.parametrize(("section", "message"), [
     ({"enabled": True, "cue": {"input": "speed"}}, "bias_tracking.cue.input: no input 'speed' in inputs"),

@@ -40,8 +40,11 @@ from canical.frames.codec import load_dbc
 from canical.sets import imu_set
 from canical.sets.imu_corrector import ImuCorrector
 from canical.tracking import state_file
+from canical.tracking.config import TrackerConfig
 from canical.tracking.fast_step import FastStep3
 from canical.tracking.replay import replay
+
+LIMITS = state_file.StateLimits.of(TrackerConfig())
 
 LSB = 0.01  # RateX/Y/Z's resolution in canical.dbc
 TRACKING = {"enabled": True, "arw_deg_rt_h": 0.5, "state_file": "bias.json"}
@@ -248,7 +251,7 @@ def test_one_tracker_over_the_imu_sets_axes_as_apply_track_bias(tmp_path: Path, 
     status = {p["axis"]: p for p in tracking.status_pages()}
     assert sorted(status) == ["x", "y", "z"] and status["x"]["updates"] > 10
     tracking.save()
-    loaded = state_file.load(tmp_path / "bias.json", imu_set.imu_set_crc(imu), AXES)
+    loaded = state_file.load(tmp_path / "bias.json", imu_set.imu_set_crc(imu), AXES, LIMITS)
     assert loaded.learned is not None and [s.updates for s in loaded.learned] == [
         status[a]["updates"] for a in AXES]
 

@@ -333,6 +333,7 @@ def test_daemon_tracks_the_bias_like_apply(vcan_channel: str, tmp_path: Path, db
     from test_daemon_bias_tracking import drive_frames
 
     from canical.tracking import state_file
+    from canical.tracking.config import TrackerConfig
 
     paths = write_sets(tmp_path)
     config = write_config(tmp_path, vcan_channel,
@@ -376,7 +377,8 @@ def test_daemon_tracks_the_bias_like_apply(vcan_channel: str, tmp_path: Path, db
     assert sorted(bias) == [0, 1, 2] and abs(bias[2]["BiasLearned"] - 0.3) < 0.05
     assert bias[2]["BiasUpdates"] > 10 and bias[2]["BiasAge"] < 65535
     text = (tmp_path / "bias.json").read_text()  # saved at stop, keyed by the sets' combined id
-    learned = state_file.parse(text, int(json.loads(text)["set_id"], 16), ("x", "y", "z"))
+    learned = state_file.parse(text, int(json.loads(text)["set_id"], 16), ("x", "y", "z"),
+                               state_file.StateLimits.of(TrackerConfig()))
     assert learned[2].updates > 10
 
 
