@@ -97,12 +97,13 @@ def apply_imu_canlog(args: argparse.Namespace, corrector) -> int:
     import numpy as np
 
     from canical.commands.apply import use_daemon_tracking
-    from canical.commands.canlog_args import canlog_source
+    from canical.commands.canlog_args import canlog_source, refuse_raw_for_a_triad
     from canical.files.atomic_file import atomic_writer
     from canical.sessions.canlog import TIME_INPUT
 
     imu = corrector.imu
     source = canlog_source(args, args.input)
+    refuse_raw_for_a_triad(source, "apply")
     sensor = args.sensor or source.sensor
     if sensor and sensor != imu.sensor_id:
         raise CanicalError(f"{args.coefficients} is for sensor {imu.sensor_id}, "

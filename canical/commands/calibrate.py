@@ -26,7 +26,6 @@ if TYPE_CHECKING:
 # used, so that `--help` and argument errors answer at once.
 
 JOINS = {"free": None, "C0": 0, "C1": 1}
-RAW_INPUT = "raw"  # --input raw=MESSAGE.Signal: the gyro signal of a CAN log
 REF_INPUT = "ref_dps"  # --input ref_dps=MESSAGE.Signal: the table's rate
 EXIT_UNEXPLAINED = 3  # --strict: the calibration leaves an unexplained residual (2 is bad input)
 STRICT_RATIO = 3.0  # --strict without a value: this many times the session's noise floor
@@ -337,12 +336,13 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
     from canical.sessions.canlog_format import DEFAULT_REF
 
     source = canlog_source(args, args.session)
-    inputs = dict(source.inputs) if (source.inputs or source.from_config) else default_inputs(source.dbc)
-    named_raw, named_ref = inputs.pop(RAW_INPUT, None), inputs.pop(REF_INPUT, None)
-    raw_message, _, raw_signal = (named_raw or f"{source.raw_message}.").partition(".")
+    given = source.inputs or source.from_config or source.raw_named
+    inputs = dict(source.inputs) if given else default_inputs(source.dbc)
+    named_ref = inputs.pop(REF_INPUT, None)
+    raw_message = source.raw_message
     ref = None if args.reference else (named_ref or DEFAULT_REF)
     axis = args.axis
-    if axis is None and named_raw:
+    if axis is None and source.raw_named:
         axis = "z"
     if axis is None:  # the table says which axis it turns; a first pass finds out
         first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs=source.axis_inputs("z", []),
@@ -356,7 +356,7 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
         inputs=inputs,
         ref=ref,
         raw_message=raw_message,
-        raw_signal=raw_signal or source.raw_signals.get(axis),
+        raw_signal=source.raw_signals.get(axis),
         sensor=args.sensor or source.sensor,
         j1939_source=source.j1939_source,
     )

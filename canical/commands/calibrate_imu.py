@@ -84,12 +84,14 @@ def calibrate_triad(args: argparse.Namespace) -> int:
 def read_triad_log_args(args: argparse.Namespace, path: str):
     """A triad session from a CAN log, with the DBC and mapping the options give (as the
     single-axis flow: --dbc/--config, --input ref_dps=MESSAGE.Signal, else TABLE_REF)."""
-    from canical.commands.canlog_args import canlog_source
+    from canical.commands.canlog_args import canlog_source, refuse_raw_for_a_triad
     from canical.sessions.canlog import default_inputs
     from canical.sessions.canlog_format import DEFAULT_REF
     from canical.sessions.triad_session import read_triad_log
 
     source = canlog_source(args, path)
+
+    refuse_raw_for_a_triad(source, "calibrate")
     inputs = dict(source.inputs) if (source.inputs or source.from_config) else default_inputs(source.dbc)
     inputs.pop("raw", None)
     ref = inputs.pop("ref_dps", None) or DEFAULT_REF

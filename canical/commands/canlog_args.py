@@ -29,6 +29,7 @@ class CanlogSource:
     sensor: str | None
     from_config: bool
     j1939_source: J1939Source = None  # J1939 messages: the DBC's source address (None), a given one, or any
+    raw_named: bool = False  # --input raw=MESSAGE.Signal named the gyro signal on the command line
 
     def axis_inputs(self, axis: str, names: list[str] | tuple[str, ...]) -> dict[str, str]:
         """The inputs ``names`` and, for an axis in another message than the raw frame, its held raw
@@ -44,10 +45,16 @@ def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
                        help="DBC that describes the log's frames (repeatable: several files)")
     group.add_argument("--config", help="daemon configuration: its DBC, frames and input mapping")
     group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",
-                       help="a channel from a signal, held at its latest value (repeatable)")
+                       help="a channel from a signal, held at its latest value (repeatable); "
+                            "raw=MESSAGE.Signal names the gyro signal of a one-axis log")
     group.add_argument("--j1939-source", metavar="ADDR|any",
                        help="J1939 messages are matched by parameter group; this source address, or any "
                             "[the DBC's, or the configuration's j1939.source_address]")
+
+
+#: ``--input raw=MESSAGE.Signal``: the gyro signal of a one-axis CAN log (not a channel).
+RAW_INPUT = "raw"
+AXIS_NAMES = ("x", "y", "z")
 
 
 def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
@@ -83,4 +90,16 @@ def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
     if dbc is None:
         raise CanicalError(f"{log_file}: reading a CAN log needs --dbc or --config")
     inputs.update(parse_signal_map(args.inputs))
-    return CanlogSource(dbc, inputs, raw_message, raw_signals, sensor, bool(args.config), j1939)
+    named = inputs.pop(RAW_INPUT, None)
+    if named is not None:  # one axis's gyro signal, for every command that reads one axis
+        raw_message, _, signal = named.partition(".")
+        raw_signals = dict.fromkeys(AXIS_NAMES, signal)
+    return CanlogSource(dbc, inputs, raw_message, raw_signals, sensor, bool(args.config), j1939,
+                        raw_named=named is not None)
+
+
+def refuse_raw_for_a_triad(source: CanlogSource, command: str) -> None:
+    """``--input raw=`` names one signal; three axes need three (the configuration's ``axes``)."""
+    if source.raw_named:
+        raise CanicalError(f"{command}: --input raw=MESSAGE.Signal names one axis's gyro signal; three "
+                           "axes are read with --config, whose axes name each axis's raw signal")

@@ -14,7 +14,7 @@ import yaml
 from support.table_clock import own_clock_case, table_csv
 
 from canical.commands.cli import main
-from canical.sessions.csv_file import format_session
+from canical.sessions.csv_file import format_session, read_table
 from canical.sessions.reference_clock import align_reference, join_reference
 from canical.sim.gyro import GyroModel
 
@@ -115,3 +115,42 @@ def test_bad_inputs_are_one_line_exit_2_nothing_written(vendor_files, tmp_path: 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and message in err[0], err
     assert not out.exists() and not (tmp_path / "r.json").exists()
+
+
+def test_apply_and_noise_read_the_gyro_signal_input_raw_names(vendor_files, tmp_path: Path, capsys) -> None:
+    """own-imu.md documents --input raw=MESSAGE.Signal for a CAN log; apply and noise ignored it and
+    looked for canical's IMU_RAW ("no IMU_RAW frames in N frames"), so only --config worked."""
+    case, folder = vendor_files
+    cset = tmp_path / "z.yaml"
+    assert _run(folder, str(folder / "imu.log"), "--dbc", str(folder / "vendor.dbc"),
+                "--input", "raw=TPDO2.GyroZ", "--reference", str(folder / "table.csv"), "--no-extend",
+                "-o", str(cset)) == 0
+    capsys.readouterr()
+    out = tmp_path / "f.csv"
+    vendor = ["--dbc", str(folder / "vendor.dbc"), "--input", "raw=TPDO2.GyroZ"]
+    assert main(["apply", str(cset), str(folder / "imu.log"), *vendor, "-o", str(out)]) == 0, \
+        capsys.readouterr().err
+    table = read_table(out).columns
+    assert len(table["raw"]) == len(case.session)
+    assert np.allclose(table["raw"], np.round(case.session.raw * 10) / 10)
+    assert np.isfinite(table["rate_dps"]).all()
+    # Corrected, each of the table's rates is there, to the quantisation (raw alone is 0.3 off).
+    for rate in np.unique(case.table.ref_dps):
+        assert np.sum(np.abs(table["rate_dps"] - rate) < 0.1) > 50, rate
+    capsys.readouterr()
+    code = main(["noise", str(folder / "imu.log"), *vendor, "--coefficients", str(cset)])
+    err = capsys.readouterr().err
+    assert "IMU_RAW" not in err and ("TPDO2" in err or code == 0), err
+    # Three axes need three signals: one line that says where they are named.
+    code = main(["apply", str(cset), str(folder / "imu.log"), *vendor, "-o", str(tmp_path / "g.csv")])
+    assert code == 0
+
+
+def test_an_imu_set_refuses_one_raw_signal_for_three_axes(vendor_files, tmp_path: Path, capsys) -> None:
+    _, folder = vendor_files
+    code = _run(folder, str(folder / "imu.log"), str(folder / "imu.log"), str(folder / "imu.log"),
+                "--dbc", str(folder / "vendor.dbc"), "--input", "raw=TPDO2.GyroZ",
+                "-o", str(tmp_path / "imu.yaml"))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert "--input raw=MESSAGE.Signal names one axis's gyro signal" in err and "--config" in err
