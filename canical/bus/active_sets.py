@@ -25,7 +25,8 @@ from canical.bus.daemon_config import DaemonConfig
 from canical.errors import CanicalError
 from canical.frames.imu_frames import SET_TAG_MASK
 from canical.sets import coefficient_file, imu_set
-from canical.sets.coefficients import DEFAULT_RAW_UNITS, CoefficientSet
+from canical.sets.admission import raw_units_problem
+from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.imu_set import AXES, ImuSet, Matrix, imu_set_crc
 
@@ -118,9 +119,9 @@ def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path 
             f"{path}: set is for sensor {cset.sensor_id}, configured sensor is {config.sensor}"
         )
     units = next((a.raw_units for a in config.axes if a.axis == axis), "")
-    if units and cset.raw_units not in (units, DEFAULT_RAW_UNITS):
-        raise CanicalError(f"{path}: set is for raw values in {cset.raw_units}, the DBC signal of "
-                           f"axis {axis} is in {units}")
+    problem = raw_units_problem(cset.raw_units, units)
+    if problem:
+        raise CanicalError(f"{path}: axis {axis}: {problem}")
     corrector = Corrector(cset)
     missing = [n for n in corrector.required_inputs if n not in config.inputs]
     if missing:

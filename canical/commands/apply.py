@@ -23,6 +23,7 @@ if TYPE_CHECKING:  # the rest is imported where used: `--help` needs none of it
     import numpy as np
 
     from canical.sessions.csv_chunks import CsvHead
+    from canical.sets.coefficients import CoefficientSet
     from canical.sets.corrector import Corrector
 
 CHUNK_ROWS = 100_000
@@ -301,6 +302,7 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
     from canical.commands.canlog_args import canlog_source
     from canical.files.atomic_file import atomic_writer
     from canical.sessions.canlog import TIME_INPUT, read_canlog
+    from canical.sessions.session import RAW_UNITS
 
     cset = corrector.cset
     source = canlog_source(args, args.input)
@@ -338,6 +340,7 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
         j1939_source=source.j1939_source,
     )
     session = log.session
+    refuse_other_units(args, cset, session.meta.get(RAW_UNITS))
     inputs = {n: session.aux[n] for n in session.aux}
     if TIME_INPUT in corrector.required_inputs:
         inputs[TIME_INPUT] = session.time_s
@@ -357,6 +360,15 @@ def run_canlog(args: argparse.Namespace, corrector: Corrector) -> int:
     return 0
 
 
+def refuse_other_units(args: argparse.Namespace, cset: CoefficientSet, signal_units: str | None) -> None:
+    """A set made for raw values in another unit than the log's signal: one line, nothing written."""
+    from canical.sets.admission import raw_units_problem
+
+    problem = raw_units_problem(cset.raw_units, signal_units)
+    if problem:
+        raise CanicalError(f"{args.coefficients}: {problem}")
+
+
 def _apply_canlog_stream(args: argparse.Namespace, corrector: Corrector, source, sensor: str | None,
                          needed: list[str], raw_signal: str | None) -> int:
     """A CAN log read, corrected and written a block of rows at a time (memory bounded by the
@@ -366,11 +378,13 @@ def _apply_canlog_stream(args: argparse.Namespace, corrector: Corrector, source,
 
     from canical.files.atomic_file import atomic_writer
     from canical.sessions.canlog import TIME_INPUT, stream_canlog
+    from canical.sessions.session import RAW_UNITS
 
     cset = corrector.cset
     stream = stream_canlog(args.input, dbc=source.dbc, axis=cset.axis,
                            inputs=source.axis_inputs(cset.axis, needed), raw_message=source.raw_message,
                            raw_signal=raw_signal, sensor=sensor, j1939_source=source.j1939_source)
+    refuse_other_units(args, cset, stream.meta.get(RAW_UNITS))
     n_rows = n_out = 0
     with atomic_writer(args.output) as out:
         for key, value in stream.meta.items():

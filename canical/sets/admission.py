@@ -55,6 +55,20 @@ class DeviceLimits:
     bank_capacity: int | None = None
 
 
+def raw_units_problem(set_units: str, signal_units: str | None) -> str | None:
+    """Why a set may not correct a raw signal in ``signal_units`` (None: it may).
+
+    A set maps raw values in one unit to deg/s; fed another unit's numbers it corrects them as if
+    they were its own (5.49 deg/s became -0.216). A signal whose unit is not stated (a DBC signal
+    without a unit, a CSV without a ``# raw_units:`` line) cannot be checked, so it passes; a set
+    that says ``counts`` is for counts, as its file says, and is refused on a signal in deg/s.
+    """
+    if not signal_units or set_units == signal_units:
+        return None
+    return (f"set is for raw values in {set_units}, the signal is in {signal_units}: calibrate from "
+            f"this signal (a CAN log of it, or a CSV with the line '# raw_units: {signal_units}')")
+
+
 def span_rates(cset: CoefficientSet) -> tuple[float, float]:
     """Lowest and highest rate (deg/s) the set's model gives inside its span."""
     lo, hi = cset.span_raw

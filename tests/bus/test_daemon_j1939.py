@@ -29,7 +29,7 @@ SIGNALS = ("RollRate", "PitchRate", "YawRate")
 
 
 def config_file(folder: Path, **extra) -> Path:
-    sets = write_sets(folder, terms={"x": (), "y": (), "z": ()})
+    sets = write_sets(folder, terms={"x": (), "y": (), "z": ()}, raw_units="deg/s")
     content = {
         "bus": {"interface": "virtual", "channel": "j1939"},
         "dbc": str(DBC),

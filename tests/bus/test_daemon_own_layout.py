@@ -35,7 +35,7 @@ CASES = {
 def vendor_setup(folder: Path, case: str, **own) -> tuple[Path, cantools.database.can.Message]:
     dbc, message, signals, temp, out_id = CASES[case]
     terms = {"x": TERMS["x"][:1] if temp else (), "y": (), "z": ()}
-    sets = write_sets(folder, terms=terms)
+    sets = write_sets(folder, terms=terms, raw_units="deg/s")
     content = {
         "bus": {"interface": "virtual", "channel": "sensor"},
         "dbc": str(dbc),

@@ -21,7 +21,8 @@ VENDOR, VENDOR_EXT = DATA / "vendor_imu.dbc", DATA / "vendor_imu_ext.dbc"
 @pytest.fixture(scope="module")
 def sets(tmp_path_factory) -> dict[str, Path]:
     """Sets with a temperature term on x (the vendor's IMU_TEMP feeds it)."""
-    return write_sets(tmp_path_factory.mktemp("sets"), terms={"x": TERMS["x"][:1], "y": (), "z": ()})
+    return write_sets(tmp_path_factory.mktemp("sets"), terms={"x": TERMS["x"][:1], "y": (), "z": ()},
+                      raw_units="deg/s")
 
 
 @pytest.fixture(autouse=True)
@@ -113,4 +114,18 @@ def test_a_set_for_raw_values_in_another_unit_is_refused(tmp_path, sets, capsys)
     assert main(["serve", "--config", str(vendor_config(tmp_path, sets, axes=axes)), "--check"]) == 2
     errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
     assert len(errors) == 1 and errors[0].endswith(
-        "set is for raw values in mV, the DBC signal of axis y is in deg/s"), errors
+        "axis y: set is for raw values in mV, the signal is in deg/s: calibrate from this signal (a CAN "
+        "log of it, or a CSV with the line '# raw_units: deg/s')"), errors
+
+
+def test_a_set_for_counts_is_refused_on_a_signal_in_deg_s(tmp_path, sets, capsys) -> None:
+    """own-imu.md: serve refuses a set made for raw values in another unit. A set that says counts
+    (canical's default for a CSV) passed on the vendor's deg/s signal, and corrected 5.49 deg/s to
+    -0.216 deg/s without a word."""
+    counts = tmp_path / "y-counts.yaml"
+    coefficient_file.save(counts, replace(coefficient_file.load(sets["y"]), raw_units="counts"))
+    axes = {a: {"raw": f"GYRO_TPDO2.Gyro{a.upper()}", "coefficients": str(counts if a == "y" else sets[a])}
+            for a in "xyz"}
+    assert main(["serve", "--config", str(vendor_config(tmp_path, sets, axes=axes)), "--check"]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
+    assert len(errors) == 1 and "set is for raw values in counts, the signal is in deg/s" in errors[0], errors

@@ -154,3 +154,25 @@ def test_an_imu_set_refuses_one_raw_signal_for_three_axes(vendor_files, tmp_path
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1, err
     assert "--input raw=MESSAGE.Signal names one axis's gyro signal" in err and "--config" in err
+
+
+def test_apply_refuses_a_set_for_raw_values_in_another_unit(vendor_files, tmp_path: Path, capsys) -> None:
+    """A set for counts applied to the vendor's deg/s signal corrected 5.49 to -0.216 deg/s silently."""
+    from canical.sets import coefficient_file
+
+    _, folder = vendor_files
+    made = tmp_path / "z.yaml"
+    assert _run(folder, str(folder / "imu.log"), "--dbc", str(folder / "vendor.dbc"),
+                "--input", "raw=TPDO2.GyroZ", "--reference", str(folder / "table.csv"), "--no-extend",
+                "-o", str(made)) == 0
+    counts = tmp_path / "counts.yaml"
+    coefficient_file.save(counts, replace(coefficient_file.load(made), raw_units="counts"))
+    capsys.readouterr()
+    vendor = ["--dbc", str(folder / "vendor.dbc"), "--input", "raw=TPDO2.GyroZ"]
+    out = tmp_path / "f.csv"
+    assert main(["apply", str(counts), str(folder / "imu.log"), *vendor, "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"canical apply: error: {counts}: set is for raw values in counts, the signal is in "
+                   "deg/s: calibrate from this signal (a CAN log of it, or a CSV with the line "
+                   "'# raw_units: deg/s')")
+    assert not out.exists()

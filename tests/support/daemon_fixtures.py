@@ -69,14 +69,16 @@ ALL_TERMS = {
 }
 
 
-def write_sets(folder: Path, *, variant: int = 0, terms: dict | None = None) -> dict[str, Path]:
+def write_sets(folder: Path, *, variant: int = 0, terms: dict | None = None,
+               raw_units: str | None = None) -> dict[str, Path]:
     """imu-x/y/z.yaml with the TERMS (or ``terms``); ``variant`` shifts V0 (0.1 deg/s per step)
-    so generations differ."""
+    so generations differ; ``raw_units`` (a vendor signal's unit) replaces the set's own."""
     paths = {}
     base = base_set("z")
     terms = TERMS if terms is None else terms
     for axis in AXES:
-        cset = dataclasses.replace(base, axis=axis, terms=terms[axis], v0=base.v0 + 40.0 * variant)
+        cset = dataclasses.replace(base, axis=axis, terms=terms[axis], v0=base.v0 + 40.0 * variant,
+                                   raw_units=raw_units or base.raw_units)
         paths[axis] = folder / f"imu-{axis}.yaml"
         coefficient_file.save(paths[axis], cset)
     return paths
