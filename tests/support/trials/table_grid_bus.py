@@ -36,7 +36,7 @@ from canical.sim.imu_stream import StreamConfig, TableMotion, imu_blocks
 from canical.sim.table_recording import TableBehaviour, schedule
 from support.trials.table_grid import rows_on_rate_changes
 
-DBC = Path(__file__).resolve().parents[1] / "data" / "canical.dbc"
+DBC = Path(__file__).resolve().parents[3] / "canical" / "data" / "canical.dbc"
 #: The bus version's programme, shorter than the CSV grid's (every frame goes through python-can
 #: and a candump log): the same rates (-60..60 deg/s in 3 deg/s steps; sparser rates would make
 #: the held-out error the model's interpolation, blind to the table), 8 s plateaus, 50 samples/s.
