@@ -21,7 +21,7 @@ from cantools.database.can import Database, Message
 from canical.errors import CanicalError
 from canical.files.yaml_text import parse_yaml
 from canical.frames.codec import load_dbc
-from canical.frames.dbc_files import DbcSet, dbc_label, require_sound
+from canical.frames.dbc_files import ALL_EXTENDED, DbcSet, dbc_label, require_sound
 from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
 from canical.sessions.canlog_format import HELD_AXIS_PREFIX
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
@@ -188,7 +188,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     interface = _text(bus, "interface", "bus.interface", fail)
     chan = channel or _text(bus, "channel", "bus.channel", fail)
     options = _bus_options(bus, fail)
-    dbc_path = _dbc_files(content.get("dbc"), base, fail)
+    dbc_path = DbcSet(_dbc_files(content.get("dbc"), base, fail), j1939=_j1939_messages(content, fail))
     try:
         dbc = _Dbc(load_dbc(dbc_path), dbc_label(dbc_path), fail)
     except CanicalError as exc:
@@ -202,6 +202,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
                    for a in axes if a.held is not None and a.message is not None})
     device = _device(content, fail)
     j1939 = _j1939_source(content, fail)
+    _raw_frames_can_match(frames, axes, dbc, j1939)
     own_layout = _own_layout_output(content, frames, inputs, dbc, chan, j1939)
     tracking = _bias_tracking(content, inputs, base, fail)
     return DaemonConfig(
@@ -493,12 +494,44 @@ def _j1939_source(content: dict, fail: Fail) -> J1939Source:
     if section is None:
         return None
     if not isinstance(section, dict):
-        raise fail("j1939", "must be a mapping {source_address: any or 0..253}")
-    _no_unknown(section, {"source_address"}, "j1939.", fail)
+        raise fail("j1939", "must be a mapping {source_address: any or 0..253, messages: [...] or all}")
+    _no_unknown(section, {"source_address", "messages"}, "j1939.", fail)
     try:
         return parse_j1939_source(section.get("source_address"), "source_address")
     except ValueError as exc:
         raise fail("j1939.source_address", str(exc).split(": ", 1)[1]) from None
+
+
+def _j1939_messages(content: dict, fail: Fail) -> tuple[str, ...]:
+    """``j1939.messages``: the messages that are J1939 parameter groups though the DBC does not say
+    so (no ``VFrameFormat``/``ProtocolType``): a list of names, or ``all`` (every extended-id one)."""
+    section = content.get("j1939")
+    if not isinstance(section, dict) or section.get("messages") is None:
+        return ()
+    value = section["messages"]
+    if value == ALL_EXTENDED:
+        return (ALL_EXTENDED,)
+    if not isinstance(value, list) or not value or not all(isinstance(v, str) and v for v in value):
+        raise fail("j1939.messages", f"must be a list of message names or '{ALL_EXTENDED}'")
+    return tuple(value)
+
+
+def _raw_frames_can_match(frames: _Frames, axes: tuple[AxisConfig, ...], dbc: _Dbc,
+                          j1939: J1939Source) -> None:
+    """Refuse a configuration under which a raw frame can never be matched: a source address is
+    configured for J1939, but the raw message is matched by its exact id, whose source differs
+    (a vendor's DBC without the J1939 attributes: "configuration OK", then no frame ever)."""
+    if not isinstance(j1939, int):
+        return
+    messages = {frames.raw.name: "frames.raw"} | {a.message: f"axes.{a.axis}.raw" for a in axes if a.message}
+    for name, key in messages.items():
+        message = dbc.db.get_message_by_name(name)
+        match = frame_match(message, j1939)
+        if message.is_extended_frame and match.exact and message.frame_id & 0xFF != j1939:
+            raise dbc.fail(key, f"message {name} is matched by its exact id 0x{message.frame_id:08x}, "
+                                f"whose source address 0x{message.frame_id & 0xFF:02x} is not "
+                                f"j1939.source_address 0x{j1939:02x}: if it is a J1939 parameter group, "
+                                f"list it under j1939.messages (or messages: {ALL_EXTENDED})")
 
 
 def _device(content: dict, fail: Fail) -> DeviceSource | None:

@@ -47,6 +47,10 @@ def add_canlog_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--input", action="append", dest="inputs", metavar="NAME=MESSAGE.Signal",
                        help="a channel from a signal, held at its latest value (repeatable); "
                             "raw=MESSAGE.Signal names the gyro signal of a one-axis log")
+    group.add_argument("--j1939-message", action="append", dest="j1939_messages", metavar="MESSAGE|all",
+                       help="a message that is a J1939 parameter group though the DBC does not say so "
+                            "(no VFrameFormat/ProtocolType attribute; repeatable; all: every extended-id "
+                            "message) [the configuration's j1939.messages]")
     group.add_argument("--j1939-source", metavar="ADDR|any",
                        help="J1939 messages are matched by parameter group; this source address, or any "
                             "[the DBC's, or the configuration's j1939.source_address]")
@@ -89,6 +93,8 @@ def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
         dbc = DbcSet(Path(p) for p in args.dbc)
     if dbc is None:
         raise CanicalError(f"{log_file}: reading a CAN log needs --dbc or --config")
+    if getattr(args, "j1939_messages", None):
+        dbc = DbcSet(dbc, j1939=[*dbc.j1939, *args.j1939_messages])
     inputs.update(parse_signal_map(args.inputs))
     named = inputs.pop(RAW_INPUT, None)
     if named is not None:  # one axis's gyro signal, for every command that reads one axis

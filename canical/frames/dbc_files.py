@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -35,12 +35,28 @@ def shipped_dbc_path() -> Path:
     return Path(str(resources.files("canical") / "data" / "canical.dbc"))
 
 
+#: ``j1939.messages: all``: every extended-id message of the user's files is a J1939 parameter group.
+ALL_EXTENDED = "all"
+
+
 class DbcSet(tuple[Path, ...]):
     """Several DBC files where one path is expected: printed as their names, read by :func:`load_dbc`.
 
     Why a path-like: the readers that take one DBC path pass it on to :func:`load_dbc` and
     name it in their messages; given this, they read every file and name them all.
+
+    It also carries which messages are J1939 parameter groups when the files do not say so
+    (``j1939``: names, or :data:`ALL_EXTENDED`): a vendor's J1939 DBC often has neither the
+    ``VFrameFormat`` nor the ``ProtocolType`` attribute cantools reads, and every reader that loads
+    the files (the daemon, the log reader, ``record``) must match those messages by their PGN alike.
     """
+
+    j1939: frozenset[str] = frozenset()
+
+    def __new__(cls, paths: Iterable[Path], j1939: Iterable[str] = ()) -> DbcSet:
+        made = super().__new__(cls, paths)
+        made.j1939 = frozenset(j1939)
+        return made
 
     def __str__(self) -> str:
         return " + ".join(str(p) for p in self)
@@ -158,8 +174,28 @@ def load_dbc(paths: DbcPaths, *, with_shipped: bool = True) -> Database:
         for message in _load_one(shipped).messages:
             merge.add(message, shipped, yield_to_user=True)
     _warn_relaxed(files, relaxed)
+    if isinstance(paths, DbcSet) and paths.j1939:
+        mark_j1939(merge, paths.j1939, files)
     return Database(messages=[s.message for s in merge.by_name.values()], nodes=list(nodes.values()),
                     strict=False)
+
+
+def mark_j1939(merge: _Merge, names: frozenset[str], files: tuple[Path, ...]) -> None:
+    """Mark the named messages (or every extended one of the user's files) as J1939 parameter
+    groups, as cantools marks those its attributes name; a name no file has is one error line."""
+    user = set(files)
+    if ALL_EXTENDED in names:
+        chosen = [s.message for s in merge.by_name.values() if s.path in user and s.message.is_extended_frame]
+    else:
+        missing = sorted(n for n in names if n not in merge.by_name)
+        if missing:
+            raise CanicalError(f"j1939.messages: no message {', '.join(missing)} in {dbc_label(files)}")
+        chosen = [merge.by_name[n].message for n in sorted(names)]
+    for message in chosen:
+        if not message.is_extended_frame:
+            raise CanicalError(f"j1939.messages: {message.name} has a standard (11-bit) id; a J1939 "
+                               "parameter group has a 29-bit one")
+        message.protocol = "j1939"
 
 
 def _warn_relaxed(files: tuple[Path, ...], relaxed: list[str]) -> None:

@@ -213,6 +213,9 @@ KEYS: tuple[Key, ...] = (
         "destination ignored, and by source address as below"),
     Key("j1939.source_address", "`null` (the DBC's)", "`any`, or an address 0..253",
         "the source address J1939 messages are matched with (the IMU's claimed address), or any"),
+    Key("j1939.messages", "`null` (the DBC's attributes)", "a list of message names, or `all`",
+        "messages that are J1939 parameter groups though the DBC does not say so (a vendor's file "
+        "without `VFrameFormat`/`ProtocolType`); `all`: every extended-id message of the DBC files"),
     Key("status_period_s", "`1.0`", "positive number of seconds", "status frames and systemd STATUS"),
     Key(
         "watch_period_s",

@@ -32,7 +32,7 @@ def config_file(folder: Path, **extra) -> Path:
     sets = write_sets(folder, terms={"x": (), "y": (), "z": ()}, raw_units="deg/s")
     content = {
         "bus": {"interface": "virtual", "channel": "j1939"},
-        "dbc": str(DBC),
+        "dbc": str(extra.pop("dbc", DBC)),
         "axes": {a: {"raw": f"ANGRATE.{s}", "coefficients": str(sets[a])} for a, s in zip("xyz", SIGNALS,
                                                                                           strict=True)},
         **extra,
@@ -148,6 +148,85 @@ def test_apply_reads_a_j1939_log_as_the_daemon_reads_the_bus(tmp_path: Path, cap
     assert "no ANGRATE frames" in capsys.readouterr().err and not out.exists()
     assert main(["apply", sets["z"], str(log), "--config", str(plain), "--j1939-source", "any",
                  "-o", str(out)]) == 0
+
+
+def bare_dbc(folder: Path) -> Path:
+    """The vendor's file as vendors ship it: no ProtocolType, no VFrameFormat (cantools reads no
+    message as J1939, so each is matched by its exact id, source 0x10 only)."""
+    path = folder / "vendor_bare.dbc"
+    text = DBC.read_text()
+    path.write_text("\n".join(line for line in text.splitlines() if not line.startswith(("BA_DEF", "BA_ "))))
+    return path
+
+
+def test_a_source_the_bare_dbcs_raw_frame_can_never_match_is_refused_at_check(tmp_path: Path,
+                                                                             capsys) -> None:
+    """'configuration OK', then no frame ever: the raw frame is matched by its exact id (source
+    0x10) while the IMU sends from 0x80. --check says what to add."""
+    from canical.commands.cli import main
+
+    cfg = config_file(tmp_path, dbc=str(bare_dbc(tmp_path)), j1939={"source_address": 0x80})
+    assert main(["serve", "--config", str(cfg), "--check"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert ("frames.raw: message ANGRATE is matched by its exact id 0x18ff2a10, whose source address "
+            "0x10 is not j1939.source_address 0x80: if it is a J1939 parameter group, list it under "
+            "j1939.messages (or messages: all)") in err
+
+
+@pytest.mark.parametrize("messages", [["ANGRATE"], "all"])
+def test_the_configuration_says_which_messages_of_a_bare_dbc_are_j1939(tmp_path: Path, capsys,
+                                                                       messages) -> None:
+    """j1939.messages marks the vendor's groups: the daemon and apply --config then match them by
+    PGN from the configured source, as with a DBC that says so itself."""
+    from canical.commands.cli import main
+
+    msgs = re_addressed(vendor_stream(MESSAGE, 200))
+    claimed = [m for m in msgs if m.arbitration_id & 0xFF == 0x80]
+    cfg = config_file(tmp_path, dbc=str(bare_dbc(tmp_path)),
+                      j1939={"source_address": 0x80, "messages": messages})
+    assert main(["serve", "--config", str(cfg), "--check"]) == 0, capsys.readouterr().err
+    reference, sent, sock_sent, compiled = run_both(load_config(cfg), msgs)
+    assert reference.stats.frames_in == len(claimed) == compiled.stats.frames_in
+    assert sock_sent == [bytes(m.data) for m in sent]
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for m in claimed:
+            logger.on_message_received(m)
+    out = tmp_path / "z.csv"
+    assert main(["apply", str(tmp_path / "imu-z.yaml"), str(log), "--config", str(cfg), "-o", str(out)]) == 0
+    assert len([r for r in out.read_text().splitlines() if not r.startswith("#")]) == len(claimed) + 1
+
+
+def test_apply_with_dbc_and_j1939_message_reads_a_bare_dbcs_group(tmp_path: Path, capsys) -> None:
+    """Without a configuration: --dbc, --j1939-message, --j1939-source and --input raw=."""
+    from canical.commands.cli import main
+
+    claimed = [m for m in re_addressed(vendor_stream(MESSAGE, 120)) if m.arbitration_id & 0xFF == 0x80]
+    log = tmp_path / "drive.log"
+    with can.Logger(str(log)) as logger:
+        for m in claimed:
+            logger.on_message_received(m)
+    sets = write_sets(tmp_path, terms={"x": (), "y": (), "z": ()}, raw_units="deg/s")
+    by_hand = ["--dbc", str(bare_dbc(tmp_path)), "--input", "raw=ANGRATE.YawRate", "--j1939-source", "0x80"]
+    out = tmp_path / "z.csv"
+    assert main(["apply", str(sets["z"]), str(log), *by_hand, "-o", str(out)]) == 2
+    assert "no ANGRATE frames" in capsys.readouterr().err
+    assert main(["apply", str(sets["z"]), str(log), *by_hand, "--j1939-message", "ANGRATE",
+                 "-o", str(out)]) == 0, capsys.readouterr().err
+    assert len([r for r in out.read_text().splitlines() if not r.startswith("#")]) == len(claimed) + 1
+
+
+@pytest.mark.parametrize(("messages", "words"), [
+    (["NOPE"], "j1939.messages: no message NOPE in vendor_bare.dbc"),
+    ([], "j1939.messages: must be a list of message names or 'all'"),
+    ("ANGRATE", "j1939.messages: must be a list of message names or 'all'"),
+])
+def test_a_bad_j1939_messages_key_is_one_line(tmp_path: Path, messages, words: str) -> None:
+    with pytest.raises(CanicalError) as info:
+        load_config(config_file(tmp_path, dbc=str(bare_dbc(tmp_path)),
+                                j1939={"source_address": 0x80, "messages": messages}))
+    assert words in str(info.value) and "\n" not in str(info.value)
 
 
 @pytest.mark.parametrize(("source", "expected_sources"), [(None, {0x10}), ("any", {0x10, 0x80})])
