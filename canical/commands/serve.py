@@ -14,6 +14,7 @@ import os
 import sys
 
 from canical.commands import COMMANDS
+from canical.errors import CanicalError
 
 # The daemon's modules (python-can, cantools, numpy) are imported by `run`, so that `--help`
 # answers at once.
@@ -70,6 +71,32 @@ def check_device(config) -> None:
         network.disconnect()
 
 
+#: What to do on a kernel without SocketCAN: its modules, or another python-can interface.
+NO_SOCKETCAN_HINT = ("load its modules (modprobe can-raw; and vcan for a virtual bus), or name a python-can "
+                     "interface that works here in bus.interface")
+
+
+def socketcan_missing() -> str | None:
+    """Why this kernel cannot open a SocketCAN socket at all (None: it can).
+
+    Why ask before starting: an interface that is down comes back, and the daemon waits for it;
+    a kernel without ``AF_CAN`` never will, and the daemon retried it forever (125 reopen
+    attempts in 240 s). EAFNOSUPPORT is that kernel's answer; any other error is the interface's.
+    """
+    import errno
+    import socket
+
+    family = getattr(socket, "AF_CAN", None)
+    if family is None:
+        return "this Python has no AF_CAN"
+    try:
+        socket.socket(family, socket.SOCK_RAW, socket.CAN_RAW).close()
+    except OSError as exc:
+        if exc.errno == errno.EAFNOSUPPORT:
+            return f"this kernel has no SocketCAN (socket(AF_CAN): {exc.strerror})"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.bus import active_sets
     from canical.bus.daemon import Daemon
@@ -77,7 +104,12 @@ def run(args: argparse.Namespace) -> int:
     from canical.sets.imu_set import imu_set_crc
 
     config = load_config(args.config, channel=args.channel)
+    missing = socketcan_missing() if config.interface == "socketcan" else None
+    if missing is not None and not args.check:
+        raise CanicalError(f"{config.path}: bus.interface socketcan: {missing}: {NO_SOCKETCAN_HINT}")
     if args.check:
+        if missing is not None:
+            print(f"serve: warning: bus.interface socketcan: {missing}: {NO_SOCKETCAN_HINT}", file=sys.stderr)
         if config.imu_set is not None:
             imu, correctors = active_sets.load_imu(config, config.imu_set)
             print(f"imu set 0x{imu_set_crc(imu):08x} from {config.imu_set}: axes "
