@@ -14,6 +14,7 @@ __all__ = [
     "cli",
     "demo_bus",
     "emulate",
+    "serve",
 ]
 
 # name -> one-line help, in the order ``canical --help`` lists them
@@ -29,4 +30,5 @@ COMMANDS = {
     "noise": "Allan deviation of a static record: angle/rate random walk, bias instability",
     "export": "write coefficient sets as a DCF any CANopen tool can download to the IMU",
     "install-service": "install the daemon as a systemd service (/opt/canical, /etc/canical, units)",
+    "simulate": "write a simulated session, drive or triad (CSV, or a CAN log in your DBC's layout)",
 }

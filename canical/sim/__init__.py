@@ -17,6 +17,7 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
 # The package's public face: the submodules (and names) other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = [
+    "bus_log",
     "drive",
     "effects",
     "environment",
