@@ -34,6 +34,7 @@ from canical.sessions.canlog_format import (
     DEFAULT_RAW_MESSAGE,
     DEFAULT_REF,
     HELD_AXIS_PREFIX,
+    held_complaints,
     require_log_support,
 )
 from canical.sessions.session import RAW_UNITS, Rail, Session
@@ -210,9 +211,11 @@ class _LogReader:
         """Each frame of the log taken in turn (a step per frame, so a caller may take the rows
         made so far between two)."""
         try:
-            for frame in can.LogReader(self.name):
-                _take_frame(self.log, frame, self.raw_match, self.raw_entry, self.raw_sig, self.others)
-                yield None
+            with held_complaints() as complaints:
+                for frame in can.LogReader(self.name):
+                    _take_frame(self.log, frame, self.raw_match, self.raw_entry, self.raw_sig, self.others)
+                    yield None
+            complaints.check(self.name, self.log.frames)
         except CanicalError:
             raise
         except Exception as exc:  # python-can's readers raise many types on a damaged file
@@ -466,14 +469,18 @@ def read_signal_trace(path: str | os.PathLike[str], *, dbc: str | os.PathLike[st
     match = frame_match(msg, j1939_source)
     times: list[float] = []
     values: list[float] = []
+    frames = 0
     try:
-        for frame in can.LogReader(name):
-            if frame.is_error_frame or frame.is_remote_frame or frame.is_fd \
-                    or not match.matches(frame.arbitration_id, frame.is_extended_id) \
-                    or len(frame.data) != msg.length:
-                continue
-            times.append(float(frame.timestamp))
-            values.append(_number(_signals(msg, frame.data), sig_name))
+        with held_complaints() as complaints:
+            for frame in can.LogReader(name):
+                frames += 1
+                if frame.is_error_frame or frame.is_remote_frame or frame.is_fd \
+                        or not match.matches(frame.arbitration_id, frame.is_extended_id) \
+                        or len(frame.data) != msg.length:
+                    continue
+                times.append(float(frame.timestamp))
+                values.append(_number(_signals(msg, frame.data), sig_name))
+        complaints.check(name, frames)
     except CanicalError:
         raise
     except Exception as exc:  # python-can's readers raise many types on a damaged file

@@ -6,9 +6,13 @@ name the formats without importing python-can, numpy or cantools.
 
 from __future__ import annotations
 
+import contextlib
 import gzip
 import importlib
+import logging
 import os
+import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from canical.errors import CanicalError
@@ -51,6 +55,48 @@ def _first_line(path: str | os.PathLike[str]) -> str:
             return f.readline().strip()
     except (OSError, EOFError):  # missing or unreadable: the session reader says what is wrong
         return ""
+
+
+class HeldComplaints(logging.Handler):
+    """python-can's log readers log each line they cannot parse, one warning per line (a CSV
+    named ``.trc`` printed 2,463 of them). Held here instead, counted, the first one kept, so the
+    reader can say it in one line (:meth:`check`)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.count = 0
+        self.first = ""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.count += 1
+        if not self.first:
+            self.first = " ".join(record.getMessage().split())[:80]
+
+    def check(self, name: str, frames: int) -> None:
+        """No frame read and lines refused: not a log of its format (one error line); some
+        frames and some lines refused: one warning line."""
+        if not self.count:
+            return
+        fmt = log_format(name) or "a CAN log"
+        what = f"{self.count} line(s) python-can could not read as {fmt} (first: {self.first})"
+        if frames == 0:
+            raise CanicalError(f"{name}: not a CAN log in its suffix's format: {what}")
+        print(f"canical: warning: {name}: {what}; {frames} frames read", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def held_complaints() -> Iterator[HeldComplaints]:
+    """Hold python-can's per-line complaints while a log is read (see :class:`HeldComplaints`)."""
+    logger = logging.getLogger("can.io")
+    handler = HeldComplaints()
+    propagate = logger.propagate
+    logger.addHandler(handler)
+    logger.propagate = False
+    try:
+        yield handler
+    finally:
+        logger.removeHandler(handler)
+        logger.propagate = propagate
 
 
 def require_log_support(path: str | os.PathLike[str]) -> None:

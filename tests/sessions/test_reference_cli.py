@@ -99,6 +99,14 @@ def test_a_session_csv_takes_the_tables_file_too(vendor_files, tmp_path: Path, c
     ("no column", "time_s,rate\n1,0\n2,0\n3,0\n4,0\n", (), "missing column 'ref_dps'"),
     ("backwards", "time_s,ref_dps\n1,0\n3,0\n2,0\n4,0\n5,0\n", (), "time goes backwards"),
     ("bad signal", None, ("--input", "raw=TPDO2.GyroW"), "has no signal GyroW"),
+    # everything loaded is bounded before it is used (a span of 1e9 s asked for 149 GiB)
+    ("clock spans 1e9 s", "time_s,ref_dps\n" + "".join(f"{i * 2e7:.0f},{i % 2}\n" for i in range(50)), (),
+     "spans 9.8e+08 s, more than 7 days"),
+    ("rate 1e300", "time_s,ref_dps\n" + "".join(f"{i},{1e300 if i == 7 else 0}\n" for i in range(50)), (),
+     "row 8: rate 1e+300 deg/s is beyond ±100000 deg/s"),
+    ("nan time", "time_s,ref_dps\n0,0\n1,0\nnan,0\n3,1\n4,1\n", (), "line 4, column time_s: value is not finite"),
+    ("a CSV named .trc", "time_s,ref_dps\n0,0\n1,0\n2,1\n3,1\n", (),
+     "not a CAN log in its suffix's format: 5 line(s) python-can could not read as .trc"),
 ])
 def test_bad_inputs_are_one_line_exit_2_nothing_written(vendor_files, tmp_path: Path, capsys, what: str,
                                                         table: str | None, extra: tuple[str, ...],
@@ -106,7 +114,7 @@ def test_bad_inputs_are_one_line_exit_2_nothing_written(vendor_files, tmp_path: 
     _, folder = vendor_files
     reference = folder / "table.csv"
     if table is not None:
-        reference = tmp_path / "table.csv"
+        reference = tmp_path / ("table.trc" if what.endswith(".trc") else "table.csv")
         reference.write_text(table)
     out = tmp_path / "set.yaml"
     code = _run(tmp_path, str(folder / "imu.log"), "--dbc", str(folder / "vendor.dbc"),
