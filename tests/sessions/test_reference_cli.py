@@ -104,7 +104,8 @@ def test_a_session_csv_takes_the_tables_file_too(vendor_files, tmp_path: Path, c
      "spans 9.8e+08 s, more than 7 days"),
     ("rate 1e300", "time_s,ref_dps\n" + "".join(f"{i},{1e300 if i == 7 else 0}\n" for i in range(50)), (),
      "row 8: rate 1e+300 deg/s is beyond ±100000 deg/s"),
-    ("nan time", "time_s,ref_dps\n0,0\n1,0\nnan,0\n3,1\n4,1\n", (), "line 4, column time_s: value is not finite"),
+    ("nan time", "time_s,ref_dps\n0,0\n1,0\nnan,0\n3,1\n4,1\n", (),
+     "line 4, column time_s: value is not finite"),
     ("a CSV named .trc", "time_s,ref_dps\n0,0\n1,0\n2,1\n3,1\n", (),
      "not a CAN log in its suffix's format: 5 line(s) python-can could not read as .trc"),
 ])
