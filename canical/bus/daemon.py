@@ -205,8 +205,8 @@ class Daemon:
 
     def load_sets(self) -> None:
         sets, messages = active_sets.initial(self.config)
-        for message in messages:
-            log.warning("%s", message) if "keeping" in message else log.info("%s", message)
+        for note in messages:
+            log.log(logging.WARNING if note.refused else logging.INFO, "%s", note.text)
         self.sets = sets
         for ax in sets.axes:
             if ax.corrector is None:
@@ -643,8 +643,8 @@ class Daemon:
         self.reloads.start_queued(self.sets)
 
     def _adopt(self, done: Reload) -> None:
-        for message in done.messages:
-            (log.warning if "keeping" in message else log.info)("%s (%s)", message, done.why)
+        for note in done.messages:
+            log.log(logging.WARNING if note.refused else logging.INFO, "%s (%s)", note.text, done.why)
         if done.changed and self.sets is done.base:
             self.sets = done.new  # the one assignment that switches every axis at once
             if self._state in (STATE_RUNNING, STATE_DEGRADED):
