@@ -22,6 +22,7 @@ __all__ = [
     "daemon",
     "daemon_config",
     "frame_handler",
+    "link",
     "recording",
     "reloads",
     "sd_notify",
