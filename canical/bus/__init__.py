@@ -21,7 +21,6 @@ __all__ = [
     "bias_tracking",
     "daemon",
     "daemon_config",
-    "frame_handler",
     "link",
     "recording",
     "reloads",

@@ -44,32 +44,30 @@ from canical.bus.bias_tracking import DaemonTracking
 from canical.bus.daemon_config import DaemonConfig
 from canical.bus.frame_handler import frame_layout
 from canical.bus.frame_state import FrameState
-from canical.bus.link import Link, LinkOpener, Sender, opener
+from canical.bus.link import LinkOpener, Sender, opener
 from canical.bus.outages import Outages
 from canical.bus.raw_path import RawPath
 from canical.bus.receive import Classifier
 from canical.bus.reloads import Reload, Reloads
 from canical.bus.sd_notify import Notifier
-from canical.bus.socketcan import BusLost, socket_frame
+from canical.bus.socketcan import BusLost
 from canical.bus.socketcan_constants import CAN_MTU, FRAME_HEAD, STAMP_BUFFER_SIZE, TIMEVAL
 from canical.bus.status import (
-    SATURATING_PAGES,
     STATE_DEGRADED,
     STATE_RUNNING,
     STATE_STARTING,
     STATE_STOPPING,
     Stats,
+    status_frames,
     status_line,
     status_pages,
 )
 from canical.bus_outage import Outage
 from canical.frames.codec import StatusEncoder, load_dbc
-from canical.frames.frame_match import FrameMatch
 
 __all__ = ["Daemon"]
 
 log = logging.getLogger("canical.serve")
-BIAS_PAGE = 3  # the status frame's page for the learned bias (canical.bus.bias_tracking)
 
 MAX_WAIT_S = 0.25  # longest blocking recv, so SIGTERM/SIGHUP are acted on promptly
 RELOAD_POLL_S = 0.005  # how often the loop looks whether a reload worker has finished
@@ -126,28 +124,15 @@ class Daemon:
         """The bus outage in progress, if any."""
         return self.outages.current
 
-    @property
-    def link(self) -> Link | None:
-        """The sensor's bus (None: not open)."""
-        return self.sender.link
-
-    @property
-    def values(self) -> dict[str, float]:
-        """Each input's latest value."""
-        return self.frames.values
-
     # ----------------------------------------------------------------------------------
     # Set-up
     # ----------------------------------------------------------------------------------
 
-    def receive_matches(self) -> list[FrameMatch]:
-        """What the kernel's receive filters pass: the raw frame and the frames that carry inputs."""
-        return self.layout.receive_matches()
-
     def open_links(self) -> None:
-        """Open the sensor's bus, and the gateway's output bus when the own-layout frame goes to
-        another channel: opened to send only (nothing on it can reach the sensor's bus)."""
-        self.sender.link = self.open_link(self.config.channel, self.receive_matches())
+        """Open the sensor's bus (its kernel filters passing the raw frame and the frames that
+        carry inputs), and the gateway's output bus when the own-layout frame goes to another
+        channel: opened to send only (nothing on it can reach the sensor's bus)."""
+        self.sender.link = self.open_link(self.config.channel, self.layout.receive_matches())
         own = self.config.own_layout
         if own is not None and own.channel is not None:
             self.sender.out = self.open_link(own.channel, None)
@@ -182,7 +167,7 @@ class Daemon:
         self.load_sets()
         self._connect(first=True)
         if not self._running:
-            self._close_links()
+            self.sender.close()
             return 0
         self._state = STATE_RUNNING if self.sets.complete else STATE_DEGRADED
         self.notifier.ready(self.status_line())
@@ -253,9 +238,6 @@ class Daemon:
                 elif not 0.0 <= stamp - first < BURST_SPAN_S or self._next_periodic == 0.0:
                     break  # (a signal asked for the periodic step: SIGHUP, SIGTERM)
 
-    def _send(self, frame_id: int, extended: bool, payload: bytes) -> None:
-        self.sender.send(socket_frame(frame_id, extended, payload))
-
     # ----------------------------------------------------------------------------------
     # Between frames
     # ----------------------------------------------------------------------------------
@@ -316,21 +298,13 @@ class Daemon:
             if self._state in (STATE_RUNNING, STATE_DEGRADED):
                 self._state = STATE_RUNNING if done.new.complete else STATE_DEGRADED
 
-    def status_pages(self) -> list[tuple[int, dict[str, int]]]:
-        """The status frame's pages: counters, one page per axis set, fault counters."""
-        pages = (0, 1, 2) if self.status is None else self.status.pages
-        return status_pages(self._state, self.stats, self.sets, pages)
-
     def _send_status(self) -> None:
-        if self.status is None:  # frames.status: null
-            return
-        for page, values in self.status_pages():
-            payload = self.status.encode(page, values, saturate=page in SATURATING_PAGES)
-            self._send(self.status.frame_id, self.status.is_extended, payload)
-        if self.tracking is not None and BIAS_PAGE in self.status.pages:
-            for bias in self.tracking.frame_pages():
-                payload = self.status.encode_physical(BIAS_PAGE, bias)
-                self._send(self.status.frame_id, self.status.is_extended, payload)
+        """The status frame's pages (none with ``frames.status: null``)."""
+        if self.status is not None:
+            bias = None if self.tracking is None else self.tracking.frame_pages()
+            for frame in status_frames(self.status, status_pages(self._state, self.stats, self.sets,
+                                                                 self.status.pages), bias):
+                self.sender.send(frame)
 
     def status_line(self) -> str:
         line = status_line(self._state, self.stats, self.sets, channel=self.config.channel,
@@ -349,7 +323,7 @@ class Daemon:
                 self.open_links()
                 return
             except (OSError, CanError) as exc:
-                self._close_links()
+                self.sender.close()
                 self._bus_failed(f"cannot open: {exc}")
             if first and self._reload_requested:
                 self._reload_requested = False
@@ -358,7 +332,7 @@ class Daemon:
 
     def _reconnect(self, why: str) -> None:
         """The bus failed: close it, wait the outage's back-off, open it again."""
-        self._close_links()
+        self.sender.close()
         self._bus_failed(why)
         self._back_off()
         self._connect(first=False)
@@ -384,23 +358,13 @@ class Daemon:
 
         self.outages.wait(lambda: self._running, tick)
 
-    def _close_links(self) -> None:
-        sender = self.sender
-        for what, link in (("the output bus", sender.out), ("the bus", sender.link)):
-            if link is not None:
-                try:
-                    link.close()
-                except (OSError, CanError) as exc:
-                    log.debug("closing %s: %s", what, exc)
-        sender.link = sender.out = None
-
     def _shutdown(self) -> None:
         self._state = STATE_STOPPING
         self.notifier.stopping(self.status_line())
         if self.sender.link is not None:
             with contextlib.suppress(BusLost):
                 self._send_status()
-        self._close_links()
+        self.sender.close()
         if self.tracking is not None:
             self.tracking.log_events()
             self.tracking.save()

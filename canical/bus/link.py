@@ -10,6 +10,7 @@ on python-can's side, which spends more than that on its own ``recv`` anyway.
 from __future__ import annotations
 
 import errno
+import logging
 import socket
 from collections.abc import Callable, Iterable
 from socket import MSG_DONTWAIT
@@ -25,6 +26,8 @@ from canical.bus.status import Stats
 from canical.frames.frame_match import FrameMatch
 
 __all__ = ["BusLink", "Link", "LinkOpener", "Sender", "SocketLink", "opener"]
+
+log = logging.getLogger("canical.serve")
 
 #: ``recvmsg``'s result: the frame, the ancillary data (the receive time), flags, address.
 Received = tuple[bytes, list[tuple[int, int, bytes]], int, Any]
@@ -151,6 +154,16 @@ class Sender:
             link.send(frame, MSG_DONTWAIT)
         except OSError as exc:
             self.failed(exc)
+
+    def close(self) -> None:
+        """Close both links (a failure to close is only logged: the link is gone either way)."""
+        for what, link in (("the output bus", self.out), ("the bus", self.link)):
+            if link is not None:
+                try:
+                    link.close()
+                except (OSError, can.CanError) as exc:
+                    log.debug("closing %s: %s", what, exc)
+        self.link = self.out = None
 
     def failed(self, exc: OSError) -> None:
         if exc.errno in TX_FULL:

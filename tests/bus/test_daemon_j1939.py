@@ -78,7 +78,7 @@ def test_any_source_corrects_every_frame_of_the_group(tmp_path: Path) -> None:
     assert reference.stats.frames_in == 200 and compiled.stats.frames_in == 200
     assert len(sent) == 200 and sock_sent == [bytes(m.data) for m in sent]
     assert "send" in handler_source(compiled)  # the generated handler corrected them
-    (rate_filter,) = [f for f in receive_filters(reference.receive_matches()) if f["extended"]]
+    (rate_filter,) = [f for f in receive_filters(reference.layout.receive_matches()) if f["extended"]]
     assert rate_filter["can_mask"] == 0x03FFFF00 and rate_filter["can_id"] == 0x00FF2A00
 
 
