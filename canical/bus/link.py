@@ -29,6 +29,10 @@ __all__ = ["BusLink", "Link", "LinkOpener", "Sender", "SocketLink", "opener"]
 
 log = logging.getLogger("canical.serve")
 
+_DATA, _FD_DATA = CAN_MTU - FRAME_HEAD.size, CANFD_MTU - FRAME_HEAD.size  # data bytes in a frame
+_ZEROS = bytes(_FD_DATA)
+_pack_head, _pack_stamp, _SOL_SOCKET = FRAME_HEAD.pack, TIMEVAL.pack, socket.SOL_SOCKET
+
 #: ``recvmsg``'s result: the frame, the ancillary data (the receive time), flags, address.
 Received = tuple[bytes, list[tuple[int, int, bytes]], int, Any]
 
@@ -81,15 +85,21 @@ class BusLink:
         if msg is None:
             raise BlockingIOError(errno.EAGAIN, "no frame")
         can_id = msg.arbitration_id
-        can_id |= CAN_EFF_FLAG if msg.is_extended_id else 0
-        can_id |= CAN_RTR_FLAG if msg.is_remote_frame else 0
-        can_id |= CAN_ERR_FLAG if msg.is_error_frame else 0
-        data = bytes(msg.data)
-        size = (CANFD_MTU if msg.is_fd else CAN_MTU) - FRAME_HEAD.size
-        frame = FRAME_HEAD.pack(can_id, len(data), 0, 0) + data.ljust(size, b"\0")
-        sec = int(msg.timestamp // 1)
-        nsec = min(999_999_999, round((msg.timestamp - sec) * 1e9))
-        return frame, [(socket.SOL_SOCKET, SO_TIMESTAMPNS, TIMEVAL.pack(sec, nsec))], 0, None
+        if msg.is_extended_id:
+            can_id |= CAN_EFF_FLAG
+        if msg.is_remote_frame:
+            can_id |= CAN_RTR_FLAG
+        if msg.is_error_frame:
+            can_id |= CAN_ERR_FLAG
+        data = msg.data
+        size = len(data)
+        pad = (_FD_DATA if msg.is_fd else _DATA) - size
+        frame = _pack_head(can_id, size, 0, 0) + bytes(data) + (_ZEROS[:pad] if pad > 0 else b"")
+        stamp = msg.timestamp
+        sec = int(stamp)
+        nsec = int((stamp - sec) * 1e9 + 0.5)
+        nsec = nsec if nsec < 1_000_000_000 else 999_999_999
+        return frame, [(_SOL_SOCKET, SO_TIMESTAMPNS, _pack_stamp(sec, nsec))], 0, None
 
     def send(self, frame: bytes, flags: int = 0) -> int:
         """A kernel frame through python-can's ``send``: ENOBUFS (an OSError, as the socket's)

@@ -57,11 +57,22 @@ class ReferenceHandler:
         gap = self._gap(signals)
         sets = self.holder.sets  # read once: this frame uses exactly this combination
         plan = self.plans.plan(sets)
-        missing = tuple(name for name, _ in plan.ages if name not in times)
-        stale = bool(missing) or any(stamp - times[n] > age for n, age in plan.ages if n in times)
-        raws = tuple(signals[a.at] if a.held is None else values.get(a.held) for a in plan.axes)
-        (rx, ox, ux), (ry, oy, uy), (rz, oz, uz) = (self._correct(a, raw, missing)
-                                                    for a, raw in zip(plan.axes, raws, strict=True))
+        missing: tuple[str, ...] = ()
+        stale = False
+        for name, max_age in plan.ages:
+            t = times.get(name)
+            if t is None:
+                missing, stale = (*missing, name), True
+            elif stamp - t > max_age:
+                stale = True
+        px, py, pz = plan.axes
+        raws = (signals[px.at] if px.held is None else values.get(px.held),
+                signals[py.at] if py.held is None else values.get(py.held),
+                signals[pz.at] if pz.held is None else values.get(pz.held))
+        correct = self._correct
+        rx, ox, ux = correct(px, raws[0], missing)
+        ry, oy, uy = correct(py, raws[1], missing)
+        rz, oz, uz = correct(pz, raws[2], missing)
         if sets.coupling is not None:  # an IMU set: its axes' rates are coupled, all three or none
             if ux or uy or uz:
                 rx, ry, rz, ux, uy, uz = 0.0, 0.0, 0.0, True, True, True
@@ -96,7 +107,7 @@ class ReferenceHandler:
                  missing: tuple[str, ...]) -> tuple[float, bool, bool]:
         """One axis's (rate, over its span, uncalibrated): uncalibrated (rate 0) without a set or
         an input its set needs."""
-        if axis.correct is None or raw is None or any(n in missing for n in axis.needs):
+        if axis.correct is None or raw is None or (missing and any(n in missing for n in axis.needs)):
             return 0.0, False, True
         rate, over = axis.correct(raw, self.state.values)
         return rate, over, False
