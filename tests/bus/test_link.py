@@ -95,6 +95,7 @@ def test_kernel_filters_are_python_cans() -> None:
                FrameMatch(0x190, False, 0x7FF)]
     words = []
     for f in receive_filters(matches):
-        words += [f["can_id"] | (socket.CAN_EFF_FLAG if f["extended"] else 0), f["can_mask"] | socket.CAN_EFF_FLAG]
+        flag = socket.CAN_EFF_FLAG
+        words += [f["can_id"] | (flag if f["extended"] else 0), f["can_mask"] | flag]
     assert kernel_filters(matches) == struct.pack("=4I", *words)
     assert kernel_filters([]) == b""  # no filter: the socket receives nothing (send only)
