@@ -130,10 +130,11 @@ LinkOpener = Callable[[str, "Iterable[FrameMatch] | None"], Link]
 
 def opener(config: DaemonConfig, *, compiled: bool) -> LinkOpener:
     """How the daemon opens its links: on SocketCAN its own raw socket; with another interface,
+    with ``bus.options`` (python-can's keyword arguments, which only python-can's bus honours),
     or ``compiled`` off (the reference path, for comparison), python-can's bus."""
 
     def open_link(channel: str, matches: Iterable[FrameMatch] | None) -> Link:
-        if config.interface == "socketcan" and compiled:
+        if config.interface == "socketcan" and compiled and not config.bus_options:
             return SocketLink(open_raw_socket(channel, () if matches is None else matches))
         options = dict(config.bus_options)
         if matches is not None:

@@ -99,3 +99,30 @@ def test_kernel_filters_are_python_cans() -> None:
         words += [f["can_id"] | (flag if f["extended"] else 0), f["can_mask"] | flag]
     assert kernel_filters(matches) == struct.pack("=4I", *words)
     assert kernel_filters([]) == b""  # no filter: the socket receives nothing (send only)
+
+
+
+def test_socketcan_options_keep_python_cans_bus(tmp_path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``bus.options`` are python-can's keyword arguments: with them the link is python-can's bus
+    (which honours them), without them on SocketCAN canical's own raw socket."""
+    from support.daemon_fixtures import write_config, write_sets
+
+    from canical.bus import link
+    from canical.bus.daemon_config import load_config
+
+    write_sets(tmp_path)
+    buses: list[dict[str, object]] = []
+    sockets: list[str] = []
+
+    class StandIn:
+        recvmsg = send = None
+
+    monkeypatch.setattr(link.can, "Bus", lambda **kwargs: buses.append(kwargs) or StandIn())
+    monkeypatch.setattr(link, "open_raw_socket", lambda channel, _: sockets.append(channel) or StandIn())
+    plain = load_config(write_config(tmp_path, "can7"))
+    assert isinstance(link.opener(plain, compiled=True)("can7", []), link.SocketLink)
+    assert isinstance(link.opener(plain, compiled=False)("can7", []), link.BusLink)  # the reference path
+    options = {"interface": "socketcan", "channel": "can8", "options": {"receive_own_messages": True}}
+    with_options = load_config(write_config(tmp_path, "can8", bus=options))
+    assert isinstance(link.opener(with_options, compiled=True)("can8", []), link.BusLink)
+    assert sockets == ["can7"] and buses[-1]["receive_own_messages"] is True
