@@ -28,4 +28,5 @@ __all__ = [
     "service_install",
     "socketcan",
     "socketcan_constants",
+    "status",
 ]
