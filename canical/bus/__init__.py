@@ -21,11 +21,12 @@ __all__ = [
     "bias_tracking",
     "daemon",
     "daemon_config",
-    "frame_handler",
+    "link",
     "recording",
     "reloads",
     "sd_notify",
     "service_install",
     "socketcan",
     "socketcan_constants",
+    "status",
 ]

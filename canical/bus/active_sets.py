@@ -38,6 +38,18 @@ FileStamp = tuple[int, int, int] | None
 
 
 @dataclass(frozen=True)
+class SetsNote:
+    """One thing that happened while building sets, to log: ``refused`` when a set was refused
+    and the one in use (or none) kept, which an operator must see (a warning); else news."""
+
+    text: str
+    refused: bool = False
+
+    def __str__(self) -> str:
+        return self.text
+
+
+@dataclass(frozen=True)
 class AxisSet:
     """What one axis corrects with; ``corrector`` None means the axis goes out uncalibrated."""
 
@@ -141,7 +153,7 @@ def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path 
     return corrector
 
 
-def initial(config: DaemonConfig) -> tuple[ActiveSets, list[str]]:
+def initial(config: DaemonConfig) -> tuple[ActiveSets, list[SetsNote]]:
     """The sets at start; problems are returned as messages (the axis starts uncalibrated)."""
     empty = tuple(AxisSet(a.axis, a.raw_signal, path=config.imu_set or a.coefficients) for a in config.axes)
     if config.device is not None:
@@ -149,7 +161,7 @@ def initial(config: DaemonConfig) -> tuple[ActiveSets, list[str]]:
     return reload(config, build(empty), force=True)
 
 
-def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, list[str]]:
+def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, list[SetsNote]]:
     """The IMU's own active sets (config ``device``), each validated like a file; files for the rest.
 
     The sensor carries its calibration: an axis the device has a valid set for uses it
@@ -166,7 +178,7 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
     where = f"device node 0x{device.node:02x}"
     pulled: dict[str, CoefficientSet] = {}
     pulled_imu: ImuSet | None = None
-    messages: list[str] = []
+    messages: list[SetsNote] = []
     try:
         network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
                                **config.bus_options)
@@ -176,35 +188,36 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
         finally:
             network.disconnect()
     except CanicalError as exc:
-        messages.append(f"{where}: {exc}; using the coefficient files")
+        messages.append(SetsNote(f"{where}: {exc}; using the coefficient files"))
     if pulled_imu is not None:
         try:
             return _device_imu(config, current, pulled_imu, where)
         except CanicalError as exc:
-            messages.append(f"imu set: {exc}; using the coefficient files")
+            messages.append(SetsNote(f"imu set: {exc}; using the coefficient files"))
     files, file_messages = reload(config, current, force=True)
     if config.imu_set is not None:  # the device runs no IMU set: the configured file
         if pulled:
-            messages.append(f"{where}: runs single-axis sets, not an IMU set; using {config.imu_set}")
+            messages.append(SetsNote(f"{where}: runs single-axis sets, not an IMU set; "
+                                     f"using {config.imu_set}"))
         return files, messages + file_messages
     axes = list(files.axes)
     for i, ax in enumerate(axes):
         cset = pulled.get(ax.axis)
         if cset is None:
-            messages += [m for m in file_messages if m.startswith(f"axis {ax.axis}:")]
+            messages += [m for m in file_messages if m.text.startswith(f"axis {ax.axis}:")]
             continue
         try:
             corrector = check_set(config, ax.axis, cset, where)
         except CanicalError as exc:
-            messages.append(f"axis {ax.axis}: {exc}; using the coefficient file")
-            messages += [m for m in file_messages if m.startswith(f"axis {ax.axis}:")]
+            messages.append(SetsNote(f"axis {ax.axis}: {exc}; using the coefficient file"))
+            messages += [m for m in file_messages if m.text.startswith(f"axis {ax.axis}:")]
             continue
         old = current.axes[i]
         if old.corrector is not None and old.set_id == corrector.set_id:
             axes[i] = replace(old, source=SOURCE_DEVICE, stamp=file_stamp(ax.path))
             continue
         was = f"0x{old.set_id:08x}" if old.corrector else "none"
-        messages.append(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {where} replaces {was}")
+        messages.append(SetsNote(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {where} replaces {was}"))
         axes[i] = replace(ax, corrector=corrector, set_id=corrector.set_id, source=SOURCE_DEVICE,
                           reloads=old.reloads + (1 if old.corrector is not None else 0),
                           stamp=file_stamp(ax.path))
@@ -212,7 +225,7 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
 
 
 def _device_imu(config: DaemonConfig, current: ActiveSets, imu: ImuSet,
-                where: str) -> tuple[ActiveSets, list[str]]:
+                where: str) -> tuple[ActiveSets, list[SetsNote]]:
     """The IMU set a device runs, each axis checked as a file's is (the coupling was, on pulling)."""
     if tuple(a.axis for a in config.axes) != AXES:
         raise CanicalError(f"{where}: runs an IMU set; the configuration has axes "
@@ -224,10 +237,10 @@ def _device_imu(config: DaemonConfig, current: ActiveSets, imu: ImuSet,
     if current.coupling is not None and current.combined_id == imu_id:
         return build(axes, imu), []
     was = f"0x{current.combined_id:08x}" if current.complete else "none"
-    return build(axes, imu), [f"imu set 0x{imu_id:08x} from {where} replaces {was}"]
+    return build(axes, imu), [SetsNote(f"imu set 0x{imu_id:08x} from {where} replaces {was}")]
 
 
-def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:
+def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[SetsNote]]:
     """New sets for the files that changed (all of them with ``force``), and what happened.
 
     The result is either ``current`` itself (nothing changed) or a new value built from
@@ -235,7 +248,7 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
     """
     if config.imu_set is not None:
         return reload_imu(config, current, config.imu_set, force=force)
-    messages: list[str] = []
+    messages: list[SetsNote] = []
     axes = list(current.axes)
     changed = False
     for i, ax in enumerate(axes):
@@ -248,7 +261,7 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
         try:
             corrector = load_axis(config, ax.axis, ax.path)
         except CanicalError as exc:
-            messages.append(f"axis {ax.axis}: {exc}; {keep}")
+            messages.append(SetsNote(f"axis {ax.axis}: {exc}; {keep}", refused=True))
             axes[i] = replace(ax, stamp=stamp)
             changed = changed or stamp != ax.stamp
             continue
@@ -257,7 +270,8 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
             changed = changed or stamp != ax.stamp
             continue
         old = f"0x{ax.set_id:08x}" if ax.corrector else "none"
-        messages.append(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {ax.path} replaces {old}")
+        messages.append(SetsNote(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {ax.path} "
+                                 f"replaces {old}"))
         axes[i] = replace(
             ax,
             corrector=corrector,
@@ -286,7 +300,7 @@ def load_imu(config: DaemonConfig, path: Path) -> tuple[ImuSet, tuple[Corrector,
 
 
 def reload_imu(config: DaemonConfig, current: ActiveSets, path: Path, *,
-               force: bool) -> tuple[ActiveSets, list[str]]:
+               force: bool) -> tuple[ActiveSets, list[SetsNote]]:
     """:func:`reload` for an IMU set: the three axes and the coupling replaced together, or not at all.
 
     An axis whose model is the one running keeps its corrector (and the state of its terms)."""
@@ -299,13 +313,14 @@ def reload_imu(config: DaemonConfig, current: ActiveSets, path: Path, *,
         imu, correctors = load_imu(config, path)
     except CanicalError as exc:
         same_file = all(ax.stamp == stamp for ax in current.axes)
-        return current if same_file else replace(current, axes=restamped), [f"imu set: {exc}; {keep}"]
+        note = SetsNote(f"imu set: {exc}; {keep}", refused=True)
+        return current if same_file else replace(current, axes=restamped), [note]
     imu_id = imu_set_crc(imu)
     if current.complete and current.coupling is not None and imu_id == current.combined_id:
         return replace(current, axes=restamped), []
     axes = _imu_axes(current, correctors, SOURCE_FILE, (stamp,) * len(current.axes))
     was = f"0x{current.combined_id:08x}" if current.complete else "none"
-    return build(axes, imu), [f"imu set 0x{imu_id:08x} from {path} replaces {was}"]
+    return build(axes, imu), [SetsNote(f"imu set 0x{imu_id:08x} from {path} replaces {was}")]
 
 
 def _imu_axes(current: ActiveSets, correctors: list[Corrector] | tuple[Corrector, ...], source: int,

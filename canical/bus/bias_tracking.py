@@ -39,7 +39,8 @@ class DaemonTracking:
         self.set_id: int | None = None
         self.axes: tuple[str, ...] = ()
         self.trackers: list[BiasTracker | None] = [None, None, None]
-        self._t0: float | None = None
+        #: Time zero without a time input: the first frame's stamp (the generated handler sets it too).
+        self.t0: float | None = None
         self._saved_updates = -1
         #: Per frame: the inputs' names (time, temperature, cue), and per axis its step and the bias
         #: it applies now (for a frame the tracking's inputs have not all reached).
@@ -89,9 +90,9 @@ class DaemonTracking:
         values = self.values
         time_name, temp_name, cue_name = self._names
         if time_name is None:
-            if self._t0 is None:
-                self._t0 = stamp
-            t = stamp - self._t0
+            if self.t0 is None:
+                self.t0 = stamp
+            t = stamp - self.t0
         else:
             t = values.get(time_name, NAN)
         temp = NAN if temp_name is None else values.get(temp_name, NAN)
@@ -123,7 +124,7 @@ class DaemonTracking:
         time_name, temp_name, cue_name = self._names
         names: dict[str, Any] = {"TRK": self, "NAN": NAN}
         if time_name is None:  # time since the first frame of this run
-            lines = ["    trk_t = TRK._t0", "    if trk_t is None:", "        trk_t = TRK._t0 = stamp",
+            lines = ["    trk_t = TRK.t0", "    if trk_t is None:", "        trk_t = TRK.t0 = stamp",
                      "    trk_t = stamp - trk_t"]
         else:
             lines = [f"    trk_t = values.get({time_name!r}, NAN)"]

@@ -138,6 +138,8 @@ def load_config(path: str | os.PathLike[str], *, channel: str | None = None) -> 
 
 
 Fail = Callable[[str, str], CanicalError]
+#: A section of the YAML file as read: keys to whatever the file holds (checked where used).
+Json = dict[str, Any]
 
 
 class _Dbc:
@@ -228,7 +230,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     )
 
 
-def _imu_set(content: dict, base: Path, fail: Fail) -> Path | None:
+def _imu_set(content: Json, base: Path, fail: Fail) -> Path | None:
     """``imu_set``: one IMU set file (three axes and their coupling) instead of a file per axis."""
     value = content.get("imu_set")
     return None if value is None else _path(value, base, "imu_set", fail)
@@ -243,7 +245,7 @@ def _dbc_files(value: Any, base: Path, fail: Fail) -> DbcSet:
     return DbcSet((_path(value, base, "dbc", fail, must_exist=True),))
 
 
-def _bias_tracking(content: dict, inputs: dict[str, InputSource], base: Path,
+def _bias_tracking(content: Json, inputs: dict[str, InputSource], base: Path,
                    fail: Fail) -> BiasTracking | None:
     """``bias_tracking``: the tracker's settings, its cue and temperature among the inputs."""
     section = content.get("bias_tracking")
@@ -263,7 +265,7 @@ def _bias_tracking(content: dict, inputs: dict[str, InputSource], base: Path,
     return BiasTracking(settings, temperature, "time_s" if "time_s" in inputs else None, state)
 
 
-def _bus_options(bus: dict, fail: Fail) -> dict[str, Any]:
+def _bus_options(bus: Json, fail: Fail) -> dict[str, Any]:
     """``bus.options``: python-can's keyword arguments, but none that canical sets itself."""
     options = bus.get("options", {}) or {}
     if not isinstance(options, dict):
@@ -274,7 +276,7 @@ def _bus_options(bus: dict, fail: Fail) -> dict[str, Any]:
     return dict(options)
 
 
-def _frames(content: dict, dbc: _Dbc) -> _Frames:
+def _frames(content: Json, dbc: _Dbc) -> _Frames:
     """``frames``: classic, unmultiplexed raw and rate frames with the signals the daemon fills,
     a status frame multiplexed by page."""
     frames = content.get("frames", {}) or {}
@@ -294,7 +296,7 @@ def _frames(content: dict, dbc: _Dbc) -> _Frames:
     return _Frames(raw_msg, rate_msg, status_msg)
 
 
-def _status_frame(frames: dict, dbc: _Dbc) -> Message | None:
+def _status_frame(frames: Json, dbc: _Dbc) -> Message | None:
     """``frames.status``: canical's heartbeat, multiplexed by page, or null (not sent)."""
     if "status" in frames and frames["status"] is None:
         return None
@@ -306,7 +308,7 @@ def _status_frame(frames: dict, dbc: _Dbc) -> Message | None:
     return status_msg
 
 
-def _rate_frame(content: dict, frames: dict, dbc: _Dbc) -> Message | None:
+def _rate_frame(content: Json, frames: Json, dbc: _Dbc) -> Message | None:
     """``frames.rate``: canical's corrected frame, or null (not sent: the own layout is)."""
     if "rate" in frames and frames["rate"] is None:
         if content.get("own_layout") is None:
@@ -318,7 +320,7 @@ def _rate_frame(content: dict, frames: dict, dbc: _Dbc) -> Message | None:
     return rate_msg
 
 
-def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: bool) -> tuple[AxisConfig, ...]:
+def _axes(content: Json, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: bool) -> tuple[AxisConfig, ...]:
     """``axes``: per axis its raw signal and coefficients file; at least one axis has a file, or
     ``imu_set`` names one file for all three (then no axis names its own)."""
     axes_in = _section(content, "axes", dbc.fail)
@@ -350,7 +352,7 @@ def _axes(content: dict, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: boo
     return tuple(axes)
 
 
-def _raw_message_of_axes(content: dict, fail: Fail) -> str | None:
+def _raw_message_of_axes(content: Json, fail: Fail) -> str | None:
     """The raw frame the axes imply when they name ``MESSAGE.Signal`` (None: they name signals of
     ``frames.raw``): their message, or with several, the last axis's (x, y, z order; an IMU
     sends its gyro messages in a burst, the last completes a sample)."""
@@ -381,7 +383,7 @@ def _axis_raw_signal(value: Any, key: str, frames: _Frames, dbc: _Dbc) -> tuple[
     return message, signal
 
 
-def _counter(content: dict, frames: _Frames, dbc: _Dbc) -> str | None:
+def _counter(content: Json, frames: _Frames, dbc: _Dbc) -> str | None:
     """``counter``: the raw frame's rolling counter signal (absent or null: none, not checked)."""
     counter = content.get("counter")
     if counter is not None:
@@ -391,7 +393,7 @@ def _counter(content: dict, frames: _Frames, dbc: _Dbc) -> str | None:
     return counter
 
 
-def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]:
+def _inputs(content: Json, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]:
     """``inputs``: each run-time input's signal (``MESSAGE.Signal``, in a frame the daemon does
     not send) and how old it may get."""
     inputs_in = content.get("inputs", {}) or {}
@@ -422,7 +424,7 @@ def _inputs(content: dict, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]
     return inputs
 
 
-def _own_layout_output(content: dict, frames: _Frames, inputs: dict[str, InputSource], dbc: _Dbc,
+def _own_layout_output(content: Json, frames: _Frames, inputs: dict[str, InputSource], dbc: _Dbc,
                        channel: str, j1939: J1939Source) -> OwnLayoutOutput | None:
     """``own_layout``: send each corrected frame in the raw frame's own layout too, at ``id``,
     on the sensor's bus or, with ``channel``, on another one (absent: not sent)."""
@@ -488,7 +490,7 @@ def _held_ids(spec: Any, held: list[str], dbc: _Dbc) -> tuple[tuple[str, int, bo
     return tuple(out)
 
 
-def _j1939_source(content: dict, fail: Fail) -> J1939Source:
+def _j1939_source(content: Json, fail: Fail) -> J1939Source:
     """``j1939``: which source address J1939 messages are matched with (absent: the DBC's)."""
     section = content.get("j1939")
     if section is None:
@@ -502,7 +504,7 @@ def _j1939_source(content: dict, fail: Fail) -> J1939Source:
         raise fail("j1939.source_address", str(exc).split(": ", 1)[1]) from None
 
 
-def _j1939_messages(content: dict, fail: Fail) -> tuple[str, ...]:
+def _j1939_messages(content: Json, fail: Fail) -> tuple[str, ...]:
     """``j1939.messages``: the messages that are J1939 parameter groups though the DBC does not say
     so (no ``VFrameFormat``/``ProtocolType``): a list of names, or ``all`` (every extended-id one)."""
     section = content.get("j1939")
@@ -534,7 +536,7 @@ def _raw_frames_can_match(frames: _Frames, axes: tuple[AxisConfig, ...], dbc: _D
                                 f"list it under j1939.messages (or messages: {ALL_EXTENDED})")
 
 
-def _device(content: dict, fail: Fail) -> DeviceSource | None:
+def _device(content: Json, fail: Fail) -> DeviceSource | None:
     """``device``: the IMU as a CANopen node whose own sets are used (absent: files only)."""
     device_in = content.get("device")
     if device_in is None:
@@ -554,21 +556,21 @@ def _no_unknown(section: Mapping[str, Any], allowed: set[str], prefix: str, fail
             raise fail(f"{prefix}{key}", f"unknown key (expected one of {', '.join(sorted(allowed))})")
 
 
-def _section(content: dict, key: str, fail: Fail) -> dict:
+def _section(content: Json, key: str, fail: Fail) -> Json:
     value = content.get(key)
     if not isinstance(value, dict):
         raise fail(key, "missing or not a mapping")
     return value
 
 
-def _text(section: dict, key: str, name: str, fail: Fail) -> str:
+def _text(section: Json, key: str, name: str, fail: Fail) -> str:
     value = section.get(key)
     if not isinstance(value, str) or not value:
         raise fail(name, "missing or not a non-empty string")
     return value
 
 
-def _optional_text(content: dict, key: str, fail: Fail) -> str | None:
+def _optional_text(content: Json, key: str, fail: Fail) -> str | None:
     value = content.get(key)
     if value is None:
         return None

@@ -1,7 +1,7 @@
 """The raw frame's path, prepared once: the frames' layout, a plan per generation of sets, and
 the raw frame's handler generated as one function for exactly those sets.
 
-The daemon's reference handler (:meth:`canical.bus.daemon.Daemon._on_raw`) walks a plan, calls a
+The reference handler (:class:`canical.bus.reference_handler.ReferenceHandler`) walks a plan, calls a
 function per axis, per codec and per check; at a few µs per frame those calls and lookups cost
 as much as the work. So, per generation of sets (and socket), it is written out here as one
 function: the decode's fields as locals, the three axes' corrections inline
@@ -298,10 +298,11 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
                          tracking: DaemonTracking | None = None) -> RawHandler:
     """The raw frame's handler for ``sets`` as one generated function.
 
-    ``owner`` is the daemon (the code reads its ``sets`` and keeps its ``_prev_counter`` and
-    ``_tx_counter``), ``general`` its reference handler, ``names`` what else the code calls:
-    ``stats``, ``values``, ``times``, ``encode`` (the rate frame's codec), ``send`` (the
-    socket's) and ``send_failed``; ``tracking`` is the bias tracking when it is on. Only for
+    ``owner`` holds the sets in use (the code reads its ``sets``), ``general`` is the reference
+    handler, ``names`` what else the code uses: the frame path's state (``stats``, ``values``,
+    ``times``, ``held_frames`` and ``counters``, whose ``prev`` and ``tx`` it carries on),
+    ``encode`` (the rate frame's codec), ``send`` and ``send_own`` (the links') and
+    ``send_failed``; ``tracking`` is the bias tracking when it is on. Only for
     three axes on compiled correctors and a rate frame whose signals come in
     :meth:`~canical.frames.codec.RateEncoder.encode_xyz`'s order.
     """
@@ -341,7 +342,7 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
         src.lines.extend(coupling_lines(sets.coupling, ("r0", "r1", "r2")))
     if tracking is not None:  # the bias learned at standstills, less (canical.bus.bias_tracking)
         src.add(*tracking.inline_lines(flags))
-    src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = self._tx_counter"])
+    src.lines.extend(["    if stale:", "        stats.stale_frames += 1", "    counter = counters.tx"])
     raws = [f"s{a.at}" if a.held is None else held.get(a.held, f"values[{a.held!r}]") for a in plan.axes]
     if layout.own is not None:
         _encode_and_send_own(src, layout.own, raws, flags, "data", "own0_")
@@ -359,8 +360,8 @@ def generate_raw_handler(layout: FrameLayout, sets: ActiveSets, plan: Plan, *, o
     lines = src.lines
     source = "\n".join(with_state(lines[0], lines[1:], state, "on_raw")) + "\n"
     exec(compile(source, f"<raw frame, sets {sets.combined_id:08x}>", "exec"), src.ns)
-    handler = src.ns["make"]()
-    handler.source = source
+    handler: RawHandler = src.ns["make"]()
+    handler.source = source  # type: ignore[attr-defined]  # for tests and benchmarks to read
     return handler
 
 
@@ -381,10 +382,10 @@ def _decode_and_count(src: _Source, layout: FrameLayout, plan: Plan) -> None:
         src.lines.append("    gap = False")
     else:
         got = f"s{counter_at}"
-        src.lines.extend(["    prev = self._prev_counter",
+        src.lines.extend(["    prev = counters.prev",
                           f"    gap = prev is not None and {got} != ((prev + 1) & {layout.counter_mask:#x})",
                           "    if gap:", "        stats.counter_gaps += 1",
-                          f"    self._prev_counter = {got}"])
+                          f"    counters.prev = {got}"])
 
 
 def _encode_and_send_own(src: _Source, own: OwnLayout, raws: list[str], flags: list[str], data: str,
@@ -444,7 +445,7 @@ def _encode_and_send(src: _Source, layout: FrameLayout, rate: RateEncoder, sets:
     except NotCompilable:  # cantools encodes this frame (logged at start)
         payload = f"encode(({', '.join(values)}))"
     pad = f" + {layout.rate_pad!r}" if layout.rate_pad else ""
-    src.lines.extend([f"    payload = {payload}", f"    self._tx_counter = (counter + 1) & {mask:#x}",
+    src.lines.extend([f"    payload = {payload}", f"    counters.tx = (counter + 1) & {mask:#x}",
                       "    try:",
                       f"        send(FRAME + payload{pad}, MSG_DONTWAIT)", "    except OSError as exc:",
                       "        send_failed(exc)  # counted as dropped, or the bus is lost",

@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass
 
 from canical.bus import active_sets
-from canical.bus.active_sets import ActiveSets
+from canical.bus.active_sets import ActiveSets, SetsNote
 from canical.bus.daemon_config import DaemonConfig
 
 __all__ = ["Reload", "Reloads", "build_sets"]
@@ -26,7 +26,7 @@ class Reload:
 
     base: ActiveSets  # the sets in use when it started
     new: ActiveSets
-    messages: tuple[str, ...]  # what happened, to log
+    messages: tuple[SetsNote, ...]  # what happened, to log
     why: str  # "SIGHUP", "file changed", ...
     asked: float = 0.0  # when it was asked for (monotonic)
     built_s: float = 0.0  # how long building took, wall
@@ -37,7 +37,7 @@ class Reload:
         return self.new is not self.base
 
 
-def build_sets(config: DaemonConfig, base: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[str]]:
+def build_sets(config: DaemonConfig, base: ActiveSets, *, force: bool) -> tuple[ActiveSets, list[SetsNote]]:
     """New sets from ``base``: pure building and validation, never touching the sets in use.
 
     ``force`` (SIGHUP) reads every file again, and the device's sets when it is configured;
@@ -86,7 +86,8 @@ class Reloads:
             try:
                 new, messages = build_sets(self.config, base, force=force)
             except Exception as exc:  # a reload must never take the daemon down
-                new, messages = base, [f"reload failed ({exc}); keeping the sets in use"]
+                failed = SetsNote(f"reload failed ({exc}); keeping the sets in use", refused=True)
+                new, messages = base, [failed]
             # How long building took, in wall and in this thread's CPU time: a slow reload on a
             # busy machine shows as much more wall than CPU time.
             self._done = Reload(base, new, tuple(messages), why, asked, time.monotonic() - asked,

@@ -1,28 +1,30 @@
 """The daemon's side of SocketCAN: frames as the kernel lays them out, the raw socket, sending.
 
-python-can spends a ``select`` and two clock reads on each receive and each send; on the
-socketcan bus's own raw socket a frame costs one ``recvmsg`` and one ``send``. The daemon
-uses that socket directly when it can (:func:`raw_socket_of`) and python-can's ``recv`` and
-``send`` otherwise; either way a frame is named by its ``can_id`` with SocketCAN's flag bits,
-so one classification serves both. A failure of the interface is :class:`BusLost`; a full
-transmit queue is not (the frame is dropped and counted by the caller).
+python-can spends a ``select`` and two clock reads on each receive and each send; on a raw
+CAN socket a frame costs one ``recvmsg`` and one ``send``. So on SocketCAN the daemon opens its
+own raw socket (:func:`open_raw_socket`, set up as python-can's socketcan bus sets up its
+own: CAN FD frames seen, error frames passed, nanosecond receive times, the kernel's filters)
+and reads and writes frames in the kernel's layout; on other interfaces python-can is put
+behind the same layout (:mod:`.link`), so one receive loop and one send path serve both.
+A failure of the interface is :class:`BusLost`; a full transmit queue is not (the frame is
+dropped and counted by the caller).
 """
 
 from __future__ import annotations
 
 import errno
 import socket
+import struct
 from collections.abc import Iterable
 from typing import Any
 
-import can
-from can.interfaces.socketcan.constants import CAN_EFF_FLAG
+from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_RAW_ERR_FILTER
 
-from canical.bus.socketcan_constants import FRAME_HEAD, SO_RCVBUFFORCE, TIMEVAL
+from canical.bus.socketcan_constants import CAN_ERR_MASK, FRAME_HEAD, SO_RCVBUFFORCE, SO_TIMESTAMPNS
 from canical.frames.frame_match import FrameMatch
 
-__all__ = ["RECEIVE_BUFFER_BYTES", "TX_FULL", "BusLost", "enlarge_receive_buffer", "frame_key",
-           "raw_socket_of", "receive_filters", "send_message", "set_receive_timeout", "socket_frame"]
+__all__ = ["RECEIVE_BUFFER_BYTES", "TX_FULL", "BusLost", "enlarge_receive_buffer", "enlarge_socket_buffer",
+           "frame_key", "kernel_filters", "open_raw_socket", "receive_filters", "socket_frame"]
 
 #: errno values that mean "not a problem of this frame": the transmit queue is full.
 TX_FULL = frozenset({errno.ENOBUFS, errno.EAGAIN})
@@ -54,25 +56,40 @@ def receive_filters(matches: Iterable[FrameMatch]) -> list[dict[str, Any]]:
     return [{"can_id": m.frame_id, "can_mask": m.mask, "extended": m.extended} for m in unique]
 
 
-def raw_socket_of(bus: object) -> socket.socket | None:
-    """The bus's own SocketCAN socket when frames can go through it directly, else None.
+def kernel_filters(matches: Iterable[FrameMatch]) -> bytes:
+    """``CAN_RAW_FILTER``'s value passing exactly these frames (no match: no frame at all).
 
-    Only python-can's socketcan bus has one (``bus.socket``); it must be a blocking socket
-    (python-can's default), so that the receive timeout set below is the wait.
-    """
-    sock = getattr(bus, "socket", None)
-    usable = sock is not None and getattr(sock, "family", None) == socket.AF_CAN and sock.gettimeout() is None
-    return sock if usable else None
+    As python-can builds it: each filter also compares the extended flag, so a standard id
+    never passes for an extended one of the same number."""
+    words: list[int] = []
+    for m in dict.fromkeys(matches):
+        words += [m.frame_id | (CAN_EFF_FLAG if m.extended else 0), m.mask | CAN_EFF_FLAG]
+    return struct.pack(f"={len(words)}I", *words)
 
 
-def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) -> bool:
-    """Ask for a receive buffer of ``size_bytes`` on the bus's SocketCAN socket: beyond the
-    system's cap where the process may (``SO_RCVBUFFORCE``), within it otherwise (the kernel
-    then grants up to ``net.core.rmem_max``). False: not a SocketCAN bus, or refused; the
-    default buffer stays."""
-    sock = getattr(bus, "socket", None)
-    if sock is None or getattr(sock, "family", None) != socket.AF_CAN:
-        return False
+def open_raw_socket(channel: str, matches: Iterable[FrameMatch]) -> socket.socket:
+    """A blocking raw CAN socket on ``channel`` receiving the frames ``matches`` name, CAN FD
+    frames (to count and drop them) and error frames, each with its receive time
+    (``SO_TIMESTAMPNS``), and a receive buffer of seconds of frames. No match: send only.
+    OSError when the channel cannot be bound."""
+    sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+    try:
+        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, kernel_filters(matches))
+        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, 1)
+        sock.setsockopt(socket.SOL_CAN_RAW, CAN_RAW_ERR_FILTER, CAN_ERR_MASK)
+        sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        enlarge_socket_buffer(sock)  # a moment's stall of the host loses no frame
+        sock.bind((channel,))
+    except OSError:
+        sock.close()
+        raise
+    return sock
+
+
+def enlarge_socket_buffer(sock: socket.socket, size_bytes: int = RECEIVE_BUFFER_BYTES) -> bool:
+    """Ask for a receive buffer of ``size_bytes`` on a socket: beyond the system's cap where the
+    process may (``SO_RCVBUFFORCE``), within it otherwise (the kernel then grants up to
+    ``net.core.rmem_max``). False: refused; the default buffer stays."""
     for option in (SO_RCVBUFFORCE, socket.SO_RCVBUF):
         try:
             sock.setsockopt(socket.SOL_SOCKET, option, size_bytes)
@@ -82,25 +99,10 @@ def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) 
     return False
 
 
-def set_receive_timeout(sock: socket.socket, wait_s: float) -> float:
-    """Make ``recvmsg`` on ``sock`` give up after ``wait_s``; returns the timeout as set."""
-    usec = max(1, int(wait_s * 1e6))  # 0 would mean "wait for ever"
-    try:
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVTIMEO, TIMEVAL.pack(*divmod(usec, 1_000_000)))
-    except OSError as exc:
-        raise BusLost(f"receive failed: {exc}") from None
-    return usec * 1e-6
-
-
-def send_message(bus: can.BusABC, frame_id: int, extended: bool, payload: bytes) -> bool:
-    """One frame through python-can's ``send``: False when the transmit queue was full (the frame
-    is dropped), :class:`BusLost` when the interface failed."""
-    try:
-        bus.send(can.Message(arbitration_id=frame_id, is_extended_id=extended, data=payload, check=False))
-    except can.CanOperationError as exc:
-        if exc.error_code in TX_FULL or "buffer full" in str(exc):
-            return False
-        raise BusLost(f"send failed: {exc}") from None
-    except can.CanError as exc:
-        raise BusLost(f"send failed: {exc}") from None
-    return True
+def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) -> bool:
+    """:func:`enlarge_socket_buffer` for a python-can bus (the recorder's) on SocketCAN. False:
+    not a SocketCAN bus, or refused."""
+    sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket) or sock.family != socket.AF_CAN:
+        return False
+    return enlarge_socket_buffer(sock, size_bytes)

@@ -12,7 +12,8 @@ import struct
 
 from can.interfaces.socketcan.constants import CAN_EFF_FLAG, MAX_29_BIT_ID
 
-__all__ = ["CAN_MTU", "FRAME_HEAD", "FRAME_KEY", "SO_RCVBUFFORCE", "STAMP_BUFFER_SIZE", "TIMEVAL"]
+__all__ = ["CAN_ERR_MASK", "CAN_MTU", "FRAME_HEAD", "FRAME_KEY", "SO_RCVBUFFORCE", "SO_TIMESTAMPNS",
+           "STAMP_BUFFER_SIZE", "TIMEVAL"]
 
 #: ``sizeof(struct can_frame)``: a classic frame as the raw socket reads and writes it.
 CAN_MTU = 16
@@ -29,3 +30,7 @@ FRAME_KEY = CAN_EFF_FLAG | MAX_29_BIT_ID
 #: ``SO_RCVBUFFORCE`` (``<asm-generic/socket.h>``; Python's socket module does not name it): a
 #: receive buffer beyond ``net.core.rmem_max``, for a process with CAP_NET_ADMIN.
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)
+#: ``SO_TIMESTAMPNS`` (``<asm-generic/socket.h>``): each received frame's kernel receive time, in ns.
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+#: ``CAN_ERR_MASK`` (``<linux/can/error.h>``): every class of error frame, for ``CAN_RAW_ERR_FILTER``.
+CAN_ERR_MASK = 0x1FFFFFFF

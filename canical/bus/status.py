@@ -7,11 +7,15 @@ between frames, at the status period.
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Mapping
+
 from canical.bus.active_sets import ActiveSets
+from canical.bus.socketcan import socket_frame
 from canical.bus_outage import Outage
+from canical.frames.codec import StatusEncoder
 
 __all__ = ["AXIS_CODES", "SATURATING_PAGES", "STATE_DEGRADED", "STATE_NAMES", "STATE_RUNNING",
-           "STATE_STARTING", "STATE_STOPPING", "Stats", "status_line", "status_pages"]
+           "STATE_STARTING", "STATE_STOPPING", "Stats", "status_frames", "status_line", "status_pages"]
 
 #: The daemon's state, as the status frame's ``State`` signal carries it.
 STATE_STARTING, STATE_RUNNING, STATE_DEGRADED, STATE_STOPPING = 0, 1, 2, 3
@@ -52,6 +56,19 @@ class Stats:
 
     def as_dict(self) -> dict[str, int]:
         return {name: getattr(self, name) for name in self.__slots__}
+
+
+BIAS_PAGE = 3  # the page of each axis's learned bias (canical.bus.bias_tracking)
+
+
+def status_frames(status: StatusEncoder, pages: list[tuple[int, dict[str, int]]],
+                  bias: Iterable[Mapping[str, float]] | None) -> list[bytes]:
+    """The status frame's pages as kernel frames: the counters' pages, then (with ``bias``, the
+    bias tracking's pages, when the DBC's status frame has the page) each axis's learned bias."""
+    frames = [status.encode(page, values, saturate=page in SATURATING_PAGES) for page, values in pages]
+    if bias is not None and BIAS_PAGE in status.pages:
+        frames += [status.encode_physical(BIAS_PAGE, dict(b)) for b in bias]
+    return [socket_frame(status.frame_id, status.is_extended, payload) for payload in frames]
 
 
 def status_pages(state: int, stats: Stats, sets: ActiveSets,

@@ -39,6 +39,12 @@ class PiecewisePoly:
         object.__setattr__(self, "_coeffs_list", [[float(c) for c in r] for r in self.coeffs])
 
     @property
+    def knot_floats(self) -> list[float]:
+        """The knots as plain floats (made once at load): for the scalar path and the code
+        generated from the model (:mod:`canical.sets.fast_corrector`)."""
+        return self._knots_list
+
+    @property
     def n_segments(self) -> int:
         return int(self.coeffs.shape[0])
 

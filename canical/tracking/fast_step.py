@@ -3,10 +3,11 @@
 Why: :meth:`~canical.tracking.tracker.BiasTracker.step` keeps its running sums in lists on
 objects, so each sample costs a dozen attribute and list accesses (about 0.75 µs); the daemon
 steps three trackers per frame. Here the per-sample work (time and power-on, the window's sums,
-the slew) runs on the closure's own floats, and the tracker's methods are called only where
-something is decided (a window closes, a new power-on) with the state handed over to the tracker
-and taken back, so the tracker decides exactly as when stepped itself. The floating-point
-operations are the tracker's, in its order: the output is the same, bit for bit
+the slew) runs on the closure's own floats, and the tracker is called only where something is
+decided (:meth:`~BiasTracker.close_window`, :meth:`~BiasTracker.power_on`), with the state
+handed over (:meth:`~BiasTracker.resume`) and taken back (:meth:`~BiasTracker.step_state`) as a
+:class:`~canical.tracking.tracker.StepState`, so the tracker decides exactly as when stepped itself.
+The floating-point operations are the tracker's, in its order: the output is the same, bit for bit
 (``tests/tracking/test_fast_step.py``), and the offline replay uses this too.
 
 The tracker object is current only after :attr:`FastStep.sync` (status pages, saving the state).
@@ -18,7 +19,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from canical.tracking.tracker import POWER_ON_STEP_S, BiasTracker
+from canical.tracking.tracker import POWER_ON_STEP_S, BiasTracker, StepState
 
 NAN = math.nan
 
@@ -39,24 +40,22 @@ def fast_step(tracker: BiasTracker) -> FastStep:
         raise ValueError(f"fast_step steps one axis, the tracker has {len(tracker.axes)}")
     cfg = tracker.config
     window_s, slew_rate, below = cfg.window_s, cfg.slew_dps_per_s, cfg.cue_threshold
-    sums = tracker._sums
-    last_t, temp = tracker._last_t, tracker._temp
-    n, start, temp_sum, cue_moving = sums.n, sums.start_s, sums.temp_sum, sums.cue_moving
-    ref, s1, s2 = sums.ref[0], sums.s1[0], sums.s2[0]
-    applied, target, settled = tracker.applied[0], tracker._target[0], tracker._settled
+    at = tracker.step_state()
+    last_t, temp = at.last_t, at.temp_c
+    n, start, temp_sum, cue_moving = at.n, at.start_s, at.temp_sum, at.cue_moving
+    (ref,), (s1,), (s2,) = at.ref, at.s1, at.s2
+    (applied,), (target,), settled = at.applied, at.target, at.settled
 
     def push() -> None:
         """The closure's state into the tracker, as if it had stepped itself."""
-        sums.n, sums.start_s, sums.temp_sum, sums.cue_moving = n, start, temp_sum, cue_moving
-        sums.ref, sums.s1, sums.s2 = [ref], [s1], [s2]
-        tracker._temp, tracker._last_t = temp, last_t
-        tracker.applied[0] = applied
-        tracker._settled = settled
+        tracker.resume(StepState(last_t, temp, n, start, temp_sum, cue_moving, (ref,), (s1,), (s2,),
+                                 (applied,), (target,), settled))
 
     def pull() -> None:
         """What a decision changed: the window restarts, the target may move."""
         nonlocal n, target, settled
-        n, target, settled = sums.n, tracker._target[0], tracker._settled
+        now = tracker.step_state()
+        n, (target,), settled = now.n, now.target, now.settled
 
     def step(t_s: float, r: float, temp_c: float = NAN, cue: float | None = None) -> float:
         nonlocal last_t, temp, n, start, temp_sum, cue_moving, ref, s1, s2, applied, settled
@@ -64,7 +63,7 @@ def fast_step(tracker: BiasTracker) -> FastStep:
         if t_s < last:
             if t_s < last - POWER_ON_STEP_S:
                 push()
-                tracker._power_on()
+                tracker.power_on()
                 pull()
                 last = NAN
             else:  # jitter: time does not run back within a power-on
@@ -82,8 +81,7 @@ def fast_step(tracker: BiasTracker) -> FastStep:
             cue_moving = True
         if t_s - start >= window_s:
             push()
-            tracker._close_window(t_s)
-            tracker._retarget()
+            tracker.close_window(t_s)
             pull()
         if last != last:
             applied, settled = target, True
@@ -127,27 +125,25 @@ def fast_step3(tracker: BiasTracker) -> FastStep3:
         raise ValueError(f"fast_step3 steps three axes, the tracker has {len(tracker.axes)}")
     cfg = tracker.config
     window_s, slew_rate, below = cfg.window_s, cfg.slew_dps_per_s, cfg.cue_threshold
-    sums = tracker._sums
-    last_t, temp = tracker._last_t, tracker._temp
-    n, start, temp_sum, cue_moving = sums.n, sums.start_s, sums.temp_sum, sums.cue_moving
-    (ref0, ref1, ref2), (s10, s11, s12), (s20, s21, s22) = sums.ref, sums.s1, sums.s2
-    a0, a1, a2 = tracker.applied
-    g0, g1, g2 = tracker._target
-    settled = tracker._settled
+    at = tracker.step_state()
+    last_t, temp = at.last_t, at.temp_c
+    n, start, temp_sum, cue_moving = at.n, at.start_s, at.temp_sum, at.cue_moving
+    (ref0, ref1, ref2), (s10, s11, s12), (s20, s21, s22) = at.ref, at.s1, at.s2
+    a0, a1, a2 = at.applied
+    g0, g1, g2 = at.target
+    settled = at.settled
 
     def push() -> None:
         """The closure's state into the tracker, as if it had stepped itself."""
-        sums.n, sums.start_s, sums.temp_sum, sums.cue_moving = n, start, temp_sum, cue_moving
-        sums.ref, sums.s1, sums.s2 = [ref0, ref1, ref2], [s10, s11, s12], [s20, s21, s22]
-        tracker._temp, tracker._last_t = temp, last_t
-        tracker.applied[:] = [a0, a1, a2]
-        tracker._settled = settled
+        tracker.resume(StepState(last_t, temp, n, start, temp_sum, cue_moving, (ref0, ref1, ref2),
+                                 (s10, s11, s12), (s20, s21, s22), (a0, a1, a2), (g0, g1, g2), settled))
 
     def pull() -> None:
         """What a decision changed: the window restarts, the target may move."""
         nonlocal n, g0, g1, g2, settled
-        n, settled = sums.n, tracker._settled
-        g0, g1, g2 = tracker._target
+        now = tracker.step_state()
+        n, settled = now.n, now.settled
+        g0, g1, g2 = now.target
 
     def step(t_s: float, r0: float, r1: float, r2: float, temp_c: float = NAN,
              cue: float | None = None) -> Bias3:
@@ -157,7 +153,7 @@ def fast_step3(tracker: BiasTracker) -> FastStep3:
         if t_s < last:
             if t_s < last - POWER_ON_STEP_S:
                 push()
-                tracker._power_on()
+                tracker.power_on()
                 pull()
                 last = NAN
             else:  # jitter: time does not run back within a power-on
@@ -182,8 +178,7 @@ def fast_step3(tracker: BiasTracker) -> FastStep3:
             cue_moving = True
         if t_s - start >= window_s:
             push()
-            tracker._close_window(t_s)
-            tracker._retarget()
+            tracker.close_window(t_s)
             pull()
         if last != last:
             a0, a1, a2, settled = g0, g1, g2, True

@@ -58,6 +58,29 @@ class AxisStatus:
 POWER_ON_STEP_S = 1.0
 
 
+@dataclass(frozen=True)
+class StepState:
+    """What :meth:`BiasTracker.step` carries from one sample to the next, as plain numbers.
+
+    Why: the daemon's per-frame step (:mod:`canical.tracking.fast_step`) keeps these in local
+    floats and hands them over only where the tracker decides something (a window closes, a new
+    power-on); this record is that hand-over, so nothing outside reads the tracker's internals.
+    """
+
+    last_t: float  # the last sample's time (NaN: none yet this power-on)
+    temp_c: float  # the latest temperature reading
+    n: int  # samples in the open window
+    start_s: float  # the open window's first sample's time
+    temp_sum: float
+    cue_moving: bool  # the cue said moving (or was missing) in the open window
+    ref: tuple[float, ...]  # per axis: the open window's first rate (the sums are about it)
+    s1: tuple[float, ...]  # per axis: sum of (rate - ref)
+    s2: tuple[float, ...]  # per axis: sum of (rate - ref)²
+    applied: tuple[float, ...]  # per axis: the bias subtracted now
+    target: tuple[float, ...]  # per axis: the learned bias the applied one slews towards
+    settled: bool  # applied == target on every axis
+
+
 class _Run:
     """The still windows of one standstill so far; the last is pending (a guard until one follows)."""
 
@@ -164,6 +187,39 @@ class BiasTracker:
         h = self._temp - self.config.reference_c
         self._target = [s.b0 + s.slope * h for s in self.learned]
         self._settled = self._target == self.applied
+
+    # -- the step's state, for a step kept outside (canical.tracking.fast_step) ----------------
+    def step_state(self) -> StepState:
+        """The state :meth:`step` would continue from (a copy)."""
+        sums = self._sums
+        return StepState(self._last_t, self._temp, sums.n, sums.start_s, sums.temp_sum, sums.cue_moving,
+                         tuple(sums.ref), tuple(sums.s1), tuple(sums.s2), tuple(self.applied),
+                         tuple(self._target), self._settled)
+
+    def resume(self, state: StepState) -> None:
+        """Continue from ``state``, as if :meth:`step` had brought the tracker there.
+
+        The target is not taken: it follows from the learned bias and the temperature, which
+        only the tracker changes (:meth:`close_window`, :meth:`power_on`)."""
+        if len(state.applied) != len(self.axes):
+            raise ValueError(f"a state of {len(state.applied)} axes for a tracker of {len(self.axes)}")
+        sums = self._sums
+        sums.n, sums.start_s, sums.temp_sum, sums.cue_moving = state.n, state.start_s, state.temp_sum, \
+            state.cue_moving
+        sums.ref, sums.s1, sums.s2 = list(state.ref), list(state.s1), list(state.s2)
+        self._last_t, self._temp, self._settled = state.last_t, state.temp_c, state.settled
+        self.applied[:] = state.applied
+
+    def close_window(self, t_s: float) -> None:
+        """End the open window at ``t_s`` (what :meth:`step` does once it spans ``window_s``):
+        decide on it, then retarget at the latest temperature."""
+        self._close_window(t_s)
+        self._retarget()
+
+    def power_on(self) -> None:
+        """A new power-on (what :meth:`step` does when time goes back by more than
+        :data:`POWER_ON_STEP_S`): the standstill under way ends, the turn-on bias is new."""
+        self._power_on()
 
     # -- per window ---------------------------------------------------------------------------
     def _close_window(self, t_s: float) -> None:

@@ -51,7 +51,7 @@ from support.daemon_fixtures import (
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
-from canical.bus.frame_handler import NO_PLAN
+from canical.bus.link import BusLink, SocketLink
 from canical.bus.socketcan_constants import CAN_MTU, FRAME_HEAD, TIMEVAL
 
 BUS_LIMIT_FPS = 8_900  # classic CAN, 1 Mbit/s, 8-byte data frames back to back
@@ -107,11 +107,6 @@ class ReplaySocket:
     def send(self, frame: bytes, flags: int = 0) -> int:
         self.sent.append(frame[8:16])
         return len(frame)
-
-
-class SocketBus:
-    def __init__(self, sock: ReplaySocket) -> None:
-        self.socket = sock
 
 
 def best_of(fns: list, repeats: int) -> list[float]:
@@ -172,26 +167,17 @@ def main() -> None:
     def daemon_for(compiled: bool, config=config):
         daemon = Daemon(config, compiled=compiled)
         daemon.load_sets()
-        if compiled:
-            sock = ReplaySocket(daemon, kernel)
-            daemon.bus = SocketBus(sock)  # type: ignore[assignment]
-            feed = sock
-        else:
-            feed = ReplayBus(daemon, msgs)
-            daemon.bus = feed  # type: ignore[assignment]
+        feed = ReplaySocket(daemon, kernel) if compiled else ReplayBus(daemon, msgs)
 
         def whole() -> None:
             for ax in daemon.sets.axes:  # each run is a fresh stream for the stateful terms
                 ax.corrector.reset()
-            daemon._compiled_axes.clear()
-            daemon._plan = NO_PLAN
-            daemon._fast = (None, None, daemon._on_raw)  # the generated handler holds the trackers too
-            daemon._prev_counter, daemon._tx_counter = None, 0
-            daemon.values.clear()
-            daemon.times.clear()
+            daemon.raw_path.restart()  # plans, handlers (they hold the trackers too), counters, inputs
+            # A new link each run: the socket's send is bound when the link is made.
+            daemon.sender.link = SocketLink(feed) if compiled else BusLink(feed)  # type: ignore[arg-type]
             feed.rewind()
-            daemon._running, daemon._next_periodic = True, float("inf")
-            daemon._serve_until_deadline()
+            daemon._running = True
+            daemon.serve(until=float("inf"))
 
         return daemon, feed, whole
 
@@ -204,7 +190,7 @@ def main() -> None:
         ref_whole()
         new_whole()
         assert ref_feed.sent == new_feed.sent and len(new_feed.sent) == per_frame * n, f"{what} differs"
-        assert marker in new._fast[2].source, f"{what}: not the generated handler"
+        assert marker in new.raw_path.handler(new.sets).source, f"{what}: not the generated handler"
         new_feed.send = {}.get  # type: ignore[method-assign]  # outputs checked: from now on a C no-op
         return ref, new, ref_whole, new_whole
 
@@ -223,7 +209,7 @@ def main() -> None:
     def parts(daemon: Daemon):
         values = daemon.raw.values
         decoded = [values(p) for p in payloads]
-        plan = [(a.at, a.correct) for a in daemon._axes_plan(daemon.sets).axes]
+        plan = [(a.at, a.correct) for a in daemon.raw_path.plans.plan(daemon.sets).axes]
         encode = daemon.rate.encode_xyz
 
         def decode_only() -> None:

@@ -18,12 +18,13 @@ import can
 import numpy as np
 import pytest
 from support.daemon_fixtures import DBC, write_config, write_sets
-from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+from test_daemon_compiled import StandInSocket, feed, handler_source, kernel_frame, serve_socket
 
 from canical.bus import bias_tracking
 from canical.bus.bias_tracking import DaemonTracking
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.link import BusLink
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
@@ -141,18 +142,14 @@ def test_the_daemon_tracks_the_bias_as_apply_does(tmp_path: Path, stepped, compi
     daemon.load_sets()
     if compiled:
         sock = StandInSocket(daemon, [(kernel_frame(m), m.timestamp) for m in msgs])
-        daemon.bus = SocketBus(sock)  # type: ignore[assignment]
-        daemon._next_periodic = float("inf")
-        daemon._serve_until_deadline()
-        assert getattr(daemon._fast[2], "source", "").count("TRK_STEP") >= 1
+        serve_socket(daemon, sock)
+        assert handler_source(daemon).count("TRK_STEP") >= 1
     else:
         class RefBus:
             def send(self, msg: can.Message, timeout: float | None = None) -> None:
                 pass
 
-        daemon.bus = RefBus()  # type: ignore[assignment]
-        for m in msgs:
-            daemon._dispatch(m)
+        feed(daemon, msgs, RefBus())
     expected = offline(tmp_path, msgs, daemon)
     got = np.column_stack([stepped[axis] for axis in ("x", "y", "z")])
     assert got.shape == expected.shape
@@ -170,7 +167,8 @@ def test_the_daemon_tracks_the_bias_as_apply_does(tmp_path: Path, stepped, compi
     assert loaded.learned is not None and loaded.learned[2].updates == status["z"]["updates"]
     if not compiled:  # the status frame's page 3: each axis's learned bias, as sent on the bus
         sent: list[can.Message] = []
-        daemon.bus = type("Bus", (), {"send": lambda self, msg, timeout=None: sent.append(msg)})()  # type: ignore[assignment]
+        bus = type("Bus", (), {"send": lambda self, msg, timeout=None: sent.append(msg)})()
+        daemon.sender.link = BusLink(bus)
         daemon._send_status()
         message = load_dbc(DBC).get_message_by_name("CANICAL_STATUS")
         pages = [message.decode(bytes(m.data), decode_choices=False) for m in sent]
@@ -188,15 +186,13 @@ def test_a_restart_starts_from_the_saved_state_and_new_sets_afresh(tmp_path: Pat
     config = load_config(write_config(tmp_path, "trk", bias_tracking=SETTINGS))
     first = Daemon(config, compiled=False)
     first.load_sets()
-    first.bus = type("Bus", (), {"send": lambda self, msg, timeout=None: None})()  # type: ignore[assignment]
-    for m in drive_frames(20.0):
-        first._dispatch(m)
+    feed(first, drive_frames(20.0), type("Bus", (), {"send": lambda self, msg, timeout=None: None})())
     assert first.tracking is not None
     first.tracking.save()
     with caplog.at_level(logging.INFO, logger="canical.serve"):
         second = Daemon(config, compiled=False)
         second.load_sets()
-        second._axes_plan(second.sets)
+        second.raw_path.plans.plan(second.sets)
     assert "window updates for set" in caplog.text and "loaded" in caplog.text
     assert second.tracking is not None and second.tracking.trackers[2] is not None
     assert abs(second.tracking.trackers[2].status()[0].bias_dps - 0.3) < 0.05  # before any frame
@@ -205,7 +201,7 @@ def test_a_restart_starts_from_the_saved_state_and_new_sets_afresh(tmp_path: Pat
     with caplog.at_level(logging.INFO, logger="canical.serve"):
         third = Daemon(config, compiled=False)
         third.load_sets()
-        third._axes_plan(third.sets)
+        third.raw_path.plans.plan(third.sets)
     assert "not this set" in caplog.text and "learning afresh" in caplog.text
 
 
@@ -228,7 +224,7 @@ def test_an_implausible_saved_state_is_refused_with_a_warning(tmp_path: Path,
     with caplog.at_level(logging.INFO, logger="canical.serve"):
         second = Daemon(config, compiled=False)
         second.load_sets()
-        second._axes_plan(second.sets)
+        second.raw_path.plans.plan(second.sets)
     refused = [r for r in caplog.records if "learning afresh" in r.getMessage()]
     assert [r.levelno for r in refused] == [logging.WARNING], caplog.text
     assert "beyond ±1 deg/s" in refused[0].getMessage()
@@ -262,9 +258,7 @@ def test_apply_with_the_daemon_configuration_tracks_as_the_daemon(tmp_path: Path
             logger.on_message_received(m)
     daemon = Daemon(load_config(cfg_path), compiled=False)
     daemon.load_sets()
-    daemon.bus = type("Bus", (), {"send": lambda self, msg, timeout=None: None})()  # type: ignore[assignment]
-    for m in msgs:
-        daemon._dispatch(m)
+    feed(daemon, msgs, type("Bus", (), {"send": lambda self, msg, timeout=None: None})())
     out = tmp_path / "z.csv"
     assert main(["apply", str(tmp_path / "imu-z.yaml"), str(log), "--config", str(cfg_path), "--track-bias",
                  "-o", str(out)]) == 0

@@ -29,7 +29,7 @@ from support.daemon_fixtures import (
     write_imu_set,
 )
 from test_daemon_bias_tracking import drive_frames
-from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+from test_daemon_compiled import StandInSocket, feed, handler_source, kernel_frame, serve_socket
 
 from canical.bus import bias_tracking
 from canical.bus.daemon import Daemon
@@ -98,13 +98,9 @@ def run_both(config_path: Path, msgs: list[can.Message]) -> tuple[Daemon, Daemon
 
     for daemon in (reference, compiled):
         daemon.load_sets()
-    reference.bus = RefBus()  # type: ignore[assignment]
-    for m in msgs:
-        reference._dispatch(m)
+    feed(reference, msgs, RefBus())
     sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in msgs])
-    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
-    compiled._next_periodic = float("inf")
-    compiled._serve_until_deadline()
+    serve_socket(compiled, sock)
     return reference, compiled, sent_ref, sock
 
 
@@ -113,7 +109,7 @@ def test_frames_carry_the_coupled_rates_apply_computes(folder: Path, seed: int) 
     msgs, signals = messages(500, seed)
     reference, compiled, sent_ref, sock = run_both(imu_set_config(folder, "imu"), msgs)
     assert sock.sent == sent_ref and len(sent_ref) == 500
-    assert "r0, r1, r2 = " in compiled._fast[2].source
+    assert "r0, r1, r2 = " in handler_source(compiled)
     rates, tags = sent_rates(sock.sent)
     coupled, per_axis = expected(folder / "imu-set.yaml", signals)
     inside = np.abs(coupled).max(axis=1) < 327.0  # the frame saturates at its signals' range
@@ -134,9 +130,7 @@ def test_a_new_imu_set_is_adopted_whole_between_two_frames(folder: Path) -> None
     first = [k for k, m in enumerate(msgs) if m.arbitration_id == 0x190]
     cut = first[300]  # the message index of raw frame 300
     sock = StandInSocket(daemon, [(kernel_frame(m), m.timestamp) for m in msgs[:cut]])
-    daemon.bus = SocketBus(sock)  # type: ignore[assignment]
-    daemon._next_periodic = float("inf")
-    daemon._serve_until_deadline()
+    serve_socket(daemon, sock)
     old_tag, old_id = daemon.sets.tag, daemon.sets.combined_id
     first_set = folder / "first.yaml"
     first_set.write_text((folder / "imu-set.yaml").read_text())
@@ -146,7 +140,7 @@ def test_a_new_imu_set_is_adopted_whole_between_two_frames(folder: Path) -> None
     assert daemon.sets.combined_id != old_id and daemon.sets.coupling is not None
     assert all(ax.reloads == 1 for ax in daemon.sets.axes)
     sock.frames = iter([(kernel_frame(m), m.timestamp) for m in msgs[cut:]])
-    daemon._serve_until_deadline()
+    serve_socket(daemon, sock)
 
     rates, tags = sent_rates(sock.sent)
     assert tags == [old_tag] * 300 + [daemon.sets.tag] * 300
@@ -227,14 +221,10 @@ def test_one_tracker_over_the_imu_sets_axes_as_apply_track_bias(tmp_path: Path, 
     daemon.load_sets()
     if compiled:
         sock = StandInSocket(daemon, [(kernel_frame(m), m.timestamp) for m in msgs])
-        daemon.bus = SocketBus(sock)  # type: ignore[assignment]
-        daemon._next_periodic = float("inf")
-        daemon._serve_until_deadline()
-        assert "TRK_STEP3" in daemon._fast[2].source and "r0, r1, r2 = " in daemon._fast[2].source
+        serve_socket(daemon, sock)
+        assert "TRK_STEP3" in handler_source(daemon) and "r0, r1, r2 = " in handler_source(daemon)
     else:
-        daemon.bus = type("Bus", (), {"send": lambda self, msg, timeout=None: None})()  # type: ignore[assignment]
-        for m in msgs:
-            daemon._dispatch(m)
+        feed(daemon, msgs, type("Bus", (), {"send": lambda self, msg, timeout=None: None})())
     signals = frames_signals(msgs)
     imu = imu_set.load(tmp_path / "imu-set.yaml")
     coupled, _ = expected(tmp_path / "imu-set.yaml", signals)

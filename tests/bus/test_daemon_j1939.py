@@ -16,11 +16,12 @@ import numpy as np
 import pytest
 import yaml
 from support.daemon_fixtures import write_sets
-from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+from test_daemon_compiled import StandInSocket, feed, handler_source, kernel_frame, serve_socket
 from test_daemon_own_layout import vendor_stream
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.socketcan import receive_filters
 from canical.errors import CanicalError
 
 DBC = Path(__file__).resolve().parents[1] / "data" / "vendor_imu_j1939.dbc"
@@ -64,13 +65,9 @@ def run_both(config, msgs: list[can.Message]) -> tuple[Daemon, list[can.Message]
 
     for daemon in (reference, compiled):
         daemon.load_sets()
-    reference.bus = RefBus()  # type: ignore[assignment]
-    for m in msgs:
-        reference._dispatch(m)
+    feed(reference, msgs, RefBus())
     sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in msgs])
-    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
-    compiled._next_periodic = float("inf")
-    compiled._serve_until_deadline()
+    serve_socket(compiled, sock)
     return reference, sent, sock.sent, compiled
 
 
@@ -80,8 +77,8 @@ def test_any_source_corrects_every_frame_of_the_group(tmp_path: Path) -> None:
     reference, sent, sock_sent, compiled = run_both(config, msgs)
     assert reference.stats.frames_in == 200 and compiled.stats.frames_in == 200
     assert len(sent) == 200 and sock_sent == [bytes(m.data) for m in sent]
-    assert "send" in compiled._fast[2].source  # the generated handler corrected them
-    (rate_filter,) = [f for f in reference.can_filters() if f["extended"]]
+    assert "send" in handler_source(compiled)  # the generated handler corrected them
+    (rate_filter,) = [f for f in receive_filters(reference.layout.receive_matches()) if f["extended"]]
     assert rate_filter["can_mask"] == 0x03FFFF00 and rate_filter["can_id"] == 0x00FF2A00
 
 

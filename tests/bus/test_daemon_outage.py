@@ -19,6 +19,7 @@ from support.daemon_fixtures import DBC, NotifyListener, write_config, write_set
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.link import BusLink
 from canical.bus.sd_notify import Notifier
 from canical.frames.codec import StatusEncoder, load_dbc
 
@@ -71,7 +72,7 @@ def running(tmp_path: Path):
     config = load_config(write_config(tmp_path, "vcan0", status_period_s=0.2))
     listener = NotifyListener()
     link = Link()
-    daemon = Daemon(config, bus_factory=link.factory,
+    daemon = Daemon(config, open_link=lambda channel, matches: BusLink(link.factory()),  # type: ignore[arg-type]
                     notifier=Notifier({"NOTIFY_SOCKET": listener.name, "WATCHDOG_USEC": str(WATCHDOG_USEC)}))
     thread = threading.Thread(target=daemon.run, daemon=True)
     thread.start()

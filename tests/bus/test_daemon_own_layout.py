@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 from support.daemon_fixtures import TERMS, write_sets
-from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+from test_daemon_compiled import StandInSocket, feed, handler_source, kernel_frame, serve_socket
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
@@ -85,14 +85,10 @@ def test_own_layout_frames_are_the_raw_frames_with_corrected_axes(tmp_path: Path
 
     for daemon in (reference, compiled):
         daemon.load_sets()
-    reference.bus = RefBus()  # type: ignore[assignment]
-    for m in msgs:
-        reference._dispatch(m)
+    feed(reference, msgs, RefBus())
     sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in msgs])
-    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
-    compiled._next_periodic = float("inf")
-    compiled._serve_until_deadline()
-    assert "send_own" in compiled._fast[2].source  # the generated handler sent them
+    serve_socket(compiled, sock)
+    assert "send_own" in handler_source(compiled)  # the generated handler sent them
 
     own_id = CASES[case][4]
     own_ref = [bytes(m.data) for m in sent_ref if m.arbitration_id == own_id]
@@ -125,9 +121,7 @@ def test_gateway_sends_the_own_layout_on_the_output_bus_and_reads_nothing_from_i
     sock = StandInSocket(daemon, [(kernel_frame(m), m.timestamp) for m in raws])
     out = StandInSocket(daemon, [])
     out.recvmsg = None  # type: ignore[assignment, method-assign]  # never read
-    daemon.bus, daemon.out_bus = SocketBus(sock), SocketBus(out)  # type: ignore[assignment]
-    daemon._next_periodic = float("inf")
-    daemon._serve_until_deadline()
+    serve_socket(daemon, sock, out)
     # The own layout on the vehicle's bus, CANICAL_RATE on the sensor's.
     assert len(out.sent) == 50 and len(sock.sent) == 50
     assert all(len(p) == message.length for p in out.sent)
@@ -170,14 +164,10 @@ def test_own_layout_alone_without_canical_rate(tmp_path: Path) -> None:
 
     for daemon in (reference, compiled):
         daemon.load_sets()
-    reference.bus = RefBus()  # type: ignore[assignment]
-    for m in raws:
-        reference._dispatch(m)
+    feed(reference, raws, RefBus())
     sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in raws])
-    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
-    compiled._next_periodic = float("inf")
-    compiled._serve_until_deadline()
-    assert "send_own" in compiled._fast[2].source
+    serve_socket(compiled, sock)
+    assert "send_own" in handler_source(compiled)
     assert {m.arbitration_id for m in sent_ref} == {0x298} and len(sent_ref) == 100
     assert sock.sent == [bytes(m.data) for m in sent_ref]
     assert compiled.stats.frames_out == reference.stats.frames_out == 100

@@ -13,10 +13,12 @@ import numpy as np
 import pytest
 import yaml
 from support.daemon_fixtures import DBC, EXAMPLE_CONFIG, imu_stream, write_config, write_sets
+from test_daemon_compiled import feed
 
 from canical.bus import active_sets
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.link import BusLink
 from canical.bus.sd_notify import Notifier
 from canical.errors import CanicalError
 from canical.files.atomic_file import write_text_atomic
@@ -117,7 +119,8 @@ def test_reload_replaces_whole_value_and_keeps_unchanged_correctors(setup) -> No
     write_text_atomic(sets["z"], "not: a set\n")
     third, messages = active_sets.reload(config, second, force=False)
     assert third.axes[2].corrector is second.axes[2].corrector
-    assert any("axis z:" in m and "keeping set" in m for m in messages)
+    assert [(m.refused, "keeping set" in m.text) for m in messages if m.text.startswith("axis z:")] == [
+        (True, True)]  # a refused set is a warning's news
     again, messages = active_sets.reload(config, third, force=False)
     assert again is third and not messages  # the damaged file is reported once, not every poll
 
@@ -168,7 +171,7 @@ def daemon_on_fake_bus(path) -> tuple[Daemon, list[can.Message]]:
         def send(self, msg: can.Message, timeout: float | None = None) -> None:
             sent.append(msg)
 
-    daemon.bus = FakeBus()  # type: ignore[assignment]
+    daemon.sender.link = BusLink(FakeBus())  # type: ignore[arg-type]
     return daemon, sent
 
 
@@ -178,18 +181,17 @@ def test_dispatch_counts_what_it_drops(setup) -> None:
     _, _, path = setup
     daemon, sent = daemon_on_fake_bus(path)
     stream = imu_stream(30)
-    for fid, data in stream.frames:
-        daemon._dispatch(can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=1.0))
+    msgs = [can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=1.0)
+            for fid, data in stream.frames]
     raw = stream.frames[stream.raw_index[0]][1]
-    for bad in (
+    feed(daemon, [*msgs,
         can.Message(arbitration_id=0x190, data=raw[:5], is_extended_id=False),
         can.Message(arbitration_id=0x555, data=raw, is_extended_id=False),
         can.Message(arbitration_id=0x190, data=raw, is_extended_id=True),
         can.Message(arbitration_id=0x190, is_remote_frame=True, dlc=8, is_extended_id=False),
         can.Message(arbitration_id=0x190, data=raw + bytes(8), is_fd=True, is_extended_id=False),
         can.Message(arbitration_id=0x4, is_error_frame=True),
-    ):
-        daemon._dispatch(bad)
+    ])
     s = daemon.stats
     assert (s.frames_in, s.frames_out, len(sent)) == (30, 30, 30)
     assert (s.bad_length, s.unknown_ids, s.remote_frames, s.fd_frames, s.error_frames) == (1, 2, 1, 1, 1)
@@ -209,9 +211,8 @@ def test_input_never_received_marks_only_the_axes_that_need_it(setup) -> None:
     _, _, path = setup
     daemon, sent = daemon_on_fake_bus(path)
     stream = imu_stream(20)
-    for fid, data in stream.frames:
-        if fid == 0x190:
-            daemon._dispatch(can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=1.0))
+    feed(daemon, [can.Message(arbitration_id=fid, data=data, is_extended_id=False, timestamp=1.0)
+                  for fid, data in stream.frames if fid == 0x190])
     rate = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
     values = [rate.decode(m.data) for m in sent]
     assert len(values) == 20

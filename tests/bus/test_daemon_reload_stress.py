@@ -33,6 +33,7 @@ from support.daemon_fixtures import ALL_TERMS, AXES, base_set, decode_stream, im
 from canical.bus.active_sets import SOURCE_FILE, ActiveSets, AxisSet, build
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.link import SocketLink
 from canical.bus.reloads import Reload
 from canical.bus.socketcan_constants import FRAME_HEAD, TIMEVAL
 from canical.files.atomic_file import write_text_atomic
@@ -89,18 +90,15 @@ class PacedSocket:
         cf, stamp = got
         return cf, [(socket.SOL_SOCKET, 35, TIMEVAL.pack(int(stamp), round(stamp % 1 * 1e9)))], 0, None
 
+    def close(self) -> None:
+        pass
+
     def send(self, frame: bytes, flags: int = 0) -> int:
         can_id, length, _, _ = FRAME_HEAD.unpack_from(frame)
         self.sent.append((can_id, frame[8:8 + length]))
         return len(frame)
 
 
-class SocketBus:
-    def __init__(self, sock: PacedSocket) -> None:
-        self.socket = sock
-
-    def shutdown(self) -> None:
-        pass
 
 
 def reference_sets(folders: list[Path], config_axes, previous: ActiveSets | None, gen: int) -> ActiveSets:
@@ -142,10 +140,7 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
     sock: PacedSocket
     adopted: list[tuple[int, ActiveSets]] = []
 
-    def bus_factory(**_: object) -> SocketBus:
-        return SocketBus(sock)
-
-    daemon = Daemon(config, bus_factory=bus_factory)
+    daemon = Daemon(config, open_link=lambda channel, matches: SocketLink(sock))  # type: ignore[arg-type]
     sock = PacedSocket(daemon, frames)
     adopt = daemon._adopt
 
@@ -245,12 +240,12 @@ def test_replaced_correctors_are_released(tmp_path: Path, compiled: bool) -> Non
             coefficient_file.save(folder / f"imu-{axis}.yaml", cset)
     daemon = Daemon(load_config(write_config(tmp_path, "leak")), compiled=compiled)
     daemon.load_sets()
-    daemon._axes_plan(daemon.sets)
+    daemon.raw_path.plans.plan(daemon.sets)
     old = [weakref.ref(ax.corrector) for ax in daemon.sets.axes]
     for axis in AXES:
         write_text_atomic(tmp_path / f"imu-{axis}.yaml", (tmp_path / "next" / f"imu-{axis}.yaml").read_text())
     daemon._reload(force=False, why="test")
-    daemon._axes_plan(daemon.sets)
+    daemon.raw_path.plans.plan(daemon.sets)
     gc.collect()
     assert [ref() for ref in old] == [None, None, None]
-    assert len(daemon._compiled_axes) == 3
+    assert len(daemon.raw_path.plans.compiled_axes) == 3

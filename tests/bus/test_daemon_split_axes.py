@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 import yaml
 from support.daemon_fixtures import DBC, TERMS, write_sets
-from test_daemon_compiled import SocketBus, StandInSocket, kernel_frame
+from test_daemon_compiled import StandInSocket, feed, handler_source, kernel_frame, serve_socket
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.link import BusLink
 from canical.commands.cli import main
 from canical.errors import CanicalError
 from canical.frames.codec import load_dbc
@@ -90,16 +91,13 @@ def run(config_path: Path, msgs: list[can.Message]) -> tuple[Daemon, list[bytes]
     config = load_config(config_path)
     compiled, reference = Daemon(config), Daemon(config, compiled=False)
     sent_ref: list[bytes] = []
-    reference.bus = type("Bus", (), {  # type: ignore[assignment]
-        "send": lambda self, msg, timeout=None: sent_ref.append(bytes(msg.data))})()
+    reference.sender.link = BusLink(type("Bus", (), {  # type: ignore[arg-type]
+        "send": lambda self, msg, timeout=None: sent_ref.append(bytes(msg.data))})())
     for daemon in (compiled, reference):
         daemon.load_sets()
-    for m in msgs:
-        reference._dispatch(m)
+    feed(reference, msgs)
     sock = StandInSocket(compiled, [(kernel_frame(m), m.timestamp) for m in msgs])
-    compiled.bus = SocketBus(sock)  # type: ignore[assignment]
-    compiled._next_periodic = float("inf")
-    compiled._serve_until_deadline()
+    serve_socket(compiled, sock)
     return compiled, sock.sent, sent_ref
 
 
@@ -111,7 +109,7 @@ def test_axes_from_three_messages_are_held_and_corrected_at_the_raw_frame(tmp_pa
     msgs = split_stream(600, gap=(300, 340))  # 40 samples (0.2 s) without ROLL: x stale
     compiled, sent, sent_ref = run(tmp_path / "split.yaml", msgs)
     assert sent == sent_ref and len(sent) == 600
-    assert "values['@x']" in compiled._fast[2].source  # the generated handler, with x held
+    assert "values['@x']" in handler_source(compiled)  # the generated handler, with x held
     rate_msg = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
     got = [rate_msg.decode(p) for p in sent]
     stale = [g["Stale"] for g in got]
@@ -180,7 +178,7 @@ def test_each_message_goes_out_in_its_own_layout(tmp_path: Path, sets) -> None:
     msgs = split_stream(300, gap=(100, 101))  # one ROLL lost: its last frame is re-sent
     compiled, sent, sent_ref = run(split_config(tmp_path, sets, own_layout=OWN), msgs)
     assert sent == sent_ref and len(sent) == 4 * 300  # YAW, ROLL, PITCH in their layouts; CANICAL_RATE
-    assert "held_frames.get(KEY1)" in compiled._fast[2].source
+    assert "held_frames.get(KEY1)" in handler_source(compiled)
     db = load_dbc(SPLIT)
     rate_msg = load_dbc(DBC).get_message_by_name("CANICAL_RATE")
     layouts = [db.get_message_by_name(m) for m in ("YAW_RATE", "ROLL_RATE", "PITCH_RATE")]
@@ -202,10 +200,9 @@ def test_the_own_layouts_of_several_messages_on_the_bus_as_the_daemon_runs(tmp_p
     daemon = Daemon(config, compiled=False)
     daemon.load_sets()
     out: list[can.Message] = []
-    daemon.bus = type("Bus", (), {  # type: ignore[assignment]
-        "send": lambda self, msg, timeout=None: out.append(msg)})()
-    for m in msgs:
-        daemon._dispatch(m)
+    daemon.sender.link = BusLink(type("Bus", (), {  # type: ignore[arg-type]
+        "send": lambda self, msg, timeout=None: out.append(msg)})())
+    feed(daemon, msgs)
     assert [(m.arbitration_id, m.is_extended_id) for m in out[:3]] == [
         (0x2A2, False), (0x2A0, False), (0x18FF2A41, True)]
     assert len(out) == 150 and daemon.stats.frames_out == 50
@@ -289,10 +286,9 @@ def test_canical_frames_are_optional(tmp_path: Path, sets) -> None:
     daemon = Daemon(config, compiled=False)
     daemon.load_sets()
     out: list[can.Message] = []
-    daemon.bus = type("Bus", (), {  # type: ignore[assignment]
-        "send": lambda self, msg, timeout=None: out.append(msg)})()
-    for m in split_stream(20):
-        daemon._dispatch(m)
+    daemon.sender.link = BusLink(type("Bus", (), {  # type: ignore[arg-type]
+        "send": lambda self, msg, timeout=None: out.append(msg)})())
+    feed(daemon, split_stream(20))
     daemon._send_status()
     assert {m.arbitration_id for m in out} == {0x2A2, 0x2A0, 0x18FF2A41} and len(out) == 60
     assert "20 frames in" in daemon.status_line()

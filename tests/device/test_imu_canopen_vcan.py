@@ -500,13 +500,13 @@ def test_daemon_takes_its_sets_from_the_device_and_falls_back_to_files(vcan_chan
         after_hup, messages = active_sets.from_device(config, sets)  # what SIGHUP does
         assert after_hup.axes[2].set_id == ids(2)["z"]
         assert after_hup.axes[0].corrector is sets.axes[0].corrector  # unchanged: kept, with its state
-        assert any("from device node 0x10 replaces" in m for m in messages)
+        assert any("from device node 0x10 replaces" in m.text for m in messages)
         node10.stop()
         silent, messages = active_sets.initial(config)
         assert [(a.source, a.set_id) for a in silent.axes] == [
             (active_sets.SOURCE_FILE, ids(1)[a]) for a in AXES]
-        assert any("device node 0x10" in m and "no answer" in m and "using the coefficient files" in m
-                   for m in messages)
+        assert any("device node 0x10" in m.text and "no answer" in m.text
+                   and "using the coefficient files" in m.text for m in messages)
     finally:
         node10.stop()
 

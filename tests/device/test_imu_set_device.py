@@ -468,4 +468,4 @@ def test_the_daemon_takes_the_imu_set_the_device_runs(tmp_path: Path, capsys, co
         sets, messages = active_sets.initial(config)
     assert sets.coupling == on_device.coupling and sets.combined_id == imu_file.imu_set_crc(on_device)
     assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_DEVICE] * 3
-    assert any(f"imu set 0x{sets.combined_id:08x} from device node 0x{NODE:02x}" in m for m in messages)
+    assert any(f"imu set 0x{sets.combined_id:08x} from device node 0x{NODE:02x}" in m.text for m in messages)

@@ -137,3 +137,44 @@ def test_a_drive_replayed_in_blocks_gives_the_whole_drives_bias_bit_for_bit(seed
     assert (end.events, end.taken, end.learned, end.power_cycles) == (
         whole.events, whole.taken, whole.learned, whole.power_cycles)
     assert sum(e.decision == "adopted" for e in whole.events) >= 1
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 10_000), cut=st.integers(1, 2999))
+def test_resuming_from_its_own_step_state_changes_nothing(seed: int, cut: int) -> None:
+    """The hand-over the closure relies on: a tracker resumed from the state it gave (mid-window,
+    mid-slew, anywhere) steps on exactly as one left alone."""
+    times, rates, temps, cues = drive(seed, 3000)
+    config = TrackerConfig(arw_deg_rt_h=0.3, window_s=0.5)
+    alone, handed = BiasTracker(("z",), config), BiasTracker(("z",), config)
+    for i, (t, r, temp, c) in enumerate(zip(times, rates, temps, cues, strict=True)):
+        if i == cut:
+            state = handed.step_state()
+            handed.resume(state)
+            assert handed.step_state() == state or math.isnan(state.last_t)
+        assert handed.step(t, [r], temp, c)[0] == alone.step(t, [r], temp, c)[0]
+    assert states(handed) == states(alone)
+
+
+def test_the_step_state_is_a_copy_and_must_fit_the_axes() -> None:
+    tracker = BiasTracker(("x", "y", "z"), TrackerConfig())
+    tracker.step(0.0, [0.1, 0.2, 0.3])
+    state = tracker.step_state()
+    tracker.step(0.01, [0.4, 0.5, 0.6])
+    assert state.n == 1 and state.ref == (0.1, 0.2, 0.3)  # not moved by the tracker's next step
+    assert tracker.step_state().n == 2
+    with pytest.raises(ValueError, match="3 axes for a tracker of 1"):
+        BiasTracker(("z",), TrackerConfig()).resume(state)
+
+
+def test_power_on_and_close_window_are_the_steps_decisions() -> None:
+    """What the closure calls where the tracker decides: a new power-on ends the window under way
+    and counts the cycle; closing a window empties it."""
+    tracker = BiasTracker(("z",), TrackerConfig(window_s=1.0))
+    for i in range(50):
+        tracker.step(i * 0.01, [0.1])
+    tracker.close_window(0.5)
+    assert tracker.step_state().n == 0
+    tracker.step(0.51, [0.1])
+    tracker.power_on()
+    assert (tracker.power_cycle, tracker.step_state().n) == (1, 0)
