@@ -94,3 +94,25 @@ def describe(analysis: dict[str, Any]) -> list[str]:
             bound = f"at most {t['upper_bound']:.3g} {t['unit']}"
             lines.append(f"{t['name']:<18} not resolved: {t['note']} ({bound})")
     return lines
+
+
+#: A static record's 1 s means stay within this of each other (the bias tracker's plausibility
+#: bound: a mean beyond it is a turn, not a bias); more, and the record moved.
+AT_REST_SPAN_DPS = 1.0
+
+
+def motion_span_dps(time_s: np.ndarray, rate_dps: np.ndarray, window_s: float = 1.0) -> float:
+    """How far the record's ``window_s`` means spread (0.5th to 99.5th percentile), deg/s.
+
+    Why: the Allan terms describe a sensor at rest; on a record with motion they describe the
+    motion (one such record gave a rate random walk of 2.95e5 deg/h/√h, without a word).
+    """
+    if len(time_s) < 2:
+        return 0.0
+    block = np.floor((np.asarray(time_s) - time_s[0]) / window_s).astype(np.int64)
+    starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
+    counts = np.diff(np.r_[starts, len(block)])
+    means = np.add.reduceat(np.asarray(rate_dps, dtype=float), starts) / counts
+    lo, hi = np.percentile(means, [0.5, 99.5])
+    return float(hi - lo)
+

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
@@ -46,8 +47,10 @@ def run(args: argparse.Namespace) -> int:
 
 def characterise(args: argparse.Namespace) -> int:
     from canical.calibrate.noise_records import (
+        AT_REST_SPAN_DPS,
         describe,
         first_backwards,
+        motion_span_dps,
         noise_analysis,
         sample_interval,
         uniform_records,
@@ -60,6 +63,11 @@ def characterise(args: argparse.Namespace) -> int:
         raise CanicalError(f"{args.record}: {where(bad)}: time goes backwards "
                            f"({time_s[bad - 1]:.6f} -> {time_s[bad]:.6f} s)")
     dt = sample_interval(time_s)
+    span = motion_span_dps(time_s, rate)
+    if span > AT_REST_SPAN_DPS:
+        print(f"noise: warning: {args.record} is not at rest: its 1 s means span {span:.3g} deg/s "
+              f"(at rest they stay within {AT_REST_SPAN_DPS:g}): the terms below describe the motion, "
+              "not the sensor's noise", file=sys.stderr)
     records = uniform_records(time_s, rate, dt)
     del time_s, rate  # the records are views of the rate; the times' memory goes to the Allan sums
     analysis = noise_analysis(records, dt, str(args.record))

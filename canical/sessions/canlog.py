@@ -395,8 +395,11 @@ def _session(log: _LogRows, name: str, raw_name: str, axis: str, sensor: str | N
     """The rows as a session: in time order when it has a reference (a drive is corrected as is)."""
     if not log.raws:
         what = f"{raw_name} frames" if log.frames else "frames"
-        extra = f" with {', '.join(c.strip(chr(0)) or 'ref' for c in log.needed)} seen" if log.needed else ""
-        raise CanicalError(f"{name}: no {what}{extra} in {log.frames} frames")
+        missing = [c.strip(chr(0)) or "ref" for c in log.needed]
+        extra = f" with {', '.join(missing)} seen" if log.needed else ""
+        hint = ("; the table's rate: map it with --input ref_dps=MESSAGE.Signal, or give the table's own "
+                "file with --reference" if "ref" in missing else "")
+        raise CanicalError(f"{name}: no {what}{extra} in {log.frames} frames{hint}")
     data = np.asarray(log.rows, dtype=float).reshape(len(log.raws), len(log.channels))
     aux = {c: data[:, i] for i, c in enumerate(log.channels)}
     t = np.asarray(log.times)

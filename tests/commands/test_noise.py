@@ -179,3 +179,18 @@ def test_the_set_carries_the_angle_random_walk_it_measured(noise_dps: float, see
     fs = 1.0 / float(np.median(np.diff(session.time_s)))
     truth = noise_dps / np.sqrt(fs) * 60.0
     assert result.coefficients.fit["arw_deg_rt_h"] == pytest.approx(truth, rel=0.1)
+
+
+@pytest.mark.parametrize(("turning", "warned"), [(True, True), (False, False)])
+def test_a_record_that_moves_is_named_as_such(tmp_path: Path, capsys, turning: bool, warned: bool) -> None:
+    """A record with motion gave a rate random walk of 2.95e5 deg/h/√h without a word."""
+    rng = np.random.default_rng(4)
+    n = int(300 * FS)
+    t = np.arange(n) / FS
+    turns = np.where((t % 60) < 20, 30.0, 0.0) if turning else 0.0  # 20 s at 30 deg/s every minute
+    rate = 0.02 + turns + 0.3 / 60.0 * np.sqrt(FS) * rng.standard_normal(n)
+    path = static_csv(tmp_path / "record.csv", t, {"rate_dps": rate})
+    assert main(["noise", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert ("is not at rest: its 1 s means span 30 deg/s" in err) is warned, err
+    assert len(err.strip().splitlines()) == int(warned)

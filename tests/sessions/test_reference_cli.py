@@ -185,3 +185,14 @@ def test_apply_refuses_a_set_for_raw_values_in_another_unit(vendor_files, tmp_pa
                    "deg/s: calibrate from this signal (a CAN log of it, or a CSV with the line "
                    "'# raw_units: deg/s')")
     assert not out.exists()
+
+
+def test_a_log_without_the_tables_rate_says_where_it_can_come_from(vendor_files, tmp_path: Path,
+                                                                   capsys) -> None:
+    _, folder = vendor_files
+    code = _run(folder, str(folder / "imu.log"), "--dbc", str(folder / "vendor.dbc"),
+                "--input", "raw=TPDO2.GyroZ", "-o", str(tmp_path / "z.yaml"))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1, err
+    assert err.endswith("no TPDO2 frames with ref seen in 41000 frames; the table's rate: map it with "
+                        "--input ref_dps=MESSAGE.Signal, or give the table's own file with --reference")
