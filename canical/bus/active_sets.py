@@ -118,7 +118,10 @@ def build(axes: tuple[AxisSet, ...], imu: ImuSet | None = None) -> ActiveSets:
 
 
 def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:
-    """Load and fully validate the set for ``axis``; any defect is one CanicalError line."""
+    """Load and fully validate the set for ``axis``; any defect is one CanicalError line (a missing
+    file names the configuration key that points at it, where a user fixes it)."""
+    if not Path(path).exists():
+        raise CanicalError(f"{path}: coefficient file not found (axes.{axis}.coefficients in {config.path})")
     return check_set(config, axis, coefficient_file.load(path), path)
 
 

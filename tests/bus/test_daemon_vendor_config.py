@@ -129,3 +129,13 @@ def test_a_set_for_counts_is_refused_on_a_signal_in_deg_s(tmp_path, sets, capsys
     assert main(["serve", "--config", str(vendor_config(tmp_path, sets, axes=axes)), "--check"]) == 2
     errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
     assert len(errors) == 1 and "set is for raw values in counts, the signal is in deg/s" in errors[0], errors
+
+
+def test_a_missing_set_names_the_key_that_points_at_it(tmp_path, sets, capsys) -> None:
+    axes = {a: {"raw": f"GYRO_TPDO2.Gyro{a.upper()}",
+                "coefficients": str(tmp_path / "nowhere.yaml" if a == "y" else sets[a])} for a in "xyz"}
+    config = vendor_config(tmp_path, sets, axes=axes)
+    assert main(["serve", "--config", str(config), "--check"]) == 2
+    errors = [line for line in capsys.readouterr().err.splitlines() if "warning" not in line]
+    assert errors == [f"canical serve: error: {tmp_path / 'nowhere.yaml'}: coefficient file not found "
+                      f"(axes.y.coefficients in {config})"]
