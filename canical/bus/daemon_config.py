@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -198,6 +199,7 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     frames = _frames(content, dbc)
     imu_set = _imu_set(content, base, fail)
     axes = _axes(content, frames, dbc, base, imu_set=imu_set is not None)
+    _one_axis_per_signal(axes, dbc.fail)
     counter = _counter(content, frames, dbc)
     inputs = _inputs(content, frames, dbc)
     inputs.update({a.held: InputSource(a.held, a.message, a.raw_signal, a.max_age_s)
@@ -352,6 +354,17 @@ def _axes(content: Json, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: boo
     return tuple(axes)
 
 
+def _one_axis_per_signal(axes: tuple[AxisConfig, ...], fail: Fail) -> None:
+    """Two axes on one raw signal would correct one sensor output with two axes' sets."""
+    seen: dict[tuple[str | None, str], str] = {}
+    for a in axes:
+        key = (a.message, a.raw_signal)
+        if key in seen:
+            raise fail(f"axes.{a.axis}.raw", f"signal {a.raw_signal} is axis {seen[key]}'s already: "
+                                             "each axis has a signal of its own")
+        seen[key] = a.axis
+
+
 def _raw_message_of_axes(content: Json, fail: Fail) -> str | None:
     """The raw frame the axes imply when they name ``MESSAGE.Signal`` (None: they name signals of
     ``frames.raw``): their message, or with several, the last axis's (x, y, z order; an IMU
@@ -393,6 +406,10 @@ def _counter(content: Json, frames: _Frames, dbc: _Dbc) -> str | None:
     return counter
 
 
+#: An input's name: it is a CSV column, a set term's input and a name in generated code.
+_INPUT_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]{0,63}")
+
+
 def _inputs(content: Json, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]:
     """``inputs``: each run-time input's signal (``MESSAGE.Signal``, in a frame the daemon does
     not send) and how old it may get."""
@@ -404,6 +421,9 @@ def _inputs(content: Json, frames: _Frames, dbc: _Dbc) -> dict[str, InputSource]
         key = f"inputs.{name}"
         if str(name).startswith(HELD_AXIS_PREFIX):
             raise dbc.fail(key, f"an input name cannot start with {HELD_AXIS_PREFIX!r}")
+        if not isinstance(name, str) or not _INPUT_NAME.fullmatch(name):
+            raise dbc.fail(key, "an input name is a letter or _, then letters, digits or _ (at most 64): "
+                                "it names a column and a set's input")
         if isinstance(spec, str):
             spec = {"signal": spec}
         if not isinstance(spec, dict):
@@ -476,7 +496,7 @@ def _held_ids(spec: Any, held: list[str], dbc: _Dbc) -> tuple[tuple[str, int, bo
     if not isinstance(spec, dict):
         raise dbc.fail("own_layout.ids", f"the axes come from several messages: give each other one's "
                                          f"id ({', '.join(f'{m}: ID' for m in held)})")
-    unknown = sorted(set(spec) - set(held))
+    unknown = sorted(set(spec) - set(held), key=str)
     if unknown:
         others = ", ".join(held) or "none"
         raise dbc.fail(f"own_layout.ids.{unknown[0]}", f"no axis comes in {unknown[0]} (ids are for the "
@@ -553,7 +573,8 @@ def _device(content: Json, fail: Fail) -> DeviceSource | None:
 def _no_unknown(section: Mapping[str, Any], allowed: set[str], prefix: str, fail: Fail) -> None:
     for key in section:
         if key not in allowed:
-            raise fail(f"{prefix}{key}", f"unknown key (expected one of {', '.join(sorted(allowed))})")
+            expected = ", ".join(sorted(allowed, key=str))
+            raise fail(f"{prefix}{key}", f"unknown key (expected one of {expected})")
 
 
 def _section(content: Json, key: str, fail: Fail) -> Json:
@@ -581,9 +602,13 @@ def _optional_text(content: Json, key: str, fail: Fail) -> str | None:
 
 def _positive(value: Any, key: str, fail: Fail) -> float:
     number = isinstance(value, int | float) and not isinstance(value, bool)
-    if not number or not math.isfinite(value) or value <= 0:
+    try:
+        seconds = float(value) if number else math.nan  # an int beyond a float: OverflowError
+    except OverflowError:
+        seconds = math.inf
+    if not math.isfinite(seconds) or seconds <= 0:
         raise fail(key, f"must be a positive number of seconds, got {value!r}")
-    return float(value)
+    return seconds
 
 
 def _path(value: Any, base: Path, key: str, fail: Fail, *, must_exist: bool = False) -> Path:

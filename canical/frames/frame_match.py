@@ -12,6 +12,7 @@ by its exact id, as before. The daemon, the CAN log reader and ``record`` match 
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Generic, Literal, TypeVar
@@ -31,6 +32,8 @@ SOURCE_BITS = 0xFF
 PDU2_FROM = 240  # PDU format 240..255: the PDU-specific byte is part of the PGN (group extension)
 
 T = TypeVar("T")
+#: An address written as text: decimal or 0x hex, nothing Python's int() also takes ("1_0", "0b1").
+_ADDRESS_TEXT = re.compile(r"0[xX][0-9a-fA-F]{1,2}|[0-9]{1,3}")
 
 
 @dataclass(frozen=True)
@@ -83,10 +86,9 @@ def parse_j1939_source(value: object, where: str) -> J1939Source:
     if value is None or value == ANY_SOURCE:
         return value
     if isinstance(value, str):
-        try:
-            value = int(value, 0)
-        except ValueError:
-            raise ValueError(f"{where}: must be 'any' or a source address 0..253, got {value!r}") from None
+        if not _ADDRESS_TEXT.fullmatch(value.strip()):  # int(..., 0) reads "1_0" as 10
+            raise ValueError(f"{where}: must be 'any' or a source address 0..253, got {value!r}")
+        value = int(value.strip(), 0)
     if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= 253:
         raise ValueError(f"{where}: must be 'any' or a source address 0..253, got {value!r}")
     return value
