@@ -121,10 +121,6 @@ class DaemonConfig:
     j1939_source: J1939Source = None  # J1939 messages matched by PGN and this source (None: the DBC's)
     imu_set: Path | None = None  # one IMU set for the three axes and their coupling (not per-axis files)
 
-    @property
-    def coefficient_paths(self) -> dict[str, Path]:
-        return {a.axis: a.coefficients for a in self.axes if a.coefficients is not None}
-
 
 def load_config(path: str | os.PathLike[str], *, channel: str | None = None) -> DaemonConfig:
     """Read and check a configuration file; ``channel`` overrides ``bus.channel`` (the unit's %i)."""
