@@ -103,7 +103,10 @@ def export_dcf(args: argparse.Namespace) -> int:
         raise CanicalError(f"{imu[0]}: sensor.id {imu[1].sensor_id!r} is not its axes' {sensor!r}")
     if not sensor.isdigit() or sensor_id_for_serial(int(sensor)) != sensor:
         raise CanicalError(
-            f"sensor.id {sensor!r} is not an IMU serial number (decimal text, as in 0x1018 sub 4)"
+            f"sensor.id {sensor!r} is not an IMU serial number (decimal text, as in 0x1018 sub 4): a "
+            "device with canical's firmware admits only a set made for its own serial (calibrate "
+            "with --sensor SERIAL); an IMU without that firmware is corrected by canical serve from "
+            "the set file, no DCF needed"
         )
     objects = imu_objects()
     od = object_dictionary(args.node)

@@ -95,6 +95,8 @@ def test_export_refuses_what_push_refuses(tmp_path: Path) -> None:
     assert two.returncode == 2 and "both for axis z" in two.stderr and "Traceback" not in two.stderr
     _, named = export(tmp_path, {"z": imu_set("z", sensor="bench-7")})
     assert named.returncode == 2 and "not an IMU serial number" in named.stderr
+    assert "calibrate with --sensor SERIAL" in named.stderr and "canical serve" in named.stderr
+    assert len(named.stderr.strip().splitlines()) == 1
     out, ok = export(tmp_path, {"z": imu_set("z")}, "--node", "200")
     assert ok.returncode == 2 and "1..127" in ok.stderr and not out.exists()
 
