@@ -9,6 +9,7 @@ would be written and writes nothing. See :mod:`canical.device.sdo_download`.
 from __future__ import annotations
 
 import argparse
+import contextlib
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
@@ -85,6 +86,28 @@ def load_imu_set(paths: list[str]) -> tuple[str, ImuSet] | None:
     return paths[0], imu
 
 
+def offline_dry_run(sets: dict[str, tuple[str, CoefficientSet]], imu: tuple[str, ImuSet] | None,
+                    why: str) -> int:
+    """``--dry-run`` where the bus cannot be opened: what can be checked without the device (each
+    set's bank content and the device evaluator's limits), and what could not (its serial, rated
+    range, capacity and running banks), so a set can be checked at the desk before the vehicle."""
+    from canical.device.bank_payload import encode_set
+    from canical.sets.admission import evaluator_problem
+
+    if imu is not None:
+        sets = {c.axis: (f"{imu[0]} axes.{c.axis}", c) for c in imu[1].axes}
+    print(f"push (dry run, offline): the bus is not reachable ({why})")
+    for axis, (path, cset) in sorted(sets.items()):
+        content, crc = encode_set(cset)
+        problem = evaluator_problem(cset)
+        verdict = f"the device's evaluator refuses it: {problem}" if problem else "fits its evaluator"
+        print(f"  axis {axis}: set 0x{crc:08x} from {path}, {len(content)} bytes of bank content, "
+              f"{len(cset.terms)} effect terms; {verdict}")
+    print("push (dry run, offline): not checked without the device: its serial number against the sets' "
+          "sensor id, its rated range, its bank capacity and the banks it runs; nothing written")
+    return 2 if any(evaluator_problem(c) for _, c in sets.values()) else 0
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.device.sdo_download import ImuClient, PushPlan, push_sets
 
@@ -92,7 +115,14 @@ def run(args: argparse.Namespace) -> int:
     sets = {} if imu is not None else load_sets(args.coefficients)
     quiet_canopen_logging()
     filters = sdo_client_filters(args.node)
-    with network_on(args.interface, args.channel, can_filters=filters, **bus_options(args)) as network:
+    with contextlib.ExitStack() as stack:
+        try:
+            network = stack.enter_context(network_on(args.interface, args.channel, can_filters=filters,
+                                                     **bus_options(args)))
+        except CanicalError as exc:
+            if not args.dry_run:
+                raise
+            return offline_dry_run(sets, imu, str(exc))
         client = ImuClient(network, args.node, args.timeout)
         client.require_canical_objects()
         result = push_sets(client, sets, imu=imu, dry_run=args.dry_run)
