@@ -31,5 +31,6 @@ fi
 python3 -m pip install -q --disable-pip-version-check --upgrade --upgrade-strategy eager -e '.[test,docs]'
 ruff check canical tests docs
 python3 -m mypy
+python3 -m vulture  # dead code ([tool.vulture] in pyproject.toml)
 python3 -m mkdocs build --strict --quiet
 python3 -m pytest -q -p no:cacheprovider --durations=15 "$@"

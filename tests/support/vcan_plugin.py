@@ -78,11 +78,6 @@ def in_uml_guest() -> bool:
     return os.environ.get(harness.ENV_IN_UML) == "1"
 
 
-def in_systemd_guest() -> bool:
-    """True under the systemd of a guest started with ``run_in_uml(systemd=True)``."""
-    return os.environ.get(harness.ENV_IN_SYSTEMD) == "1"
-
-
 def needs_systemd(item: pytest.Item) -> bool:
     """Whether ``item`` must run under the systemd guest."""
     return item.get_closest_marker(SYSTEMD_MARK) is not None
