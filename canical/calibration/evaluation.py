@@ -138,10 +138,13 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     model = result.base.fitted.model
     # Default options fit a segmented-inverse model and close the loop on it.
     assert loop is not None and isinstance(model, PiecewisePoly)
-    found = tuple(e.name for e in loop.effects)
+    # An effect adopted among confounded twins is the group's correction, not an attribution.
+    found = tuple(e.name for e in loop.effects if not e.ambiguous_with)
     # Weaker alternatives (explain part of the same residual) are listed after the twins, marked ~.
+    # A channel's form that lost to the session's drift is not a confound among causes: apart.
     groups = tuple(
         (*c.candidates, *(f"~{w}" for w in c.weaker_alternatives)) for c in loop.confounded
+        if not c.drift_of_session
     )
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
