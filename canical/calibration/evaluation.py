@@ -124,6 +124,8 @@ class EffectScore:
     unexplained: bool = False
     # Per reported confound: the paired test's p that its first candidate predicts better than each twin.
     paired_p: tuple[dict[str, float], ...] = ()
+    # The channels of the terms written to the set (an ambiguous adoption's too): what is blamed.
+    written_channels: tuple[str, ...] = ()
 
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -> EffectScore:
@@ -163,8 +165,9 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     )
     left = result.report.unexplained
     assert left is not None  # the loop ran
+    written = tuple(sorted({t["channel"] for t in result.coefficients.terms if t.get("channel")}))
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
-                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded))
+                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded), written)
 
 
 def _oracle_terms(scenario, blocks):
