@@ -109,6 +109,8 @@ class LoopSection:
     untestable: tuple[Untestable, ...]
     rounds: tuple[tuple[RoundRow, ...], ...]
     steps: tuple[LoopStep, ...]
+    # The extreme rates train every fold: judged apart, in sample (None: no such blocks).
+    extreme_rates_in_sample_rms_dps: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -124,6 +124,8 @@ class EffectScore:
     unexplained: bool = False
     # Per reported confound: the paired test's p that its first candidate predicts better than each twin.
     paired_p: tuple[dict[str, float], ...] = ()
+    # The channels of the terms written to the set (an ambiguous adoption's too): what is blamed.
+    written_channels: tuple[str, ...] = ()
 
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -> EffectScore:
@@ -138,10 +140,13 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     model = result.base.fitted.model
     # Default options fit a segmented-inverse model and close the loop on it.
     assert loop is not None and isinstance(model, PiecewisePoly)
-    found = tuple(e.name for e in loop.effects)
+    # An effect adopted among confounded twins is the group's correction, not an attribution.
+    found = tuple(e.name for e in loop.effects if not e.ambiguous_with)
     # Weaker alternatives (explain part of the same residual) are listed after the twins, marked ~.
+    # A channel's form that lost to the session's drift is not a confound among causes: apart.
     groups = tuple(
         (*c.candidates, *(f"~{w}" for w in c.weaker_alternatives)) for c in loop.confounded
+        if not c.drift_of_session
     )
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
@@ -160,8 +165,9 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     )
     left = result.report.unexplained
     assert left is not None  # the loop ran
+    written = tuple(sorted({t["channel"] for t in result.coefficients.terms if t.get("channel")}))
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
-                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded))
+                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded), written)
 
 
 def _oracle_terms(scenario, blocks):

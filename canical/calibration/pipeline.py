@@ -317,9 +317,12 @@ def loop_report(loop: LoopResult) -> LoopSection:
     return LoopSection(
         held_out_rms_before_dps=loop.rms_before,
         held_out_rms_after_dps=loop.rms_after,
-        held_out_max_before_dps=float(np.max(np.abs(loop.errors_before))),
-        held_out_max_after_dps=float(np.max(np.abs(loop.errors_after))),
-        method=f"leave-plateaus-out cross-validation on blocks of {BLOCK_S:g} s, {len(loop.blocks)} blocks",
+        held_out_max_before_dps=float(np.nanmax(np.abs(loop.errors_before))),
+        held_out_max_after_dps=float(np.nanmax(np.abs(loop.errors_after))),
+        method=(f"leave-plateaus-out cross-validation on blocks of {BLOCK_S:g} s, "
+                f"{int(np.isfinite(loop.errors_after).sum())} of {len(loop.blocks)} blocks held out; "
+                "the extreme rates train every fold and are not in these figures"),
+        extreme_rates_in_sample_rms_dps=loop.extreme_rms,
         final_spec=loop.structure.spec.describe(),
         capacity_changes=tuple(loop.capacity_changes),
         untestable=tuple(Untestable(name, r2) for name, r2 in loop.untestable.items()),
@@ -367,15 +370,34 @@ def fit_stats(report: CalibrationReport) -> dict[str, Any]:
         "held_out_rms_dps": report.held_out.rms_dps,
         "held_out_max_dps": report.held_out.max_dps,
     }
+    loop = report.closed_loop
+    if loop is not None:  # the headline is the written set's, effects and all; the rate model's kept apart
+        stats |= {"held_out_rms_dps": loop.held_out_rms_after_dps,
+                  "held_out_max_dps": loop.held_out_max_after_dps,
+                  "held_out_method": loop.method,
+                  "rate_model_held_out_rms_dps": report.held_out.rms_dps,
+                  "rate_model_held_out_max_dps": report.held_out.max_dps}
     arw = set_arw(report)
     if arw is not None:
         stats["arw_deg_rt_h"] = arw
     if report.closed_loop is not None:
         stats["extended_held_out_rms_dps"] = report.closed_loop.held_out_rms_after_dps
         stats["effects"] = [e.name for e in report.effects]
+        ambiguous = ambiguity_record(report)
+        if ambiguous:
+            stats["ambiguous"] = ambiguous
         if report.unexplained is not None and np.isfinite(report.unexplained.ratio):
             stats["unexplained_ratio"] = report.unexplained.ratio
     return stats
+
+
+def ambiguity_record(report: CalibrationReport) -> list[dict[str, Any]]:
+    """Each confounded group as the set records it: the explanation adopted, those the session
+    could not tell from it, why that one, and the session that would separate them. The set then
+    says itself that its attribution is a choice, wherever it is read without its report."""
+    return [{"adopted": c.adopted, "alternatives": [n for n in c.candidates if n != c.adopted],
+             "rule": c.adoption_rule, "separate_by": c.recommendation}
+            for c in report.confounded if c.adopted]
 
 
 def calibrate(

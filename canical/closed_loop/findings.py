@@ -74,6 +74,9 @@ class Effect:
     rms_before_dps: float
     rms_after_dps: float
     description: str = ""  # a readable name with the final time constant or knee; "" until known
+    # The twins the data could not tell this effect from, when it was adopted among them (by the
+    # loop's rule or the user's --prefer): the attribution is ambiguous, the correction is not.
+    ambiguous_with: tuple[str, ...] = ()
 
     @property
     def label(self) -> str:
@@ -86,7 +89,8 @@ class Effect:
 
 @dataclass(frozen=True)
 class Confound:
-    """Candidates that explain the same residual, none added unless the user named one."""
+    """Candidates that explain the same residual; one of them is adopted (the user's, or the
+    loop's rule's: see ``search.ADOPTION_RULE``) and the attribution marked ambiguous."""
 
     candidates: tuple[str, ...]
     weaker_alternatives: tuple[str, ...]
@@ -96,6 +100,11 @@ class Confound:
     held_out_rms_before_dps: float
     resolved_by_user: str | None
     recommendation: str  # the session that would separate them
+    adopted: str | None = None  # the twin whose terms went into the set
+    adoption_rule: str = ""  # why that one: the user's --prefer, or the loop's rule
+    # A channel's form that did not beat an equally flexible drift of the session's own clock: no
+    # term of either goes into the set ("drift, confounded with <channel>").
+    drift_of_session: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -17,8 +17,11 @@ out error), added, and the model is refitted jointly; rounds repeat until
 nothing passes. When another candidate explains the same residual — it passes
 alone, neither adds anything once the other is in, and the held-out plateaus
 cannot tell which of the two predicts better — the two are reported as
-*confounded*, with the session that would separate them, and neither is added
-unless the user names one with ``prefer``: a guess would be wrong in the field.
+*confounded*, with the session that would separate them, and one of them is
+adopted all the same (the one the user names with ``prefer``, else by :func:`adopt`'s
+rule): each corrects this session as well as the data allow, and leaving all out
+would leave the whole residual in the set. The attribution is marked ambiguous in
+the effect, the report and the set's ``fit`` record.
 "Cannot tell" is a paired test over the held-out plateaus (Diebold–Mariano on
 squared errors, plateaus in time order), at ``CONFOUND_ALPHA``; all candidates
 are compared with every base size any of them needed, so that none loses to
@@ -46,6 +49,7 @@ from canical.closed_loop.candidates import (
     WARMUP_GROUP,
     WARMUP_NAME,
     Candidate,
+    bspline_basis,
     build_candidates,
     knee_grid,
     lag_grid,
@@ -231,7 +235,13 @@ def plateau_folds(blocks: Blocks, k: int = FOLDS) -> list[np.ndarray]:
 
 
 def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], duration_s: float) -> np.ndarray:
-    errors = np.zeros(len(blocks))
+    """Each block's error against a model fitted without its plateau; NaN at blocks in no fold.
+
+    Why NaN: the extreme rates train every fold (:func:`plateau_folds`), so they have no held-out
+    error; a zero there would enter every rms and plot as a perfect prediction (2-3 % too good on
+    a typical session). They are judged apart, in sample (:func:`extreme_rates_rms`).
+    """
+    errors = np.full(len(blocks), np.nan)
     for held in folds:
         fit = fit_structure(blocks.take(~held), s, duration_s)
         errors[held] = predict(fit, blocks.take(held)) - blocks.points.rate[held]
@@ -239,7 +249,19 @@ def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], durat
 
 
 def rms(e: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(e**2)))
+    """The rms of the errors there are: blocks with no held-out error (NaN) do not count."""
+    e = e[np.isfinite(e)]
+    return float(np.sqrt(np.mean(e**2))) if e.size else float("nan")
+
+
+def extreme_rates_rms(fit: Fit, blocks: Blocks, folds: list[np.ndarray]) -> float | None:
+    """The in-sample rms at the blocks no fold holds out (the extreme rates): a model fitted
+    without them would extrapolate its end segments, which says nothing of the set, so they are
+    reported apart from the held-out figure, with the caveat that they are in the fit."""
+    extreme = ~np.any(folds, axis=0)
+    if not extreme.any():
+        return None
+    return rms(predict(fit, blocks.take(extreme)) - blocks.points.rate[extreme])
 
 
 @dataclass
@@ -373,6 +395,8 @@ class LoopResult:
     errors_before: np.ndarray
     errors_after: np.ndarray
     capacity_changes: list[str]
+    # In-sample rms of the final fit at the extreme rates, which train every fold (see held_out_errors).
+    extreme_rms: float | None = None
     untestable: dict[str, float] = field(default_factory=dict)
     # Each change to the model in order, with the held-out error after it (same scheme throughout),
     # so a report can be read from the rate model alone down to the set that was written.
@@ -477,7 +501,95 @@ def _score_round(
     return table, passing
 
 
-def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None) -> Confound:
+#: How the loop picks one of a confounded group when the user named none (see :func:`adopt`).
+ADOPTION_RULE = ("adopted by rule: a form of time since power-on before a channel's, then the "
+                 "fewest fitted parameters, then the lower held-out error")
+
+
+def adopt(scorer: Scorer, s: Structure, group: list[Candidate]) -> Candidate:
+    """The explanation of a confounded group the set carries: each removes the residual on this
+    session equally well (held-out plateaus cannot tell them apart), so leaving all out would leave
+    the whole residual in the user's set, while any one of them corrects it.
+
+    Why this order: a channel is blamed only where it beats time, since a slow drift and a slowly
+    varying channel look alike and a channel term blamed for drift adds a bias that follows the
+    channel on the vehicle; time since power-on is measured on the vehicle too. Then the fewest
+    fitted parameters (columns that pay, and each time constant or knee searched): the simpler
+    form extrapolates less beyond what the session showed (a transient's rate of change against
+    a spline of its lag). Then the lower held-out rms on the base size each deserves.
+    """
+
+    def key(c: Candidate) -> tuple[int, int, float]:
+        terms = _prune(scorer, s, c).terms
+        n_par = len(terms) + len(tau_groups(terms))
+        return (int(c.kind == CHANNEL), n_par, scorer.held_rms(replace(s, terms=s.terms + terms)))
+
+    return min(group, key=key)
+
+
+#: The pseudo-channel of the session's own clock (block mean times) the drift competitor is a spline of.
+SESSION_CLOCK = "session clock"
+DRIFT_SPLINE_NAME = "drift of the session (smooth in time)"
+
+
+def drift_competitor(cand: Candidate, blocks: Blocks) -> Candidate | None:
+    """A smooth function of the session's clock as flexible as a channel's candidate: as many
+    interior knots (evenly spaced in time) as its spline has, one for a form without a spline (a
+    cubic with one knot: four coefficients against a level's three or a lag's two and its τ).
+
+    Why: a spline of a slowly varying channel, or its lag with τ free, fits any slow drift of the
+    sensor (a bias random walk) about as well as the channel's real effect would; time's own forms
+    on the list (warm-up, linear drift) are far stiffer, so they lost the comparison and the drift
+    was blamed on the channel. Against a form of time as flexible, the channel must show that it
+    is the channel the sensor follows. None when the session has no span of time.
+    """
+    t = blocks.time_s
+    if not np.ptp(t) > 0:
+        return None
+    first = cand.terms[0]
+    interior = max(1, len(first.knots or ()) - 2) if first.spec.needs_spline else 1
+    basis = bspline_basis(np.linspace(float(t.min()), float(t.max()), 64), interior, even=True)
+    if basis is None:
+        return None
+    breaks, pieces = basis
+    terms = tuple(Term.of(CHANNEL_SPLINE, "bias", 0.0, channel=SESSION_CLOCK, knots=breaks, pieces=p)
+                  for p in pieces[1:])
+    return Candidate(DRIFT_SPLINE_NAME, TIME, None, terms)
+
+
+def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | None:
+    """The record of a channel's candidate that does not predict the held-out plateaus better
+    than an equally flexible drift of the session (:func:`drift_competitor`), significantly by
+    the paired test at ``CONFOUND_ALPHA``; None when the channel beats it (or it is not a channel's).
+
+    The drift is not added either: a smooth function of this session's clock is a property of the
+    session, not of the sensor, and on the vehicle it would add this session's wander at the same
+    times after power-on. What is left is reported (unexplained, if it is large).
+    """
+    if best.kind != CHANNEL:
+        return None
+    drift = drift_competitor(best, scorer.blocks)
+    if drift is None:
+        return None
+    with_channel = replace(s, terms=s.terms + best.terms)
+    with_drift = replace(s, terms=s.terms + drift.terms)
+    r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
+    p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
+    if r_channel < r_drift and p < CONFOUND_ALPHA:
+        return None
+    ch = best.channel or ""
+    return Confound(
+        candidates=(best.name, DRIFT_SPLINE_NAME), weaker_alternatives=(),
+        held_out_rms_dps={best.name: r_channel, DRIFT_SPLINE_NAME: r_drift},
+        paired_p={DRIFT_SPLINE_NAME: p}, paired_alpha=CONFOUND_ALPHA,
+        held_out_rms_before_dps=scorer.held_rms(s), resolved_by_user=None,
+        recommendation=(f"record a session in which {ch} changes in steps in random order, so that it "
+                        "no longer follows the sensor's slow drift"),
+        adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
+    )
+
+
+def _confound(check: ConfoundCheck, before: Score, chosen: Candidate, rule: str) -> Confound:
     """The report's record of a confounded group: who, how close, and the session that separates them."""
     group = [check.best, *check.twins]
     return Confound(
@@ -487,10 +599,12 @@ def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None) -> 
         paired_p={c.name: check.evidence[c.name].p_best_better for c in check.twins},
         paired_alpha=CONFOUND_ALPHA,
         held_out_rms_before_dps=before.held_out_rms_dps,
-        resolved_by_user=chosen.name if chosen else None,
+        resolved_by_user=chosen.name if rule.endswith("(--prefer)") else None,
         # the pair across families first: separating those needs a different session
         recommendation=recommend(check.best, next((c for c in check.twins if c.kind != check.best.kind),
                                                   check.twins[0])),
+        adopted=chosen.name,
+        adoption_rule=rule,
     )
 
 
@@ -552,9 +666,12 @@ def run_loop(
 ) -> LoopResult:
     """Grow the model until no candidate explanation passes; see the module docstring."""
     folds = plateau_folds(blocks)
+    # The session's own clock as a pseudo-channel of block means, for the drift a channel's form
+    # must beat (see _drift_beats); no candidate is built of it.
+    blocks = replace(blocks, aux={**blocks.aux, SESSION_CLOCK: blocks.time_s})
     scorer = Scorer(blocks, folds, duration_s)
     s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
-    pool = build_candidates(blocks, duration_s)
+    pool = [c for c in build_candidates(blocks, duration_s) if c.channel != SESSION_CLOCK]
     every_candidate = list(pool)
     tied = untestable(pool, blocks)
     if tied:
@@ -587,21 +704,31 @@ def run_loop(
         # own best base size a candidate may turn out to explain the same residual.
         check = _confounded_with(scorer, s, best, pool, bar.min_gain)
         best = check.best
+        twins: tuple[str, ...] = ()
         if check.twins:
-            chosen = next((c for c in (best, *check.twins) if c.name in prefer), None)
-            confounded.append(_confound(check, current, chosen))
-            # Shadows explain a part of the same residual: accepting one later would be a guess too.
             group = [best, *check.twins]
+            chosen = next((c for c in group if c.name in prefer), None)
+            rule = "named by the user (--prefer)" if chosen else ADOPTION_RULE
+            chosen = chosen or adopt(scorer, s, group)
+            confounded.append(_confound(check, current, chosen, rule))
+            # Shadows explain a part of the same residual: accepting one later would be a guess too.
             pool = [c for c in pool if c not in group and c not in check.shadows]
-            if chosen is None:
-                continue
+            twins = tuple(c.name for c in group if c is not chosen)
+            progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen
+        drift = None if best.name in prefer else _drift_beats(scorer, s, best)
+        if drift is not None:
+            confounded.append(drift)
+            progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
+            pool = [c for c in pool if c.channel != best.channel]
+            continue
         pruned = _pruned(scorer, s, best)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)
         f, p = f_test(current, after, scorer.n_plateaus)
         fit_now = fit_structure(blocks, s_new, duration_s)
-        effects.append(_effect(best, current, after, f, p, bar, fit_now.terms[len(s.terms) :]))
+        effects.append(replace(_effect(best, current, after, f, p, bar, fit_now.terms[len(s.terms) :]),
+                               ambiguous_with=twins))
         progress(f"accepted {best.name}: held-out rms {current.held_out_rms_dps:.4f} -> "
                  f"{after.held_out_rms_dps:.4f} deg/s")
         steps.append(_step(scorer, s_new, f"added {best.name}"))
@@ -628,6 +755,7 @@ def run_loop(
         errors_before=held_out_errors(blocks, base_s, folds, duration_s),
         errors_after=held_out_errors(blocks, s, folds, duration_s),
         capacity_changes=capacity_changes,
+        extreme_rms=extreme_rates_rms(final_fit, blocks, folds),
         untestable=tied,
         steps=steps,
         candidates=every_candidate,

@@ -84,7 +84,9 @@ def candidate_variables(candidates: list[Candidate], blocks: Blocks) -> dict[str
 def correlations(residual: np.ndarray, variables: dict[str, np.ndarray]) -> list[tuple[str, float]]:
     """|Pearson r| of the residual with each variable (0 for a constant one), best first."""
     out = []
-    for name, x in variables.items():
+    held = np.isfinite(residual)  # blocks without a held-out error do not count
+    residual = residual[held]
+    for name, x in ((n, v[held]) for n, v in variables.items()):
         sx, sr = float(np.std(x)), float(np.std(residual))
         r = 0.0 if sx == 0 or sr == 0 else float(np.corrcoef(x, residual)[0, 1])
         out.append((name, abs(r) if np.isfinite(r) else 0.0))
@@ -134,10 +136,12 @@ def account(
     model's in-sample residual (for the floor), both deg/s at every block.
     """
     floor = float(block_noise_floor(blocks, fitted_residual))
+    held = np.isfinite(residual)  # the extreme rates have no held-out error
+    residual = residual[held]
     rms = float(np.sqrt(np.mean(residual**2)))
     robust = robust_rms(residual)
     ratio = float(robust / floor) if floor > 0 else float("inf")
-    ranked = correlations(residual, candidate_variables(candidates, blocks))
+    ranked = correlations(residual, {k: v[held] for k, v in candidate_variables(candidates, blocks).items()})
     return Unexplained(
         held_out_rms_dps=rms,
         held_out_robust_rms_dps=robust,

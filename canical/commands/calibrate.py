@@ -153,7 +153,9 @@ def register(sub) -> None:
     p.add_argument("--strict", nargs="?", type=_positive_ratio, const=STRICT_RATIO, default=None,
                    metavar="MULTIPLE",
                    help="exit with status 3 when the residual after the closed loop stays above MULTIPLE "
-                   f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written")
+                   f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written. "
+                   "Also exit with status 2, writing nothing, when candidates are confounded and none was "
+                   "named with --prefer (the set would carry one adopted by rule)")
     p.add_argument("--reference", metavar="FILE",
                    help="the table controller's own recording of its rate on its own clock: a CSV "
                    "(time_s and --ref-column) or a CAN log (--input ref_dps=MESSAGE.Signal, else "
@@ -225,6 +227,12 @@ def calibrate_session(args: argparse.Namespace) -> int:
         progress=progress.step,
     )
     report = result.report.with_paths(str(args.session), str(args.output)).with_reference_clock(clock)
+    ruled = [c for c in report.confounded if c.adopted and not c.resolved_by_user]
+    if args.strict is not None and ruled:
+        c = ruled[0]
+        print(f"calibrate: strict: the attribution is ambiguous ({' / '.join(c.candidates)} explain the "
+              f"same residual); name one with --prefer, or {c.recommendation}", file=sys.stderr)
+        return 2
     coefficient_file.save(args.output, result.coefficients)
     if args.report:
         write_text_atomic(args.report, report_json(report))
@@ -401,7 +409,8 @@ def summary(report: CalibrationReport) -> str:
         found = ", ".join(e.label for e in report.effects) or "none"
         lines.append(f"effects    {found}")
         for c in report.confounded:
-            lines.append(f"confounded {' / '.join(c.candidates)}: {c.recommendation}")
+            adopted = f" (ambiguous: adopted {c.adopted})" if c.adopted else ""
+            lines.append(f"confounded {' / '.join(c.candidates)}{adopted}: {c.recommendation}")
         lines.append("loop       held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
         for step in loop.steps:
             terms = f", {step.terms} effect terms" if step.terms else ""

@@ -116,6 +116,10 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
         f"**{loop.held_out_rms_after_dps:.4f}** (max {loop.held_out_max_after_dps:.4f}) |",
         "",
     ]
+    if loop.extreme_rates_in_sample_rms_dps is not None:
+        lines += [f"The extreme rates train every fold (a model fitted without them would only extrapolate), "
+                  "so they are in none of these figures; the written set's error there, in sample: "
+                  f"{loop.extreme_rates_in_sample_rms_dps:.4f} deg/s rms.", ""]
     if report.effects:
         lines += [
             "| effect | held-out gain when added | p-value | terms (final coefficients) |",
@@ -133,17 +137,29 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
             f"**Confounded:** {' and '.join(c.candidates)} explain the same residual "
             f"(held-out rms {c.held_out_rms_before_dps:.4f} deg/s without either). "
             + _paired(c)
-            + (
-                "Neither was added. "
-                if not c.resolved_by_user
-                else f"Added {c.resolved_by_user} as asked (--prefer). "
-            )
+            + _adopted(c)
             + f"To separate them: {c.recommendation}.",
             "",
         ]
     if loop.capacity_changes:
         lines += [f"Base model grown: {', '.join(loop.capacity_changes)}.", ""]
     return lines + _unexplained(report.unexplained)
+
+
+def _adopted(c: Confound) -> str:
+    """Which of a confounded group the set carries, and why: the attribution is ambiguous."""
+    if c.drift_of_session:
+        return (f"**{c.adoption_rule[0].upper()}{c.adoption_rule[1:]}:** the channel's form does not "
+                "predict the held-out plateaus better than a drift of the session as flexible, so no "
+                "term of either is in the set (a smooth function of this session's clock is a "
+                "property of the session, not of the sensor). ")
+    if c.resolved_by_user:
+        return f"Added {c.resolved_by_user} as asked (--prefer); the attribution stays ambiguous. "
+    if c.adopted:
+        return (f"**Ambiguous attribution:** the set carries {c.adopted}, {c.adoption_rule}; it "
+                "corrects this session as well as the others would, but which of them the sensor "
+                "feels is not known. ")
+    return "Neither was added. "
 
 
 def _paired(c: Confound) -> str:

@@ -273,8 +273,11 @@ def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarr
     time_s = np.asarray(time_s, dtype=float)
     if values.size < 2:
         return values.copy()
-    k = int(np.searchsorted(time_s - time_s[0], tau_s, side="left"))  # samples in the mean
-    k = max(k, 1)
+    in_mean = time_s - time_s[0] < tau_s  # the tracker's test, sample by sample
+    k = max(int(np.argmin(in_mean)) if not in_mean.all() else values.size, 1)  # samples in the mean
+    if in_mean[k:].any() or not np.all(np.isfinite(time_s)):  # time went back into the first τ
+        tracker = ChannelTracker(tau_s)
+        return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
     out = np.empty_like(values)
     out[:k] = np.cumsum(values[:k]) / np.arange(1, k + 1)
     if k == values.size:
@@ -284,8 +287,77 @@ def lag_filter(values: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarr
     if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step):
         out[k:] = one_pole(values[k:], 1.0 - math.exp(-step / tau_s), float(out[k - 1]))
         return out
-    tracker = ChannelTracker(tau_s)
-    return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)])
+    # Uneven spacing (jittered or rounded time stamps, gaps): each step's own factor, as the tracker
+    # takes it; a step whose time does not advance keeps the lag (factor 0).
+    # In pieces of VARYING_PIECE samples, each from the last one's end: a handful of temporaries
+    # of a piece stay in cache where ones as long as the record would stream through memory.
+    y = float(out[k - 1])
+    for a in range(0, dt.size, VARYING_PIECE):
+        d = dt[a : a + VARYING_PIECE]
+        log_keep = np.where(d > 0.0, -d / tau_s, 0.0)
+        piece = varying_pole(-np.expm1(log_keep) * values[k + a : k + a + d.size], log_keep, y)
+        out[k + a : k + a + d.size] = piece
+        y = float(piece[-1])
+    return out
+
+
+#: Samples :func:`lag_filter` hands :func:`varying_pole` at once.
+VARYING_PIECE = 1 << 16
+
+
+#: Samples a row of :func:`varying_pole` takes; and the decay (in e-folds) over a row up to which a
+#: row is solved by a scaled cumulative sum (its scale factors e^600 stay far from overflow).
+VARYING_ROW = 64
+VARYING_SPAN = 600.0
+
+
+def varying_pole(b: np.ndarray, log_keep: np.ndarray, before: float = 0.0) -> np.ndarray:
+    """y[n] = b[n] + exp(log_keep[n])·y[n−1] from y[−1] = ``before`` (log_keep ≤ 0): a first-order
+    smoothing whose factor changes from sample to sample (a lag on uneven time stamps).
+
+    Why: on a session of millions of samples with jittered time stamps the tracker's Python call per
+    sample is the closed loop's bottleneck (one pass per τ tried). Within a row of
+    :data:`VARYING_ROW` samples y = e^L·(y₀ + cumsum(b·e^−L)), L the row's cumulative log factor
+    (every term below the largest partial sum, so rounding stays relative to the result); each row's
+    end is carried into the next by the same recursion on the rows' ends, e^L(row) apart. A row that
+    decays by more than :data:`VARYING_SPAN` e-folds (a long gap) is stepped through in a loop.
+    Equal to the tracker's steps within rounding.
+    """
+    b = np.asarray(b, dtype=float)
+    log_keep = np.asarray(log_keep, dtype=float)
+    size = VARYING_ROW
+    whole = b.size - b.size % size if b.size >= 4 * size else 0
+    out = np.empty(b.size)
+    y = before
+    if whole:
+        rows_b = b[:whole].reshape(-1, size)
+        cum = np.cumsum(log_keep[:whole].reshape(-1, size), axis=1)
+        decay = np.exp(cum)
+        ok = -cum[:, -1] <= VARYING_SPAN
+        if ok.all():
+            rest = decay * np.cumsum(rows_b / decay, axis=1)
+        else:
+            rest = np.empty_like(rows_b)
+            rest[ok] = decay[ok] * np.cumsum(rows_b[ok] / decay[ok], axis=1)
+            for r in np.flatnonzero(~ok).tolist():
+                rest[r] = _step_pole(rows_b[r], log_keep[r * size : (r + 1) * size], 0.0)
+        ends = varying_pole(rest[:, -1], cum[:, -1], before)  # each row's true end
+        carry = np.concatenate(([before], ends[:-1]))
+        rest += carry[:, None] * decay
+        out[:whole] = rest.ravel()
+        y = float(ends[-1])
+    out[whole:] = _step_pole(b[whole:], log_keep[whole:], y)
+    return out
+
+
+def _step_pole(b: np.ndarray, log_keep: np.ndarray, before: float) -> np.ndarray:
+    """:func:`varying_pole` one sample at a time (short records, a row across a long gap)."""
+    out = np.empty(b.size)
+    y = before
+    for i, (bi, li) in enumerate(zip(b.tolist(), log_keep.tolist(), strict=True)):
+        y = bi + math.exp(li) * y
+        out[i] = y
+    return out
 
 
 #: Samples a row of :func:`one_pole`'s matrix product takes.

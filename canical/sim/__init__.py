@@ -11,12 +11,15 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
   bandwidth, white noise, quantisation, saturation, and pluggable *effects* the calibrator is
   not told about (:class:`canical.sim.gyro.Effect`);
 * :mod:`canical.sim.sessions` — ready-made sessions: the paper's protocol, its validation records;
+* :mod:`canical.sim.blind` — blind cases for the closed loop: effect forms, channel trajectories and
+  drifts drawn at random from a seed, with what a right answer is;
 * :mod:`canical.sim.triad` — a gyro triad with coupling between its axes, single- and multi-axis tables.
 """
 
 # The package's public face: the submodules (and names) other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = [
+    "blind",
     "bus_log",
     "drive",
     "effects",

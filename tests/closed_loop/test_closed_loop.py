@@ -27,7 +27,7 @@ def test_scenario_attribution_and_error(scenario):
     if scenario.confounded:
         assert r.confounded, "confounded candidates must be reported"
         assert set(scenario.confounded) <= {n for g in r.confounded for n in g}
-        assert r.rms_after == pytest.approx(r.rms_before)  # neither added: a guess is not a fix
+        assert r.rms_after < r.rms_before / 3  # one adopted: ambiguous, yet corrected
     elif scenario.gyro is None:
         assert not r.confounded
     else:  # coloured noise: a rate random walk *is* a drift; it may be found, a channel never
@@ -37,10 +37,12 @@ def test_scenario_attribution_and_error(scenario):
     if scenario.expect and not scenario.leaves_residual:
         assert r.rms_after < r.rms_before / 3
         assert r.rms_after <= 1.5 * r.rms_oracle  # within a small factor of a model told the effect
+    if scenario.confounded:  # the form adopted is not the true one, but corrects within 2x of it
+        assert r.rms_after <= 2.0 * r.rms_oracle
     if not scenario.effects and scenario.gyro is None:
         assert r.rms_after == pytest.approx(r.rms_before)
-    # What the loop could not represent (or left out as confounded) is reported as unexplained.
-    assert r.unexplained == (scenario.leaves_residual or bool(scenario.confounded))
+    # What the loop could not represent is reported as unexplained (a confound is corrected).
+    assert r.unexplained == scenario.leaves_residual
 
 
 CONFOUNDS = [s for s in SCENARIOS if s.confounded]
@@ -51,14 +53,16 @@ CONFOUNDS = [s for s in SCENARIOS if s.confounded]
 def test_confounds_are_reported_on_other_seeds(scenario, seed):
     """The confound check on more sessions than seed 3: each of these once added one explanation
     outright (self-heating and the ramp at seed 1: a candidate scored on a base size its own size
-    search never reached; the transient at seed 0), where the data cannot tell them apart."""
+    search never reached; the transient at seed 0), where the data cannot tell them apart. One is
+    adopted all the same, as ambiguous (not an attribution: ``found`` stays empty), and the set
+    is corrected to within 2x of a model told the true form, the residual explained."""
     r = score_scenario(scenario, seed=seed, dwell_s=8.0)
     assert r.found == ()
     twins = {n for g in r.confounded for n in g if not n.startswith("~")}
     assert set(scenario.confounded) <= twins, r.confounded
     assert any("temp_c" in n for n in twins), r.confounded
-    assert r.rms_after == pytest.approx(r.rms_before)
-    assert r.unexplained
+    assert r.rms_after <= 2.0 * r.rms_oracle < r.rms_before
+    assert not r.unexplained
     # Each twin is within what the held-out plateaus' scatter allows of the first named.
     assert all(p >= CONFOUND_ALPHA for group in r.paired_p for p in group.values())
 

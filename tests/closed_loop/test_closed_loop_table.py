@@ -19,7 +19,7 @@ def test_scenario_on_a_ramped_jittered_table(scenario):
     if scenario.confounded:
         assert r.confounded, "confounded candidates must be reported"
         assert set(scenario.confounded) <= {n for g in r.confounded for n in g}
-        assert r.rms_after == pytest.approx(r.rms_before)
+        assert r.rms_after < r.rms_before / 3 and r.rms_after <= 2.0 * r.rms_oracle  # one adopted
     else:
         assert not r.confounded
     if scenario.expect:

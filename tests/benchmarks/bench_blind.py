@@ -1,0 +1,96 @@
+"""Benchmark: the closed loop on blind cases (effects, channel trajectories and drifts drawn at random).
+
+Each case is drawn by :func:`canical.sim.blind.draw_case` from a seed: an effect form (none, a
+channel's level, rate of change or lag, a warm-up, or a form no candidate lists), a trajectory of the
+channel (cycling, ramps, steps, a level per plateau, noise only) and a drift of the sensor (none,
+random walk, flicker, bias steps). Scored per case:
+
+* right attribution: an effect of the channel is blamed on it (any of its forms, in the set), a
+  warm-up is taken by a time candidate, and where no channel may be blamed none is;
+* false blame: a channel term in the set where the case has no visible channel effect (a clean or
+  drifting sensor, or a trajectory of noise only);
+* confounds: groups reported, and whether the set was corrected (one adopted) or the channel's
+  form lost to the session's drift;
+* held-out error against a model told the true form (where a term writes it).
+
+Development seeds are 0-99 (``--seeds``, printed case by case). The blind seeds are drawn from
+BLIND_ROOT, picked once at random and never printed case by case: only the scores (``--blind N``).
+
+Run: python tests/benchmarks/bench_blind.py [--seeds 0 1 ...] [--blind N] [--quick]
+Prints figures; asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from canical.calibration.evaluation import score_scenario
+from canical.sim.blind import draw_case
+
+#: Picked once at random (secrets.randbits(48)); the seeds it draws are never looked at one by one.
+BLIND_ROOT = 27569707891287
+
+
+def judge(seed: int, dwell_s: float) -> dict[str, object]:
+    case = draw_case(seed)
+    r = score_scenario(case.scenario, seed=seed, dwell_s=dwell_s)
+    blamed = "temp_c" in r.written_channels
+    other = any(c != "temp_c" for c in r.written_channels)  # a distractor blamed
+    if case.time_effect:
+        right = any(n.startswith("time:") for n in r.found) and not blamed and not other
+    elif case.blame:
+        right = blamed and not other
+    else:
+        right = not blamed and not other
+    told = bool(case.scenario.oracle_terms) and (case.blame is not None or case.time_effect)
+    return {"case": case.describe, "right": right, "false_blame": case.blame is None and (blamed or other),
+            "no_effect": case.blame is None and not case.time_effect, "confounds": len(r.confounded),
+            "ratio": r.rms_after / r.rms_oracle if told else float("nan"), "found": r.found,
+            "written": r.written_channels, "unexplained": r.unexplained_ratio}
+
+
+def summary(rows: list[dict[str, object]]) -> str:
+    n = len(rows)
+    right = sum(bool(r["right"]) for r in rows)
+    clean = [r for r in rows if r["no_effect"]]
+    false = sum(bool(r["false_blame"]) for r in clean)
+    ratios = np.array([r["ratio"] for r in rows], dtype=float)
+    ratios = ratios[np.isfinite(ratios)]
+    within = int(np.sum(ratios <= 2.0))
+    median = float(np.median(ratios)) if ratios.size else float("nan")
+    return (f"right {right}/{n}; false blame {false}/{len(clean)} cases with no visible channel effect; "
+            f"confounds reported in {sum(int(r['confounds']) > 0 for r in rows)}/{n}; held-out within 2x "
+            f"of told {within}/{ratios.size} (median ratio {median:.2f})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="*", default=list(range(20)),
+                    help="development seeds (0-99)")
+    ap.add_argument("--blind", type=int, default=0, help="blind seeds to draw from BLIND_ROOT (scores only)")
+    ap.add_argument("--dwell", type=float, default=8.0)
+    ap.add_argument("--quick", action="store_true", help="one development seed, short dwell")
+    args = ap.parse_args()
+    seeds, dwell = ([0], 3.0) if args.quick else (args.seeds, args.dwell)
+    t0 = time.perf_counter()
+    if seeds:
+        rows = []
+        print("development seeds, case by case:")
+        for seed in seeds:
+            row = judge(seed, dwell)
+            rows.append(row)
+            print(f"  {seed:3d} {row['case']:<40} right {row['right']!s:<5} found {list(row['found'])} "
+                  f"set {list(row['written'])} ratio {row['ratio']:.2f} left {row['unexplained']:.1f}x",
+                  flush=True)
+        print("development: " + summary(rows))
+    if args.blind:
+        blind = np.random.default_rng(BLIND_ROOT).integers(100, 2**31 - 1, args.blind)
+        print("blind: " + summary([judge(int(s), dwell) for s in blind]))
+    print(f"({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
