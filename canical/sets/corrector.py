@@ -26,7 +26,7 @@ from canical.models.piecewise import PiecewisePoly
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.term_kinds import TermKind
-from canical.sets.terms import Term, feature_values, raw_shift, term_from_dict
+from canical.sets.terms import Term, feature_values, raw_shift
 
 
 class Corrector:
@@ -37,7 +37,7 @@ class Corrector:
         self.v0 = float(cset.v0)
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
-        self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
+        self.terms: tuple[Term, ...] = cset.terms
         self.kinds: tuple[TermKind, ...] = tuple(t.spec for t in self.terms)
         names = [n for t in self.terms for n in t.input_names]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))

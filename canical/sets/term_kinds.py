@@ -723,13 +723,13 @@ for _k in ALL:
     FEATURES[_k.kind] += (_k.feature,)
 
 
-def host_only(terms: tuple[Mapping[str, Any], ...]) -> str | None:
+def host_only(terms: tuple[Term, ...]) -> str | None:
     """The first of a set's terms the C evaluator refuses, as ``terms[i] (kind/feature)`` (None:
     the device evaluates them all). Why: a device would refuse the bank (``CE_ERR_TERM_KIND``)
     after the download; ``canical push`` says so before sending anything."""
     for i, t in enumerate(terms):
-        spec = lookup(t.get("kind"), t.get("feature"))
-        if spec is not None and spec.c_name is None:
+        spec = t.spec
+        if spec.c_name is None:
             return f"terms[{i}] ({spec.kind}/{spec.feature})"
     return None
 

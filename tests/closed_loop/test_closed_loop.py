@@ -133,7 +133,7 @@ def effect_session():
 def test_extended_set_corrects_field_data_in_order(tmp_path):
     session = effect_session()
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    kinds = {t["kind"] for t in result.coefficients.terms}
+    kinds = {t.kind for t in result.coefficients.terms}
     assert kinds == {"channel", "direction"}
     cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
     corrector = Corrector(cset)
@@ -212,7 +212,7 @@ def test_clean_sensors_get_nothing_blamed_on_a_channel(noise, seed):
     session = sweep_session(CLEAN_NOISE[noise], rates, dwell_s=6.0, seed=seed, aux=scenario.aux)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
     assert [e.name for e in result.report.effects if e.kind == "channel"] == []
-    assert not any(t["kind"] == "channel" for t in result.coefficients.terms)
+    assert not any(t.kind == "channel" for t in result.coefficients.terms)
     assert result.report.unexplained is not None and not result.report.unexplained.unexplained
 
 

@@ -39,7 +39,7 @@ LIMITS = DeviceLimits(SERIAL, dict.fromkeys(AXES, 50.0), CAPACITY)
 
 
 def with_terms(cset: CoefficientSet, terms: list[dict]) -> CoefficientSet:
-    out = replace(cset, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    out = replace(cset, terms=tuple(term_from_dict(t) for t in terms))
     return coefficient_file.loads(coefficient_file.dumps(out))
 
 

@@ -22,6 +22,7 @@ from canical.sets import term_kinds
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import COMPILED_TERMS, compile_corrector
+from canical.sets.set_model import model_of
 from canical.sets.term_kinds import ALL, TermKind, lookup
 from canical.sets.terms import feature_values, term_from_dict
 
@@ -121,7 +122,7 @@ def test_every_kind_is_validated_evaluated_compiled_and_described(kind: TermKind
         assert set(term.input_names) <= set(inputs)
         x = feature_values(term, inputs, raw, raw - 12.5)
         assert x.shape == (n,) and np.isfinite(x).all()
-        cset = CoefficientSet("s", "z", 12.5, MODEL, (_term_dict(kind, form),))
+        cset = CoefficientSet("s", "z", 12.5, model_of(MODEL), (term_from_dict(_term_dict(kind, form)),))
         block, _ = Corrector(cset).correct(raw, inputs)
         reference, compiled_corrector = Corrector(cset), Corrector(cset)
         compiled = compile_corrector(compiled_corrector)

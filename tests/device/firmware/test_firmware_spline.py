@@ -80,7 +80,7 @@ def shift_bound(term: dict, dv_max: float, v: np.ndarray, v0: float) -> float:
 
 def with_term(term: dict) -> CoefficientSet:
     """The calibrated segmented set with ``term``, through the file format."""
-    cset = replace(model_set("segmented-inverse"), terms=(term_from_dict(term).to_dict(),))
+    cset = replace(model_set("segmented-inverse"), terms=(term_from_dict(term),))
     return coefficient_file.loads(coefficient_file.dumps(cset))
 
 
@@ -195,7 +195,7 @@ def test_the_bound_is_not_vacuous_a_wrong_segment_breaks_it(lib):
 
 def spline_bank(*terms: dict) -> dict:
     base = model_set("segmented-inverse")
-    cset = replace(base, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    cset = replace(base, terms=tuple(term_from_dict(t) for t in terms))
     return json.loads(encode_set(cset)[0])
 
 
