@@ -25,7 +25,7 @@ from canical.errors import CanicalError
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
-from canical.sets.term_kinds import TermKind
+from canical.sets.term_kinds import TermMaths
 from canical.sets.terms import Term, feature_values, raw_shift
 
 
@@ -38,7 +38,7 @@ class Corrector:
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
         self.terms: tuple[Term, ...] = cset.terms
-        self.kinds: tuple[TermKind, ...] = tuple(t.spec for t in self.terms)
+        self.kinds: tuple[TermMaths, ...] = tuple(t.spec for t in self.terms)
         names = [n for t in self.terms for n in t.input_names]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
         self.reset()

@@ -27,7 +27,7 @@ from typing import Any
 
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.corrector import Corrector
-from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, lookup
+from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, KeptCode, TermCode, lookup
 from canical.sets.terms import Term
 
 #: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
@@ -35,8 +35,6 @@ CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 
 #: The (kind, feature) pairs compiled here: every kind of the registry writes its own statements.
 COMPILED_TERMS = {k.key for k in ALL}
-#: The stateless terms whose input's part can be kept between frames (:func:`_cache_lines`).
-KEPT_TERMS = {k.key for k in ALL if k.kept}
 
 
 def why_not(corrector: Corrector) -> str | None:
@@ -63,18 +61,18 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
     call is left out. Trackers get exactly the reference's arguments. Each kind writes its own
-    statements (:meth:`~canical.sets.term_kinds.TermKind.code`).
+    statements (:meth:`~canical.sets.term_kinds.TermCode.code`).
 
     A stateless term whose input is a name in ``cached`` (an input that changes only when
     its own frame arrives, not every raw frame) keeps the part that depends on the input
     alone between calls: recomputed, by the same expression, only when the input is another
     object than last time (:func:`_cache_lines`); ``state`` collects the names that keep it.
     """
-    spec = term.spec
+    spec: TermCode = term.spec  # the code part of the kind's contract (and KeptCode, if kept)
     first = term.input_name
     value = inputs(first) if first is not None else ""
     scale = term.form == "scale"
-    if state is not None and value in cached and spec.kept:
+    if state is not None and value in cached and isinstance(spec, KeptCode):
         x = spec.kept_x(term, value)
         if scale and x == value:  # nothing but the input itself: nothing to keep
             return [f"    shift += {term.coefficient!r} * ({value} * dv)"]

@@ -62,6 +62,7 @@ from canical.sets.term_kinds import (
     MAX_SPLINE_KNOTS,
     TIME_INPUT,
     TermKind,
+    TermWording,
     gated_name,
     lookup,
 )
@@ -135,7 +136,8 @@ class Term:
 
     def describe(self) -> str:
         """A readable name for reports: ``d/dt temp_c``, ``lag(temp_c, τ=140 s)``."""
-        return self.spec.describe(self)
+        wording: TermWording = self.spec
+        return wording.describe(self)
 
     def to_dict(self) -> dict[str, Any]:
         """The set file's term; ``knots`` and ``pieces`` only for a spline (other terms' bytes,
