@@ -43,9 +43,9 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
-from canical.device.bank_payload import decode_coupling, decode_set, join_imu_set
+from canical.device.bank_payload import CouplingContent, decode_coupling, decode_set, join_imu_set
 from canical.errors import CanicalError
 from canical.files.atomic_file import write_text_atomic
 from canical.frames.imu_dictionary import (
@@ -95,7 +95,7 @@ class CouplingCheck:
     """A coupling bank checked on its own: status, its parsed content when valid, the reason when not."""
 
     status: int
-    envelope: dict[str, Any] | None = None
+    envelope: CouplingContent | None = None
     reason: str = ""
 
 
@@ -220,9 +220,9 @@ class BankStore:
         except CanicalError as exc:
             return CouplingCheck(STATUS_REFUSED, reason=str(exc))
         serial = sensor_id_for_serial(self.limits.serial)
-        if envelope["sensor"]["id"] != serial:
+        if envelope.sensor_id != serial:
             return CouplingCheck(STATUS_REFUSED, reason=f"{where}: IMU set for sensor "
-                                 f"{envelope['sensor']['id']!r}, this device is serial {serial}")
+                                 f"{envelope.sensor_id!r}, this device is serial {serial}")
         return CouplingCheck(STATUS_VALID, envelope)
 
     def _joined(self, bank: str, axes: dict[str, str | None]) -> ImuSet:
