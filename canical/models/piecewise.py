@@ -39,6 +39,16 @@ class PiecewisePoly:
         object.__setattr__(self, "_coeffs_list", [[float(c) for c in r] for r in self.coeffs])
 
     @property
+    def knots_list(self) -> list[float]:
+        """The knots as plain floats, made once at construction (the per-sample and compiled paths)."""
+        return self._knots_list
+
+    @property
+    def coeffs_list(self) -> list[list[float]]:
+        """The coefficient rows as plain floats, made once at construction."""
+        return self._coeffs_list
+
+    @property
     def n_segments(self) -> int:
         return int(self.coeffs.shape[0])
 

@@ -25,7 +25,7 @@ from canical.errors import CanicalError
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
-from canical.sets.term_kinds import TermMaths
+from canical.sets.term_kinds import TermMaths, Tracker
 from canical.sets.terms import Term, feature_values, raw_shift
 
 
@@ -84,6 +84,12 @@ class Corrector:
             ])
             dv = dv - raw_shift(self.terms, features, dv)
         return self.model.evaluate(dv)
+
+    @property
+    def trackers(self) -> tuple[Tracker | None, ...]:
+        """Each term's state for the stream this corrector follows (None: a stateless term); the
+        compiled corrector carries on from, and updates, these same objects."""
+        return tuple(self._trackers)
 
     @property
     def elementwise_model(self) -> bool:

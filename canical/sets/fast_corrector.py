@@ -39,7 +39,7 @@ COMPILED_TERMS = {k.key for k in ALL}
 
 def why_not(corrector: Corrector) -> str | None:
     """Why this corrector is not compiled (None: it is)."""
-    for term, tracker in zip(corrector.terms, corrector._trackers, strict=True):
+    for term, tracker in zip(corrector.terms, corrector.trackers, strict=True):
         spec = lookup(term.kind, term.feature)
         if spec is None or spec.key not in COMPILED_TERMS:
             return f"term {term.kind}/{term.feature} not compiled"
@@ -48,7 +48,7 @@ def why_not(corrector: Corrector) -> str | None:
             return f"term {term.kind}/{term.feature} has state {type(tracker).__name__}"
     model = corrector.model
     if isinstance(model, PiecewisePoly):
-        knots = model._knots_list
+        knots = model.knots_list
         if any(not b >= a for a, b in pairwise(knots)):  # bisect needs them sorted
             return "segment points not in ascending order"
     return None
@@ -109,9 +109,9 @@ MAX_TREE_SEGMENTS = 16
 def _foldable(model: PiecewisePoly) -> bool:
     """Whether the coefficients and segment points can be written into the source as literals (finite floats:
     ``repr`` gives them back exactly; ``inf``/``nan`` have no literal)."""
-    return (len(model._coeffs_list) <= MAX_TREE_SEGMENTS
-            and all(type(c) is float and math.isfinite(c) for row in model._coeffs_list for c in row)
-            and all(type(k) is float and math.isfinite(k) for k in model._knots_list))
+    return (len(model.coeffs_list) <= MAX_TREE_SEGMENTS
+            and all(type(c) is float and math.isfinite(c) for row in model.coeffs_list for c in row)
+            and all(type(k) is float and math.isfinite(k) for k in model.knots_list))
 
 
 def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, depth: int,
@@ -146,8 +146,8 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
     if not _foldable(model):
         return _general_model_lines(model, dv, tag, rate, out)
     unpack, horner, slope = _model_parts(model, tag)
-    namespace: dict[str, Any] = {"bisect_right": bisect_right, f"{tag}KNOTS": tuple(model._knots_list),
-                                 f"{tag}COEFFS": tuple(tuple(row) for row in model._coeffs_list)}
+    namespace: dict[str, Any] = {"bisect_right": bisect_right, f"{tag}KNOTS": tuple(model.knots_list),
+                                 f"{tag}COEFFS": tuple(tuple(row) for row in model.coeffs_list)}
     # The general statements on x, the span's end (where the reference clips to), as they run
     # beyond the span: the row, u, Horner, the slope, the slope over the scale.
     source = "\n".join(["def edge(x):", f"    {unpack}", f"    u = x / {model.scale!r}",
@@ -157,14 +157,14 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
     (acc_lo, k_lo), (acc_hi, k_hi) = ends = namespace["edge"](lo), namespace["edge"](hi)
     if not all(type(v) is float and math.isfinite(v) for pair in ends for v in pair):
         return _general_model_lines(model, dv, tag, rate, out)
-    rows = model._coeffs_list
+    rows = model.coeffs_list
     return [f"    if {dv} < {lo!r}:",
             f"        {rate}, {out} = {acc_lo!r} + ({k_lo!r}) * ({dv} - {lo!r}), True",
             f"    elif {dv} > {hi!r}:",
             f"        {rate}, {out} = {acc_hi!r} + ({k_hi!r}) * ({dv} - {hi!r}), True",
             f"    elif {dv} == {dv}:  # inside the span",
             f"        u = {dv} / {model.scale!r}",
-            *(f"    {line}" for line in _segment_tree(model._knots_list, rows, 0, len(rows), 1, dv)),
+            *(f"    {line}" for line in _segment_tree(model.knots_list, rows, 0, len(rows), 1, dv)),
             f"        {rate}, {out} = acc, False",
             "    else:  # NaN: the general statements, whatever they make of it",
             *(f"    {line}" for line in _general_model_lines(model, dv, tag, rate, out))]
@@ -172,12 +172,12 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
 
 def _model_parts(model: PiecewisePoly, tag: str) -> tuple[str, str, list[str]]:
     """The general form's row lookup (into ``c0, c1, …``), Horner in ``u`` and slope lines."""
-    m = len(model._coeffs_list[0]) - 1
+    m = len(model.coeffs_list[0]) - 1
     horner = f"c{m}"
     for k in range(m - 1, -1, -1):
         horner = f"({horner}) * u + c{k}"
     slope = ["        slope = 0.0"] + [f"        slope = slope * u + {k} * c{k}" for k in range(m, 0, -1)]
-    row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model._knots_list else f"{tag}COEFFS[0]"
+    row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model.knots_list else f"{tag}COEFFS[0]"
     return f"{''.join(f'c{k}, ' for k in range(m + 1))}= {row}", horner, slope
 
 
@@ -229,7 +229,7 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
     namespace: dict[str, Any] = {"exp": math.exp, "bisect_right": bisect_right, "NOTHING": object()}
     if terms:
         lines.append("    shift = 0.0")
-        for j, (term, tracker) in enumerate(zip(terms, corrector._trackers, strict=True)):
+        for j, (term, tracker) in enumerate(zip(terms, corrector.trackers, strict=True)):
             if tracker is not None:
                 namespace[f"{tag}track{j}"] = tracker.update
             lines += _term_lines(j, term, raw, value_of, tag, cached, state)
@@ -239,8 +239,8 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
         dv = "dv"
     model = corrector.model
     if isinstance(model, PiecewisePoly):
-        namespace[f"{tag}KNOTS"] = tuple(model._knots_list)
-        namespace[f"{tag}COEFFS"] = tuple(tuple(row) for row in model._coeffs_list)
+        namespace[f"{tag}KNOTS"] = tuple(model.knots_list)
+        namespace[f"{tag}COEFFS"] = tuple(tuple(row) for row in model.coeffs_list)
         lines += _model_lines(model, dv, tag, rate, out)
     else:  # a forward polynomial: Newton's method stays the model's own
         namespace[f"{tag}model_one"] = model.evaluate_one
