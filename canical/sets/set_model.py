@@ -52,8 +52,10 @@ class PiecewiseModel:
     #: None: the file has no such key (older files); a list otherwise.
     segment_points_dps: tuple[float, ...] | None = None
     out_of_span: str = OUT_OF_SPAN_BEHAVIOUR
-    #: The keys the file gave, in its order (None: all, in the order canical writes them).
+    #: The keys the file gave, in its order (None: all, in the order canical writes them), and
+    #: the values of keys this version does not read, as read (see :func:`model_from_dict`).
     keys: tuple[str, ...] | None = field(default=None, compare=False)
+    unread: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
     def rate_model(self, v0: float) -> PiecewisePoly:
         """The run-time ΔV → ω model, with knots and span relative to ``v0``."""
@@ -68,7 +70,7 @@ class PiecewiseModel:
         out.update({"scale": self.scale, "coefficients": [list(row) for row in self.coefficients],
                     "smoothness": self.smoothness, "span_raw": list(self.span_raw),
                     "out_of_span": self.out_of_span})
-        return _in_file_order(out, self.keys)
+        return _as_read(out, self.keys, self.unread)
 
     @classmethod
     def from_dict(cls, kind: ModelKind, model: Mapping[str, Any], fail: FailFn) -> PiecewiseModel:
@@ -106,8 +108,9 @@ class ForwardModel:
     span_raw: tuple[float, float]
     segment_points_dps: tuple[float, ...] | None = None
     out_of_span: str = OUT_OF_SPAN_BEHAVIOUR
-    #: The keys the file gave, in its order (None: all, in the order canical writes them).
+    #: The keys the file gave, in its order, and the values of keys not read (as PiecewiseModel's).
     keys: tuple[str, ...] | None = field(default=None, compare=False)
+    unread: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
     @property
     def kind(self) -> ModelKind:
@@ -124,7 +127,7 @@ class ForwardModel:
                                "span_raw": list(self.span_raw), "out_of_span": self.out_of_span}
         if self.segment_points_dps is not None:
             out["segment_points_dps"] = list(self.segment_points_dps)
-        return _in_file_order(out, self.keys)
+        return _as_read(out, self.keys, self.unread)
 
     @classmethod
     def from_dict(cls, kind: ModelKind, model: Mapping[str, Any], fail: FailFn) -> ForwardModel:
@@ -155,17 +158,21 @@ def model_from_dict(model: Mapping[str, Any], fail: FailFn) -> SetModel:
     record = PiecewiseModel if kind.piecewise else ForwardModel
     parsed = record.from_dict(kind, model, fail)
     written = parsed.to_dict()
-    # The record writes back what it read (a key left out means its default and stays left out),
-    # so the set's CRC stays the file's: a key it would not write back is refused.
-    extra = sorted(str(k) for k in model if k not in written)
-    if extra:
-        raise fail(f"model.{extra[0]} is not a key of a {kind.name} model")
+    # The record writes back what it read: the keys in the file's order, a key left out (its
+    # default) left out, and a key this version does not read (a newer version's, knots on the
+    # forward polynomial) with its value as read; so the set's bytes and CRC stay the file's.
+    unread = tuple((str(k), v) for k, v in model.items()
+                   if k not in written or v != written[k] or type(v) is not type(written[k]))
     keys = tuple(str(k) for k in model)
-    return parsed if keys == tuple(written) else replace(parsed, keys=keys)
+    return parsed if keys == tuple(written) and not unread else replace(parsed, keys=keys, unread=unread)
 
 
-def _in_file_order(out: dict[str, Any], keys: tuple[str, ...] | None) -> dict[str, Any]:
-    return out if keys is None else {k: out[k] for k in keys}
+def _as_read(out: dict[str, Any], keys: tuple[str, ...] | None,
+             unread: tuple[tuple[str, Any], ...]) -> dict[str, Any]:
+    if keys is None:
+        return out
+    values = dict(unread)
+    return {k: values[k] if k in values else out[k] for k in keys}
 
 
 def piecewise_model(kind: ModelKind, poly: PiecewisePoly, v0: float, *, smoothness: int | None,
@@ -213,10 +220,11 @@ def _segment_points(model: Mapping[str, Any], fail: FailFn) -> tuple[float, ...]
 
 
 def _out_of_span(model: Mapping[str, Any], fail: FailFn) -> str:
+    """What the file says happens beyond the span (informative: the behaviour is the model's; a
+    value that is not a string is kept as read, unread)."""
+    del fail
     value = model.get("out_of_span", OUT_OF_SPAN_BEHAVIOUR)
-    if not isinstance(value, str):
-        raise fail("model.out_of_span must be a string")
-    return value
+    return value if isinstance(value, str) else OUT_OF_SPAN_BEHAVIOUR
 
 
 def model_of(model: Mapping[str, Any], source: str = "<model>") -> SetModel:

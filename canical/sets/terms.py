@@ -107,9 +107,11 @@ class Term:
     knots: tuple[float, ...] | None = None
     pieces: tuple[tuple[float, ...], ...] | None = None
     #: The keys a set file gave the term, in its order (None: all of them, in :data:`TERM_FIELDS`
-    #: order). Why: a file that leaves out a key whose absence means its default (no channel, a
-    #: zero reference) is written back without it, so the set's bytes and CRC stay the file's.
+    #: order), and the values of those this kind does not read (a key of a newer version, a
+    #: channel on a time term), as read. Why: a file that leaves a key out, or carries one this
+    #: version ignores, is written back as it was, so the set's bytes and CRC stay the file's.
     keys: tuple[str, ...] | None = field(default=None, compare=False)
+    unread: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
     @classmethod
     def of(cls, spec: TermKind, form: str, coefficient: float, **fields: Any) -> Term:
@@ -155,7 +157,10 @@ class Term:
         if self.knots is not None:
             out["knots"] = list(self.knots)
             out["pieces"] = [list(row) for row in self.pieces or ()]
-        return out if self.keys is None else {k: out[k] for k in self.keys}
+        if self.keys is None:
+            return out
+        unread = dict(self.unread)
+        return {k: unread[k] if k in unread else out[k] for k in self.keys}
 
 
 def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
@@ -209,19 +214,15 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
 
 
 def term_from_file(d: Mapping[str, Any], where: str) -> Term:
-    """A set file's term: validated as :func:`term_from_dict` does, and refused unless the record
-    writes it back as read (every key, no other), so that the loaded set's CRC is the file's."""
+    """A set file's term: validated as :func:`term_from_dict` does, and holding what the record
+    would not write back by itself (its keys' order, keys left out, values its kind does not
+    read), so that it writes back the file's bytes and the loaded set's CRC is the file's."""
     term = term_from_dict(d, where)
     written = term.to_dict()
-    name = f"{term.kind}/{term.feature}"
-    extra = sorted(str(k) for k in d if k not in written)
-    if extra:
-        raise ValueError(f"{where}: {extra[0]} is not a key of a {name} term")
-    for key, value in d.items():
-        if value != written[key] or type(value) is not type(written[key]):
-            raise ValueError(f"{where}: {key} must be {written[key]!r} for a {name} term")
+    unread = tuple((str(k), v) for k, v in d.items()
+                   if k not in written or v != written[k] or type(v) is not type(written[k]))
     keys = tuple(str(k) for k in d)
-    return term if keys == tuple(written) else replace(term, keys=keys)
+    return term if keys == tuple(written) and not unread else replace(term, keys=keys, unread=unread)
 
 
 def _finite(v: object) -> TypeGuard[int | float]:

@@ -295,10 +295,10 @@ def test_a_learned_smooth_effect_runs_on_the_device_as_apply(lib, effect):
     for seed in range(5):  # the first seed whose set holds the spline (a nested form may win a draw)
         session = scenario.session(seed=seed, dwell_s=8.0)
         cset = calibrate(session, CalibrateOptions(), sensor_id="4711", axis="z").coefficients
-        splines = [t for t in cset.terms if t["feature"] in ("spline", "rate_spline")]
+        splines = [t.to_dict() for t in cset.terms if t.feature in ("spline", "rate_spline")]
         if splines:
             break
-    assert splines, [t["feature"] for t in cset.terms]
+    assert splines, [t.feature for t in cset.terms]
     inputs = {k: np.asarray(v, dtype=np.float32).astype(float) for k, v in session.aux.items()}
     inputs["time_s"] = session.time_s
     raw = session.raw
