@@ -24,6 +24,9 @@ from canical.sets.finite_outputs import check_finite_outputs
 from canical.sets.set_model import FailFn, finite, model_from_dict
 from canical.sets.terms import term_from_file
 
+__all__ = ["FailFn", "canonical_bytes", "content_crc", "dumps", "from_content", "load", "loads", "read_text",
+           "save", "set_crc"]
+
 
 def canonical_bytes(content: dict[str, Any]) -> bytes:
     """The bytes the CRC covers: the content without ``crc32``, as canonical JSON."""
@@ -144,10 +147,6 @@ def from_content(content: Any, source: str) -> CoefficientSet:
     if unbounded is not None:
         raise fail(unbounded.message())
     return cset
-
-
-__all__ = ["FailFn", "canonical_bytes", "content_crc", "dumps", "from_content", "load", "loads", "read_text",
-           "save", "set_crc"]
 
 
 def _mapping(content: dict[str, Any], key: str, fail: FailFn) -> dict[str, Any]:
