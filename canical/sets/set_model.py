@@ -92,7 +92,7 @@ class PiecewiseModel:
         if not all(finite(c) for row in coeffs for c in row):
             raise fail("model.coefficients must be finite numbers")
         smoothness = model.get("smoothness")
-        if smoothness not in (None, 0, 1) or isinstance(smoothness, bool | float):
+        if smoothness not in (None, 0, 1):  # as before: 1.0 and true pass too, kept as read
             raise fail("model.smoothness must be null, 0 or 1")
         return cls(kind, tuple(knots), scale, tuple(tuple(row) for row in coeffs), (lo, hi), smoothness,
                    _segment_points(model, fail), _out_of_span(model, fail))
