@@ -302,7 +302,7 @@ def test_rate_gated_effect_is_found_with_its_knee_and_applied_sample_by_sample()
     assert [e.name for e in effects] == ["temp_c × (|rate| > knee)"]
     knee = float(effects[0].description.split("> ")[1].split(" dps")[0])
     assert 25 <= knee <= 35, effects[0].description
-    assert {t["feature"] for t in result.coefficients.terms} == {"gated"}
+    assert {t.feature for t in result.coefficients.terms} == {"gated"}
     cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
     assert Corrector(cset).required_inputs == ("temp_c",)
     temp = session.aux["temp_c"]
