@@ -12,6 +12,7 @@ from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.segment_points import Extremum, choose_knots
 from canical.errors import CanicalError
 from canical.models.forward_poly import ForwardPoly, fit_forward_poly
+from canical.models.kinds import FORWARD_POLY, SEGMENTED_INVERSE, SEGMENTED_LINEAR, ModelKind
 from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_inverse import SegmentedFit, fit_segmented_inverse
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS, fit_segmented_linear
@@ -21,17 +22,17 @@ from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS, fit_segment
 class ModelSpec:
     """What to fit: the model kind and its size."""
 
-    kind: str = "segmented-inverse"
+    kind: ModelKind = SEGMENTED_INVERSE
     n_segments: int = 4
     order: int = 2
     smoothness: int | None = 0  # None: independent segments (the paper); 0: C0; 1: C1
     breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS  # segmented-linear only
 
     def describe(self) -> str:
-        if self.kind == "segmented-inverse":
+        if self.kind is SEGMENTED_INVERSE:
             join = {None: "free", 0: "C0", 1: "C1"}[self.smoothness]
             return f"{self.kind} segments={self.n_segments} order={self.order} joins={join}"
-        if self.kind == "segmented-linear":
+        if self.kind is SEGMENTED_LINEAR:
             return f"{self.kind} points={list(self.breakpoints_dps)} deg/s"
         return f"{self.kind} order={self.order}"
 
@@ -70,7 +71,7 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
         raise CanicalError("fewer than 2 plateaus: nothing to calibrate")
     span = dv_span(points)
     scale = max(abs(span[0]), abs(span[1])) or 1.0
-    if spec.kind == "forward-poly":
+    if spec.kind is FORWARD_POLY:
         model = fit_forward_poly(points.rate, points.dv, points.weight, spec.order)
         # Widen the rate bracket by the same sample-noise margin as the ΔV span.
         lo, hi = model.rate_span
@@ -79,13 +80,13 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
         margin_hi = (span[1] - model.span[1]) / slope
         model = replace(model, rate_span=(lo - max(margin_lo, 0.0), hi + max(margin_hi, 0.0)))
         return FittedModel(model, spec)
-    if spec.kind == "segmented-linear":
+    if spec.kind is SEGMENTED_LINEAR:
         linear = fit_segmented_linear(
             points.dv, points.rate, points.weight, spec.breakpoints_dps, scale=scale, span=span
         )
         return FittedModel(linear, spec)
-    if spec.kind != "segmented-inverse":
-        raise CanicalError(f"unknown model kind {spec.kind!r}")
+    if spec.kind is not SEGMENTED_INVERSE:
+        raise CanicalError(f"unknown model kind {spec.kind.name!r}")
     n_rates = np.unique(points.by_rate().rate).size
     if n_rates < spec.order + 1:
         raise CanicalError(

@@ -17,6 +17,7 @@ from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.plateaus import detect_plateaus, plateau_means
 from canical.calibration.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.closed_loop.search import Scorer, Structure, plateau_folds, reselect_size
+from canical.models.kinds import FORWARD_POLY, SEGMENTED_LINEAR
 from canical.models.piecewise import PiecewisePoly
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet
@@ -25,8 +26,8 @@ from canical.sets.term_kinds import CHANNEL, CHANNEL_GATED, DIRECTION_SIGN, TIME
 
 # The models the paper discusses, and ours: (label, options).
 PAPER_MODELS: tuple[tuple[str, CalibrateOptions], ...] = (
-    ("forward-poly (eq. 5, order 3)", CalibrateOptions(model="forward-poly", order=3)),
-    ("segmented-linear (eq. 6, 0, ±10 deg/s)", CalibrateOptions(model="segmented-linear")),
+    (f"{FORWARD_POLY} (eq. 5, order 3)", CalibrateOptions(model=FORWARD_POLY.name, order=3)),
+    (f"{SEGMENTED_LINEAR} (eq. 6, 0, ±10 deg/s)", CalibrateOptions(model=SEGMENTED_LINEAR.name)),
     (
         "segmented-inverse (eq. 11, 4 seg, quadratic)",
         CalibrateOptions(segments=4, order=2, smoothness=None),
@@ -165,7 +166,7 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     )
     left = result.report.unexplained
     assert left is not None  # the loop ran
-    written = tuple(sorted({t["channel"] for t in result.coefficients.terms if t.get("channel")}))
+    written = tuple(sorted({t.channel for t in result.coefficients.terms if t.channel}))
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
                        left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded), written)
 

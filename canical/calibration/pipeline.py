@@ -41,11 +41,20 @@ from canical.closed_loop.search import LoopResult, predict, run_loop
 from canical.closed_loop.unexplained import account
 from canical.errors import CanicalError
 from canical.models.forward_poly import ForwardPoly
+from canical.models.kinds import (
+    FORWARD_POLY,
+    MODEL_KINDS,
+    SEGMENTED_INVERSE,
+    SEGMENTED_LINEAR,
+    ModelKind,
+    model_kind,
+)
 from canical.models.piecewise import PiecewisePoly
 from canical.models.segmented_linear import DEFAULT_BREAKPOINTS_DPS
 from canical.sessions.session import Session
-from canical.sets.coefficients import CoefficientSet, forward_model_dict, piecewise_model_dict
-from canical.sets.terms import merge_splines
+from canical.sets.coefficients import CoefficientSet
+from canical.sets.set_model import SetModel, forward_model, piecewise_model
+from canical.sets.terms import Term, merge_splines
 
 FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
 
@@ -54,7 +63,7 @@ FORWARD_ORDERS = (1, 2, 3, 4, 5, 6, 7)
 class CalibrateOptions:
     """What the user chose; ``None`` for segments/order means choose by held-out error."""
 
-    model: str = "segmented-inverse"
+    model: str = SEGMENTED_INVERSE.name  # a name in MODEL_KINDS, as the command line gives it
     segments: int | None = None
     order: int | None = None
     smoothness: int | None = 0
@@ -66,6 +75,14 @@ class CalibrateOptions:
     extend: bool = True  # run the closed loop (segmented-inverse only)
     prefer: tuple[str, ...] = ()  # candidate names to pick when confounded
     direction_threshold_dps: float = 1.0
+
+    @property
+    def kind(self) -> ModelKind:
+        """The registry's kind the option names (an unknown name is one line)."""
+        kind = model_kind(self.model)
+        if kind is None:
+            raise CanicalError(f"model {self.model!r} unknown (known: {', '.join(MODEL_KINDS)})")
+        return kind
 
 
 @dataclass(frozen=True)
@@ -160,10 +177,10 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
 
 
 def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
-    base = ModelSpec(o.model, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
-    if o.model == "segmented-linear":
+    base = ModelSpec(o.kind, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
+    if o.kind is SEGMENTED_LINEAR:
         return replace(base, order=1), ()
-    if o.model == "forward-poly":
+    if o.kind is FORWARD_POLY:
         if o.order is not None:
             return replace(base, order=o.order), ()
         spec, cands = select_model(points, base, segments=(1,), orders=FORWARD_ORDERS)
@@ -182,18 +199,19 @@ def _size_candidate(c: Candidate) -> SizeCandidate:
                          monotone=c.monotone)
 
 
-def model_dict(fitted: FittedModel, v0: float) -> dict[str, Any]:
-    """The coefficient-file form of a fitted model."""
+def set_model(fitted: FittedModel, v0: float) -> SetModel:
+    """The coefficient set's form of a fitted model."""
     model = fitted.model
     if isinstance(model, ForwardPoly):
-        return forward_model_dict(model, v0)
+        return forward_model(model, v0)
+    chosen = fitted.spec.kind.chooses_segment_points
     points_dps = (
         [e.rate_dps for e in fitted.extrema]
-        if fitted.spec.kind == "segmented-inverse"
+        if chosen
         else [b for b in fitted.spec.breakpoints_dps if model.span[0] < b]
     )
-    smooth = fitted.spec.smoothness if fitted.spec.kind == "segmented-inverse" else None
-    return piecewise_model_dict(fitted.spec.kind, model, v0, smoothness=smooth, segment_points_dps=points_dps)
+    smooth = fitted.spec.smoothness if chosen else None
+    return piecewise_model(fitted.spec.kind, model, v0, smoothness=smooth, segment_points_dps=points_dps)
 
 
 def error_stats(errors: np.ndarray) -> ErrorStats:
@@ -211,11 +229,11 @@ def base_report(session: Session, base: BaseFit) -> CalibrationReport:
     jumps = getattr(base.fitted.model, "jumps", None)
     k = session.samples_per_row  # a long session's rows are means of k samples: counts in samples
     return CalibrationReport(
-        model=spec.kind,
+        model=spec.kind.name,
         spec=spec.describe(),
         segments=spec.n_segments,
         order=spec.order,
-        smoothness=spec.smoothness if spec.kind == "segmented-inverse" else None,
+        smoothness=spec.smoothness if spec.kind.chooses_segment_points else None,
         v0=base.v0,
         samples=SampleCounts(total=session.samples_read, used=base.plateaus.n_used * k,
                              transition=base.plateaus.n_transition * k,
@@ -415,10 +433,10 @@ def calibrate(
     report = base_report(session, base)
     progress("Allan deviation of the zero-rate plateaus")
     report = replace(report, allan=zero_rate_noise(session, base))
-    model = model_dict(base.fitted, base.v0)
-    terms: tuple[dict[str, Any], ...] = ()
+    model = set_model(base.fitted, base.v0)
+    terms: tuple[Term, ...] = ()
     loop = None
-    if options.extend and options.model == "segmented-inverse":
+    if options.extend and options.kind is SEGMENTED_INVERSE:
         progress("closing the loop: searching the residual for undeclared effects")
         loop = extend_model(session, base, options, progress)
         spec = loop.structure.spec
@@ -426,13 +444,13 @@ def calibrate(
             float(np.interp(k, base.points.by_rate().dv, base.points.by_rate().rate))
             for k in loop.fit.poly.knots
         ]
-        model = piecewise_model_dict(
+        model = piecewise_model(
             spec.kind, loop.fit.poly, base.v0, smoothness=spec.smoothness, segment_points_dps=points_dps
         )
-        terms = tuple(t.to_dict() for t in merge_splines(loop.fit.terms))  # a spline: one term
+        terms = merge_splines(loop.fit.terms)  # a spline: one term
         report = with_loop(report, loop, len(terms))
     elif options.extend:
-        report = replace(report, loop_skipped="the effect search needs the segmented-inverse model, "
+        report = replace(report, loop_skipped=f"the effect search needs the {SEGMENTED_INVERSE} model, "
                          f"not {options.model}")
     cset = CoefficientSet(
         sensor_id=sensor_id,

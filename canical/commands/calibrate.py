@@ -116,7 +116,7 @@ def register(sub) -> None:
         "multi-axis one ('# axis: multi'), written as one IMU set",
     )
     p.add_argument("-o", "--output", required=True, help="coefficient set YAML to write")
-    p.add_argument("--model", choices=MODEL_KINDS, default="segmented-inverse")
+    p.add_argument("--model", choices=MODEL_KINDS, default=MODEL_KINDS[0])
     p.add_argument(
         "--segments",
         type=_auto_or_int("--segments", 1, 12),

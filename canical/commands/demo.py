@@ -49,6 +49,7 @@ def demo(args: argparse.Namespace) -> int:
     from canical.calibration.evaluation import compare_models, held_out_set_errors, validation_record
     from canical.calibration.pipeline import CalibrateOptions, calibrate
     from canical.commands.calibrate import report_json
+    from canical.models.kinds import SEGMENTED_LINEAR
     from canical.sessions.csv_file import format_session
     from canical.sets import coefficient_file
     from canical.sim.sessions import between_rates_session, constant_session, paper_session
@@ -67,7 +68,7 @@ def demo(args: argparse.Namespace) -> int:
     print(f"  {'model':46s} {'train rms':>10s} {'held-out rms':>13s} {'held-out max':>13s}")
     for s in scores:
         print(f"  {s.label:46s} {s.train_rms_dps:10.4f} {s.test_rms_dps:13.4f} {s.test_max_dps:13.4f}")
-    common = next(s for s in scores if s.label.startswith("segmented-linear"))
+    common = next(s for s in scores if s.label.startswith(SEGMENTED_LINEAR.name))
     paper = next(s for s in scores if "4 seg" in s.label)
     ours = scores[-1]
     print(f"\n  improved (paper) vs common model: {common.test_rms_dps / paper.test_rms_dps:.1f}x lower rms")

@@ -27,7 +27,7 @@ import numpy as np
 from canical.errors import CanicalError
 from canical.sets.coefficient_file import canonical_bytes, content_crc, from_content
 from canical.sets.coefficients import SCHEMA_VERSION, CoefficientSet, finite
-from canical.sets.imu_set import IMU_SET_KIND, ImuSet, check_coupling, imu_set_crc
+from canical.sets.imu_set import IMU_SET_KIND, ImuSet, Matrix, as_matrix, check_coupling, imu_set_crc
 from canical.sets.imu_set import from_content as imu_from_content
 
 
@@ -75,7 +75,17 @@ def encode_coupling(imu: ImuSet) -> CouplingPayload:
     return CouplingPayload(content, zlib.crc32(content) & 0xFFFFFFFF, imu_set_crc(imu))
 
 
-def decode_coupling(content: bytes, crc: int, source: str) -> dict[str, Any]:
+@dataclass(frozen=True)
+class CouplingContent:
+    """A coupling bank's validated content: whose it is, the matrix, and the parsed content as its
+    CRC covers it (kept whole: joined with three axis sets it must give the IMU set's id)."""
+
+    sensor_id: str
+    matrix: Matrix
+    fields: dict[str, Any]
+
+
+def decode_coupling(content: bytes, crc: int, source: str) -> CouplingContent:
     """Validate coupling-bank bytes on their own (CRC, canonical JSON, kind, schema, sensor id,
     a 3×3 matrix that passes :func:`~canical.sets.imu_set.check_coupling`); the parsed content.
 
@@ -98,17 +108,17 @@ def decode_coupling(content: bytes, crc: int, source: str) -> dict[str, Any]:
     if not ok:
         raise CanicalError(f"{source}: coupling.matrix must be 3 rows of 3 finite numbers")
     check_coupling(np.asarray(matrix, dtype=float), source)
-    return parsed
+    return CouplingContent(sensor["id"], as_matrix(matrix), parsed)
 
 
-def join_imu_set(envelope: dict[str, Any], axes: tuple[CoefficientSet, ...], imu_set_id: int,
+def join_imu_set(envelope: CouplingContent, axes: tuple[CoefficientSet, ...], imu_set_id: int,
                  source: str) -> ImuSet:
     """The IMU set a coupling bank's content and three axis sets make, if its id is ``imu_set_id``.
 
     Refused in one line when the axes are not the ones the coupling was fitted with: the coupling
     is only right with the per-axis models whose scales fixed its diagonal.
     """
-    content = {**envelope, "axes": {c.axis: c.to_dict() for c in axes}}
+    content = {**envelope.fields, "axes": {c.axis: c.to_dict() for c in axes}}
     actual = content_crc(content)
     if actual != imu_set_id:
         ids = ", ".join(f"{c.axis} 0x{content_crc(c.to_dict()):08x}" for c in axes)

@@ -43,8 +43,9 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Generic, TypeVar
 
-from canical.device.bank_payload import decode_coupling, decode_set, join_imu_set
+from canical.device.bank_payload import CouplingContent, decode_coupling, decode_set, join_imu_set
 from canical.errors import CanicalError
 from canical.files.atomic_file import write_text_atomic
 from canical.frames.imu_dictionary import (
@@ -94,7 +95,7 @@ class CouplingCheck:
     """A coupling bank checked on its own: status, its parsed content when valid, the reason when not."""
 
     status: int
-    envelope: dict | None = None
+    envelope: CouplingContent | None = None
     reason: str = ""
 
 
@@ -105,6 +106,30 @@ class BankCheck:
     status: int
     cset: CoefficientSet | None = None
     reason: str = ""
+
+
+CheckT = TypeVar("CheckT", "BankCheck", "CouplingCheck")
+
+
+@dataclass(frozen=True)
+class CachedCheck(Generic[CheckT]):
+    """A bank's check and the content and CRC it was made for: valid while the bank holds them."""
+
+    content: bytes
+    crc: int
+    result: CheckT
+
+    def holds(self, bank: Bank) -> bool:
+        """Whether the bank still holds what was checked (the same bytes object, the same CRC)."""
+        return self.content is bank.content and self.crc == bank.crc
+
+
+@dataclass(frozen=True)
+class JoinedImu:
+    """The IMU set the active banks make, and what it was joined from (banks, contents, ids)."""
+
+    key: tuple[object, ...]
+    imu: ImuSet | None
 
 
 @dataclass
@@ -129,9 +154,9 @@ class BankStore:
 
     def __post_init__(self) -> None:
         self._lock = threading.RLock()
-        self._checks: dict[tuple[str, str], tuple[bytes, int, BankCheck]] = {}
-        self._coupling_checks: dict[str, tuple[bytes, int, CouplingCheck]] = {}
-        self._active_imu: tuple[tuple[object, ...], ImuSet | None] = ((), None)
+        self._checks: dict[tuple[str, str], CachedCheck[BankCheck]] = {}
+        self._coupling_checks: dict[str, CachedCheck[CouplingCheck]] = {}
+        self._active_imu = JoinedImu((), None)
         for key in ((a, b) for a in AXES for b in BANKS):
             self.banks.setdefault(key, Bank())
 
@@ -144,10 +169,10 @@ class BankStore:
         with self._lock:
             b = self.banks[(axis, bank)]
             cached = self._checks.get((axis, bank))
-            if cached and cached[0] is b.content and cached[1] == b.crc:
-                return cached[2]
+            if cached is not None and cached.holds(b):
+                return cached.result
             result = self._check(axis, bank, b)
-            self._checks[(axis, bank)] = (b.content, b.crc, result)
+            self._checks[(axis, bank)] = CachedCheck(b.content, b.crc, result)
             return result
 
     def _check(self, axis: str, bank: str, b: Bank) -> BankCheck:
@@ -174,10 +199,10 @@ class BankStore:
         with self._lock:
             b = self.coupling[bank]
             cached = self._coupling_checks.get(bank)
-            if cached and cached[0] is b.content and cached[1] == b.crc:
-                return cached[2]
+            if cached is not None and cached.holds(b):
+                return cached.result
             result = self._check_coupling(bank, b)
-            self._coupling_checks[bank] = (b.content, b.crc, result)
+            self._coupling_checks[bank] = CachedCheck(b.content, b.crc, result)
             return result
 
     def _check_coupling(self, bank: str, b: Bank) -> CouplingCheck:
@@ -195,9 +220,9 @@ class BankStore:
         except CanicalError as exc:
             return CouplingCheck(STATUS_REFUSED, reason=str(exc))
         serial = sensor_id_for_serial(self.limits.serial)
-        if envelope["sensor"]["id"] != serial:
+        if envelope.sensor_id != serial:
             return CouplingCheck(STATUS_REFUSED, reason=f"{where}: IMU set for sensor "
-                                 f"{envelope['sensor']['id']!r}, this device is serial {serial}")
+                                 f"{envelope.sensor_id!r}, this device is serial {serial}")
         return CouplingCheck(STATUS_VALID, envelope)
 
     def _joined(self, bank: str, axes: dict[str, str | None]) -> ImuSet:
@@ -226,9 +251,9 @@ class BankStore:
                 return None
             key = (self.active_coupling, self.coupling[self.active_coupling].content,
                    *(self.active[a] for a in AXES), *(self.active_id(a) for a in AXES))
-            if self._active_imu[0] != key:
-                self._active_imu = (key, self._joined(self.active_coupling, self.active))
-            return self._active_imu[1]
+            if self._active_imu.key != key:
+                self._active_imu = JoinedImu(key, self._joined(self.active_coupling, self.active))
+            return self._active_imu.imu
 
     def active_imu_set_id(self) -> int:
         with self._lock:

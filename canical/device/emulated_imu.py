@@ -33,7 +33,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import can
 import canopen
@@ -108,8 +108,8 @@ class EmulatedImu:
         self.correction = bool(config.correction)
         self.frames = ImuFrames(config.node_id, config.dbc_path)
         self.node = canopen.LocalNode(config.node_id, od)
-        self.node.add_read_callback(self._on_read)
-        self.node.add_write_callback(self._on_write)
+        self.node.add_read_callback(self._on_read)  # type: ignore[no-untyped-call]  # canopen: untyped
+        self.node.add_write_callback(self._on_write)  # type: ignore[no-untyped-call]
         self._bank_at = {(b.index, b.content): k for k, b in o.banks.items()}
         self._crc_at = {(b.index, b.crc): k for k, b in o.banks.items()}
         self._status_at = {(b.index, b.status): k for k, b in o.banks.items()}
@@ -177,7 +177,7 @@ class EmulatedImu:
     # SDO
     # ---------------------------------------------------------------------------------------
 
-    def _on_read(self, index: int, subindex: int, od) -> object | None:
+    def _on_read(self, index: int, subindex: int, od: object) -> object | None:
         key = (index, subindex)
         s, o = self.store, self.objects
         if key in self._bank_at:
@@ -209,7 +209,7 @@ class EmulatedImu:
         getter = simple.get(key)
         return getter() if getter else None
 
-    def _on_write(self, index: int, subindex: int, od, data: bytes) -> None:
+    def _on_write(self, index: int, subindex: int, od: object, data: bytes) -> None:
         key = (index, subindex)
         s, o = self.store, self.objects
         try:
@@ -382,10 +382,12 @@ class EmulatedImu:
                  engine)
         return coupled
 
-    def _corrected(self, correctors, tag, raw_id, raw_data, aux_id, aux_data, k):
+    def _corrected(self, correctors: dict[str, FirmwareCorrector | Corrector], tag: int, raw_id: int,
+                   raw_data: bytes, aux_id: int, aux_data: bytes, k: int) -> tuple[int, bytes]:
         """IMU_RATE for one sample, from the frames exactly as a receiver decodes them."""
-        rv = self.frames.decode(raw_id, raw_data).values
-        av = self.frames.decode(aux_id, aux_data).values
+        raw_frame, aux_frame = self.frames.decode(raw_id, raw_data), self.frames.decode(aux_id, aux_data)
+        assert raw_frame is not None and aux_frame is not None  # our own frames: always decoded
+        rv, av = raw_frame.values, aux_frame.values
         inputs = {CHANNELS[n]: float(v) for n, v in (*rv.items(), *av.items()) if n in CHANNELS}
         coupled = self.coupled
         if coupled is not None and not isinstance(coupled, tuple):
@@ -447,7 +449,7 @@ def receive_errors(network: canopen.Network) -> ReceiveErrors:
     return listener
 
 
-def _entry(od: canopen.ObjectDictionary, key: tuple[int, int]):
+def _entry(od: canopen.ObjectDictionary, key: tuple[int, int]) -> Any:  # an ODVariable; its default any type
     obj = od[key[0]]
     return obj if isinstance(obj, canopen.objectdictionary.ODVariable) else obj[key[1]]
 

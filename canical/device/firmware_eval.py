@@ -217,7 +217,7 @@ class Library:
         self.fixed_size = int(lib.ce_sizeof_fixed())
 
     def strerror(self, code: int) -> str:
-        return self.lib.ce_strerror(code).decode()
+        return str(self.lib.ce_strerror(code).decode())
 
 
 @functools.cache

@@ -131,7 +131,7 @@ class ImuClient:
 
     def upload(self, key: tuple[int, int], what: str) -> bytes:
         try:
-            return self.node.sdo.upload(*key)
+            return bytes(self.node.sdo.upload(*key))
         except (SdoAbortedError, SdoCommunicationError, can.CanError) as exc:
             raise self._fail(exc, what) from None
 

@@ -2,7 +2,8 @@
 
 * :mod:`~canical.models.forward_poly` — ΔV(ω) as one polynomial (eq. 5), inverted numerically;
 * :mod:`~canical.models.segmented_linear` — the common model (eq. 6), linear per rate segment;
-* :mod:`~canical.models.segmented_inverse` — the improved model (eqs. 10, 11), ω(ΔV) per segment.
+* :mod:`~canical.models.segmented_inverse` — the improved model (eqs. 10, 11), ω(ΔV) per segment;
+* :mod:`~canical.models.kinds` — the registry naming them (one object per kind, the names in files).
 
 A run-time model maps ΔV to ω, vectorised (:meth:`RateModel.evaluate`) and one
 sample at a time (:meth:`RateModel.evaluate_one`, the daemon's per-frame path).
@@ -11,6 +12,8 @@ sample at a time (:meth:`RateModel.evaluate_one`, the daemon's per-frame path).
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Protocol
+
+from canical.models import kinds as _kinds
 
 if TYPE_CHECKING:  # kept out of start-up: `canical calibrate --help` lists MODEL_KINDS
     import numpy as np
@@ -21,13 +24,14 @@ __all__ = [
     "MODEL_KINDS",
     "RateModel",
     "forward_poly",
+    "kinds",
     "piecewise",
     "robust_stats",
     "segmented_inverse",
     "segmented_linear",
 ]
 
-MODEL_KINDS = ("segmented-inverse", "segmented-linear", "forward-poly")
+MODEL_KINDS = _kinds.MODEL_KINDS
 
 
 class RateModel(Protocol):

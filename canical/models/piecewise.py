@@ -39,10 +39,14 @@ class PiecewisePoly:
         object.__setattr__(self, "_coeffs_list", [[float(c) for c in r] for r in self.coeffs])
 
     @property
-    def knot_floats(self) -> list[float]:
-        """The knots as plain floats (made once at load): for the scalar path and the code
-        generated from the model (:mod:`canical.sets.fast_corrector`)."""
+    def knots_list(self) -> list[float]:
+        """The knots as plain floats, made once at construction (the per-sample and compiled paths)."""
         return self._knots_list
+
+    @property
+    def coeffs_list(self) -> list[list[float]]:
+        """The coefficient rows as plain floats, made once at construction."""
+        return self._coeffs_list
 
     @property
     def n_segments(self) -> int:

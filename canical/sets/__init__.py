@@ -1,6 +1,7 @@
 """A coefficient set: what calibration writes and everything else reads.
 
-:mod:`.coefficients` is the set as plain data (rate model pieces plus effect terms),
+:mod:`.coefficients` is the set as typed records (its rate model, :mod:`.set_model`, one record per
+model kind, plus effect terms),
 :mod:`.coefficient_file` its YAML file with CRC (and :mod:`.finite_outputs` the proof at load that
 its outputs are finite), :mod:`.term_kinds` the registry of effect term kinds (one object per
 kind), :mod:`.terms` the validated term record, :mod:`.trackers` the terms' state,
@@ -14,4 +15,4 @@ and the ground floor.
 # The package's public face: the submodules other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "imu_corrector",
-           "imu_set", "term_kinds", "terms", "trackers"]
+           "imu_set", "set_model", "term_kinds", "terms", "trackers"]

@@ -9,11 +9,9 @@ line naming what is wrong.
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import zlib
-from collections.abc import Callable
 from typing import Any
 
 import yaml
@@ -21,16 +19,13 @@ import yaml
 from canical.errors import CanicalError
 from canical.files.atomic_file import write_text_atomic
 from canical.files.yaml_text import parse_yaml
-from canical.models import MODEL_KINDS
-from canical.sets.coefficients import (
-    DEFAULT_RAW_UNITS,
-    PIECEWISE_KINDS,
-    SCHEMA_VERSION,
-    CoefficientSet,
-    finite,
-)
+from canical.sets.coefficients import DEFAULT_RAW_UNITS, SCHEMA_VERSION, CoefficientSet
 from canical.sets.finite_outputs import check_finite_outputs
-from canical.sets.terms import term_from_dict
+from canical.sets.set_model import FailFn, finite, model_from_dict
+from canical.sets.terms import term_from_file
+
+__all__ = ["FailFn", "canonical_bytes", "content_crc", "dumps", "from_content", "load", "loads", "read_text",
+           "save", "set_crc"]
 
 
 def canonical_bytes(content: dict[str, Any]) -> bytes:
@@ -118,7 +113,7 @@ def from_content(content: Any, source: str) -> CoefficientSet:
     for key in ("id", "axis"):
         if not isinstance(sensor.get(key), str) or not sensor.get(key):
             raise fail(f"sensor.{key} must be a non-empty string")
-    _check_model(model, fail)
+    typed_model = model_from_dict(model, fail)
     terms = content.get("terms", [])
     if not isinstance(terms, list):
         raise fail("terms must be a list")
@@ -127,10 +122,10 @@ def from_content(content: Any, source: str) -> CoefficientSet:
         if not isinstance(term, dict):
             raise fail(f"terms[{i}] must be a mapping")
         try:
-            checked.append(term_from_dict(term, f"terms[{i}]"))
+            checked.append(term_from_file(term, f"terms[{i}]"))
         except ValueError as exc:
             raise fail(str(exc)) from None
-    if terms and model.get("kind") not in PIECEWISE_KINDS:
+    if terms and not typed_model.kind.piecewise:
         raise fail("effect terms need a segmented model")
     fit = content.get("fit", {})
     if not isinstance(fit, dict):
@@ -139,8 +134,8 @@ def from_content(content: Any, source: str) -> CoefficientSet:
         sensor_id=sensor["id"],
         axis=sensor["axis"],
         v0=float(v0),
-        model=model,
-        terms=tuple(terms),
+        model=typed_model,
+        terms=tuple(checked),
         fit=fit,
         created=str(content.get("created", "")),
         raw_units=str(units.get("raw", DEFAULT_RAW_UNITS)),
@@ -148,14 +143,10 @@ def from_content(content: Any, source: str) -> CoefficientSet:
         schema=schema,
     )
     lo, hi = cset.span_raw
-    unbounded = check_finite_outputs(cset.rate_model(), tuple(checked), (lo - cset.v0, hi - cset.v0))
+    unbounded = check_finite_outputs(cset.rate_model(), cset.terms, (lo - cset.v0, hi - cset.v0))
     if unbounded is not None:
         raise fail(unbounded.message())
     return cset
-
-
-# Builds the one-line error naming the file; each caller raises what it returns.
-FailFn = Callable[[str], CanicalError]
 
 
 def _mapping(content: dict[str, Any], key: str, fail: FailFn) -> dict[str, Any]:
@@ -163,50 +154,3 @@ def _mapping(content: dict[str, Any], key: str, fail: FailFn) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise fail(f"{key} missing or not a mapping")
     return value
-
-
-def _numbers(model: dict[str, Any], key: str, fail: FailFn, *, length: int | None = None) -> list[float]:
-    values = model.get(key)
-    if not isinstance(values, list) or not all(finite(v) for v in values):
-        raise fail(f"model.{key} must be a list of finite numbers")
-    if length is not None and len(values) != length:
-        raise fail(f"model.{key} must have {length} entries, has {len(values)}")
-    return values
-
-
-def _check_model(model: dict[str, Any], fail: FailFn) -> None:
-    kind = model.get("kind")
-    if kind not in MODEL_KINDS:
-        raise fail(f"model.kind {kind!r} unknown (known: {', '.join(MODEL_KINDS)})")
-    lo, hi = _numbers(model, "span_raw", fail, length=2)
-    if not lo < hi:
-        raise fail("model.span_raw must be ascending [low, high]")
-    if kind in PIECEWISE_KINDS:
-        knots = _numbers(model, "knots_raw", fail)
-        if any(b <= a for a, b in itertools.pairwise(knots)):
-            raise fail("model.knots_raw must be strictly ascending")
-        if knots and not (lo < knots[0] and knots[-1] < hi):
-            raise fail("model.knots_raw must lie inside model.span_raw")
-        if not finite(model.get("scale")) or model["scale"] <= 0:
-            raise fail("model.scale must be a positive number")
-        coeffs = model.get("coefficients")
-        if not isinstance(coeffs, list) or len(coeffs) != len(knots) + 1:
-            raise fail(f"model.coefficients must have one row per segment ({len(knots) + 1})")
-        widths = {len(r) if isinstance(r, list) else -1 for r in coeffs}
-        if len(widths) != 1 or widths.pop() < 1:
-            raise fail("model.coefficients rows must be lists of the same length")
-        if not all(finite(c) for row in coeffs for c in row):
-            raise fail("model.coefficients must be finite numbers")
-        if model.get("smoothness") not in (None, 0, 1):
-            raise fail("model.smoothness must be null, 0 or 1")
-    else:
-        coeffs = _numbers(model, "coefficients", fail)
-        if len(coeffs) < 2:
-            raise fail("model.coefficients needs at least 2 entries")
-        if not finite(model.get("rate_scale")) or model["rate_scale"] <= 0:
-            raise fail("model.rate_scale must be a positive number")
-        w_lo, w_hi = _numbers(model, "rate_span_dps", fail, length=2)
-        if not w_lo < w_hi:
-            raise fail("model.rate_span_dps must be ascending")
-    if "segment_points_dps" in model:
-        _numbers(model, "segment_points_dps", fail)

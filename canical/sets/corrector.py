@@ -25,8 +25,8 @@ from canical.errors import CanicalError
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.coefficient_file import set_crc
 from canical.sets.coefficients import CoefficientSet
-from canical.sets.term_kinds import TermKind, Tracker
-from canical.sets.terms import Term, feature_values, raw_shift, term_from_dict
+from canical.sets.term_kinds import TermMaths, Tracker
+from canical.sets.terms import Term, feature_values, raw_shift
 
 
 class Corrector:
@@ -37,8 +37,8 @@ class Corrector:
         self.v0 = float(cset.v0)
         self.model = cset.rate_model()
         self.set_id = set_crc(cset)
-        self.terms: tuple[Term, ...] = tuple(term_from_dict(t) for t in cset.terms)
-        self.kinds: tuple[TermKind, ...] = tuple(t.spec for t in self.terms)
+        self.terms: tuple[Term, ...] = cset.terms
+        self.kinds: tuple[TermMaths, ...] = tuple(t.spec for t in self.terms)
         names = [n for t in self.terms for n in t.input_names]
         self.required_inputs: tuple[str, ...] = tuple(dict.fromkeys(names))
         self.reset()
@@ -87,8 +87,8 @@ class Corrector:
 
     @property
     def trackers(self) -> tuple[Tracker | None, ...]:
-        """Each term's per-stream state, in term order (what :meth:`reset` renews): the compiled
-        corrector (:mod:`canical.sets.fast_corrector`) carries on from the same objects."""
+        """Each term's state for the stream this corrector follows (None: a stateless term); the
+        compiled corrector carries on from, and updates, these same objects."""
         return tuple(self._trackers)
 
     @property

@@ -27,7 +27,7 @@ from typing import Any
 
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.corrector import Corrector
-from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, lookup
+from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, KeptCode, TermCode, lookup
 from canical.sets.terms import Term
 
 #: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
@@ -35,8 +35,6 @@ CorrectOne = Callable[[float, Mapping[str, float]], tuple[float, bool]]
 
 #: The (kind, feature) pairs compiled here: every kind of the registry writes its own statements.
 COMPILED_TERMS = {k.key for k in ALL}
-#: The stateless terms whose input's part can be kept between frames (:func:`_cache_lines`).
-KEPT_TERMS = {k.key for k in ALL if k.kept}
 
 
 def why_not(corrector: Corrector) -> str | None:
@@ -50,7 +48,7 @@ def why_not(corrector: Corrector) -> str | None:
             return f"term {term.kind}/{term.feature} has state {type(tracker).__name__}"
     model = corrector.model
     if isinstance(model, PiecewisePoly):
-        knots = model.knot_floats
+        knots = model.knots_list
         if any(not b >= a for a, b in pairwise(knots)):  # bisect needs them sorted
             return "segment points not in ascending order"
     return None
@@ -63,18 +61,18 @@ def _term_lines(j: int, term: Term, raw: str, inputs: Callable[[str], str], tag:
     The reference converts an input with ``float()`` first; every use below combines it with
     a float (``v - ref``, ``-v / tau``, ``c * v``), which converts an int the same way, so the
     call is left out. Trackers get exactly the reference's arguments. Each kind writes its own
-    statements (:meth:`~canical.sets.term_kinds.TermKind.code`).
+    statements (:meth:`~canical.sets.term_kinds.TermCode.code`).
 
     A stateless term whose input is a name in ``cached`` (an input that changes only when
     its own frame arrives, not every raw frame) keeps the part that depends on the input
     alone between calls: recomputed, by the same expression, only when the input is another
     object than last time (:func:`_cache_lines`); ``state`` collects the names that keep it.
     """
-    spec = term.spec
+    spec: TermCode = term.spec  # the code part of the kind's contract (and KeptCode, if kept)
     first = term.input_name
     value = inputs(first) if first is not None else ""
     scale = term.form == "scale"
-    if state is not None and value in cached and spec.kept:
+    if state is not None and value in cached and isinstance(spec, KeptCode):
         x = spec.kept_x(term, value)
         if scale and x == value:  # nothing but the input itself: nothing to keep
             return [f"    shift += {term.coefficient!r} * ({value} * dv)"]
@@ -111,9 +109,9 @@ MAX_TREE_SEGMENTS = 16
 def _foldable(model: PiecewisePoly) -> bool:
     """Whether the coefficients and segment points can be written into the source as literals (finite floats:
     ``repr`` gives them back exactly; ``inf``/``nan`` have no literal)."""
-    return (len(model._coeffs_list) <= MAX_TREE_SEGMENTS
-            and all(type(c) is float and math.isfinite(c) for row in model._coeffs_list for c in row)
-            and all(type(k) is float and math.isfinite(k) for k in model.knot_floats))
+    return (len(model.coeffs_list) <= MAX_TREE_SEGMENTS
+            and all(type(c) is float and math.isfinite(c) for row in model.coeffs_list for c in row)
+            and all(type(k) is float and math.isfinite(k) for k in model.knots_list))
 
 
 def _segment_tree(knots: list[float], rows: list[list[float]], a: int, b: int, depth: int,
@@ -148,8 +146,8 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
     if not _foldable(model):
         return _general_model_lines(model, dv, tag, rate, out)
     unpack, horner, slope = _model_parts(model, tag)
-    namespace: dict[str, Any] = {"bisect_right": bisect_right, f"{tag}KNOTS": tuple(model.knot_floats),
-                                 f"{tag}COEFFS": tuple(tuple(row) for row in model._coeffs_list)}
+    namespace: dict[str, Any] = {"bisect_right": bisect_right, f"{tag}KNOTS": tuple(model.knots_list),
+                                 f"{tag}COEFFS": tuple(tuple(row) for row in model.coeffs_list)}
     # The general statements on x, the span's end (where the reference clips to), as they run
     # beyond the span: the row, u, Horner, the slope, the slope over the scale.
     source = "\n".join(["def edge(x):", f"    {unpack}", f"    u = x / {model.scale!r}",
@@ -159,14 +157,14 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
     (acc_lo, k_lo), (acc_hi, k_hi) = ends = namespace["edge"](lo), namespace["edge"](hi)
     if not all(type(v) is float and math.isfinite(v) for pair in ends for v in pair):
         return _general_model_lines(model, dv, tag, rate, out)
-    rows = model._coeffs_list
+    rows = model.coeffs_list
     return [f"    if {dv} < {lo!r}:",
             f"        {rate}, {out} = {acc_lo!r} + ({k_lo!r}) * ({dv} - {lo!r}), True",
             f"    elif {dv} > {hi!r}:",
             f"        {rate}, {out} = {acc_hi!r} + ({k_hi!r}) * ({dv} - {hi!r}), True",
             f"    elif {dv} == {dv}:  # inside the span",
             f"        u = {dv} / {model.scale!r}",
-            *(f"    {line}" for line in _segment_tree(model.knot_floats, rows, 0, len(rows), 1, dv)),
+            *(f"    {line}" for line in _segment_tree(model.knots_list, rows, 0, len(rows), 1, dv)),
             f"        {rate}, {out} = acc, False",
             "    else:  # NaN: the general statements, whatever they make of it",
             *(f"    {line}" for line in _general_model_lines(model, dv, tag, rate, out))]
@@ -174,12 +172,12 @@ def _model_lines(model: PiecewisePoly, dv: str, tag: str, rate: str, out: str) -
 
 def _model_parts(model: PiecewisePoly, tag: str) -> tuple[str, str, list[str]]:
     """The general form's row lookup (into ``c0, c1, …``), Horner in ``u`` and slope lines."""
-    m = len(model._coeffs_list[0]) - 1
+    m = len(model.coeffs_list[0]) - 1
     horner = f"c{m}"
     for k in range(m - 1, -1, -1):
         horner = f"({horner}) * u + c{k}"
     slope = ["        slope = 0.0"] + [f"        slope = slope * u + {k} * c{k}" for k in range(m, 0, -1)]
-    row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model.knot_floats else f"{tag}COEFFS[0]"
+    row = f"{tag}COEFFS[bisect_right({tag}KNOTS, x)]" if model.knots_list else f"{tag}COEFFS[0]"
     return f"{''.join(f'c{k}, ' for k in range(m + 1))}= {row}", horner, slope
 
 
@@ -241,8 +239,8 @@ def corrector_lines(corrector: Corrector, raw: str, inputs: str, rate: str, out:
         dv = "dv"
     model = corrector.model
     if isinstance(model, PiecewisePoly):
-        namespace[f"{tag}KNOTS"] = tuple(model.knot_floats)
-        namespace[f"{tag}COEFFS"] = tuple(tuple(row) for row in model._coeffs_list)
+        namespace[f"{tag}KNOTS"] = tuple(model.knots_list)
+        namespace[f"{tag}COEFFS"] = tuple(tuple(row) for row in model.coeffs_list)
         lines += _model_lines(model, dv, tag, rate, out)
     else:  # a forward polynomial: Newton's method stays the model's own
         namespace[f"{tag}model_one"] = model.evaluate_one

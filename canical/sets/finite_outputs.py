@@ -78,7 +78,7 @@ def _poly_bound(coeffs: np.ndarray, u: float) -> tuple[float, float]:
 def piecewise_bound(model: PiecewisePoly, reach: float) -> float:
     """Largest |ω| for ΔV within the span or ``reach`` beyond it (extrapolated by the edge slope)."""
     lo, hi = model.span
-    edges = [lo, *model._knots_list, hi]
+    edges = [lo, *model.knots_list, hi]
     with np.errstate(all="ignore"):
         rows = [_poly_bound(row, max(abs(a), abs(b)) / model.scale)
                 for row, (a, b) in zip(model.coeffs, pairwise(edges), strict=True)]

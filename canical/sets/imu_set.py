@@ -36,7 +36,8 @@ Matrix = tuple[tuple[float, float, float], tuple[float, float, float], tuple[flo
 def as_matrix(values: Any) -> Matrix:
     """A 3×3 nested tuple of floats from an array or nested lists."""
     m = np.asarray(values, dtype=float).reshape(3, 3)
-    return tuple(tuple(float(v) for v in row) for row in m)  # type: ignore[return-value]
+    x, y, z = ((float(r[0]), float(r[1]), float(r[2])) for r in m)
+    return (x, y, z)
 
 
 @dataclass(frozen=True)

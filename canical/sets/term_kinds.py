@@ -15,11 +15,18 @@ one object that knows
   in the same order;
 * the statements the compiled corrector writes for it (:meth:`TermKind.code`), and whether
   the compiled corrector may keep the part of x that depends on its input alone between
-  frames (``kept``, :meth:`TermKind.kept_x`);
+  frames (``kept``: the kind is a :class:`KeptCode`, :meth:`kept_x`);
 * its description in reports (:meth:`TermKind.describe`) and a channel transform's name as a
   candidate (:meth:`ChannelKind.label`);
 * how large x can get for bounded inputs (:meth:`TermKind.reach`), so that loading a set can
   prove its outputs finite.
+
+Each kind's contract is three narrow protocols, so a reader depends on the part it uses only:
+:class:`TermMaths` (inputs, state, x, reach: the corrector and the load-time proof),
+:class:`TermCode` (the compiled corrector's statements; :class:`KeptCode` for the kinds whose x
+may be kept between frames) and :class:`TermWording` (the report's name). The base class
+:class:`TermKind` is abstract: a kind that leaves one of its parts out cannot be instantiated,
+so the registry fails at import rather than a reader at run time (no ``NotImplementedError``).
 
 Adding a kind is one new class here (and one row plus one ``case`` in the C evaluator); the
 tests fail while any of these is missing. A kind with ``c_name`` None is not (yet) in the C
@@ -34,10 +41,11 @@ on these objects, are :mod:`canical.sets.terms`.
 from __future__ import annotations
 
 import math
+from abc import ABC, abstractmethod
 from bisect import bisect_right
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -96,8 +104,46 @@ def share(term: Term, x: str) -> str:
     return f"    shift += {term.coefficient!r} * " + (f"({x} * dv)" if term.form == "scale" else f"{x}")
 
 
-class TermKind:
-    """One (kind, feature) of effect term; subclasses fill in what differs."""
+class TermMaths(Protocol):
+    """What the corrector and the load-time proof need of a kind: its inputs, state and feature x."""
+
+    def input_names(self, term: Term) -> tuple[str, ...]: ...
+
+    def tracker(self, term: Term) -> Tracker | None: ...
+
+    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray: ...
+
+    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+                    dv: np.ndarray | None) -> np.ndarray: ...
+
+    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float: ...
+
+    def reach(self, term: Term, inputs: float) -> float: ...
+
+
+class TermCode(Protocol):
+    """What the compiled corrector needs of a kind: the statements adding the term's share."""
+
+    def code(self, term: Term, names: CodeNames) -> list[str]: ...
+
+
+@runtime_checkable
+class KeptCode(Protocol):
+    """A kind whose x the compiled corrector may keep between frames: x of its input alone."""
+
+    def kept_x(self, term: Term, value: str) -> str: ...
+
+
+class TermWording(Protocol):
+    """What a report needs of a kind: a readable name for a term of it."""
+
+    def describe(self, term: Term) -> str: ...
+
+
+class TermKind(ABC):
+    """One (kind, feature) of effect term: its names, the fields it needs, and the three parts a
+    kind supplies (:class:`TermMaths`, :class:`TermCode`, :class:`TermWording`); each concrete
+    kind implements every abstract method (instantiating one that does not fails at import)."""
 
     kind: ClassVar[str]
     feature: ClassVar[str]
@@ -108,8 +154,6 @@ class TermKind:
     needs_threshold: ClassVar[bool] = False
     #: Whether the term carries a piecewise cubic (``knots``, ``pieces``).
     needs_spline: ClassVar[bool] = False
-    #: Whether the compiled corrector keeps the part of x that depends on the input alone.
-    kept: ClassVar[bool] = False
     #: The tracker class this kind keeps its state in (None: stateless).
     tracker_type: ClassVar[type | None] = None
     #: Whether x is computed from the raw output itself (its tracker gets the raw value).
@@ -122,6 +166,11 @@ class TermKind:
     @property
     def needs_channel(self) -> bool:
         return self.kind == CHANNEL
+
+    @property
+    def kept(self) -> bool:
+        """Whether the compiled corrector keeps the part of x that depends on the input alone."""
+        return isinstance(self, KeptCode)
 
     def __repr__(self) -> str:
         return f"<term kind {self.kind}/{self.feature}>"
@@ -139,9 +188,9 @@ class TermKind:
         """A fresh state for one stream of samples (None: the kind has none)."""
         return None
 
+    @abstractmethod
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         """x for a block of samples in time order, from a fresh state."""
-        raise NotImplementedError
 
     def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
@@ -152,30 +201,33 @@ class TermKind:
         """
         return self.values(term, inputs, raw, dv)
 
+    @abstractmethod
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         """x for the next sample of the stream whose state ``tracker`` holds."""
-        raise NotImplementedError
 
+    @abstractmethod
     def code(self, term: Term, names: CodeNames) -> list[str]:
         """The compiled corrector's statements adding this term's share to ``shift``."""
-        return [share(term, self.code_x(term, names))]
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
-        """x as one expression of the compiled corrector (for kinds whose :meth:`code` uses it)."""
-        raise NotImplementedError
-
-    def kept_x(self, term: Term, value: str) -> str:
-        """x as an expression of the input ``value`` alone, for a ``kept`` kind."""
-        raise NotImplementedError(f"{self!r} is not kept between frames")
-
+    @abstractmethod
     def describe(self, term: Term) -> str:
         """A readable name for reports."""
-        raise NotImplementedError
 
     def reach(self, term: Term, inputs: float) -> float:
         """The largest |x| while every input (and the raw output's rate of change) stays within
         ±``inputs``: what bounds the term's share (see :mod:`canical.sets.finite_outputs`)."""
         return 1.0  # a direction, a warm-up: within ±1 whatever the inputs
+
+
+class SharedCode(TermKind):
+    """A kind whose x is one expression (:meth:`code_x`): its code is the share c·x or c·x·ΔV."""
+
+    def code(self, term: Term, names: CodeNames) -> list[str]:
+        return [share(term, self.code_x(term, names))]
+
+    @abstractmethod
+    def code_x(self, term: Term, names: CodeNames) -> str:
+        """x as one expression of the compiled corrector."""
 
 
 class ChannelKind(TermKind):
@@ -186,9 +238,9 @@ class ChannelKind(TermKind):
     def input_names(self, term: Term) -> tuple[str, ...]:
         return (term.channel or "",)
 
+    @abstractmethod
     def label(self, channel: str, tau_s: float | None = None) -> str:
         """How a report or a candidate names this transform of ``channel``."""
-        raise NotImplementedError
 
     def describe(self, term: Term) -> str:
         return self.label(term.channel or "?", term.tau_s)
@@ -197,19 +249,18 @@ class ChannelKind(TermKind):
         return inputs + abs(term.reference)  # a level, a lag of it, a gated level: |v − ref|
 
 
-class ChannelOffset(ChannelKind):
+class ChannelOffset(ChannelKind, SharedCode):
     """x = v − ref."""
 
     feature = "offset"
     c_name = "CE_TERM_CHANNEL_OFFSET"
-    kept = True
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         out: np.ndarray = _column(inputs, term.channel) - term.reference
         return out
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return float(inputs[term.channel]) - term.reference  # type: ignore[index]
+        return float(inputs[term.channel or ""]) - term.reference
 
     def code_x(self, term: Term, names: CodeNames) -> str:
         return f"({names.value} - {term.reference!r})"
@@ -226,7 +277,6 @@ class ChannelSquare(ChannelKind):
 
     feature = "square"
     c_name = "CE_TERM_CHANNEL_SQUARE"
-    kept = True
 
     def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         x = _column(inputs, term.channel) - term.reference
@@ -234,7 +284,7 @@ class ChannelSquare(ChannelKind):
         return out
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        x = float(inputs[term.channel]) - term.reference  # type: ignore[index]
+        x = float(inputs[term.channel or ""]) - term.reference
         return x * x
 
     def code(self, term: Term, names: CodeNames) -> list[str]:
@@ -253,7 +303,7 @@ class ChannelSquare(ChannelKind):
         return x * x  # a float product overflows to inf (refused as not finite); ** would raise
 
 
-class ChannelLagged(ChannelKind):
+class ChannelLagged(ChannelKind, SharedCode):
     """The channel seen through a first-order lag y (:class:`ChannelTracker`); reads time too."""
 
     needs_tau = True
@@ -277,7 +327,7 @@ class ChannelLagged(ChannelKind):
                         dtype=float)
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        x: float = tracker.update(float(inputs[term.channel]), float(inputs[TIME_INPUT]))  # type: ignore[index]
+        x: float = tracker.update(float(inputs[term.channel or ""]), float(inputs[TIME_INPUT]))
         return x
 
     def code_x(self, term: Term, names: CodeNames) -> str:
@@ -308,7 +358,7 @@ class ChannelDerivative(ChannelLagged):
         return 2.0 * inputs / (term.tau_s or 1.0)  # |v − y| / τ, y a mean of past v
 
 
-class ChannelDirection(ChannelKind):
+class ChannelDirection(ChannelKind, SharedCode):
     """x = ±1: the sign of the channel's last change larger than ``threshold_raw`` (its units)."""
 
     feature = "direction"
@@ -327,7 +377,7 @@ class ChannelDirection(ChannelKind):
         return direction_state(_column(inputs, term.channel), term.threshold_raw or 1.0, tracker)
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        x: float = tracker.update(float(inputs[term.channel]))  # type: ignore[index]
+        x: float = tracker.update(float(inputs[term.channel or ""]))
         return x
 
     def code_x(self, term: Term, names: CodeNames) -> str:
@@ -353,7 +403,7 @@ class ChannelGated(ChannelKind):
         return _offset_times(term, inputs, rate_gate(dv, term.threshold_raw or 1.0))
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return (float(inputs[term.channel]) - term.reference) * gate_one(dv, term.threshold_raw)  # type: ignore[index,arg-type]
+        return (float(inputs[term.channel or ""]) - term.reference) * gate_one(dv, term.threshold_raw or 1.0)
 
     def code(self, term: Term, names: CodeNames) -> list[str]:
         """:func:`~canical.sets.trackers.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``."""
@@ -424,7 +474,7 @@ class ChannelSpline(ChannelKind):
         return spline_values(term.knots or (), term.pieces or (), _column(inputs, term.channel))
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return spline_one(term.knots or (), term.pieces or (), float(inputs[term.channel]))  # type: ignore[index]
+        return spline_one(term.knots or (), term.pieces or (), float(inputs[term.channel or ""]))
 
     def code(self, term: Term, names: CodeNames) -> list[str]:
         return [*spline_code(term, f"float({names.value})"),
@@ -489,7 +539,7 @@ class ChannelRateSpline(ChannelKind):
                                                          np.asarray(dv, dtype=float)))
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        offset = float(inputs[term.channel]) - term.reference  # type: ignore[index]
+        offset = float(inputs[term.channel or ""]) - term.reference
         return offset * spline_one(term.knots or (), term.pieces or (), dv)
 
     def code(self, term: Term, names: CodeNames) -> list[str]:
@@ -568,11 +618,10 @@ def gated_name(channel: str, knee_dps: float | None = None) -> str:
     return f"{channel} × (|rate| > {knee})"
 
 
-class TimeKind(TermKind):
-    """A function of time since power-on t (input ``time_s``)."""
+class TimeKind(SharedCode):
+    """A function of time since power-on t (input ``time_s``); every one is kept between frames."""
 
     kind = TIME
-    kept = True
 
     def input_names(self, term: Term) -> tuple[str, ...]:
         return (TIME_INPUT,)
@@ -590,7 +639,7 @@ class TimeWarmup(TimeKind):
         return warm
 
     def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return 1.0 - math.exp(-float(inputs[TIME_INPUT]) / term.tau_s)  # type: ignore[operator]
+        return 1.0 - math.exp(-float(inputs[TIME_INPUT]) / (term.tau_s or 1.0))
 
     def code_x(self, term: Term, names: CodeNames) -> str:
         return self.kept_x(term, names.value)
@@ -627,7 +676,7 @@ class TimeLinear(TimeKind):
         return inputs
 
 
-class DirectionSign(TermKind):
+class DirectionSign(SharedCode):
     """x = ±1 (0 before either): the direction of the raw output's last significant change."""
 
     kind = DIRECTION
@@ -658,7 +707,7 @@ class DirectionSign(TermKind):
         return "direction of approach"
 
 
-class DirectionSlope(TermKind):
+class DirectionSlope(SharedCode):
     """x = d(raw)/dt smoothed with τ (raw units per second; input ``time_s``)."""
 
     kind = DIRECTION
@@ -715,7 +764,7 @@ ALL: tuple[TermKind, ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNE
                              CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_SPLINE, CHANNEL_RATE_SPLINE,
                              CHANNEL_LAG_SPLINE, CHANNEL_DERIVATIVE_SPLINE, TIME_WARMUP, TIME_LINEAR,
                              DIRECTION_SIGN, DIRECTION_SLOPE)
-_BY_KEY = {k.key: k for k in ALL}
+_BY_KEY: dict[tuple[object, object], TermKind] = {k.key: k for k in ALL}
 #: The features of each kind, as the set file names them.
 FEATURES: dict[str, tuple[str, ...]] = {}
 for _k in ALL:
@@ -723,17 +772,17 @@ for _k in ALL:
     FEATURES[_k.kind] += (_k.feature,)
 
 
-def host_only(terms: tuple[Mapping[str, Any], ...]) -> str | None:
+def host_only(terms: tuple[Term, ...]) -> str | None:
     """The first of a set's terms the C evaluator refuses, as ``terms[i] (kind/feature)`` (None:
     the device evaluates them all). Why: a device would refuse the bank (``CE_ERR_TERM_KIND``)
     after the download; ``canical push`` says so before sending anything."""
     for i, t in enumerate(terms):
-        spec = lookup(t.get("kind"), t.get("feature"))
-        if spec is not None and spec.c_name is None:
+        spec = t.spec
+        if spec.c_name is None:
             return f"terms[{i}] ({spec.kind}/{spec.feature})"
     return None
 
 
 def lookup(kind: object, feature: object) -> TermKind | None:
     """The kind a set file's ``kind``/``feature`` pair names (None: not one this version reads)."""
-    return _BY_KEY.get((kind, feature))  # type: ignore[arg-type]
+    return _BY_KEY.get((kind, feature))

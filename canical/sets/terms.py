@@ -49,9 +49,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import pairwise
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -62,6 +62,7 @@ from canical.sets.term_kinds import (
     MAX_SPLINE_KNOTS,
     TIME_INPUT,
     TermKind,
+    TermWording,
     gated_name,
     lookup,
 )
@@ -80,7 +81,7 @@ __all__ = [
     "FEATURES", "FORMS", "STATEFUL_CHANNEL", "TERM_FIELDS", "TIME_INPUT", "ChannelTracker",
     "DirectionTracker", "SlopeTracker", "Term", "direction_state",
     "feature_values", "gate_one", "gated_name", "lag_filter", "merge_splines", "rate_gate", "raw_shift",
-    "slope_state", "spline_group", "term_from_dict",
+    "slope_state", "spline_group", "term_from_dict", "term_from_file",
 ]
 
 FORMS = ("bias", "scale")
@@ -105,6 +106,12 @@ class Term:
     #: A spline term's piecewise cubic (see :class:`~canical.sets.term_kinds.ChannelSpline`).
     knots: tuple[float, ...] | None = None
     pieces: tuple[tuple[float, ...], ...] | None = None
+    #: The keys a set file gave the term, in its order (None: all of them, in :data:`TERM_FIELDS`
+    #: order), and the values of those this kind does not read (a key of a newer version, a
+    #: channel on a time term), as read. Why: a file that leaves a key out, or carries one this
+    #: version ignores, is written back as it was, so the set's bytes and CRC stay the file's.
+    keys: tuple[str, ...] | None = field(default=None, compare=False)
+    unread: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
     @classmethod
     def of(cls, spec: TermKind, form: str, coefficient: float, **fields: Any) -> Term:
@@ -131,7 +138,8 @@ class Term:
 
     def describe(self) -> str:
         """A readable name for reports: ``d/dt temp_c``, ``lag(temp_c, τ=140 s)``."""
-        return self.spec.describe(self)
+        wording: TermWording = self.spec
+        return wording.describe(self)
 
     def to_dict(self) -> dict[str, Any]:
         """The set file's term; ``knots`` and ``pieces`` only for a spline (other terms' bytes,
@@ -149,7 +157,10 @@ class Term:
         if self.knots is not None:
             out["knots"] = list(self.knots)
             out["pieces"] = [list(row) for row in self.pieces or ()]
-        return out
+        if self.keys is None:
+            return out
+        unread = dict(self.unread)
+        return {k: unread[k] if k in unread else out[k] for k in self.keys}
 
 
 def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
@@ -171,11 +182,12 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
         v = d.get(key)
         if v is None and not required:
             return None
-        if not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v):
+        if not _finite(v):
             raise ValueError(f"{where}: {key} must be a finite number")
         if positive and v <= 0:
             raise ValueError(f"{where}: {key} must be positive")
-        return float(v)
+        number: float = v  # as read, an integer too: the set's bytes (and CRC) are the file's
+        return number
 
     channel = d.get("channel")
     if spec.needs_channel and (not isinstance(channel, str) or not channel):
@@ -183,21 +195,37 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     tau = number("tau_s", required=spec.needs_tau, positive=True)
     threshold = number("threshold_raw", required=spec.needs_threshold, positive=True)
     knots, pieces = _spline_fields(d, where) if spec.needs_spline else (None, None)
-    return Term(
+    coefficient = number("coefficient", required=True)
+    assert coefficient is not None  # required: number() raised otherwise
+    reference = number("reference")
+    term = Term(
         kind=spec.kind,
         feature=spec.feature,
         form=form,
-        coefficient=number("coefficient", required=True),  # type: ignore[arg-type]
+        coefficient=coefficient,
         channel=channel if spec.needs_channel else None,
-        reference=number("reference") or 0.0,
+        reference=0.0 if reference is None else reference,
         tau_s=tau,
         threshold_raw=threshold,
         knots=knots,
         pieces=pieces,
     )
+    return term
 
 
-def _finite(v: object) -> bool:
+def term_from_file(d: Mapping[str, Any], where: str) -> Term:
+    """A set file's term: validated as :func:`term_from_dict` does, and holding what the record
+    would not write back by itself (its keys' order, keys left out, values its kind does not
+    read), so that it writes back the file's bytes and the loaded set's CRC is the file's."""
+    term = term_from_dict(d, where)
+    written = term.to_dict()
+    unread = tuple((str(k), v) for k, v in d.items()
+                   if k not in written or v != written[k] or type(v) is not type(written[k]))
+    keys = tuple(str(k) for k in d)
+    return term if keys == tuple(written) and not unread else replace(term, keys=keys, unread=unread)
+
+
+def _finite(v: object) -> TypeGuard[int | float]:
     return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
@@ -216,7 +244,7 @@ def _spline_fields(d: Mapping[str, Any], where: str
     for i, row in enumerate(pieces):
         if not isinstance(row, list) or len(row) != 4 or not all(_finite(a) for a in row):
             raise ValueError(f"{where}: pieces[{i}] must be 4 finite numbers (a0 a1 a2 a3)")
-    return tuple(float(k) for k in knots), tuple(tuple(float(a) for a in row) for row in pieces)
+    return tuple(knots), tuple(tuple(row) for row in pieces)  # as read (see number())
 
 
 def spline_group(t: Term) -> tuple[Any, ...]:

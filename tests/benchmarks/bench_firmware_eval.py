@@ -50,7 +50,6 @@ from canical.sets import term_kinds
 from canical.sets.corrector import Corrector
 from canical.sets.imu_corrector import ImuCorrector
 from canical.sets.term_kinds import TermKind
-from canical.sets.terms import term_from_dict
 
 FIRMWARE = Path(__file__).resolve().parents[2] / "firmware"
 M4_FLAGS = ["-mcpu=cortex-m4", "-mthumb", "-mfloat-abi=hard", "-mfpu=fpv4-sp-d16", "-ffreestanding",
@@ -117,9 +116,9 @@ def imu_rows(cases: dict) -> list[tuple[str, object, tuple[int, int]]]:
     """The IMU-set rows: a three-axis sample with coupling, each axis a segmented-inverse set
     without terms (what `canical calibrate x.csv y.csv z.csv` writes) and with every term."""
     plain = cases["segmented-inverse"]
-    segments, coeffs = len(plain.model["coefficients"]), len(plain.model["coefficients"][0])
+    segments, coeffs = len(plain.model.coefficients), len(plain.model.coefficients[0])
     every = cases["segmented-inverse + every term"]
-    terms = [term_from_dict(t) for t in every.terms]
+    terms = list(every.terms)
     rows = []
     for name, cset, features, scale in (("IMU set: 3 x segmented-inverse + M", plain, [], 0),
                                         ("IMU set: 3 x every term + M", every, [t.spec for t in terms],
@@ -169,12 +168,12 @@ def main() -> None:
             return [py.correct_one(raw[i], r) for i, r in enumerate(rows)]
 
         py_us = best_of(python, min(repeats, 3)) / len(rows) * 1e6
-        terms = [term_from_dict(t) for t in cset.terms]
-        if cset.kind == "forward-poly":
-            coeffs, segments = len(cset.model["coefficients"]), 1
+        terms = list(cset.terms)
+        if not cset.kind.piecewise:
+            coeffs, segments = len(cset.model.coefficients), 1
             ops = forward_operations(coeffs, 3)
         else:
-            segments, coeffs = len(cset.model["coefficients"]), len(cset.model["coefficients"][0])
+            segments, coeffs = len(cset.model.coefficients), len(cset.model.coefficients[0])
             ops = operations(
                 segments, coeffs, [t.spec for t in terms], sum(t.form == "scale" for t in terms)
             )

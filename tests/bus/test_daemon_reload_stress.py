@@ -40,6 +40,7 @@ from canical.files.atomic_file import write_text_atomic
 from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
+from canical.sets.terms import term_from_dict
 
 #: ALL_TERMS plus the stateful channel kinds (lag on x, direction on y, derivative on z: state
 #: in the corrector's trackers, shared by the generated code) and the rate gate on z, each kept
@@ -122,7 +123,8 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
         folder = tmp_path / f"v{v}"
         folder.mkdir()
         for axis in AXES:  # variants differ by 40 raw units of V0 (0.1 deg/s) on every axis
-            cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * v)
+            cset = dataclasses.replace(base, axis=axis, terms=tuple(term_from_dict(t) for t in TERMS[axis]),
+                                       v0=base.v0 + 40.0 * v)
             coefficient_file.save(folder / f"imu-{axis}.yaml", cset)
         folders.append(folder)
     live = tmp_path / "live"
@@ -236,7 +238,8 @@ def test_replaced_correctors_are_released(tmp_path: Path, compiled: bool) -> Non
     for v, folder in enumerate((tmp_path, tmp_path / "next")):
         folder.mkdir(exist_ok=True)
         for axis in AXES:
-            cset = dataclasses.replace(base, axis=axis, terms=TERMS[axis], v0=base.v0 + 40.0 * v)
+            cset = dataclasses.replace(base, axis=axis, terms=tuple(term_from_dict(t) for t in TERMS[axis]),
+                                       v0=base.v0 + 40.0 * v)
             coefficient_file.save(folder / f"imu-{axis}.yaml", cset)
     daemon = Daemon(load_config(write_config(tmp_path, "leak")), compiled=compiled)
     daemon.load_sets()

@@ -137,7 +137,7 @@ def effect_session():
 def test_extended_set_corrects_field_data_in_order(tmp_path):
     session = effect_session()
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
-    kinds = {t["kind"] for t in result.coefficients.terms}
+    kinds = {t.kind for t in result.coefficients.terms}
     assert kinds == {"channel", "direction"}
     cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
     corrector = Corrector(cset)
@@ -216,7 +216,7 @@ def test_clean_sensors_get_nothing_blamed_on_a_channel(noise, seed):
     session = sweep_session(CLEAN_NOISE[noise], rates, dwell_s=6.0, seed=seed, aux=scenario.aux)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
     assert [e.name for e in result.report.effects if e.kind == "channel"] == []
-    assert not any(t["kind"] == "channel" for t in result.coefficients.terms)
+    assert not any(t.kind == "channel" for t in result.coefficients.terms)
     assert result.report.unexplained is not None and not result.report.unexplained.unexplained
 
 
@@ -306,7 +306,7 @@ def test_rate_gated_effect_is_found_with_its_knee_and_applied_sample_by_sample()
     assert [e.name for e in effects] == ["temp_c × (|rate| > knee)"]
     knee = float(effects[0].description.split("> ")[1].split(" dps")[0])
     assert 25 <= knee <= 35, effects[0].description
-    assert {t["feature"] for t in result.coefficients.terms} == {"gated"}
+    assert {t.feature for t in result.coefficients.terms} == {"gated"}
     cset = coefficient_file.loads(coefficient_file.dumps(result.coefficients))
     assert Corrector(cset).required_inputs == ("temp_c",)
     temp = session.aux["temp_c"]

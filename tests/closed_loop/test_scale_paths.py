@@ -44,7 +44,7 @@ def test_same_set_and_report_as_the_in_memory_path(tmp_path, monkeypatch):
         m.setattr(blocks, "slope_filter", slope_state)
         old = run(session_from_table(read_table(path)))
     assert new.coefficients.terms == old.coefficients.terms
-    a, b = flat(new.coefficients.model), flat(old.coefficients.model)
+    a, b = flat(new.coefficients.model.to_dict()), flat(old.coefficients.model.to_dict())
     assert a.keys() == b.keys()
     for key in a:
         if isinstance(a[key], float):

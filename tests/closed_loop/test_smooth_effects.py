@@ -24,7 +24,7 @@ from canical.closed_loop.candidates import (
 from canical.report.plots import variable_label, variable_of, write_plots
 from canical.sets.corrector import Corrector
 from canical.sets.term_kinds import CHANNEL_DERIVATIVE_SPLINE, CHANNEL_LAG_SPLINE, spline_values
-from canical.sets.terms import lag_filter, term_from_dict
+from canical.sets.terms import lag_filter
 from canical.sim import environment as env
 from canical.sim.gyro import GyroModel
 from canical.sim.scenarios import DISTRACTORS, SMOOTH_SCENARIOS, _spline_of
@@ -71,7 +71,7 @@ def test_clean_sensor_with_wide_ranging_channels_gets_no_smooth_effect(seed: int
     assert result.loop is not None
     assert sum(c.name.startswith("smooth(") for c in result.loop.candidates) >= 2  # they were tried
     assert [e.name for e in result.report.effects if e.kind == "channel"] == []
-    assert not any(t["kind"] == "channel" for t in result.coefficients.terms)
+    assert not any(t.kind == "channel" for t in result.coefficients.terms)
 
 
 def test_learned_set_corrects_sample_by_sample_as_in_blocks_and_is_drawn(tmp_path: Path) -> None:
@@ -85,7 +85,7 @@ def test_learned_set_corrects_sample_by_sample_as_in_blocks_and_is_drawn(tmp_pat
     assert variable_label("smooth(vib_g)") == "vib_g (g)"
     written = write_plots(result.loop, tmp_path)
     assert any("smooth_load" in p.name and p.stat().st_size > 0 for p in written)
-    splines = [t for t in result.coefficients.terms if t["feature"] == "spline"]
+    splines = [t for t in result.coefficients.terms if t.feature == "spline"]
     assert len(splines) == 1, "the saturating effect is learned as a spline, written as one term"
     assert_sample_by_sample_as_in_blocks(result, session, "load")
 
@@ -121,7 +121,7 @@ def test_rate_coefficient_written_as_one_term_corrects_sample_by_sample_and_is_d
             break
     else:
         pytest.fail(f"the loop took the smooth form on none of seeds {list(SEEDS)}")
-    by_rate = [t for t in result.coefficients.terms if t["feature"] == "rate_spline"]
+    by_rate = [t for t in result.coefficients.terms if t.feature == "rate_spline"]
     assert len(by_rate) == 1, "the learned coefficient in rate is written as one term"
     written = write_plots(result.loop, tmp_path)
     assert any("smooth_temp_c_rate" in p.name and p.stat().st_size > 0 for p in written)
@@ -180,10 +180,10 @@ def test_lagged_saturation_written_as_one_term_corrects_sample_by_sample_and_is_
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
     assert result.loop is not None and [e.name for e in result.loop.effects] == ["smooth(lag(temp_c))"]
     assert result.loop.effects[0].description.startswith("smooth(lag(temp_c, τ=")
-    written = [t for t in result.coefficients.terms if t["feature"] == "lag_spline"]
+    written = [t for t in result.coefficients.terms if t.feature == "lag_spline"]
     assert len(written) == 1, "the learned shape of the lag is written as one term"
-    assert 60.0 < written[0]["tau_s"] < 130.0  # the die's τ is 90 s
-    term = term_from_dict(written[0])
+    assert 60.0 < (written[0].tau_s or 0.0) < 130.0  # the die's τ is 90 s
+    term = written[0]
     inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
     lag = lag_filter(session.aux["temp_c"], session.time_s, term.tau_s or 0.0)
     # x is S of the lag, sample by sample: S through the lag a lag term computes
@@ -203,9 +203,9 @@ def test_saturating_transient_written_as_one_derivative_spline_corrects_sample_b
     session = scenario.session(seed=0, dwell_s=8.0)
     result = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z")
     assert result.loop is not None and "smooth(d/dt temp_c)" in [e.name for e in result.loop.effects]
-    written = [t for t in result.coefficients.terms if t["feature"] == "derivative_spline"]
+    written = [t for t in result.coefficients.terms if t.feature == "derivative_spline"]
     assert len(written) == 1, "the learned shape of the rate of change is written as one term"
-    term = term_from_dict(written[0])
+    term = written[0]
     inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
     values = session.aux["temp_c"]
     rate = (values - lag_filter(values, session.time_s, term.tau_s or 0.0)) / (term.tau_s or 1.0)

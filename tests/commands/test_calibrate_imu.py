@@ -226,7 +226,7 @@ def test_calibrate_from_the_bus_as_from_the_csvs(calibrated, sessions, tmp_path,
         capsys.readouterr().err
     from_logs, from_csvs = imu_set.load(out), imu_set.load(imu)
     assert np.allclose(from_logs.matrix(), from_csvs.matrix(), atol=2e-5)
-    assert [c.model["kind"] for c in from_logs.axes] == [c.model["kind"] for c in from_csvs.axes]
+    assert [c.kind for c in from_logs.axes] == [c.kind for c in from_csvs.axes]
 
     # The table's rate from a table controller's own frame, which says nothing of the axis.
     dbc = tmp_path / "table.dbc"

@@ -164,7 +164,7 @@ def test_spline_sets_go_over_sdo_and_run_on_the_device_in_c(vcan_channel: str, t
     from canical.sets.terms import term_from_dict
 
     names = ("channel-spline", "channel-spline-scale")
-    splines = tuple(term_from_dict(ALL_TERMS[k]).to_dict() for k in names)
+    splines = tuple(term_from_dict(ALL_TERMS[k]) for k in names)
     folder = tmp_path / "splines"
     folder.mkdir()
     paths, pushed_ids = [], {}
@@ -175,8 +175,9 @@ def test_spline_sets_go_over_sdo_and_run_on_the_device_in_c(vcan_channel: str, t
         pushed_ids[axis] = set_crc(with_spline)
     big = folder / "big.yaml"
     rng = random.Random(3)
-    wide = [dict(splines[0], knots=sorted(rng.uniform(0.0, 50.0) for _ in range(64)),
-                 pieces=[[rng.gauss(0.0, 1e-3) for _ in range(4)] for _ in range(63)]) for _ in range(4)]
+    wide = [replace(splines[0], knots=tuple(sorted(rng.uniform(0.0, 50.0) for _ in range(64))),
+                    pieces=tuple(tuple(rng.gauss(0.0, 1e-3) for _ in range(4)) for _ in range(63)))
+            for _ in range(4)]
     coefficient_file.save(big, replace(imu_set("z"), terms=tuple(wide)))
     with device(vcan_channel, tmp_path, "--rate", "50", "--correct") as dev:
         assert_one_line_error(canical("push", str(big), *bus_args(vcan_channel)),
@@ -187,7 +188,7 @@ def test_spline_sets_go_over_sdo_and_run_on_the_device_in_c(vcan_channel: str, t
         assert pulled.returncode == 0, pulled.stderr
         for axis in AXES:
             back = coefficient_file.load(tmp_path / f"pulled-{axis}.yaml")
-            assert set_crc(back) == pushed_ids[axis] and back.terms[0]["knots"] == splines[0]["knots"]
+            assert set_crc(back) == pushed_ids[axis] and back.terms[0].knots == splines[0].knots
         with client(vcan_channel) as c:
             status = c.status()
         assert status.active_ids == pushed_ids and status.activations == 1  # the big set wrote nothing

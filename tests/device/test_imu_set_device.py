@@ -116,7 +116,8 @@ def test_coupling_payload_is_the_imu_set_without_its_axes(seed: int) -> None:
     p = encode_coupling(imu)
     assert p.imu_set_id == imu_file.imu_set_crc(imu) and p.crc == zlib.crc32(p.content)
     envelope = decode_coupling(p.content, p.crc, "bank")
-    assert "axes" not in envelope and envelope["coupling"]["matrix"] == [list(r) for r in imu.coupling]
+    assert "axes" not in envelope.fields and envelope.matrix == imu.coupling
+    assert envelope.fields["coupling"]["matrix"] == [list(r) for r in imu.coupling]
 
 
 # --------------------------------------------------------------------------------------------

@@ -39,7 +39,7 @@ LIMITS = DeviceLimits(SERIAL, dict.fromkeys(AXES, 50.0), CAPACITY)
 
 
 def with_terms(cset: CoefficientSet, terms: list[dict]) -> CoefficientSet:
-    out = replace(cset, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    out = replace(cset, terms=tuple(term_from_dict(t) for t in terms))
     return coefficient_file.loads(coefficient_file.dumps(out))
 
 
@@ -64,7 +64,7 @@ def test_bank_payload_round_trip_of_a_spline_set() -> None:
     assert b'"knots":[' in content and b'"pieces":[[' in content
     back = decode_set(content, crc, "bank Z A")
     assert back == cset and set_crc(back) == crc
-    assert [term_from_dict(t) for t in back.terms] == [term_from_dict(t) for t in cset.terms]
+    assert back.terms == cset.terms and any(t.spec.needs_spline for t in back.terms)
     assert admission_problem(cset, "z", LIMITS) is None
 
 

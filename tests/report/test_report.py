@@ -29,7 +29,7 @@ def calibrated(tmp_path_factory):
 def test_header_describes_the_written_set(calibrated):
     coeffs, report, md = calibrated
     model = coefficient_file.load(coeffs).model
-    n_segments = len(model["knots_raw"]) + 1
+    n_segments = len(model.knots_raw) + 1
     header = next(line for line in md.splitlines() if line.startswith("- coefficient set:"))
     assert f"segments={n_segments} " in header
     assert report["written"]["spec"] in header

@@ -88,7 +88,8 @@ def test_calibration_on_means_gives_the_set_within_the_fits_tolerance(tmp_path, 
     assert b.samples.used == pytest.approx(a.samples.used, rel=0.01)
     # The same effects found, and the two sets' rates agree at every plateau within the
     # full set's own held-out error.
-    assert [t["name"] for t in reduced.coefficients.terms] == [t["name"] for t in full.coefficients.terms]
+    names = [t.describe() for t in full.coefficients.terms]
+    assert [t.describe() for t in reduced.coefficients.terms] == names
     means = full.base.points.dv + full.base.v0
     rate_full, _ = Corrector(full.coefficients).correct(means)
     rate_reduced, _ = Corrector(reduced.coefficients).correct(means)

@@ -95,7 +95,7 @@ def test_calibrate_from_a_can_log_equals_calibrate_from_csv(turntable) -> None:
     from_csv = coefficient_file.load(folder / "from-csv.yaml")
     assert from_log.axis == "z" and from_log.sensor_id == "IMU-0001"
     assert from_log.v0 == pytest.approx(from_csv.v0, abs=1e-9)
-    np.testing.assert_allclose(from_log.model["coefficients"], from_csv.model["coefficients"], atol=1e-6)
+    np.testing.assert_allclose(from_log.model.coefficients, from_csv.model.coefficients, atol=1e-6)
 
 
 def test_a_python_can_csv_log_is_told_from_a_session_csv(turntable) -> None:
@@ -119,7 +119,7 @@ def test_calibrate_reads_every_format_as_the_candump_log(turntable, suffix: str)
         sets[fmt] = coefficient_file.load(out)
     assert sets[suffix].axis == "z"
     assert sets[suffix].v0 == pytest.approx(sets[".log"].v0, abs=1e-9)
-    np.testing.assert_allclose(sets[suffix].model["coefficients"], sets[".log"].model["coefficients"],
+    np.testing.assert_allclose(sets[suffix].model.coefficients, sets[".log"].model.coefficients,
                                atol=1e-6)
 
 

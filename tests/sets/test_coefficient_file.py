@@ -7,9 +7,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canical.errors import CanicalError
+from canical.models.kinds import SEGMENTED_INVERSE
 from canical.models.piecewise import PiecewisePoly
 from canical.sets import coefficient_file
-from canical.sets.coefficients import CoefficientSet, piecewise_model_dict
+from canical.sets.coefficients import CoefficientSet, piecewise_model
 from canical.sets.corrector import Corrector
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
@@ -26,7 +27,7 @@ def coefficient_sets(draw):
     poly = PiecewisePoly(np.array(edges[1:-1]), coeffs, scale, (edges[0], edges[-1]))
     v0 = draw(finite)
     smoothness = draw(st.sampled_from([None, 0, 1]))
-    model = piecewise_model_dict("segmented-inverse", poly, 0.0, smoothness=smoothness,
+    model = piecewise_model(SEGMENTED_INVERSE, poly, 0.0, smoothness=smoothness,
                                  segment_points_dps=[0.0] * (n_seg - 1))
     sensor = draw(st.text(st.characters(codec="utf-8", exclude_categories=["Cs", "Cc"]), min_size=1,
                           max_size=20))
@@ -46,7 +47,7 @@ def test_round_trip_is_exact(cset):
 def make_set() -> CoefficientSet:
     poly = PiecewisePoly(np.array([-1000.0, 2000.0]), np.array([[0, 60, 1], [0, 60, 0], [0, 61, -1.0]]),
                          20000.0, (-20000.0, 20000.0))
-    model = piecewise_model_dict("segmented-inverse", poly, 10.0, smoothness=0, segment_points_dps=[-15, 30])
+    model = piecewise_model(SEGMENTED_INVERSE, poly, 10.0, smoothness=0, segment_points_dps=[-15, 30])
     return CoefficientSet("IMU-7", "z", 10.0, model, created="2026-01-01T00:00:00Z")
 
 

@@ -19,6 +19,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from canical.models.kinds import SEGMENTED_INVERSE, SEGMENTED_LINEAR
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import (
@@ -28,8 +29,9 @@ from canical.sets.fast_corrector import (
     why_not,
     with_state,
 )
+from canical.sets.set_model import PiecewiseModel, model_of
 from canical.sets.term_kinds import lookup
-from canical.sets.terms import STATEFUL_CHANNEL, Term
+from canical.sets.terms import STATEFUL_CHANNEL, Term, term_from_dict
 
 INPUTS = ("temp_c", "supply_v")
 finite = st.floats(-1e3, 1e3, allow_nan=False, allow_infinity=False)
@@ -73,10 +75,12 @@ def piecewise_sets(draw) -> CoefficientSet:
     hi = draw(st.floats(100.0, 30000.0))
     knots = sorted(set(draw(st.lists(st.floats(lo, hi), min_size=n_seg - 1, max_size=n_seg - 1))))
     coeffs = [[draw(st.floats(-500.0, 500.0)) for _ in range(order + 1)] for _ in range(len(knots) + 1)]
-    model = {"kind": "segmented-inverse", "knots_raw": [k + v0 for k in knots], "segment_points_dps": [],
-             "scale": draw(st.sampled_from((1, 1000.0, hi, 24365.85262086632))), "coefficients": coeffs,
-             "smoothness": None, "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"}
-    return CoefficientSet("s", "x", v0, model, tuple(draw(st.lists(terms(), max_size=5))))
+    # Built directly, not validated: the compiled corrector must follow the reference on any set.
+    model = PiecewiseModel(SEGMENTED_INVERSE, tuple(k + v0 for k in knots),
+                           draw(st.sampled_from((1, 1000.0, hi, 24365.85262086632))),
+                           tuple(tuple(row) for row in coeffs), (lo + v0, hi + v0), None, ())
+    drawn = draw(st.lists(terms(), max_size=5))
+    return CoefficientSet("s", "x", v0, model, tuple(term_from_dict(t) for t in drawn))
 
 
 @st.composite
@@ -115,10 +119,11 @@ def test_segment_points_and_span_ends_exactly(cset: CoefficientSet) -> None:
     the reference does (no terms, so the corrected value is exactly the point)."""
     import dataclasses
 
-    model = dict(cset.model)
+    model = cset.model
+    assert isinstance(model, PiecewiseModel)
     v0 = cset.v0
-    model["knots_raw"] = [k - v0 for k in model["knots_raw"]]
-    model["span_raw"] = [e - v0 for e in model["span_raw"]]
+    model = dataclasses.replace(model, knots_raw=tuple(k - v0 for k in model.knots_raw),
+                                span_raw=(model.span_raw[0] - v0, model.span_raw[1] - v0))
     bare = dataclasses.replace(cset, v0=0.0, model=model, terms=())
     reference, compiled = Corrector(bare), compile_corrector(Corrector(bare))
     assert compiled is not None
@@ -201,12 +206,12 @@ def test_compiled_equals_the_block_path(cset: CoefficientSet, stream) -> None:
 
 
 def test_forward_polynomial_keeps_its_newton_solver() -> None:
-    model = {"kind": "forward-poly", "coefficients": [3.0, 1000.0, 20.0, -4.0], "rate_scale": 100.0,
-             "rate_span_dps": [-300.0, 300.0], "span_raw": [-2500.0, 2500.0],
-             "out_of_span": "linear-extrapolation"}
+    model = model_of({"kind": "forward-poly", "coefficients": [3.0, 1000.0, 20.0, -4.0], "rate_scale": 100.0,
+                      "rate_span_dps": [-300.0, 300.0], "span_raw": [-2500.0, 2500.0],
+                      "out_of_span": "linear-extrapolation"})
     term = {"kind": "channel", "channel": "temp_c", "feature": "offset", "form": "bias", "coefficient": 0.3,
             "reference": 20.0}
-    cset = CoefficientSet("s", "x", 10.0, model, (term,))
+    cset = CoefficientSet("s", "x", 10.0, model, (term_from_dict(term),))
     reference = Corrector(cset)
     compiled = compile_corrector(Corrector(cset))
     assert compiled is not None
@@ -216,9 +221,9 @@ def test_forward_polynomial_keeps_its_newton_solver() -> None:
 
 def test_a_term_kind_it_does_not_know_is_left_to_the_reference() -> None:
     """A kind added later (here: a lagged channel) is not compiled; the caller keeps correct_one."""
-    model = {"kind": "segmented-linear", "knots_raw": [0.0], "segment_points_dps": [0.0], "scale": 1000.0,
-             "coefficients": [[0.0, 100.0], [0.0, 110.0]], "smoothness": 0, "span_raw": [-900.0, 900.0],
-             "out_of_span": "linear-extrapolation"}
+    model = model_of({"kind": "segmented-linear", "knots_raw": [0.0], "segment_points_dps": [0.0],
+                      "scale": 1000.0, "coefficients": [[0.0, 100.0], [0.0, 110.0]], "smoothness": 0,
+                      "span_raw": [-900.0, 900.0], "out_of_span": "linear-extrapolation"})
     corrector = Corrector(CoefficientSet("s", "x", 0.0, model))
     assert compile_corrector(corrector) is not None
     corrector.terms = (Term(kind="lag", feature="sample", form="bias", coefficient=1.0, channel="temp_c"),)
@@ -229,9 +234,9 @@ def test_a_term_kind_it_does_not_know_is_left_to_the_reference() -> None:
 
 def test_unsorted_segment_points_are_left_to_the_reference() -> None:
     """bisect assumes sorted points, the reference's scan does not: such a set is not compiled."""
-    model = {"kind": "segmented-linear", "knots_raw": [50.0, -50.0], "segment_points_dps": [0.0, 0.0],
-             "scale": 1000.0, "coefficients": [[0.0, 100.0], [0.0, 110.0], [1.0, 90.0]], "smoothness": 0,
-             "span_raw": [-900.0, 900.0], "out_of_span": "linear-extrapolation"}
+    # Built directly: a file with these points is refused at load; the corrector must not rely on that.
+    model = PiecewiseModel(SEGMENTED_LINEAR, (50.0, -50.0), 1000.0, ((0.0, 100.0), (0.0, 110.0), (1.0, 90.0)),
+                           (-900.0, 900.0), 0, (0.0, 0.0))
     corrector = Corrector(CoefficientSet("s", "x", 0.0, model))
     assert why_not(corrector) == "segment points not in ascending order"
     assert compile_corrector(corrector) is None
@@ -241,9 +246,9 @@ def test_unsorted_segment_points_are_left_to_the_reference() -> None:
 def test_channel_terms_with_state_or_gate_are_compiled(feature: str) -> None:
     """Lag, derivative and direction of a channel (state kept per stream) and the rate gate are
     compiled, beside a stateless term: the daemon no longer falls back to correct_one for them."""
-    model = {"kind": "segmented-linear", "knots_raw": [0.0], "segment_points_dps": [0.0], "scale": 1000.0,
-             "coefficients": [[0.0, 100.0], [0.0, 110.0]], "smoothness": 0, "span_raw": [-900.0, 900.0],
-             "out_of_span": "linear-extrapolation"}
+    model = model_of({"kind": "segmented-linear", "knots_raw": [0.0], "segment_points_dps": [0.0],
+                      "scale": 1000.0, "coefficients": [[0.0, 100.0], [0.0, 110.0]], "smoothness": 0,
+                      "span_raw": [-900.0, 900.0], "out_of_span": "linear-extrapolation"})
     term = {"kind": "channel", "channel": "temp_c", "feature": feature, "form": "scale",
             "coefficient": 0.01, "reference": 25.0, "tau_s": 2.0, "threshold_raw": 0.5}
     if lookup("channel", feature).needs_spline:  # type: ignore[union-attr]  # of the lag, or of its rate
@@ -251,7 +256,7 @@ def test_channel_terms_with_state_or_gate_are_compiled(feature: str) -> None:
         term.update(knots=knots, pieces=[[0.5, -0.25, 0.125, -0.0625], [-0.3, 0.1, 0.05, -0.01]])
     offset = {"kind": "channel", "channel": "temp_c", "feature": "offset", "form": "bias", "coefficient": 0.1,
               "reference": 25.0}
-    cset = CoefficientSet("s", "x", 0.0, model, (offset, term))
+    cset = CoefficientSet("s", "x", 0.0, model, (term_from_dict(offset), term_from_dict(term)))
     reference, corrector = Corrector(cset), Corrector(cset)
     assert why_not(corrector) is None
     compiled = compile_corrector(corrector)

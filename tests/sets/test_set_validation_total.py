@@ -28,7 +28,9 @@ from canical.sets.coefficient_file import content_crc, loads
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import compile_corrector
+from canical.sets.set_model import model_of
 from canical.sets.term_kinds import ALL
+from canical.sets.terms import term_from_dict
 
 PIECEWISE = {"kind": "segmented-inverse", "knots_raw": [-8000.0, 8000.0], "segment_points_dps": [-20.0, 20.0],
              "scale": 20000.0, "coefficients": [[0.5, 52.0, 0.4, 0.1], [0.0, 50.0, 0.2, -0.3],
@@ -55,7 +57,9 @@ def _term(kind: Any) -> dict[str, Any]:
 
 
 def _content(model: dict[str, Any], terms: tuple[dict[str, Any], ...]) -> dict[str, Any]:
-    text = coefficient_file.dumps(CoefficientSet("S1", "z", 12.0, model, terms, {"rms_dps": 0.01}, "2026"))
+    typed = tuple(term_from_dict(t) for t in terms)
+    text = coefficient_file.dumps(CoefficientSet("S1", "z", 12.0, model_of(model), typed, {"rms_dps": 0.01},
+                                                 "2026"))
     content: dict[str, Any] = yaml.safe_load(text)
     return content
 

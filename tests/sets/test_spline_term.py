@@ -16,12 +16,14 @@ from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import compile_corrector
+from canical.sets.set_model import model_of
 from canical.sets.term_kinds import CHANNEL_SPLINE, host_only, spline_one, spline_values
 from canical.sets.terms import merge_splines, term_from_dict
 
-MODEL = {"kind": "segmented-inverse", "knots_raw": [-1000.0, 1000.0], "segment_points_dps": [-10.0, 10.0],
-         "scale": 1000.0, "coefficients": [[0.1, 0.2, 0.003], [0.0, 0.25, 0.001], [0.2, 0.2, -0.002]],
-         "smoothness": 1, "span_raw": [-30000.0, 30000.0], "out_of_span": "linear-extrapolation"}
+MODEL = model_of({"kind": "segmented-inverse", "knots_raw": [-1000.0, 1000.0],
+                  "segment_points_dps": [-10.0, 10.0], "scale": 1000.0,
+                  "coefficients": [[0.1, 0.2, 0.003], [0.0, 0.25, 0.001], [0.2, 0.2, -0.002]],
+                  "smoothness": 1, "span_raw": [-30000.0, 30000.0], "out_of_span": "linear-extrapolation"})
 
 
 def spline_dict(rng: np.random.Generator, form: str, segments: int) -> dict[str, object]:
@@ -36,7 +38,7 @@ def spline_dict(rng: np.random.Generator, form: str, segments: int) -> dict[str,
 def test_block_one_and_compiled_agree_bit_for_bit(seed: int) -> None:
     rng = np.random.default_rng(seed)
     terms = (spline_dict(rng, "bias", 1 + seed), spline_dict(rng, "scale", 5))
-    cset = CoefficientSet("s", "z", 12.5, MODEL, terms)
+    cset = CoefficientSet("s", "z", 12.5, MODEL, tuple(term_from_dict(t) for t in terms))
     knots = terms[0]["knots"]
     n = 300
     v = np.concatenate([rng.uniform(-20.0, 60.0, n - 6), [knots[0], knots[-1], knots[1], -1e9, 1e9, 17]])  # type: ignore[index]
@@ -96,15 +98,15 @@ def test_bad_spline_fields_are_refused_at_load(change: dict[str, object], messag
 
 def test_set_file_round_trip_and_other_terms_unchanged(tmp_path: Path) -> None:
     rng = np.random.default_rng(7)
-    spline = term_from_dict(spline_dict(rng, "scale", 3)).to_dict()
+    spline = term_from_dict(spline_dict(rng, "scale", 3))
     plain = term_from_dict({"kind": "channel", "feature": "offset", "channel": "t", "form": "bias",
-                            "coefficient": 1.0}).to_dict()
-    assert "knots" not in plain and "pieces" not in plain  # other sets keep their bytes and CRCs
+                            "coefficient": 1.0})
+    assert "knots" not in plain.to_dict() and "pieces" not in plain.to_dict()  # other sets keep their CRCs
     cset = CoefficientSet("123", "z", 12.5, MODEL, (spline, plain))
     path = tmp_path / "set.yaml"
     coefficient_file.save(path, cset)
     back = coefficient_file.load(path)
-    assert term_from_dict(back.terms[0]) == term_from_dict(spline)
+    assert back.terms[0] == spline
     assert coefficient_file.set_crc(back) == coefficient_file.set_crc(cset)
 
 
@@ -113,7 +115,7 @@ def test_the_c_evaluator_runs_a_set_with_a_spline() -> None:
     bound, is tests/device/firmware/test_firmware_spline.py); push has nothing to refuse."""
     rng = np.random.default_rng(3)
     terms = (spline_dict(rng, "bias", 3), spline_dict(rng, "scale", 5))
-    cset = CoefficientSet("123", "z", 12.5, MODEL, terms)
+    cset = CoefficientSet("123", "z", 12.5, MODEL, tuple(term_from_dict(t) for t in terms))
     assert host_only(cset.terms) is None and host_only(()) is None
     from canical.device.firmware_eval import FirmwareCorrector, library
 
@@ -133,7 +135,7 @@ def test_push_refuses_a_kind_the_c_evaluator_lacks(tmp_path: Path, capsys, monke
     """A kind without its C form yet (``c_name`` None, as a new kind lands first in Python) is
     refused by ``canical push`` in one line before any bus is opened."""
     rng = np.random.default_rng(3)
-    cset = CoefficientSet("123", "z", 12.5, MODEL, (spline_dict(rng, "bias", 3),))
+    cset = CoefficientSet("123", "z", 12.5, MODEL, (term_from_dict(spline_dict(rng, "bias", 3)),))
     path = tmp_path / "z.yaml"
     coefficient_file.save(path, cset)
     monkeypatch.setattr(type(CHANNEL_SPLINE), "c_name", None)
@@ -158,8 +160,8 @@ def test_merged_splines_correct_as_the_separate_terms(form: str) -> None:
     assert merge_splines((other,)) == (other,)
     v = rng.uniform(-20.0, 60.0, 2000)
     raw = np.rint(rng.uniform(-20000.0, 20000.0, v.size))
-    separate, _ = Corrector(CoefficientSet("s", "z", 12.5, MODEL, tuple(t.to_dict() for t in terms))).correct(
+    separate, _ = Corrector(CoefficientSet("s", "z", 12.5, MODEL, terms)).correct(
         raw, {"vib_g": v})
-    one, _ = Corrector(CoefficientSet("s", "z", 12.5, MODEL, tuple(t.to_dict() for t in merged))).correct(
+    one, _ = Corrector(CoefficientSet("s", "z", 12.5, MODEL, merged)).correct(
         raw, {"vib_g": v})
     assert one == pytest.approx(separate, rel=1e-12, abs=1e-12)

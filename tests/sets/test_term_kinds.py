@@ -22,6 +22,7 @@ from canical.sets import term_kinds
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.fast_corrector import COMPILED_TERMS, compile_corrector
+from canical.sets.set_model import model_of
 from canical.sets.term_kinds import ALL, TermKind, lookup
 from canical.sets.terms import feature_values, term_from_dict
 
@@ -121,7 +122,7 @@ def test_every_kind_is_validated_evaluated_compiled_and_described(kind: TermKind
         assert set(term.input_names) <= set(inputs)
         x = feature_values(term, inputs, raw, raw - 12.5)
         assert x.shape == (n,) and np.isfinite(x).all()
-        cset = CoefficientSet("s", "z", 12.5, MODEL, (_term_dict(kind, form),))
+        cset = CoefficientSet("s", "z", 12.5, model_of(MODEL), (term_from_dict(_term_dict(kind, form)),))
         block, _ = Corrector(cset).correct(raw, inputs)
         reference, compiled_corrector = Corrector(cset), Corrector(cset)
         compiled = compile_corrector(compiled_corrector)
@@ -137,3 +138,30 @@ def test_every_kind_is_validated_evaluated_compiled_and_described(kind: TermKind
 def test_every_kind_has_a_block_feature_and_a_firmware_case() -> None:
     assert set(BLOCK_FEATURES) == set(ALL)
     assert {lookup(t["kind"], t["feature"]) for t in TERMS.values()} == set(IN_C)
+
+
+def test_a_kind_missing_a_part_of_its_contract_cannot_be_made() -> None:
+    """The base class is abstract: a kind without its wording (or maths, or code) fails when the
+    registry makes it, at import, not when a report first asks for it."""
+
+    class NoWording(term_kinds.TimeKind):
+        feature = "nowording"
+        c_name = None
+
+        def values(self, term, inputs, raw, dv):
+            return raw
+
+        def one(self, term, tracker, raw, dv, inputs):
+            return raw
+
+        def code_x(self, term, names):
+            return "raw"
+
+    with pytest.raises(TypeError, match="describe"):
+        NoWording()
+
+
+def test_the_kinds_kept_between_frames_are_those_with_x_of_their_input_alone() -> None:
+    kept = {k.key for k in ALL if k.kept}
+    assert kept == {("channel", "offset"), ("channel", "square"), ("time", "warmup"), ("time", "linear")}
+    assert all(isinstance(k, term_kinds.KeptCode) == k.kept for k in ALL)

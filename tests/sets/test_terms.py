@@ -5,8 +5,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from canical.models.kinds import SEGMENTED_INVERSE
 from canical.models.piecewise import PiecewisePoly
-from canical.sets.coefficients import CoefficientSet, piecewise_model_dict
+from canical.sets.coefficients import CoefficientSet, piecewise_model
 from canical.sets.corrector import Corrector
 from canical.sets.terms import (
     ChannelTracker,
@@ -116,9 +117,8 @@ def extended_set() -> CoefficientSet:
     poly = PiecewisePoly(np.array([-3000.0, 5000.0]),
                          np.array([[0.1, 60.0, 1.0], [0.0, 60.5, 0.0], [0.2, 59.0, -1.0]]), 24000.0,
                          (-24000.0, 24000.0))
-    model = piecewise_model_dict("segmented-inverse", poly, 30.0, smoothness=None,
-                                 segment_points_dps=[-7.0, 12.0])
-    return CoefficientSet("S", "z", 30.0, model, terms=ALL_TERMS)
+    model = piecewise_model(SEGMENTED_INVERSE, poly, 30.0, smoothness=None, segment_points_dps=[-7.0, 12.0])
+    return CoefficientSet("S", "z", 30.0, model, terms=tuple(term_from_dict(t) for t in ALL_TERMS))
 
 
 @settings(max_examples=25, deadline=None)
@@ -147,7 +147,8 @@ def test_new_term_kinds_round_trip_a_file_and_need_time():
     cset = coefficient_file.loads(coefficient_file.dumps(extended_set()))
     corrector = Corrector(cset)
     assert set(corrector.required_inputs) == {"temp_c", "supply_v", "time_s"}
-    names = [term_from_dict(t).describe() for t in cset.terms[-4:]]
+    names = [t.describe() for t in cset.terms[-4:]]
+    assert cset == extended_set()
     assert names == ["lag(temp_c, τ=140 s)", "d/dt temp_c", "d/dt temp_c", "sign d/dt supply_v"]
 
 
@@ -167,7 +168,7 @@ def test_gated_term_is_a_hinge_beyond_the_knee():
     x = feature_values(term, {"temp_c": temp}, dv + 30.0, dv)
     np.testing.assert_allclose(x * dv, 2.0 * np.sign(dv) * np.maximum(np.abs(dv) - 1000.0, 0.0))
     assert term.describe() == "temp_c × (|ΔV| > 1000 counts)"
-    assert Corrector(CoefficientSet("S", "z", 30.0, extended_set().model, terms=(term.to_dict(),))
+    assert Corrector(CoefficientSet("S", "z", 30.0, extended_set().model, terms=(term,))
                      ).required_inputs == ("temp_c",)  # stateless: no time needed
 
 
@@ -182,7 +183,7 @@ def test_gated_block_and_per_sample_paths_are_identical(seed, knee, form):
     temp = rng.uniform(-20, 60, n)
     term = {"kind": "channel", "channel": "temp_c", "feature": "gated", "form": form,
             "coefficient": 3e-4 if form == "scale" else 2.0, "reference": 25.0, "threshold_raw": knee}
-    cset = CoefficientSet("S", "z", 30.0, extended_set().model, terms=(term,))
+    cset = CoefficientSet("S", "z", 30.0, extended_set().model, terms=(term_from_dict(term),))
     block, flags = Corrector(cset).correct(raw, {"temp_c": temp})
     one = Corrector(cset)
     pairs = [one.correct_one(raw[i], {"temp_c": temp[i]}) for i in range(n)]

@@ -28,6 +28,7 @@ from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.frames.codec import load_dbc
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
+from canical.sets.terms import term_from_dict
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_session
 
@@ -77,7 +78,8 @@ def write_sets(folder: Path, *, variant: int = 0, terms: dict | None = None,
     base = base_set("z")
     terms = TERMS if terms is None else terms
     for axis in AXES:
-        cset = dataclasses.replace(base, axis=axis, terms=terms[axis], v0=base.v0 + 40.0 * variant,
+        typed = tuple(term_from_dict(t) if isinstance(t, dict) else t for t in terms[axis])
+        cset = dataclasses.replace(base, axis=axis, terms=typed, v0=base.v0 + 40.0 * variant,
                                    raw_units=raw_units or base.raw_units)
         paths[axis] = folder / f"imu-{axis}.yaml"
         coefficient_file.save(paths[axis], cset)

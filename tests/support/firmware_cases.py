@@ -226,7 +226,7 @@ def with_terms(cset: CoefficientSet, names: tuple[str, ...]) -> CoefficientSet:
 
 def with_terms_dicts(cset: CoefficientSet, terms: tuple[dict, ...]) -> CoefficientSet:
     """The set with these term dicts attached, validated through the file format."""
-    out = replace(cset, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    out = replace(cset, terms=tuple(term_from_dict(t) for t in terms))
     return coefficient_file.loads(coefficient_file.dumps(out))
 
 

@@ -36,6 +36,7 @@ from canical.device.bank_payload import encode_set
 from canical.device.firmware_eval import FirmwareCorrector
 from canical.sets import coefficient_file
 from canical.sets.corrector import Corrector
+from canical.sets.set_model import model_of
 from canical.sets.terms import term_from_dict
 
 # ----------------------------------------------------------------------------------------------
@@ -110,7 +111,7 @@ def test_emulated_imu_corrects_its_frames_with_the_firmware(caplog):
     from canical.frames.imu_dictionary import pack_active
 
     cset = term_set(tuple(TERMS))
-    transforms = {t["feature"] for t in cset.terms if t["kind"] == "channel"}
+    transforms = {t.feature for t in cset.terms if t.kind == "channel"}
     assert transforms >= {"lag", "derivative", "direction"}  # the stateful channel terms run in C too
     imu = EmulatedImu(EmulatorConfig(serial=SERIAL), canopen.Network())
     content, crc = encode_set(cset)
@@ -151,9 +152,9 @@ def random_sets(draw):
         scale = max(-lo, hi)
         rows = [[draw(st.floats(-5, 5)), draw(st.floats(20, 80)), *draw(st.lists(st.floats(-5, 5),
                  min_size=order - 1, max_size=order - 1))] for _ in range(len(knots) + 1)]  # fmt: skip
-        model = {"kind": "segmented-inverse", "knots_raw": [k + v0 for k in knots], "segment_points_dps": [],
-                 "scale": scale, "coefficients": rows, "smoothness": None, "span_raw": [lo + v0, hi + v0],
-                 "out_of_span": "linear-extrapolation"}  # fmt: skip
+        model = model_of({"kind": "segmented-inverse", "knots_raw": [k + v0 for k in knots],
+                          "segment_points_dps": [], "scale": scale, "coefficients": rows, "smoothness": None,
+                          "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"})  # fmt: skip
         names = draw(st.lists(st.sampled_from(sorted(ALL_TERMS)), unique=True, max_size=4))
         terms = tuple(
             dict(ALL_TERMS[n], coefficient=ALL_TERMS[n]["coefficient"] * draw(st.floats(-2, 2)))
@@ -167,11 +168,11 @@ def random_sets(draw):
             *(draw(st.floats(-0.1, 0.1)) * a1 for _ in range(draw(st.integers(0, 3)))),
         ]
         rate_scale = draw(st.floats(50, 300))
-        model = {"kind": "forward-poly", "coefficients": coeffs, "rate_scale": rate_scale,
-                 "rate_span_dps": [-rate_scale, rate_scale * draw(st.floats(0.5, 1.0))],
-                 "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"}  # fmt: skip
+        model = model_of({"kind": "forward-poly", "coefficients": coeffs, "rate_scale": rate_scale,
+                          "rate_span_dps": [-rate_scale, rate_scale * draw(st.floats(0.5, 1.0))],
+                          "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"})  # fmt: skip
         terms = ()
-    cset = replace(base, v0=v0, model=model, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    cset = replace(base, v0=v0, model=model, terms=tuple(term_from_dict(t) for t in terms))
     return coefficient_file.loads(coefficient_file.dumps(cset))
 
 
@@ -194,7 +195,7 @@ def test_property_any_valid_set_evaluates_like_canical(lib_for_hypothesis, cset,
     if code != 0:
         # The fixed form's scope: no terms, the segmented model, and numbers its Q16/Q30 words hold
         # (a segment a fraction of a count wide needs a scale beyond them: refused, not wrapped).
-        assert cset.terms or cset.kind == "forward-poly" or code == CODES["CE_ERR_LIMIT"], code
+        assert cset.terms or not cset.kind.piecewise or code == CODES["CE_ERR_LIMIT"], code
         return
     out = ctypes.c_int32()
     for r, e, o in zip(raw.astype(np.int32).tolist(), expected.tolist(), expected_oos.tolist(), strict=True):
@@ -265,7 +266,7 @@ def test_property_channel_transforms_on_any_time_spacing(
             "tau_s": (tau_ms + 0.5) / 1000.0 if feature != "direction" else None,
             "threshold_raw": (threshold_steps + 0.5) * 0.01 if feature == "direction" else None}  # fmt: skip
     base = model_set("segmented-inverse")
-    one = replace(base, terms=(term_from_dict(term).to_dict(),))
+    one = replace(base, terms=(term_from_dict(term),))
     cset = coefficient_file.loads(coefficient_file.dumps(one))
     raw, _ = stream(cset, n, seed=seed)
     time_s = (start_ms + np.cumsum(rng.integers(0, longest_step_ms + 1, n))) / 1000.0
@@ -294,7 +295,7 @@ def test_a_derivative_over_a_short_tau_holds_its_derived_bound(lib, seed):
     rng = np.random.default_rng(seed)
     term = {"kind": "channel", "channel": "temp_c", "feature": "derivative", "form": "bias",
             "coefficient": TRANSFORM_COEFFICIENTS["derivative", "bias"], "reference": 25.0, "tau_s": 0.0055}
-    one = replace(model_set("segmented-inverse"), terms=(term_from_dict(term).to_dict(),))
+    one = replace(model_set("segmented-inverse"), terms=(term_from_dict(term),))
     cset = coefficient_file.loads(coefficient_file.dumps(one))
     n = 800
     raw, _ = stream(cset, n, seed=seed)
@@ -376,9 +377,9 @@ def centred_calibrations(draw):
             for j in range(k + 1):
                 p[j] += qk * comb(k, j) * (-mu) ** (k - j) / hu**k
         rows.append(p)
-    model = {"kind": "segmented-inverse", "knots_raw": [e + v0 for e in edges[1:-1]],
-             "segment_points_dps": [], "scale": scale, "coefficients": rows, "smoothness": None,
-             "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"}  # fmt: skip
+    model = model_of({"kind": "segmented-inverse", "knots_raw": [e + v0 for e in edges[1:-1]],
+                      "segment_points_dps": [], "scale": scale, "coefficients": rows, "smoothness": None,
+                      "span_raw": [lo + v0, hi + v0], "out_of_span": "linear-extrapolation"})  # fmt: skip
     cset = replace(term_set(()), v0=v0, model=model, terms=())
     return coefficient_file.loads(coefficient_file.dumps(cset))
 
@@ -386,9 +387,9 @@ def centred_calibrations(draw):
 def segment_edges_u(cset) -> tuple[list[float], list[float]]:
     """Each segment's ends in u = dV / scale (the variable its coefficients are in)."""
     model = cset.model
-    lo, hi = (v - cset.v0 for v in model["span_raw"])
-    edges = [lo, *(k - cset.v0 for k in model["knots_raw"]), hi]
-    scale = model["scale"]
+    lo, hi = (v - cset.v0 for v in model.span_raw)
+    edges = [lo, *(k - cset.v0 for k in model.knots_raw), hi]
+    scale = model.scale
     return [e / scale for e in edges[:-1]], [e / scale for e in edges[1:]]
 
 
@@ -416,7 +417,7 @@ def test_property_large_alternating_coefficients_hold_the_bound(lib_for_hypothes
     # sum |c_k| |u|^k (1e12 for an order-9 polynomial on a segment a tenth of the span wide) leaves
     # a few eps64 of that in the reference itself; the C side's re-centring runs in double too.
     sizes = [float(np.sum(np.abs(row) * max(abs(a), abs(b)) ** np.arange(len(row))))
-             for row, a, b in zip(cset.model["coefficients"], *segment_edges_u(cset), strict=True)]
+             for row, a, b in zip(cset.model.coefficients, *segment_edges_u(cset), strict=True)]
     reference_bound = 8 * 2.0**-52 * max(sizes)
     assert worst <= max(TOLERANCE_DPS, ulp_bound, reference_bound), f"largest difference {worst:.2e} deg/s"
     lib = lib_for_hypothesis.lib

@@ -80,7 +80,7 @@ def shift_bound(term: dict, dv_max: float, v: np.ndarray, v0: float) -> float:
 
 def with_term(term: dict) -> CoefficientSet:
     """The calibrated segmented set with ``term``, through the file format."""
-    cset = replace(model_set("segmented-inverse"), terms=(term_from_dict(term).to_dict(),))
+    cset = replace(model_set("segmented-inverse"), terms=(term_from_dict(term),))
     return coefficient_file.loads(coefficient_file.dumps(cset))
 
 
@@ -195,7 +195,7 @@ def test_the_bound_is_not_vacuous_a_wrong_segment_breaks_it(lib):
 
 def spline_bank(*terms: dict) -> dict:
     base = model_set("segmented-inverse")
-    cset = replace(base, terms=tuple(term_from_dict(t).to_dict() for t in terms))
+    cset = replace(base, terms=tuple(term_from_dict(t) for t in terms))
     return json.loads(encode_set(cset)[0])
 
 
@@ -295,10 +295,10 @@ def test_a_learned_smooth_effect_runs_on_the_device_as_apply(lib, effect):
     for seed in range(5):  # the first seed whose set holds the spline (a nested form may win a draw)
         session = scenario.session(seed=seed, dwell_s=8.0)
         cset = calibrate(session, CalibrateOptions(), sensor_id="4711", axis="z").coefficients
-        splines = [t for t in cset.terms if t["feature"] in ("spline", "rate_spline")]
+        splines = [t.to_dict() for t in cset.terms if t.feature in ("spline", "rate_spline")]
         if splines:
             break
-    assert splines, [t["feature"] for t in cset.terms]
+    assert splines, [t.feature for t in cset.terms]
     inputs = {k: np.asarray(v, dtype=np.float32).astype(float) for k, v in session.aux.items()}
     inputs["time_s"] = session.time_s
     raw = session.raw
