@@ -158,10 +158,6 @@ class CalibrationReport:
     reference_clock: dict[str, Any] | None = None  # a table file aligned to the log (the CLI's)
     read_as_means: str | None = None  # "N rows read as M means of k": a session too long to hold
 
-    @property
-    def loop_ran(self) -> bool:
-        return self.closed_loop is not None
-
     def with_paths(self, session: str, coefficients: str) -> CalibrationReport:
         return replace(self, session=session, coefficients=coefficients)
 

@@ -360,11 +360,6 @@ def sample_noise(values: np.ndarray) -> float:
     return mad_sigma(d) / float(np.sqrt(2.0))
 
 
-def derivative_window(blocks: Blocks, channel: str) -> float:
-    """The derivative's smoothing τ: the shortest at which noise no longer dominates it."""
-    return _derivative_window(blocks, channel)[0]
-
-
 def _derivative_window(blocks: Blocks, channel: str) -> tuple[float, bool]:
     """The derivative's window, and whether at it the noise is a small share (resolved).
 

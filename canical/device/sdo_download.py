@@ -576,14 +576,3 @@ def pull_active(network: canopen.Network, node_id: int, axes: tuple[str, ...] = 
         return ActiveOnDevice(pull_sets(client, axes))
     finally:
         client.close()
-
-
-def pull_active_sets(
-    network: canopen.Network, node_id: int, axes: tuple[str, ...] = AXES, timeout: float = DEFAULT_TIMEOUT_S
-) -> dict[str, CoefficientSet]:
-    """The sets a device runs, for a caller with its own network (the daemon at start)."""
-    client = ImuClient(network, node_id, timeout)
-    try:
-        return pull_sets(client, axes)
-    finally:
-        client.close()

@@ -19,8 +19,6 @@ class ModelKind:
     name: str
     #: A piecewise polynomial ω(ΔV) over knots (True) or one forward polynomial ΔV(ω) (False).
     piecewise: bool
-    #: Where the paper defines it, for help texts and reports.
-    equation: str
     #: Whether the segment points are chosen by the fit (at the extrema) rather than given.
     chooses_segment_points: bool = False
 
@@ -28,10 +26,9 @@ class ModelKind:
         return self.name
 
 
-SEGMENTED_INVERSE = ModelKind("segmented-inverse", piecewise=True, equation="eqs. 10, 11",
-                              chooses_segment_points=True)
-SEGMENTED_LINEAR = ModelKind("segmented-linear", piecewise=True, equation="eq. 6")
-FORWARD_POLY = ModelKind("forward-poly", piecewise=False, equation="eq. 5")
+SEGMENTED_INVERSE = ModelKind("segmented-inverse", piecewise=True, chooses_segment_points=True)
+SEGMENTED_LINEAR = ModelKind("segmented-linear", piecewise=True)
+FORWARD_POLY = ModelKind("forward-poly", piecewise=False)
 
 #: Every kind, the default (and the one the closed loop extends) first.
 ALL_KINDS = (SEGMENTED_INVERSE, SEGMENTED_LINEAR, FORWARD_POLY)
