@@ -49,7 +49,6 @@ from canical.closed_loop.candidates import (
     WARMUP_GROUP,
     WARMUP_NAME,
     Candidate,
-    bspline_basis,
     build_candidates,
     knee_grid,
     lag_grid,
@@ -511,9 +510,9 @@ def adopt(scorer: Scorer, s: Structure, group: list[Candidate]) -> Candidate:
     session equally well (held-out plateaus cannot tell them apart), so leaving all out would leave
     the whole residual in the user's set, while any one of them corrects it.
 
-    Why this order: a channel is blamed only where it beats time, since a slow drift and a slowly
-    varying channel look alike and a channel term blamed for drift adds a bias that follows the
-    channel on the vehicle; time since power-on is measured on the vehicle too. Then the fewest
+    Why this order: a form of time since power-on before a channel's, since a slow drift and a
+    slowly varying channel look alike and a channel term blamed for drift adds a bias that follows
+    the channel on the vehicle; time since power-on is measured on the vehicle too. Then the fewest
     fitted parameters (columns that pay, and each time constant or knee searched): the simpler
     form extrapolates less beyond what the session showed (a transient's rate of change against
     a spline of its lag). Then the lower held-out rms on the base size each deserves.
@@ -525,68 +524,6 @@ def adopt(scorer: Scorer, s: Structure, group: list[Candidate]) -> Candidate:
         return (int(c.kind == CHANNEL), n_par, scorer.held_rms(replace(s, terms=s.terms + terms)))
 
     return min(group, key=key)
-
-
-#: The pseudo-channel of the session's own clock (block mean times) the drift competitor is a spline of.
-SESSION_CLOCK = "session clock"
-DRIFT_SPLINE_NAME = "drift of the session (smooth in time)"
-
-
-def drift_competitor(cand: Candidate, blocks: Blocks) -> Candidate | None:
-    """A smooth function of the session's clock as flexible as a channel's candidate: as many
-    interior knots (evenly spaced in time) as its spline has, one for a form without a spline (a
-    cubic with one knot: four coefficients against a level's three or a lag's two and its τ).
-
-    Why: a spline of a slowly varying channel, or its lag with τ free, fits any slow drift of the
-    sensor (a bias random walk) about as well as the channel's real effect would; time's own forms
-    on the list (warm-up, linear drift) are far stiffer, so they lost the comparison and the drift
-    was blamed on the channel. Against a form of time as flexible, the channel must show that it
-    is the channel the sensor follows. None when the session has no span of time.
-    """
-    t = blocks.time_s
-    if not np.ptp(t) > 0:
-        return None
-    first = cand.terms[0]
-    interior = max(1, len(first.knots or ()) - 2) if first.spec.needs_spline else 1
-    basis = bspline_basis(np.linspace(float(t.min()), float(t.max()), 64), interior, even=True)
-    if basis is None:
-        return None
-    breaks, pieces = basis
-    terms = tuple(Term.of(CHANNEL_SPLINE, "bias", 0.0, channel=SESSION_CLOCK, knots=breaks, pieces=p)
-                  for p in pieces[1:])
-    return Candidate(DRIFT_SPLINE_NAME, TIME, None, terms)
-
-
-def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | None:
-    """The record of a channel's candidate that does not predict the held-out plateaus better
-    than an equally flexible drift of the session (:func:`drift_competitor`), significantly by
-    the paired test at ``CONFOUND_ALPHA``; None when the channel beats it (or it is not a channel's).
-
-    The drift is not added either: a smooth function of this session's clock is a property of the
-    session, not of the sensor, and on the vehicle it would add this session's wander at the same
-    times after power-on. What is left is reported (unexplained, if it is large).
-    """
-    if best.kind != CHANNEL:
-        return None
-    drift = drift_competitor(best, scorer.blocks)
-    if drift is None:
-        return None
-    with_channel = replace(s, terms=s.terms + best.terms)
-    with_drift = replace(s, terms=s.terms + drift.terms)
-    r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
-    p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
-    if r_channel < r_drift and p < CONFOUND_ALPHA:
-        return None
-    ch = best.channel or ""
-    return Confound(
-        candidates=(best.name, DRIFT_SPLINE_NAME), weaker_alternatives=(),
-        held_out_rms_dps={best.name: r_channel, DRIFT_SPLINE_NAME: r_drift},
-        paired_p={DRIFT_SPLINE_NAME: p}, paired_alpha=CONFOUND_ALPHA,
-        held_out_rms_before_dps=scorer.held_rms(s), resolved_by_user=None,
-        recommendation=(f"record a session in which {ch} changes in steps in random order, so that it "
-                        "no longer follows the sensor's slow drift"),
-        adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
-    )
 
 
 def _confound(check: ConfoundCheck, before: Score, chosen: Candidate, rule: str) -> Confound:
@@ -666,12 +603,9 @@ def run_loop(
 ) -> LoopResult:
     """Grow the model until no candidate explanation passes; see the module docstring."""
     folds = plateau_folds(blocks)
-    # The session's own clock as a pseudo-channel of block means, for the drift a channel's form
-    # must beat (see _drift_beats); no candidate is built of it.
-    blocks = replace(blocks, aux={**blocks.aux, SESSION_CLOCK: blocks.time_s})
     scorer = Scorer(blocks, folds, duration_s)
     s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
-    pool = [c for c in build_candidates(blocks, duration_s) if c.channel != SESSION_CLOCK]
+    pool = build_candidates(blocks, duration_s)
     every_candidate = list(pool)
     tied = untestable(pool, blocks)
     if tied:
@@ -716,12 +650,6 @@ def run_loop(
             twins = tuple(c.name for c in group if c is not chosen)
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen
-        drift = None if best.name in prefer else _drift_beats(scorer, s, best)
-        if drift is not None:
-            confounded.append(drift)
-            progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
-            pool = [c for c in pool if c.channel != best.channel]
-            continue
         pruned = _pruned(scorer, s, best)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)

@@ -148,11 +148,6 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
 
 def _adopted(c: Confound) -> str:
     """Which of a confounded group the set carries, and why: the attribution is ambiguous."""
-    if c.drift_of_session:
-        return (f"**{c.adoption_rule[0].upper()}{c.adoption_rule[1:]}:** the channel's form does not "
-                "predict the held-out plateaus better than a drift of the session as flexible, so no "
-                "term of either is in the set (a smooth function of this session's clock is a "
-                "property of the session, not of the sensor). ")
     if c.resolved_by_user:
         return f"Added {c.resolved_by_user} as asked (--prefer); the attribution stays ambiguous. "
     if c.adopted:
