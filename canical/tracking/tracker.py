@@ -125,6 +125,9 @@ class BiasTracker:
         self._target: list[float] = []
         self._settled = False  # the applied bias has reached the target on every axis
         self._retarget()
+        # Until the first sample that can be stepped (the daemon waits for time, temperature and
+        # the cue), what was learned before is applied: a restart corrected those frames by 0.
+        self.applied[:] = self._target
 
     # -- per sample ---------------------------------------------------------------------------
     def step(self, t_s: float, rates: Sequence[float], temp_c: float = math.nan,

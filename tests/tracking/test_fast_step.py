@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from canical.tracking.config import TrackerConfig
 from canical.tracking.estimate import AxisBias
-from canical.tracking.fast_step import fast_step
+from canical.tracking.fast_step import fast_step, fast_step3
 from canical.tracking.tracker import BiasTracker
 
 
@@ -178,3 +178,17 @@ def test_power_on_and_close_window_are_the_steps_decisions() -> None:
     tracker.step(0.51, [0.1])
     tracker.power_on()
     assert (tracker.power_cycle, tracker.step_state().n) == (1, 0)
+
+
+def test_a_loaded_bias_is_applied_before_the_first_stepped_sample() -> None:
+    """After a restart, frames that come before the cue's (or temperature's) first value are not
+    stepped; they were corrected by 0 instead of what was learned before."""
+    config = TrackerConfig(arw_deg_rt_h=0.5)
+    learned = (AxisBias(b0=0.3, slope=0.01, p00=1e-4, p01=0.0, p11=1e-6, updates=20),)
+    tracker = BiasTracker(("z",), config, learned)
+    assert tracker.applied == [pytest.approx(0.3)]  # at the reference temperature: the offset
+    assert fast_step(tracker).applied() == pytest.approx(0.3)
+    fresh = BiasTracker(("z",), config)
+    assert fresh.applied == [0.0] and fast_step(fresh).applied() == 0.0
+    three = BiasTracker(("x", "y", "z"), config, learned * 3)
+    assert fast_step3(three).applied() == pytest.approx((0.3, 0.3, 0.3))
