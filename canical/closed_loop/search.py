@@ -526,7 +526,24 @@ def adopt(scorer: Scorer, s: Structure, group: list[Candidate]) -> Candidate:
     return min(group, key=key)
 
 
-def _confound(check: ConfoundCheck, before: Score, chosen: Candidate, rule: str) -> Confound:
+#: An ambiguous correction is written when it at least halves the held-out error: a smaller gain
+#: that several forms share is as likely this session's own wander (flicker, a rate random walk)
+#: as an effect of the sensor, and a clean sensor's set must not carry it.
+ADOPT_MIN_GAIN = 0.5
+
+
+def _adopted_if_large(scorer: Scorer, s: Structure, before: Score,
+                      candidate: Candidate) -> tuple[Candidate | None, str]:
+    """The rule's choice among a confounded group, if it removes enough of the residual."""
+    with_it = replace(s, terms=s.terms + _pruned(scorer, s, candidate).terms)
+    gain = 1.0 - scorer.held_rms(with_it) / before.held_out_rms_dps
+    if gain >= ADOPT_MIN_GAIN:
+        return candidate, ADOPTION_RULE
+    return None, (f"none adopted: the rule's choice, {candidate.name}, removes {gain:.0%} of the "
+                  "held-out error, less than half: as likely the session's wander as an effect")
+
+
+def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None, rule: str) -> Confound:
     """The report's record of a confounded group: who, how close, and the session that separates them."""
     group = [check.best, *check.twins]
     return Confound(
@@ -536,11 +553,11 @@ def _confound(check: ConfoundCheck, before: Score, chosen: Candidate, rule: str)
         paired_p={c.name: check.evidence[c.name].p_best_better for c in check.twins},
         paired_alpha=CONFOUND_ALPHA,
         held_out_rms_before_dps=before.held_out_rms_dps,
-        resolved_by_user=chosen.name if rule.endswith("(--prefer)") else None,
+        resolved_by_user=chosen.name if chosen is not None and rule.endswith("(--prefer)") else None,
         # the pair across families first: separating those needs a different session
         recommendation=recommend(check.best, next((c for c in check.twins if c.kind != check.best.kind),
                                                   check.twins[0])),
-        adopted=chosen.name,
+        adopted=None if chosen is None else chosen.name,
         adoption_rule=rule,
     )
 
@@ -643,10 +660,14 @@ def run_loop(
             group = [best, *check.twins]
             chosen = next((c for c in group if c.name in prefer), None)
             rule = "named by the user (--prefer)" if chosen else ADOPTION_RULE
-            chosen = chosen or adopt(scorer, s, group)
+            if chosen is None:
+                chosen, rule = _adopted_if_large(scorer, s, current, adopt(scorer, s, group))
             confounded.append(_confound(check, current, chosen, rule))
             # Shadows explain a part of the same residual: accepting one later would be a guess too.
             pool = [c for c in pool if c not in group and c not in check.shadows]
+            if chosen is None:
+                progress(f"confounded {' / '.join(c.name for c in group)}: none adopted ({rule})")
+                continue
             twins = tuple(c.name for c in group if c is not chosen)
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen

@@ -154,7 +154,7 @@ def _adopted(c: Confound) -> str:
         return (f"**Ambiguous attribution:** the set carries {c.adopted}, {c.adoption_rule}; it "
                 "corrects this session as well as the others would, but which of them the sensor "
                 "feels is not known. ")
-    return "Neither was added. "
+    return f"Neither was added: {c.adoption_rule}. " if c.adoption_rule else "Neither was added. "
 
 
 def _paired(c: Confound) -> str:
