@@ -144,7 +144,11 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     # An effect adopted among confounded twins is the group's correction, not an attribution.
     found = tuple(e.name for e in loop.effects if not e.ambiguous_with)
     # Weaker alternatives (explain part of the same residual) are listed after the twins, marked ~.
-    groups = tuple((*c.candidates, *(f"~{w}" for w in c.weaker_alternatives)) for c in loop.confounded)
+    # A channel's form that lost to the session's drift is not a confound among causes: apart.
+    groups = tuple(
+        (*c.candidates, *(f"~{w}" for w in c.weaker_alternatives)) for c in loop.confounded
+        if not c.drift_of_session
+    )
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
     told = _oracle_terms(scenario, loop.blocks)

@@ -102,6 +102,12 @@ class Confound:
     recommendation: str  # the session that would separate them
     adopted: str | None = None  # the twin whose terms went into the set
     adoption_rule: str = ""  # why that one: the user's --prefer, or the loop's rule
+    # A channel's form that did not beat an equally flexible drift of the session's own clock: no
+    # term of either goes into the set ("drift, confounded with <channel>").
+    drift_of_session: bool = False
+    # With drift_of_session: the share of the error of stretches of the session it was not fitted
+    # on that the channel's form removed (a real effect removes most of it).
+    stretch_gain: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

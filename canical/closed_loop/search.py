@@ -49,6 +49,7 @@ from canical.closed_loop.candidates import (
     WARMUP_GROUP,
     WARMUP_NAME,
     Candidate,
+    bspline_basis,
     build_candidates,
     knee_grid,
     lag_grid,
@@ -231,6 +232,54 @@ def plateau_folds(blocks: Blocks, k: int = FOLDS) -> list[np.ndarray]:
     inner = plateaus[~edge][np.argsort(rates[~edge], kind="stable")]
     k = max(2, min(k, inner.size))
     return [np.isin(blocks.plateau, inner[f::k]) for f in range(k)]
+
+
+#: Stretches of the session a channel's form is tried on, fitted on the others (:func:`stretch_gain`).
+STRETCHES = 4
+#: The share of a stretch's residual a channel's form must predict to be blamed. On the blind
+#: generator's development seeds a real effect predicted 0.36-0.81 of it (less where a drift of the
+#: sensor is large beside it), a form fitted to a drift's wander -0.6-0.32, once 0.46 (a lagged
+#: random-walk channel following the sensor's own random walk).
+STRETCH_MIN_GAIN = 0.35
+
+
+def stretch_folds(blocks: Blocks, k: int = STRETCHES) -> list[np.ndarray]:
+    """Held-out masks leaving out contiguous stretches of the session, in time order; the extreme
+    rates train every fold, as in :func:`plateau_folds`."""
+    plateaus = np.unique(blocks.plateau)
+    rates = np.array([blocks.points.rate[blocks.plateau == p][0] for p in plateaus])
+    starts = np.array([blocks.time_s[blocks.plateau == p].min() for p in plateaus])
+    edge = np.isin(rates, [rates.min(), rates.max()])
+    inner = plateaus[~edge][np.argsort(starts[~edge], kind="stable")]
+    return [np.isin(blocks.plateau, chunk) for chunk in np.array_split(inner, k)]
+
+
+def stretch_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...], duration_s: float) -> float:
+    """The share of the residual of each stretch of the session that ``terms`` (time constants as
+    fitted) predict when fitted on the other stretches: the larger of the pooled share and the
+    median stretch's.
+
+    The rate model is fitted once on the whole session without the terms (``s``) and held fixed:
+    left out, a stretch of time is also a range of the table's rates, and the rate model's own
+    extrapolation would swamp what the terms add. Both sides fit a constant too, since no term can
+    know a drift's level in a stretch it did not see. The pooled share weighs the stretches where
+    the residual is; the median ignores one whose channel goes beyond what the others saw (a
+    spline extrapolating).
+    """
+    fit = fit_structure(blocks, s, duration_s)
+    resid = blocks.points.rate - predict(fit, blocks)
+    slope = fit.poly.slope(blocks.points.dv)
+    design = np.column_stack([np.ones(len(blocks)), shift_columns(terms, blocks) * slope[:, None]])
+    folds = stretch_folds(blocks)
+    with_terms = np.full(len(blocks), np.nan)
+    without = np.full(len(blocks), np.nan)
+    for held in folds:
+        coef = np.linalg.lstsq(design[~held], resid[~held], rcond=None)[0]
+        with_terms[held] = resid[held] - design[held] @ coef
+        without[held] = resid[held] - np.mean(resid[~held])
+    pooled = 1.0 - rms(with_terms) / rms(without)
+    each = [1.0 - rms(with_terms[m]) / rms(without[m]) for m in folds if np.any(m)]
+    return float(max(pooled, np.median(each))) if each else float("nan")
 
 
 def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], duration_s: float) -> np.ndarray:
@@ -510,9 +559,9 @@ def adopt(scorer: Scorer, s: Structure, group: list[Candidate]) -> Candidate:
     session equally well (held-out plateaus cannot tell them apart), so leaving all out would leave
     the whole residual in the user's set, while any one of them corrects it.
 
-    Why this order: a form of time since power-on before a channel's, since a slow drift and a
-    slowly varying channel look alike and a channel term blamed for drift adds a bias that follows
-    the channel on the vehicle; time since power-on is measured on the vehicle too. Then the fewest
+    Why this order: a channel is blamed only where it beats time, since a slow drift and a slowly
+    varying channel look alike and a channel term blamed for drift adds a bias that follows the
+    channel on the vehicle; time since power-on is measured on the vehicle too. Then the fewest
     fitted parameters (columns that pay, and each time constant or knee searched): the simpler
     form extrapolates less beyond what the session showed (a transient's rate of change against
     a spline of its lag). Then the lower held-out rms on the base size each deserves.
@@ -541,6 +590,80 @@ def _adopted_if_large(scorer: Scorer, s: Structure, before: Score,
         return candidate, ADOPTION_RULE
     return None, (f"none adopted: the rule's choice, {candidate.name}, removes {gain:.0%} of the "
                   "held-out error, less than half: as likely the session's wander as an effect")
+
+
+#: The pseudo-channel of the session's own clock (block mean times) the drift competitor is a spline of.
+SESSION_CLOCK = "session clock"
+DRIFT_SPLINE_NAME = "drift of the session (smooth in time)"
+
+
+def drift_competitor(cand: Candidate, blocks: Blocks) -> Candidate | None:
+    """A smooth function of the session's clock as flexible as a channel's candidate: as many
+    interior knots (evenly spaced in time) as its spline has, and one more for a time constant it
+    searches; one for a form without a spline (a cubic with one knot: four coefficients against a
+    level's three or a lag's two and its τ).
+
+    Why: a spline of a slowly varying channel, or its lag with τ free, fits any slow drift of the
+    sensor (a bias random walk) about as well as the channel's real effect would; time's own forms
+    on the list (warm-up, linear drift) are far stiffer, so they lost the comparison and the drift
+    was blamed on the channel. Against a form of time as flexible, the channel must show that it
+    is the channel the sensor follows. None when the session has no span of time.
+    """
+    t = blocks.time_s
+    if not np.ptp(t) > 0:
+        return None
+    first = cand.terms[0]
+    # A spline's time constant searched (a smoothed lag's τ) is one more parameter: one more knot.
+    searched = len(tau_groups(cand.terms))
+    interior = max(1, len(first.knots or ()) - 2 + searched) if first.spec.needs_spline else 1
+    basis = bspline_basis(np.linspace(float(t.min()), float(t.max()), 64), interior, even=True)
+    if basis is None:
+        return None
+    breaks, pieces = basis
+    terms = tuple(Term.of(CHANNEL_SPLINE, "bias", 0.0, channel=SESSION_CLOCK, knots=breaks, pieces=p)
+                  for p in pieces[1:])
+    return Candidate(DRIFT_SPLINE_NAME, TIME, None, terms)
+
+
+def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | None:
+    """The record of a channel's candidate that the session's own drift explains as well; None
+    when the channel is the better explanation (or the candidate is not a channel's).
+
+    A channel is blamed only when two things hold. It predicts the held-out plateaus better than
+    an equally flexible drift of the session (:func:`drift_competitor`): a spline of a slowly
+    varying channel fits a slow drift about as well as the channel's real effect would. And it
+    predicts stretches of the session it was not fitted on (:func:`stretch_gain`): the sensor
+    follows its channel the same way all session long, while a drift does not repeat, so a term
+    fitted to a drift's wander has nothing to say about another stretch of time.
+
+    The drift is not added either: a smooth function of this session's clock is a property of the
+    session, not of the sensor, and on the vehicle it would add this session's wander at the same
+    times after power-on. What is left is reported (unexplained, if it is large).
+    """
+    if best.kind != CHANNEL:
+        return None
+    drift = drift_competitor(best, scorer.blocks)
+    if drift is None:
+        return None
+    with_channel = replace(s, terms=s.terms + best.terms)
+    with_drift = replace(s, terms=s.terms + drift.terms)
+    r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
+    p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
+    fitted = fit_structure(scorer.blocks, with_channel, scorer.duration_s).terms[len(s.terms):]
+    gain = stretch_gain(scorer.blocks, s, fitted, scorer.duration_s)
+    if r_channel < r_drift and gain >= STRETCH_MIN_GAIN:
+        return None
+    ch = best.channel or ""
+    return Confound(
+        candidates=(best.name, DRIFT_SPLINE_NAME), weaker_alternatives=(),
+        held_out_rms_dps={best.name: r_channel, DRIFT_SPLINE_NAME: r_drift},
+        paired_p={DRIFT_SPLINE_NAME: p}, paired_alpha=CONFOUND_ALPHA,
+        held_out_rms_before_dps=scorer.held_rms(s), resolved_by_user=None,
+        recommendation=(f"record a session in which {ch} changes in steps in random order, so that it "
+                        "no longer follows the sensor's slow drift"),
+        adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
+        stretch_gain=gain,
+    )
 
 
 def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None, rule: str) -> Confound:
@@ -620,9 +743,12 @@ def run_loop(
 ) -> LoopResult:
     """Grow the model until no candidate explanation passes; see the module docstring."""
     folds = plateau_folds(blocks)
+    # The session's own clock as a pseudo-channel of block means, for the drift a channel's form
+    # must beat (see _drift_beats); no candidate is built of it.
+    blocks = replace(blocks, aux={**blocks.aux, SESSION_CLOCK: blocks.time_s})
     scorer = Scorer(blocks, folds, duration_s)
     s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
-    pool = build_candidates(blocks, duration_s)
+    pool = [c for c in build_candidates(blocks, duration_s) if c.channel != SESSION_CLOCK]
     every_candidate = list(pool)
     tied = untestable(pool, blocks)
     if tied:
@@ -671,6 +797,12 @@ def run_loop(
             twins = tuple(c.name for c in group if c is not chosen)
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen
+        drift = None if best.name in prefer else _drift_beats(scorer, s, best)
+        if drift is not None:
+            confounded.append(drift)
+            progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
+            pool = [c for c in pool if c.channel != best.channel]
+            continue
         pruned = _pruned(scorer, s, best)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)

@@ -82,6 +82,26 @@ class BlindCase:
         return f"{self.form} / {self.trajectory} / drift {self.drift}"
 
 
+@dataclass(frozen=True)
+class BlindClass:
+    """A class of cases a criterion of the closed loop is judged on, drawn by :func:`draw_case`."""
+
+    name: str
+    forms: tuple[str, ...] = FORMS
+    trajectories: tuple[str, ...] = TRAJECTORIES
+    drifts: tuple[str, ...] = DRIFTS
+
+
+#: Every case; a drifting sensor with no channel effect (no channel may be blamed); a real effect
+#: of a form the loop lists, on a channel that shows it (it must be attributed, within 2x of a
+#: model told the form).
+ANY = BlindClass("any case")
+DRIFT_ONLY = BlindClass("drift, no channel effect", forms=("none",),
+                        drifts=("random-walk", "flicker", "steps"))
+LISTED_EFFECT = BlindClass("listed effect", forms=("level", "transient", "lag"),
+                           trajectories=("cycling", "ramps", "steps"))
+
+
 def _trajectory(kind: str, rng: np.random.Generator) -> Callable:
     if kind == "cycling":
         return env.temperature_cycle(25.0, float(rng.uniform(6.0, 12.0)),
@@ -136,12 +156,15 @@ def _drift(kind: str, rng: np.random.Generator) -> tuple[GyroModel, tuple]:
     return GyroModel(), ()
 
 
-def draw_case(seed: int) -> BlindCase:
-    """One case from ``seed``: form, trajectory and drift drawn independently, then their parameters."""
+def draw_case(seed: int, within: BlindClass = ANY) -> BlindCase:
+    """One case from ``seed``: form, trajectory and drift drawn independently, then their parameters.
+
+    A narrower class (a drifting sensor with no channel effect, say) lets a criterion on that class
+    be scored on as many seeds as it needs."""
     rng = np.random.default_rng([seed, 32])
-    form = str(rng.choice(FORMS))
-    trajectory = str(rng.choice(TRAJECTORIES))
-    drift = str(rng.choice(DRIFTS))
+    form = str(rng.choice(within.forms))
+    trajectory = str(rng.choice(within.trajectories))
+    drift = str(rng.choice(within.drifts))
     effects, told = _effect(form, rng)
     gyro, drift_effects = _drift(drift, rng)
     channel_form = form not in ("none", "warm-up")

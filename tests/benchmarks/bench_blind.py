@@ -14,7 +14,9 @@ random walk, flicker, bias steps). Scored per case:
 * held-out error against a model told the true form (where a term writes it).
 
 Development seeds are 0-99 (``--seeds``, printed case by case). The blind seeds are drawn from
-BLIND_ROOT, picked once at random and never printed case by case: only the scores (``--blind N``).
+BLIND_ROOT, picked once at random and never printed case by case: only the scores (``--blind N``),
+N cases of each class: any case; a drifting sensor with no channel effect (how often a drift is
+blamed on a channel); a real effect of a form the loop lists (how often it is attributed).
 
 Run: python tests/benchmarks/bench_blind.py [--seeds 0 1 ...] [--blind N] [--quick]
 Prints figures; asserts nothing.
@@ -28,15 +30,18 @@ import time
 import numpy as np
 
 from canical.calibration.evaluation import score_scenario
-from canical.sim.blind import draw_case
+from canical.sim.blind import ANY, DRIFT_ONLY, LISTED_EFFECT, BlindCase, BlindClass, draw_case
 
 #: Picked once at random (secrets.randbits(48)); the seeds it draws are never looked at one by one.
 BLIND_ROOT = 27569707891287
 
 
-def judge(seed: int, dwell_s: float) -> dict[str, object]:
-    case = draw_case(seed)
-    r = score_scenario(case.scenario, seed=seed, dwell_s=dwell_s)
+def judge(seed: int, dwell_s: float, within: BlindClass = ANY) -> dict[str, object]:
+    return judge_case(draw_case(seed, within), dwell_s)
+
+
+def judge_case(case: BlindCase, dwell_s: float) -> dict[str, object]:
+    r = score_scenario(case.scenario, seed=case.seed, dwell_s=dwell_s)
     blamed = "temp_c" in r.written_channels
     other = any(c != "temp_c" for c in r.written_channels)  # a distractor blamed
     if case.time_effect:
@@ -66,6 +71,19 @@ def summary(rows: list[dict[str, object]]) -> str:
             f"of told {within}/{ratios.size} (median ratio {median:.2f})")
 
 
+def criterion(within: BlindClass, rows: list[dict[str, object]]) -> str:
+    """The issue's bar for the class: false blame of a drift, or listed effects attributed."""
+    n = len(rows)
+    if within is DRIFT_ONLY:
+        blamed = sum(bool(r["false_blame"]) for r in rows)
+        return f"\n  blamed on a channel: {blamed}/{n} (bar: at most 1 in 20)"
+    if within is LISTED_EFFECT:
+        ratios = np.array([r["ratio"] for r in rows], dtype=float)
+        return (f"\n  attributed: {sum(bool(r['right']) for r in rows)}/{n} (bar: every one); held-out "
+                f"within 2x of told {int(np.sum(ratios <= 2.0))}/{n}")
+    return ""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=list(range(20)),
@@ -87,8 +105,10 @@ def main() -> None:
                   flush=True)
         print("development: " + summary(rows))
     if args.blind:
-        blind = np.random.default_rng(BLIND_ROOT).integers(100, 2**31 - 1, args.blind)
-        print("blind: " + summary([judge(int(s), dwell) for s in blind]))
+        for k, within in enumerate((ANY, DRIFT_ONLY, LISTED_EFFECT)):
+            root = np.random.default_rng(BLIND_ROOT if k == 0 else [BLIND_ROOT, k])
+            rows = [judge(int(s), dwell, within) for s in root.integers(100, 2**31 - 1, args.blind)]
+            print(f"blind, {within.name}: " + summary(rows) + criterion(within, rows), flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
 
 
