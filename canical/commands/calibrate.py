@@ -352,11 +352,17 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
     axis = args.axis
     if axis is None and source.raw_named:
         axis = "z"
+    configured = tuple(source.raw_signals) if source.from_config else ()
     if axis is None:  # the table says which axis it turns; a first pass finds out
-        first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs=source.axis_inputs("z", []),
-                            ref=None, raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"),
+        probe = "z" if not configured or "z" in configured else configured[-1]
+        first = read_canlog(args.session, dbc=source.dbc, axis=probe, inputs=source.axis_inputs(probe, []),
+                            ref=None, raw_message=source.raw_message,
+                            raw_signal=source.raw_signals.get(probe),
                             j1939_source=source.j1939_source)
-        axis = first.table_axis or "z"
+        axis = first.table_axis or probe
+    if configured and axis not in configured:
+        raise CanicalError(f"calibrate: axis {axis} is not in {args.config}'s axes (it has "
+                           f"{', '.join(configured)}): name it under axes.{axis}.raw, or give --axis")
     log = read_canlog(
         args.session,
         dbc=source.dbc,

@@ -110,7 +110,9 @@ def _raw_signal(config: DaemonConfig):
 
 
 def _axis(config: DaemonConfig):
-    return next((a for a in config.axes if a.coefficients is not None), config.axes[-1])
+    """The axis a simulated log carries: the first with a set, else the last named one."""
+    named = [a for a in config.axes if a.present]
+    return next((a for a in named if a.coefficients is not None), named[-1])
 
 
 def _session(gyro: GyroModel, seed: int) -> dict[str, np.ndarray]:
