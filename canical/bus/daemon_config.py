@@ -22,7 +22,7 @@ from cantools.database.can import Database, Message
 from canical.errors import CanicalError
 from canical.files.yaml_text import parse_yaml
 from canical.frames.codec import load_dbc
-from canical.frames.dbc_files import ALL_EXTENDED, DbcSet, dbc_label, require_sound
+from canical.frames.dbc_files import ALL_EXTENDED, DbcSet, dbc_label, require_sound, undecoded_reason
 from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
 from canical.sessions.canlog_format import HELD_AXIS_PREFIX
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
@@ -167,7 +167,8 @@ class _Dbc:
 
     def need_signal(self, key: str, msg: Message, signal: str) -> None:
         if signal not in {s.name for s in msg.signals}:
-            raise self.fail(key, f"signal {signal} not in message {msg.name} of {self.name}")
+            why = undecoded_reason(msg.name, signal)
+            raise self.fail(key, why or f"signal {signal} not in message {msg.name} of {self.name}")
 
 
 @dataclass(frozen=True)
