@@ -156,8 +156,10 @@ def register(sub) -> None:
                    f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written. "
                    "Also exit with status 2, writing nothing, when candidates are confounded and none was "
                    "named with --prefer (the set would carry one adopted by rule)")
-    p.add_argument("--reference", metavar="FILE",
-                   help="the table controller's own recording of its rate on its own clock: a CSV "
+    p.add_argument("--reference", metavar="FILE", action="append",
+                   help="the table controller's own recording of its rate on its own clock (with "
+                   "three-axis CAN logs, one per log, in the same order; the turning axis is the raw "
+                   "output that spreads most, its sign from the correlation with the table's rate): a CSV "
                    "(time_s and --ref-column) or a CAN log (--input ref_dps=MESSAGE.Signal, else "
                    "TABLE_REF.TableRate); aligned to the session by the rate changes both show (offset "
                    "and drift, reported). CAN logs name their gyro signal with --input raw=MESSAGE.Signal "
@@ -180,6 +182,10 @@ def run(args: argparse.Namespace) -> int:
     if is_triad_input(args):
         return run_imu(args)
     args.session = args.session[0]
+    if args.reference and len(args.reference) > 1:
+        raise CanicalError(f"--reference: given {len(args.reference)} times for one session: give the "
+                           "table's file once (one per session with three-axis sessions)")
+    args.reference = args.reference[0] if args.reference else None
     with output_plan(args.output, args.report, dirs=[args.report_dir]):
         return calibrate_session(args)
 
