@@ -108,3 +108,45 @@ def test_an_imu_set_needs_every_axis(calibrated: Path, tmp_path: Path) -> None:
                       axes={"z": {"raw": "GYRO_TPDO2.GyroZ"}})
     with pytest.raises(CanicalError, match=r"axes.x: left out, but imu_set corrects x, y and z"):
         load_config(path)
+
+
+def test_a_rate_frame_of_the_users_own_needs_only_the_named_axis(calibrated: Path, tmp_path: Path) -> None:
+    """frames.rate may be a yaw-rate frame with the z signals alone: an absent axis needs none."""
+    out_dbc = tmp_path / "yaw_out.dbc"
+    out_dbc.write_text('VERSION ""\n\nNS_ :\n\nBS_:\n\nBU_: CANICAL\n\n'
+                       'BO_ 784 YAW_OUT: 4 CANICAL\n'
+                       ' SG_ RateZ : 0|16@1- (0.01,0) [-327.68|327.67] "deg/s" Vector__XXX\n'
+                       ' SG_ OutOfSpanZ : 16|1@1+ (1,0) [0|1] "" Vector__XXX\n'
+                       ' SG_ UncalibratedZ : 17|1@1+ (1,0) [0|1] "" Vector__XXX\n'
+                       ' SG_ Stale : 18|1@1+ (1,0) [0|1] "" Vector__XXX\n'
+                       ' SG_ CounterGap : 19|1@1+ (1,0) [0|1] "" Vector__XXX\n'
+                       ' SG_ SetTag : 20|4@1+ (1,0) [0|15] "" Vector__XXX\n'
+                       ' SG_ Counter : 24|4@1+ (1,0) [0|15] "" Vector__XXX\n')
+    config_path = yaw_config(tmp_path, dbc=[str(VENDOR), str(VENDOR_EXT), str(out_dbc)],
+                             frames={"rate": "YAW_OUT"},
+                             axes={"z": {"raw": "GYRO_TPDO2.GyroZ",
+                                         "coefficients": str(calibrated.parent / "imu-z.yaml")}})
+    config = load_config(config_path)
+    assert config.rate_message == "YAW_OUT"
+    raw = cantools.database.load_file(str(VENDOR), strict=False).get_message_by_name("GYRO_TPDO2")
+    temp = cantools.database.load_file(str(VENDOR_EXT), strict=False).get_message_by_name("IMU_TEMP")
+    frames = []
+    for i in range(50):
+        frames.append(can.Message(timestamp=1.0 + 0.01 * i, arbitration_id=temp.frame_id, is_extended_id=True,
+                                  data=temp.encode({"SensorTemp": 25.0})))
+        rates = raw.encode({"GyroX": 0, "GyroY": 0, "GyroZ": 10.0})
+        frames.append(can.Message(timestamp=1.0 + 0.01 * i + 1e-4, arbitration_id=raw.frame_id,
+                                  is_extended_id=False, data=rates))
+    sent: list[can.Message] = []
+
+    class RefBus:
+        def send(self, msg: can.Message, timeout: float | None = None) -> None:
+            sent.append(msg)
+
+    daemon = Daemon(config, compiled=False)
+    daemon.load_sets()
+    feed(daemon, frames, RefBus())
+    out = cantools.database.load_file(str(out_dbc)).get_message_by_name("YAW_OUT")
+    decoded = [out.decode(bytes(m.data)) for m in sent if m.arbitration_id == out.frame_id]
+    assert len(decoded) == 50 and not decoded[-1]["UncalibratedZ"]
+    assert abs(decoded[-1]["RateZ"] - 10.0) < 1.0
