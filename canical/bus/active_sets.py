@@ -54,7 +54,7 @@ class AxisSet:
     """What one axis corrects with; ``corrector`` None means the axis goes out uncalibrated."""
 
     axis: str
-    raw_signal: str
+    raw_signal: str | None  # None: the axis is absent from the configuration (never corrected)
     corrector: Corrector | None = None
     set_id: int = 0
     source: int = SOURCE_NONE
@@ -186,7 +186,9 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
         network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
                                **config.bus_options)
         try:
-            got = pull_active(network, device.node, tuple(a.axis for a in current.axes), device.timeout_s)
+            # An axis the configuration leaves out is not corrected, whatever the device holds for it.
+            present = tuple(a.axis for a in config.axes if a.present)
+            got = pull_active(network, device.node, present, device.timeout_s)
             pulled, pulled_imu = got.sets, got.imu
         finally:
             network.disconnect()

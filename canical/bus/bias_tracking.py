@@ -168,12 +168,13 @@ class DaemonTracking:
         return sum(s.updates for t in self.trackers if t is not None for s in t.learned)
 
     def log_events(self) -> None:
+        measured = self.config.temperature_input is not None  # else the reference's, not a reading
         for tracker in self.trackers:
             if tracker is None:
                 continue
             for event in tracker.events:
                 report = log.info if event.decision == "adopted" else log.warning
-                report("bias %s", event.line(tracker.axes))
+                report("bias %s", event.line(tracker.axes, temperature=measured))
             tracker.events.clear()
             tracker.taken.clear()
 

@@ -142,7 +142,9 @@ class Daemon:
         _log_notes(notes)
         self.sets = sets
         for ax in sets.axes:
-            if ax.corrector is None:
+            if ax.raw_signal is None:
+                log.info("axis %s: not configured (absent: not read, sent uncalibrated)", ax.axis)
+            elif ax.corrector is None:
                 log.warning("axis %s: no coefficient set, sending it uncalibrated", ax.axis)
 
     def request_stop(self, *_: Any) -> None:

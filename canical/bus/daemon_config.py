@@ -22,7 +22,7 @@ from cantools.database.can import Database, Message
 from canical.errors import CanicalError
 from canical.files.yaml_text import parse_yaml
 from canical.frames.codec import load_dbc
-from canical.frames.dbc_files import ALL_EXTENDED, DbcSet, dbc_label, require_sound
+from canical.frames.dbc_files import ALL_EXTENDED, DbcSet, dbc_label, require_sound, undecoded_reason
 from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
 from canical.sessions.canlog_format import HELD_AXIS_PREFIX
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
@@ -53,13 +53,20 @@ HELD_AXIS_MAX_AGE_S = 0.1
 @dataclass(frozen=True)
 class AxisConfig:
     axis: str
-    raw_signal: str
+    #: None: the axis is absent (left out of ``axes:``, as on a single-axis yaw-rate sensor):
+    #: nothing is read for it, and it goes out uncalibrated.
+    raw_signal: str | None
     coefficients: Path | None  # None: the axis is sent uncalibrated
     raw_units: str = ""  # the raw signal's unit as its DBC gives it ("": none given)
     #: The message the raw signal is in, when not the raw frame: its latest value is held (an
     #: input named ``held``) and corrected with the raw frame's axes when the raw frame comes.
     message: str | None = None
     max_age_s: float = HELD_AXIS_MAX_AGE_S
+
+    @property
+    def present(self) -> bool:
+        """The axis is named in ``axes:`` (read and, with a set, corrected)."""
+        return self.raw_signal is not None
 
     @property
     def held(self) -> str | None:
@@ -160,7 +167,8 @@ class _Dbc:
 
     def need_signal(self, key: str, msg: Message, signal: str) -> None:
         if signal not in {s.name for s in msg.signals}:
-            raise self.fail(key, f"signal {signal} not in message {msg.name} of {self.name}")
+            why = undecoded_reason(msg.name, signal)
+            raise self.fail(key, why or f"signal {signal} not in message {msg.name} of {self.name}")
 
 
 @dataclass(frozen=True)
@@ -199,7 +207,8 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
     counter = _counter(content, frames, dbc)
     inputs = _inputs(content, frames, dbc)
     inputs.update({a.held: InputSource(a.held, a.message, a.raw_signal, a.max_age_s)
-                   for a in axes if a.held is not None and a.message is not None})
+                   for a in axes
+                   if a.held is not None and a.message is not None and a.raw_signal is not None})
     device = _device(content, fail)
     j1939 = _j1939_source(content, fail)
     _raw_frames_can_match(frames, axes, dbc, j1939)
@@ -320,40 +329,50 @@ def _rate_frame(content: Json, frames: Json, dbc: _Dbc) -> Message | None:
 
 def _axes(content: Json, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: bool) -> tuple[AxisConfig, ...]:
     """``axes``: per axis its raw signal and coefficients file; at least one axis has a file, or
-    ``imu_set`` names one file for all three (then no axis names its own)."""
+    ``imu_set`` names one file for all three (then no axis names its own). An axis left out is
+    absent: a single-axis sensor has no other axes' signals to name."""
     axes_in = _section(content, "axes", dbc.fail)
     _no_unknown(axes_in, set(AXES), "axes.", dbc.fail)
-    axes = []
-    for axis in AXES:
-        entry = axes_in.get(axis) or {}
-        key = f"axes.{axis}"
-        if not isinstance(entry, dict):
-            raise dbc.fail(key, "must be a mapping (raw, coefficients)")
-        _no_unknown(entry, {"raw", "coefficients", "max_age_s"}, f"{key}.", dbc.fail)
-        message, raw_sig = _axis_raw_signal(entry.get("raw", f"GyroRaw{axis.upper()}"), f"{key}.raw",
-                                            frames, dbc)
-        if "max_age_s" in entry and message is None:
-            raise dbc.fail(f"{key}.max_age_s", f"only for an axis in another message than {frames.raw.name}")
-        max_age = _positive(entry.get("max_age_s", HELD_AXIS_MAX_AGE_S), f"{key}.max_age_s", dbc.fail)
-        if frames.rate is not None:
-            for prefix in RATE_SIGNALS.values():
-                dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
-        coeff = entry.get("coefficients")
-        if coeff is not None and imu_set:
-            raise dbc.fail(f"{key}.coefficients", "not with imu_set: the IMU set holds every axis's model")
-        coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
-        msg = frames.raw if message is None else dbc.db.get_message_by_name(message)
-        units = msg.get_signal_by_name(raw_sig).unit or ""
-        axes.append(AxisConfig(axis, raw_sig, coeff_path, units, message, max_age))
+    axes = tuple(_axis(axis, axes_in.get(axis), frames, dbc, base, imu_set=imu_set)
+                 if axes_in.get(axis) is not None else AxisConfig(axis, None, None) for axis in AXES)
+    if imu_set and not all(a.present for a in axes):
+        absent = next(a.axis for a in axes if not a.present)
+        raise dbc.fail(f"axes.{absent}", "left out, but imu_set corrects x, y and z: name each axis's raw "
+                                         "signal, or configure per-axis coefficients instead of imu_set")
     if not imu_set and not any(a.coefficients for a in axes):
         raise dbc.fail("axes", "no axis has a coefficients file (nor is an imu_set configured)")
-    return tuple(axes)
+    return axes
+
+
+def _axis(axis: str, entry: Any, frames: _Frames, dbc: _Dbc, base: Path, *, imu_set: bool) -> AxisConfig:
+    """``axes.AXIS``: one named axis (its raw signal defaults to canical's ``GyroRawX/Y/Z``)."""
+    key = f"axes.{axis}"
+    if not isinstance(entry, dict):
+        raise dbc.fail(key, "must be a mapping (raw, coefficients)")
+    _no_unknown(entry, {"raw", "coefficients", "max_age_s"}, f"{key}.", dbc.fail)
+    message, raw_sig = _axis_raw_signal(entry.get("raw", f"GyroRaw{axis.upper()}"), f"{key}.raw",
+                                        frames, dbc)
+    if "max_age_s" in entry and message is None:
+        raise dbc.fail(f"{key}.max_age_s", f"only for an axis in another message than {frames.raw.name}")
+    max_age = _positive(entry.get("max_age_s", HELD_AXIS_MAX_AGE_S), f"{key}.max_age_s", dbc.fail)
+    if frames.rate is not None:
+        for prefix in RATE_SIGNALS.values():
+            dbc.need_signal("frames.rate", frames.rate, f"{prefix}{axis.upper()}")
+    coeff = entry.get("coefficients")
+    if coeff is not None and imu_set:
+        raise dbc.fail(f"{key}.coefficients", "not with imu_set: the IMU set holds every axis's model")
+    coeff_path = None if coeff is None else _path(coeff, base, f"{key}.coefficients", dbc.fail)
+    msg = frames.raw if message is None else dbc.db.get_message_by_name(message)
+    units = msg.get_signal_by_name(raw_sig).unit or ""
+    return AxisConfig(axis, raw_sig, coeff_path, units, message, max_age)
 
 
 def _one_axis_per_signal(axes: tuple[AxisConfig, ...], fail: Fail) -> None:
     """Two axes on one raw signal would correct one sensor output with two axes' sets."""
     seen: dict[tuple[str | None, str], str] = {}
     for a in axes:
+        if a.raw_signal is None:
+            continue
         key = (a.message, a.raw_signal)
         if key in seen:
             raise fail(f"axes.{a.axis}.raw", f"signal {a.raw_signal} is axis {seen[key]}'s already: "

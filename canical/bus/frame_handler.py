@@ -100,7 +100,8 @@ def own_layout(config: DaemonConfig, raw_msg: Message, *, compiled: bool) -> Own
     out = config.own_layout
     if out is None:
         return None
-    axes = [(a.raw_signal, k) for k, a in enumerate(config.axes) if a.held is None]
+    axes = [(a.raw_signal, k) for k, a in enumerate(config.axes)
+            if a.held is None and a.raw_signal is not None]
     return _own_for(raw_msg, axes, out.frame_id, out.extended, out.channel is not None, compiled, None)
 
 
@@ -112,7 +113,8 @@ def held_own_layouts(config: DaemonConfig, db: Database, *, compiled: bool) -> t
     layouts = []
     for name, frame_id, extended in out.held_ids:
         msg = db.get_message_by_name(name)
-        axes = [(a.raw_signal, k) for k, a in enumerate(config.axes) if a.message == name]
+        axes = [(a.raw_signal, k) for k, a in enumerate(config.axes)
+                if a.message == name and a.raw_signal is not None]
         match = frame_match(msg, config.j1939_source)
         layouts.append(_own_for(msg, axes, frame_id, extended, out.channel is not None, compiled,
                                 frame_key(match.usual_id, msg.is_extended_frame)))
@@ -226,7 +228,7 @@ def frame_layout(config: DaemonConfig, db: Database, *, compiled: bool) -> Frame
 class AxisPlan:
     """One axis of a generation of sets, as a frame needs it."""
 
-    at: int  # its raw signal's position in the decoded frame (-1: held, from another message)
+    at: int  # its raw signal's position in the decoded frame (-1: held, from another message, or absent)
     correct: CorrectOne | None  # None: no set, the axis goes out uncalibrated
     needs: tuple[str, ...]  # the inputs its set reads (and its held raw value's)
     held: str | None = None  # the input its raw value is held under, when in another message
@@ -272,6 +274,9 @@ def plan_for(sets: ActiveSets, layout: FrameLayout, max_age: dict[str, float], c
                 cache[corrector] = fast
             correct = cache[corrector] or corrector.correct_one
         name = held.get(ax.axis)
+        if ax.raw_signal is None:  # absent from the configuration: never corrected
+            axes.append(AxisPlan(-1, None, ()))
+            continue
         if name is None:
             axes.append(AxisPlan(layout.raw.index[ax.raw_signal], correct, ax.required_inputs))
             continue

@@ -66,9 +66,10 @@ class ReferenceHandler:
             elif stamp - t > max_age:
                 stale = True
         px, py, pz = plan.axes
-        raws = (signals[px.at] if px.held is None else values.get(px.held),
-                signals[py.at] if py.held is None else values.get(py.held),
-                signals[pz.at] if pz.held is None else values.get(pz.held))
+        # at -1 and not held: an axis absent from the configuration (no raw value, uncalibrated)
+        raws = (signals[px.at] if px.at >= 0 else values.get(px.held) if px.held else None,
+                signals[py.at] if py.at >= 0 else values.get(py.held) if py.held else None,
+                signals[pz.at] if pz.at >= 0 else values.get(pz.held) if pz.held else None)
         correct = self._correct
         rx, ox, ux = correct(px, raws[0], missing)
         ry, oy, uy = correct(py, raws[1], missing)

@@ -156,8 +156,10 @@ def register(sub) -> None:
                    f"times the session's noise floor (unexplained) [{STRICT_RATIO:g}]; outputs are written. "
                    "Also exit with status 2, writing nothing, when candidates are confounded and none was "
                    "named with --prefer (the set would carry one adopted by rule)")
-    p.add_argument("--reference", metavar="FILE",
-                   help="the table controller's own recording of its rate on its own clock: a CSV "
+    p.add_argument("--reference", metavar="FILE", action="append",
+                   help="the table controller's own recording of its rate on its own clock (with "
+                   "three-axis CAN logs, one per log, in the same order; the turning axis is the raw "
+                   "output that spreads most, its sign from the correlation with the table's rate): a CSV "
                    "(time_s and --ref-column) or a CAN log (--input ref_dps=MESSAGE.Signal, else "
                    "TABLE_REF.TableRate); aligned to the session by the rate changes both show (offset "
                    "and drift, reported). CAN logs name their gyro signal with --input raw=MESSAGE.Signal "
@@ -180,6 +182,10 @@ def run(args: argparse.Namespace) -> int:
     if is_triad_input(args):
         return run_imu(args)
     args.session = args.session[0]
+    if args.reference and len(args.reference) > 1:
+        raise CanicalError(f"--reference: given {len(args.reference)} times for one session: give the "
+                           "table's file once (one per session with three-axis sessions)")
+    args.reference = args.reference[0] if args.reference else None
     with output_plan(args.output, args.report, dirs=[args.report_dir]):
         return calibrate_session(args)
 
@@ -352,11 +358,17 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
     axis = args.axis
     if axis is None and source.raw_named:
         axis = "z"
+    configured = tuple(source.raw_signals) if source.from_config else ()
     if axis is None:  # the table says which axis it turns; a first pass finds out
-        first = read_canlog(args.session, dbc=source.dbc, axis="z", inputs=source.axis_inputs("z", []),
-                            ref=None, raw_message=source.raw_message, raw_signal=source.raw_signals.get("z"),
+        probe = "z" if not configured or "z" in configured else configured[-1]
+        first = read_canlog(args.session, dbc=source.dbc, axis=probe, inputs=source.axis_inputs(probe, []),
+                            ref=None, raw_message=source.raw_message,
+                            raw_signal=source.raw_signals.get(probe),
                             j1939_source=source.j1939_source)
-        axis = first.table_axis or "z"
+        axis = first.table_axis or probe
+    if configured and axis not in configured:
+        raise CanicalError(f"calibrate: axis {axis} is not in {args.config}'s axes (it has "
+                           f"{', '.join(configured)}): name it under axes.{axis}.raw, or give --axis")
     log = read_canlog(
         args.session,
         dbc=source.dbc,

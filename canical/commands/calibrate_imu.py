@@ -19,7 +19,7 @@ from canical.progress import Progress
 
 AXES = ("x", "y", "z")
 #: Options of the single-axis flow a triad calibration does not take yet, and why one line says so.
-SINGLE_AXIS_ONLY = (("reference", "--reference"), ("rail", "--rail"), ("settled_column", "--settled-column"),
+SINGLE_AXIS_ONLY = (("rail", "--rail"), ("settled_column", "--settled-column"),
                     ("strict", "--strict"), ("axis", "--axis"))
 
 
@@ -45,6 +45,7 @@ def run_imu(args: argparse.Namespace) -> int:
     for attr, flag in SINGLE_AXIS_ONLY:
         if getattr(args, attr, None) not in (None, False):
             raise CanicalError(f"{flag} is not supported with three-axis sessions")
+    check_references(args)
     with output_plan(args.output, args.report, dirs=[args.report_dir]):
         return calibrate_triad(args)
 
@@ -59,9 +60,12 @@ def calibrate_triad(args: argparse.Namespace) -> int:
 
     progress = Progress("calibrate", 1)
     sessions = []
-    for path in args.session:
+    for k, path in enumerate(args.session):
         progress.step(f"reading {path}")
-        sessions.append(read_triad_log_args(args, path) if is_canlog(path) else read_triad_session(path))
+        if args.reference:
+            sessions.append(read_triad_log_with_reference(args, path, args.reference[k]))
+        else:
+            sessions.append(read_triad_log_args(args, path) if is_canlog(path) else read_triad_session(path))
     sensors = {s.sensor_id for s in sessions if s.sensor_id}
     if args.sensor and sensors and sensors != {args.sensor}:
         raise CanicalError(f"--sensor {args.sensor} but the sessions were recorded from "
@@ -79,6 +83,81 @@ def calibrate_triad(args: argparse.Namespace) -> int:
         write_report_dir(Path(args.report_dir), report)
     print(summary(report, f"0x{imu_set.imu_set_crc(result.imu_set):08x}"))
     return 0
+
+
+def check_references(args: argparse.Namespace) -> None:
+    """``--reference`` with three-axis sessions: one table file per CAN log, in the same order."""
+    from canical.sessions.canlog_format import is_canlog
+
+    if not args.reference:
+        return
+    if len(args.reference) != len(args.session):
+        raise CanicalError(f"--reference: given {len(args.reference)} time(s) for {len(args.session)} "
+                           "sessions: give each session's table file, in the sessions' order")
+    csvs = [p for p in args.session if not is_canlog(p)]
+    if csvs:
+        raise CanicalError(f"--reference: {csvs[0]} is a CSV, which carries its table's rate (ref_dps): "
+                           "--reference is for CAN logs recorded without the table's frame")
+
+
+def read_triad_log_with_reference(args: argparse.Namespace, path: str, reference: str):
+    """A triad session from a CAN log without the table's frame and the table's own file: the
+    turning axis is the raw output with the widest spread (the other two are at rest), aligned
+    to the file by the rate changes both show, its sign that of their correlation (an IMU
+    mounted upside down turns against the table)."""
+    from canical.commands.calibrate import reference_line
+    from canical.sessions.canlog import default_inputs
+    from canical.sessions.reference_clock import align_reference, join_reference
+    from canical.sessions.triad_session import read_triad_log_unreferenced, triad_with_reference
+
+    source = canlog_source_for_triad(args, path)
+    inputs = dict(source.inputs) if (source.inputs or source.from_config) else default_inputs(source.dbc)
+    for name in ("raw", "ref_dps"):
+        inputs.pop(name, None)
+    raws = read_triad_log_unreferenced(path, dbc=source.dbc, inputs=inputs, raw_message=source.raw_message,
+                                       raw_signals=source.raw_signals, j1939_source=source.j1939_source)
+    table = table_trace(args, reference)
+    axis = turning_axis(raws.raw)
+    fit = align_reference(raws.time_s, raws.raw[:, axis], table)
+    joined = join_reference(raws.time_s, table, fit)
+    session, r = triad_with_reference(raws, axis, joined.ref_dps, joined.inside)
+    clock = {"file": reference, **fit.describe(), "samples_outside": int((~joined.inside).sum())}
+    # Printed, not progress: the axis and its sign are inferred, and the user must see them.
+    print(reference_line(clock))
+    print(f"axis       {path}: the table turns about IMU axis {session.axis_label} (raw {AXES[axis]} "
+          f"spreads most; correlation with the table's rate {r:+.3f})")
+    return session
+
+
+def turning_axis(raw) -> int:
+    """The raw output that spreads most (1st to 99th percentile): the axis the table turns."""
+    import numpy as np
+
+    spread = np.nanpercentile(raw, 99, axis=0) - np.nanpercentile(raw, 1, axis=0)
+    return int(np.argmax(spread))
+
+
+def table_trace(args: argparse.Namespace, reference: str):
+    """The table's own file (a CSV, or a CAN log read with the options' DBC and ref_dps signal)."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.sessions.canlog import parse_signal_map
+    from canical.sessions.canlog_format import is_canlog
+    from canical.sessions.table_file import read_table_trace
+
+    dbc = signal = j1939 = None
+    if is_canlog(reference):
+        source = canlog_source(args, reference)
+        dbc, j1939 = source.dbc, source.j1939_source
+        signal = parse_signal_map(args.inputs).get("ref_dps")
+    return read_table_trace(reference, column=args.ref_column, dbc=dbc, signal=signal, j1939_source=j1939)
+
+
+def canlog_source_for_triad(args: argparse.Namespace, path: str):
+    from canical.commands.canlog_args import canlog_source, refuse_raw_for_a_triad
+
+    source = canlog_source(args, path)
+    refuse_raw_for_a_triad(source, "calibrate")
+    return source
 
 
 def read_triad_log_args(args: argparse.Namespace, path: str):

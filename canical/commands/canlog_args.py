@@ -81,7 +81,7 @@ def canlog_source(args: argparse.Namespace, log_file: str) -> CanlogSource:
         inputs = {name: f"{s.message}.{s.signal}" for name, s in config.inputs.items()}
         raw_message = config.raw_message
         # An axis in another message than the raw frame: held among the inputs ("@x"), as the daemon does.
-        raw_signals = {a.axis: a.held or a.raw_signal for a in config.axes}
+        raw_signals = {a.axis: a.held or a.raw_signal for a in config.axes if a.raw_signal is not None}
         sensor = config.sensor
         j1939 = config.j1939_source
     if getattr(args, "j1939_source", None) is not None:

@@ -12,9 +12,13 @@ import argparse
 import logging
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
 from canical.errors import CanicalError
+
+if TYPE_CHECKING:
+    from canical.bus.daemon_config import DaemonConfig
 
 # The daemon's modules (python-can, cantools, numpy) are imported by `run`, so that `--help`
 # answers at once.
@@ -97,6 +101,15 @@ def socketcan_missing() -> str | None:
     return None
 
 
+def served_axes(config: DaemonConfig) -> str:
+    """Which axes the daemon corrects and which it does not: a single-axis sensor's configuration
+    leaves two out, and whoever checks it should see that they are not served."""
+    corrected = [a.axis for a in config.axes if a.present and (a.coefficients or config.imu_set)]
+    other = [a.axis for a in config.axes if a.axis not in corrected]
+    served = f"corrected: axis {', '.join(corrected)}" if corrected else "corrected: no axis"
+    return served + (f"; not corrected: {', '.join(other)}" if other else "")
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.bus import active_sets
     from canical.bus.daemon import Daemon
@@ -113,6 +126,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"imu set 0x{imu_set_crc(imu):08x} from {config.imu_set}: axes "
                   + ", ".join(f"{c.cset.axis} 0x{c.set_id:08x}" for c in correctors) + ", coupling checked")
         for axis in config.axes if config.imu_set is None else ():
+            if not axis.present:
+                print(f"axis {axis.axis}: not in axes (absent: not read, not corrected)")
+                continue
             if axis.coefficients is None:
                 print(f"axis {axis.axis}: no coefficients configured (sent uncalibrated)")
                 continue
@@ -120,6 +136,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}")
         if config.device is not None:
             check_device(config)
+        print(served_axes(config))
         print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
         if missing is not None:  # the configuration may be for the vehicle, not this machine
             print(f"note: serve would not start on this machine: {missing}: {NO_SOCKETCAN_HINT}")

@@ -110,7 +110,9 @@ def _raw_signal(config: DaemonConfig):
 
 
 def _axis(config: DaemonConfig):
-    return next((a for a in config.axes if a.coefficients is not None), config.axes[-1])
+    """The axis a simulated log carries: the first with a set, else the last named one."""
+    named = [a for a in config.axes if a.present]
+    return next((a for a in named if a.coefficients is not None), named[-1])
 
 
 def _session(gyro: GyroModel, seed: int) -> dict[str, np.ndarray]:
@@ -158,14 +160,20 @@ def _write_log(out: Path, config: DaemonConfig, columns: dict[str, np.ndarray], 
 
     from canical.files.output_plan import output_plan
     from canical.frames.codec import load_dbc
+    from canical.frames.frame_match import frame_match
     from canical.sim import bus_log
 
     db = load_dbc(config.dbc_path)
     axis = _axis(config)
     raw_message = db.get_message_by_name(axis.message or config.raw_message)
     t = columns.get(CLOCK, columns["time_s"])
+    def sent_id(message) -> int:  # a J1939 group from the IMU's configured source address
+        return frame_match(message, config.j1939_source).usual_id
+
+    assert axis.raw_signal is not None
     raw = bus_log.SignalTrack(raw_message, axis.raw_signal,
-                              bus_log.physical(raw_message, axis.raw_signal, columns["raw"]))
+                              bus_log.physical(raw_message, axis.raw_signal, columns["raw"]),
+                              sent_id(raw_message))
     channels = []
     for name, source in config.inputs.items():
         column = columns.get(name, columns[SPEED] if name.startswith("speed") else None)
@@ -174,7 +182,8 @@ def _write_log(out: Path, config: DaemonConfig, columns: dict[str, np.ndarray], 
         message = db.get_message_by_name(source.message)
         values = bus_log.decimate(column, t)
         channels.append(bus_log.SignalTrack(message, source.signal,
-                                            bus_log.physical(message, source.signal, values)))
+                                            bus_log.physical(message, source.signal, values),
+                                            sent_id(message)))
     table: tuple[bus_log.SignalTrack, ...] = ()
     if kind == "session":
         ref = db.get_message_by_name(bus_log.TABLE_REF)

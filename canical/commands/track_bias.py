@@ -74,7 +74,7 @@ def tracking_inputs(args: argparse.Namespace, columns: Mapping[str, np.ndarray]
 def print_events(out, axes: tuple[str, ...], last: np.ndarray) -> None:
     """Each standstill used or refused, and a summary line with the last bias."""
     for event in out.events:
-        print(f"apply: {event.line(axes)}")
+        print(f"apply: {event.line(axes, temperature=out.temperature_recorded)}")
     text = (f"{last[0]:+.4f}" if len(axes) == 1
             else ", ".join(f"{a} {b:+.4f}" for a, b in zip(axes, last, strict=True)))
     print(f"apply: bias tracking: {sum(e.decision == 'adopted' for e in out.events)} of {len(out.events)} "

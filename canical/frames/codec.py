@@ -75,7 +75,9 @@ class RateEncoder:
         self.length = message.length
         self.rate_names = tuple(f"Rate{a.upper()}" for a in axes)
         self.flag_names = tuple((f"OutOfSpan{a.upper()}", f"Uncalibrated{a.upper()}") for a in axes)
-        self.limits = tuple(signal_range(message, n) for n in self.rate_names)
+        # A rate frame without an axis's signal (a single-axis sensor's): that axis is never sent.
+        names = {sig.name for sig in message.signals}
+        self.limits = tuple(signal_range(message, n) if n in names else (0.0, 0.0) for n in self.rate_names)
         codec = codec_for(message, compiled=compiled)
         self._encode = codec.encode
         # The arguments in one canonical order; each signal's position in it (None: always 0).

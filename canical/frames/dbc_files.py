@@ -18,6 +18,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import cantools
 from cantools.database.can import Database, Message
@@ -109,7 +110,52 @@ def _load_one(path: Path) -> Database:
     except Exception as exc:  # cantools raises many types for a bad file
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise CanicalError(f"{name}: not a valid DBC file ({first})") from None
-    return db  # type: ignore[return-value]
+    loaded: Database = db  # type: ignore[assignment]  # a .dbc file loads as a CAN database
+    for message in loaded.messages:
+        _drop_undecoded(message)
+    return loaded
+
+
+def _tree_names(tree: Sequence[Any]) -> set[str]:
+    """Every signal name in a cantools signal tree (multiplexers' branches included)."""
+    names: set[str] = set()
+    for node in tree:
+        if isinstance(node, str):
+            names.add(node)
+            continue
+        for mux, branches in node.items():
+            names.add(mux)
+            for branch in branches.values():
+                names |= _tree_names(branch)
+    return names
+
+
+def _drop_undecoded(message: Message) -> None:
+    """Leave out the signals cantools neither decodes nor encodes: signals multiplexed (``m2``)
+    by no multiplexer signal (vw_pq.dbc's Motor_2 marks its multiplexer ``m``, not ``M``).
+
+    Why: cantools leaves them out of the message's signal tree, and canical's generated codecs
+    decoded them as plain signals, so the same frame decoded differently. Without them every
+    codec canical builds has exactly cantools' signals."""
+    kept = _tree_names(message.signal_tree)
+    if len(kept) == len(message.signals):
+        return
+    dropped = [s.name for s in message.signals if s.name not in kept]
+    message.signals[:] = [s for s in message.signals if s.name in kept]
+    _UNDECODED[message.name] = tuple(dropped)
+
+
+#: Per message name, the signals left out because no multiplexer signal selects them (to say why
+#: a configuration naming one is refused).
+_UNDECODED: dict[str, tuple[str, ...]] = {}
+
+
+def undecoded_reason(message: str, signal: str) -> str | None:
+    """Why ``signal`` of ``message`` is not there to use, when it was left out (None: it was not)."""
+    if signal in _UNDECODED.get(message, ()):
+        return (f"signal {signal} of {message} is multiplexed, but no signal of {message} is its "
+                "multiplexer (M): cantools does not decode it, nor does canical")
+    return None
 
 
 def _layout(message: Message) -> tuple[object, ...]:

@@ -31,7 +31,7 @@ from canical.closed_loop.findings import Confound, Effect
 from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
 from canical.files.atomic_file import make_dirs, write_bytes_atomic
-from canical.sets.term_kinds import CHANNEL_OFFSET, CHANNEL_RATE_SPLINE, TIME
+from canical.sets.term_kinds import CHANNEL_LAG, CHANNEL_OFFSET, CHANNEL_RATE_SPLINE, TIME
 from canical.sets.terms import term_from_dict
 
 
@@ -178,19 +178,36 @@ def confounded_plot(loop: LoopResult, group: Confound, path: Path) -> None:
     _save(fig, path)
 
 
+def _in_label_units(loop: LoopResult) -> dict[str, float]:
+    """Per candidate whose feature is its channel (or the channel's lag) less a reference, that
+    reference: added back, the panel draws the channel in the unit its label names (a
+    temperature of −10…50 °C, not the −40…22 of the feature)."""
+    return {c.name: c.terms[0].reference for c in loop.candidates
+            if c.terms[0].spec in (CHANNEL_OFFSET, CHANNEL_LAG)}
+
+
 def unexplained_plot(loop: LoopResult, path: Path) -> None:
     """The residual after the loop against time and every candidate variable, best-correlated first."""
+    _save(unexplained_figure(loop), path)
+
+
+def unexplained_figure(loop: LoopResult):
+    """:func:`unexplained_plot`'s figure. Laid out by matplotlib's constrained layout: it places
+    the figure's title above the panels' titles (``tight_layout`` ignores a suptitle, and the
+    title was drawn over the first row's)."""
     blocks = loop.blocks
     resid = loop.errors_after
     variables = candidate_variables(loop.candidates, blocks)
     ranked = correlations(resid, variables)
     order = ["time since power-on", *(n for n, _ in ranked if n != "time since power-on")]
     r_of = dict(ranked)
+    shift = _in_label_units(loop)
     cols = 4
     rows = (len(order) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False,
+                             layout="constrained")
     for ax, name in zip(axes.flat, order, strict=False):
-        ax.plot(variables[name], resid, ".", ms=2, alpha=0.6)
+        ax.plot(variables[name] + shift.get(name, 0.0), resid, ".", ms=2, alpha=0.6)
         ax.axhline(0, color="k", lw=0.5)
         ax.set_title(f"{name}  |r| {r_of[name]:.2f}", fontsize=8)
         ax.set_xlabel(variable_label(name), fontsize=7)
@@ -205,8 +222,7 @@ def unexplained_plot(loop: LoopResult, path: Path) -> None:
         f"{left.ratio:.1f}x the noise floor {left.noise_floor_dps:.4f} deg/s ({verdict})\n({HELD_OUT})",
         fontsize=10,
     )
-    fig.tight_layout()
-    _save(fig, path)
+    return fig
 
 
 def _file_name(name: str) -> str:

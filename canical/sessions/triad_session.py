@@ -144,6 +144,53 @@ def read_triad_log(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str],
     return TriadSession(session.time_s, raw, rate, axis, dict(session.aux), meta, name)
 
 
+@dataclass(frozen=True)
+class UnreferencedTriad:
+    """A triad's three raw outputs from a CAN log that carries no table frame: the table's rate
+    comes from its own file (``calibrate --reference``), the turning axis from the outputs."""
+
+    time_s: np.ndarray
+    raw: np.ndarray  # (n, 3), columns x, y, z
+    aux: dict[str, np.ndarray]
+    meta: dict[str, str]
+    source: str
+
+
+def read_triad_log_unreferenced(path: str | os.PathLike[str], *, dbc: str | os.PathLike[str],
+                                inputs: dict[str, str], raw_message: str, raw_signals: dict[str, str],
+                                j1939_source: J1939Source = None) -> UnreferencedTriad:
+    """The three raw signals of the raw frame (and the inputs), without a table's rate."""
+    from canical.sessions.canlog import read_canlog
+
+    name = str(path)
+    sessions = [read_canlog(path, dbc=dbc, axis=a, inputs=inputs, ref=None, raw_message=raw_message,
+                            raw_signal=raw_signals.get(a), j1939_source=j1939_source).session for a in AXES]
+    if any(len(s) != len(sessions[0]) for s in sessions):  # the same frames give every axis
+        raise CanicalError(f"{name}: the three axes' signals gave different rows")
+    first = sessions[0]
+    meta = {k: v for k, v in first.meta.items() if k != "axis"}
+    return UnreferencedTriad(first.time_s, np.column_stack([s.raw for s in sessions]), dict(first.aux), meta,
+                             name)
+
+
+def triad_with_reference(triad: UnreferencedTriad, axis: int, ref_dps: np.ndarray,
+                         inside: np.ndarray) -> tuple[TriadSession, float]:
+    """The triad session with the table's rate (aligned to its rows) about IMU axis ``axis``,
+    the rows the table's file covers; its sign that of the raw output's correlation with the
+    table's rate (−: the IMU's axis points against the table's). The correlation is returned."""
+    raw = triad.raw[inside]
+    ref = np.asarray(ref_dps, dtype=float)[inside]
+    if raw.shape[0] < 3 or np.ptp(ref) == 0:
+        raise CanicalError(f"{triad.source}: the table's file overlaps too little of the log to tell "
+                           "the turning axis's sign")
+    r = float(np.corrcoef(raw[:, axis], ref)[0, 1])
+    table_axis = TableAxis(axis, -1.0 if r < 0 else 1.0)
+    rate = np.zeros_like(raw, dtype=float)
+    rate[:, axis] = table_axis.sign * ref
+    aux = {k: v[inside] for k, v in triad.aux.items()}
+    return TriadSession(triad.time_s[inside], raw, rate, table_axis, aux, dict(triad.meta), triad.source), r
+
+
 def format_triad_session(session: TriadSession, *, float_format: str = "%.9g") -> str:
     """A triad session as CSV text, in the format :func:`read_triad_session` reads."""
     out = io.StringIO()

@@ -31,6 +31,8 @@ class SignalTrack:
     message: Message
     signal: str
     values: np.ndarray
+    #: The id its frames go out with (None: the DBC's): a J1939 IMU's claimed source address in it.
+    arbitration_id: int | None = None
 
 
 @dataclass(frozen=True)
@@ -65,9 +67,11 @@ def _encode(message: Message, values: Mapping[str, float]) -> bytes:
 def _frames(track_group: tuple[SignalTrack, ...], time_s: np.ndarray,
             rows: np.ndarray) -> Iterator[can.Message]:
     message = track_group[0].message
+    frame_id = track_group[0].arbitration_id
     for k, i in enumerate(rows):
         payload = _encode(message, {t.signal: float(t.values[k]) for t in track_group})
-        yield can.Message(timestamp=float(time_s[i]), arbitration_id=message.frame_id,
+        yield can.Message(timestamp=float(time_s[i]),
+                          arbitration_id=message.frame_id if frame_id is None else frame_id,
                           is_extended_id=bool(message.is_extended_frame), data=payload)
 
 

@@ -28,12 +28,14 @@ class StandstillEvent:
     temp_c: float
     bias_after_dps: tuple[float, ...]  # the learned bias at temp_c once the run was taken in
 
-    def line(self, axes: tuple[str, ...]) -> str:
-        """One log line: when, what, the decision and why."""
+    def line(self, axes: tuple[str, ...], *, temperature: bool = True) -> str:
+        """One log line: when, what, the decision and why; ``temperature`` False: none was
+        recorded (``temp_c`` is then the tracker's reference, not a measurement: not shown)."""
         means = ", ".join(f"{a} {m:+.4f}±{u:.4f}" for a, m, u in
                           zip(axes, self.mean_dps, self.uncertainty_dps, strict=True))
-        return (f"standstill {self.start_s:.1f}-{self.end_s:.1f} s (power-on {self.power_cycle}) at "
-                f"{self.temp_c:.1f} °C: {self.decision}, {self.reason}; measured {means} deg/s")
+        where = f"at {self.temp_c:.1f} °C" if temperature else "temperature not recorded"
+        return (f"standstill {self.start_s:.1f}-{self.end_s:.1f} s (power-on {self.power_cycle}) {where}: "
+                f"{self.decision}, {self.reason}; measured {means} deg/s")
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,11 @@ import numpy as np
 from canical.tracking.events import TakenWindow
 
 OFFSETS = "an offset per power-on"
+#: The least evidence a conclusion is drawn from: this many windows, their times since power-on
+#: spanning this long. Why: a term fitted to 3 windows over 4 s (5 numbers from 3) fits noise,
+#: and a drift with time or temperature shows only over minutes.
+MIN_WINDOWS = 10
+MIN_SPAN_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -27,9 +32,20 @@ class Explanation:
     terms: dict[str, float]  # slope per °C and per s, where the model has them
 
 
+def too_little_evidence(taken: tuple[TakenWindow, ...] | list[TakenWindow]) -> str | None:
+    """Why the windows cannot tell what the bias follows (None: they can)."""
+    times = [0.5 * (w.start_s + w.end_s) for w in taken]
+    span = max(times) - min(times) if times else 0.0
+    if len(taken) >= MIN_WINDOWS and span >= MIN_SPAN_S:
+        return None
+    return (f"{len(taken)} window(s) over {span:.0f} s since power-on; at least {MIN_WINDOWS} over "
+            f"{MIN_SPAN_S:.0f} s are needed")
+
+
 def explain(taken: tuple[TakenWindow, ...] | list[TakenWindow], axis: int = 0) -> list[Explanation]:
-    """Offsets alone, + temperature, + time since power-on, + both; best (least rms) first."""
-    if len(taken) < 3:
+    """Offsets alone, + temperature, + time since power-on, + both; best (least rms) first; none
+    from too little evidence (:func:`too_little_evidence`)."""
+    if too_little_evidence(taken) is not None:
         return []
     cycles = sorted({w.power_cycle for w in taken})
     offsets = np.array([[w.power_cycle == c for c in cycles] for w in taken], dtype=float)

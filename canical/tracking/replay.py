@@ -29,6 +29,9 @@ class Replay:
     taken: tuple[TakenWindow, ...]
     learned: tuple[AxisBias, ...]
     power_cycles: int
+    #: A temperature reading came: without one the tracker states the bias at its reference
+    #: temperature, which nobody measured, so the report must not show it as a temperature.
+    temperature_recorded: bool = True
 
 
 class Replayer:
@@ -42,6 +45,7 @@ class Replayer:
         self.tracker = tracker = BiasTracker(axes, config, learned)
         self._one = fast_step(tracker) if len(tracker.axes) == 1 else None  # the daemon's step
         self._three = fast_step3(tracker) if len(tracker.axes) == 3 else None  # an IMU set's
+        self.temperature_recorded = False
 
     def feed(self, time_s: np.ndarray, rates_dps: np.ndarray, temp_c: np.ndarray | None = None,
              cue: np.ndarray | None = None) -> np.ndarray:
@@ -53,6 +57,7 @@ class Replayer:
         times = np.asarray(time_s, dtype=float).tolist()
         rows = rates.tolist()
         temps = np.asarray(temp_c, dtype=float).tolist() if temp_c is not None else [math.nan] * len(times)
+        self.temperature_recorded |= temp_c is not None and bool(np.isfinite(temp_c).any())
         cues = np.asarray(cue, dtype=float).tolist() if cue is not None else [None] * len(times)
         if self._one is not None:
             one = self._one.step
@@ -76,7 +81,7 @@ class Replayer:
         tracker = self.tracker
         tracker.finish()
         return Replay(np.empty((0, len(tracker.axes))), tuple(tracker.events), tuple(tracker.taken),
-                      tuple(tracker.learned), tracker.power_cycle + 1)
+                      tuple(tracker.learned), tracker.power_cycle + 1, self.temperature_recorded)
 
 
 def replay(time_s: np.ndarray, rates_dps: np.ndarray, config: TrackerConfig, *,

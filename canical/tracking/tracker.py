@@ -56,6 +56,10 @@ class AxisStatus:
 
 #: Time since power-on going back by more than this is a new power-on; less is timestamp jitter.
 POWER_ON_STEP_S = 1.0
+#: A steady run is a candidate standstill when a window of it is within this many plausibility
+#: bounds on every axis: a little past the bound may be a bias the bound is too tight for, and
+#: is shown refused; a steady turn (15 or 95 deg/s) is driving, and is not listed at all.
+CANDIDATE_BOUNDS = 3.0
 
 
 @dataclass(frozen=True)
@@ -289,7 +293,13 @@ class BiasTracker:
         if run is None:
             return
         self._run = None
-        self.events.append(self._event(run))
+        if self._candidate(run):
+            self.events.append(self._event(run))
+
+    def _candidate(self, run: _Run) -> bool:
+        """A run of steady windows at a low rate (:data:`CANDIDATE_BOUNDS`), not a steady turn."""
+        limit = CANDIDATE_BOUNDS * self.config.bound_dps
+        return any(all(abs(m) <= limit for m in w.mean_dps) for w in run.windows)
 
     def _event(self, run: _Run) -> StandstillEvent:
         cfg = self.config

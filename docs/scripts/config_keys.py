@@ -112,7 +112,8 @@ KEYS: tuple[Key, ...] = (
         "a mapping with at least one axis that has `coefficients`, or every axis without them and `imu_set`",
         "the raw signal and coefficient set of each axis",
     ),
-    Key("axes.AXIS", "`{}`", "a mapping", "one axis; an axis left out is sent uncalibrated"),
+    Key("axes.AXIS", "absent (not read, not corrected: a single-axis sensor names one axis)", "a mapping",
+        "one axis; an axis left out is never read, and in `CANICAL_RATE` goes out uncalibrated"),
     Key(
         "axes.AXIS.raw",
         "`GyroRawX`, `GyroRawY`, `GyroRawZ`",
@@ -336,7 +337,7 @@ def default_checks() -> list[tuple[str, str, object]]:
     minimal = {
         "bus": {"interface": "virtual", "channel": "docs"},
         "dbc": str(DBC),
-        "axes": {"z": {"coefficients": "imu-z.yaml"}},
+        "axes": {"x": {}, "z": {"coefficients": "imu-z.yaml"}},
         "inputs": {"temp_c": {"signal": "IMU_RAW.Temperature"}},
         "device": {"node": 16},
     }

@@ -250,3 +250,74 @@ def test_calibrate_from_the_bus_as_from_the_csvs(calibrated, sessions, tmp_path,
                  "ref_dps=MYTABLE.Rate", "-o", str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no TableAxis" in err[0] and not bad.exists(), err
+
+
+def write_unreferenced_log(csv_path, log_path, table_path, offset_s: float, drift_ppm: float) -> None:
+    """A triad session as a bus without the table's frame (IMU_RAW, IMU_AUX) and the table's own
+    file: its rate about its own axis at 10 Hz, on its own clock (offset and drift)."""
+    import can
+    import cantools
+
+    from canical.sessions.triad_session import read_triad_session
+
+    session = read_triad_session(csv_path)
+    db = cantools.database.load_file(str(DBC))
+    raw_msg, aux_msg = db.get_message_by_name("IMU_RAW"), db.get_message_by_name("IMU_AUX")
+    with can.Logger(str(log_path)) as logger:
+        for i, (t, raw) in enumerate(zip(session.time_s, session.raw.tolist(), strict=True)):
+            stamp = 1000.0 + float(t)
+            if i % 10 == 0:
+                aux = aux_msg.encode({"SupplyVoltage": 12.0, "Uptime": float(t),
+                                      "AuxCounter": (i // 10) & 0xF})
+                logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=aux_msg.frame_id,
+                                                       is_extended_id=False, data=aux))
+            data = raw_msg.encode({"GyroRawX": raw[0], "GyroRawY": raw[1], "GyroRawZ": raw[2],
+                                   "Temperature": 25.0, "Counter": i & 0xF, "SensorFault": 0})
+            logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=raw_msg.frame_id,
+                                                   is_extended_id=False, data=data))
+    axis = session.table_axis
+    own = axis.sign * session.rate_dps[::20, axis.index]  # the table's rate about its own axis
+    clock = offset_s + (1.0 + drift_ppm * 1e-6) * session.time_s[::20]
+    table_path.write_text("time_s,ref_dps\n" + "".join(f"{t:.6f},{r:.4f}\n" for t, r in zip(clock, own,
+                                                                                          strict=True)))
+
+
+def test_three_axes_from_logs_with_the_tables_own_files(calibrated, sessions, tmp_path, capsys):
+    """Issue 33, point 6: a table that logs to its own file, a vendor IMU without TABLE_REF on
+    the bus. Each log's turning axis is the raw output that spreads most, its sign (the -y
+    session is mounted upside down) from the correlation with the table's rate; --reference
+    once per log. The IMU set is the one the CSVs (which carry the table's rate) give."""
+    imu, _ = calibrated
+    logs, tables = [], []
+    for k, path in enumerate(sessions[:3]):
+        logs.append(tmp_path / f"{path.stem}.log")
+        tables.append(tmp_path / f"{path.stem}-table.csv")
+        write_unreferenced_log(path, logs[-1], tables[-1], offset_s=500.0 + 1000.0 * k, drift_ppm=30.0)
+    out = tmp_path / "from-tables.yaml"
+    refs = [arg for table in tables for arg in ("--reference", str(table))]
+    assert main(["calibrate", *map(str, logs), "--dbc", str(DBC), *refs, "-o", str(out)]) == 0, \
+        capsys.readouterr().err
+    printed = capsys.readouterr().out
+    for log, table, axis in zip(logs, tables, ("x", "-y", "z"), strict=True):
+        assert f"{log}: the table turns about IMU axis {axis} (raw {axis[-1]} spreads most" in printed
+        assert f"reference  {table} on its own clock: offset" in printed
+    from_tables, from_csvs = imu_set.load(out), imu_set.load(imu)
+    assert np.allclose(from_tables.matrix(), from_csvs.matrix(), atol=2e-4)
+    assert [c.kind for c in from_tables.axes] == [c.kind for c in from_csvs.axes]
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--reference", "t.csv"], "--reference: given 1 time(s) for 3 sessions"),
+])
+def test_references_must_match_the_logs(sessions, tmp_path, capsys, extra, message):
+    logs = [str(tmp_path / f"{k}.log") for k in range(3)]
+    assert main(["calibrate", *logs, "--dbc", str(DBC), *extra, "-o", str(tmp_path / "o.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0], err
+
+
+def test_a_reference_for_triad_csvs_is_refused(sessions, tmp_path, capsys):
+    refs = [arg for _ in range(3) for arg in ("--reference", "t.csv")]
+    assert main(["calibrate", *map(str, sessions[:3]), *refs, "-o", str(tmp_path / "o.yaml")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a CSV, which carries its table's rate" in err[0], err

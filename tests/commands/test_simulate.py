@@ -75,3 +75,19 @@ def test_a_log_without_a_configuration_is_one_line(tmp_path: Path, capsys, name:
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "give --config" in err
     assert not (tmp_path / name).exists()
+
+
+def test_a_j1939_imus_groups_come_from_its_configured_address(tmp_path: Path) -> None:
+    """The vendor's DBC has its default address 0xE2; the configuration says the fitted IMU
+    claimed 0x80: the simulated log's groups come from 0x80, as the configuration reads them."""
+    import can
+
+    content = {"bus": {"interface": "virtual", "channel": "j"}, "dbc": str(DATA / "vendor_j1939_gyro.dbc"),
+               "j1939": {"source_address": 0x80, "messages": ["PGN65335_FF37_Gyro", "PGN65336_FF38_Temp"]},
+               "axes": {"z": {"raw": "PGN65335_FF37_Gyro.Gyr_Z", "coefficients": "z.yaml"}},
+               "inputs": {"temp_c": {"signal": "PGN65336_FF38_Temp.Temp"}}}
+    config, log = tmp_path / "j.yaml", tmp_path / "s.log"
+    config.write_text(yaml.safe_dump(content))
+    assert main(["simulate", "drive", "--config", str(config), "-o", str(log)]) == 0
+    ids = {m.arbitration_id for m, _ in zip(can.LogReader(str(log)), range(2000), strict=False)}
+    assert ids == {0x18FF3780, 0x18FF3880}, sorted(map(hex, ids))

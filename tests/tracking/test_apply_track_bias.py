@@ -166,3 +166,44 @@ def test_apply_track_bias_streamed_in_blocks_writes_what_the_whole_file_gives(
     assert streamed.read_bytes() == whole.read_bytes()
     events = [line for line in whole_text.splitlines() if "standstill" in line]
     assert events and events == [line for line in streamed_text.splitlines() if "standstill" in line]
+
+
+def short_drive_without_temperature(folder: Path) -> tuple[Path, Path]:
+    """7 s still, a 95 deg/s turn of 2 s, 3 s still: no temperature column (issue 33, point 9)."""
+    cset = z_set()
+    set_path = folder / "z.yaml"
+    coefficient_file.save(set_path, cset)
+    rng = np.random.default_rng(3)
+    t = np.arange(1200) / 100.0
+    rate = np.where((t >= 7.0) & (t < 9.0), 95.0, 0.3) + 0.05 * rng.standard_normal(t.size)
+    lo, hi = cset.span_raw
+    grid = np.linspace(lo, hi, 20001)
+    rate_grid, _ = Corrector(cset).correct(grid)
+    raw = np.interp(rate, rate_grid, grid)
+    path = folder / "short.csv"
+    lines = [f"# sensor: {cset.sensor_id}", "time_s,raw",
+             *(f"{a:.2f},{b:.4f}" for a, b in zip(t, raw, strict=True))]
+    path.write_text("\n".join(lines) + "\n")
+    return set_path, path
+
+
+def test_a_short_drive_without_temperature_claims_no_temperature_and_no_effect(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """No "at 25.0 °C" (nobody measured it), no effect concluded from a few windows over seconds,
+    and the 95 deg/s turn is not listed as a standstill refused for being short."""
+    set_path, csv = short_drive_without_temperature(tmp_path)
+    report = tmp_path / "report"
+    assert main(["apply", str(set_path), str(csv), "--track-bias", "--arw", "0.3", "-o",
+                 str(tmp_path / "out.csv"), "--report-dir", str(report)]) == 0
+    out = capsys.readouterr().out
+    events = [line for line in out.splitlines() if "standstill " in line and "standstills used" not in line]
+    assert events and all("temperature not recorded" in line for line in events), out
+    assert "°C" not in out and "windows learned" not in out
+    assert all("+95" not in line and "+94" not in line for line in events), events
+    text = (report / "drive.md").read_text()
+    assert "25.0" not in text and "not recorded" in text
+    assert "the effect the set lacks" not in text and "Too little evidence to tell: " in text
+    assert "0 windows learned" not in text
+    assert (report / "bias_vs_time.png").stat().st_size > 0
+    assert not (report / "bias_vs_temperature.png").exists()
+    assert ",," in (report / "standstills.csv").read_text().splitlines()[1]  # temp_c left empty

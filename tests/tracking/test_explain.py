@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from canical.tracking.events import TakenWindow
-from canical.tracking.explain import OFFSETS, chosen, explain
+from canical.tracking.explain import OFFSETS, chosen, explain, too_little_evidence
 
 
 def windows(bias, seed: int = 0) -> list[TakenWindow]:
@@ -36,3 +36,12 @@ def test_a_drift_with_time_since_power_on_is_traced_to_time() -> None:
 
 def test_too_few_windows_explain_nothing() -> None:
     assert explain(windows(lambda temp, t: 0.0)[:2]) == []
+
+
+def test_three_windows_over_four_seconds_are_too_little_evidence() -> None:
+    """A drive's 3 windows over 4 s fit an offset and a time term exactly: no conclusion from them."""
+    few = [TakenWindow(t, t + 1.0, 0, 25.0, (0.3 + 0.01 * t,), (0.0,), (0.0,)) for t in (10.0, 12.0, 14.0)]
+    assert explain(few) == []
+    assert too_little_evidence(few) == ("3 window(s) over 4 s since power-on; at least 10 over 60 s "
+                                        "are needed")
+    assert too_little_evidence(windows(lambda temp, t: 0.0)) is None

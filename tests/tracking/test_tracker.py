@@ -34,15 +34,23 @@ def test_a_stop_is_learned_with_its_uncertainty() -> None:
     assert out.learned[0].updates == event.windows_used
 
 
-def test_a_steady_turn_is_never_a_bias_with_or_without_cue() -> None:
-    t, r = stream(40, 15.0)
+@pytest.mark.parametrize(("rate", "seconds"), [(15.0, 40), (95.0, 2.5), (95.0, 40)])
+def test_a_steady_turn_is_never_a_bias_nor_listed_as_a_standstill(rate: float, seconds: float) -> None:
+    """Only candidate standstills (a low rate) are events: a steady turn, long or short, is driving."""
+    t, r = stream(seconds, rate)
     for cue in (None, np.zeros(t.size)):
         cfg = TrackerConfig(arw_deg_rt_h=CONFIG.arw_deg_rt_h, cue_threshold=None if cue is None else 0.5)
         out = replay(t, r, cfg, cue=cue)
-        assert out.taken == ()
-        assert [e.decision for e in out.events] == [REFUSED]
-        assert "plausibility bound" in out.events[0].reason
+        assert out.taken == () and out.events == ()
         assert np.all(out.bias_dps == 0.0)
+
+
+def test_a_run_a_little_past_the_bound_is_a_refused_standstill() -> None:
+    t, r = stream(40, 1.5)
+    out = replay(t, r, CONFIG)
+    assert out.taken == ()
+    assert [e.decision for e in out.events] == [REFUSED]
+    assert "plausibility bound" in out.events[0].reason
 
 
 def test_with_a_cue_nothing_is_learned_while_it_says_moving() -> None:
