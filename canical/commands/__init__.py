@@ -15,6 +15,7 @@ __all__ = [
     "demo_bus",
     "emulate",
     "serve",
+    "sign",
 ]
 
 # name -> one-line help, in the order ``canical --help`` lists them

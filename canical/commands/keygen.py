@@ -11,7 +11,6 @@ import argparse
 
 from canical.commands import COMMANDS
 from canical.files.key_file import write_key_pair
-from canical.sets.signing import key_id_of, new_seed, public_of
 
 
 def register(sub) -> None:
@@ -21,6 +20,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.sets.signing import key_id_of, new_seed, public_of
+
     seed = new_seed()
     public = public_of(seed)
     secret_path, public_path = write_key_pair(args.name, seed, public)

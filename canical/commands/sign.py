@@ -12,8 +12,9 @@ import argparse
 from canical.commands import COMMANDS
 from canical.commands.trust_args import describe
 from canical.files.key_file import read_secret
-from canical.sets.signed_file import sign_file
-from canical.sets.signing import MAX_VERSION
+
+#: As :data:`canical.sets.signing.MAX_VERSION` (not imported: ``--help`` must not load yaml).
+MAX_VERSION = 2**63 - 1
 
 
 def register(sub) -> None:
@@ -36,6 +37,8 @@ def version_number(text: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.sets.signed_file import sign_file
+
     record = sign_file(args.set, read_secret(args.key), args.version)
     print(f"sign: {args.set} {describe(record)}")
     return 0

@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 from canical.files.key_file import read_public
-from canical.sets.signed_file import SetFile, verified
-from canical.sets.signing import SignatureRecord, TrustedKey
+
+if TYPE_CHECKING:  # yaml, numpy and PyNaCl only when a command runs (--help answers at once)
+    from canical.sets.signed_file import SetFile
+    from canical.sets.signing import SignatureRecord, TrustedKey
 
 
 def add_trust_argument(p: argparse.ArgumentParser, *, required: bool = False, what: str = "") -> None:
@@ -21,6 +24,8 @@ def add_trust_argument(p: argparse.ArgumentParser, *, required: bool = False, wh
 
 def trusted_keys(paths: Sequence[str] | None) -> tuple[TrustedKey, ...]:
     """The keys given with ``--trust`` (none: an empty tuple, nothing verified)."""
+    from canical.sets.signing import TrustedKey
+
     return tuple(TrustedKey(read_public(p), str(p)) for p in paths or ())
 
 
@@ -30,4 +35,19 @@ def describe(record: SignatureRecord) -> str:
 
 def verify_set_file(path: str, keys: tuple[TrustedKey, ...], checked: SetFile) -> SignatureRecord:
     """The record of a set file signed by one of ``keys``; else one CanicalError line."""
+    from canical.sets.signed_file import verified
+
     return verified(checked.signed, keys, None, str(path))
+
+
+def check_trusted(command: str, path: str, trust: Sequence[str] | None) -> None:
+    """With ``--trust``: refuse (one line) a set file no trusted key signed, else say who signed it.
+
+    Read, checked and verified before the command does anything with the file."""
+    if not trust:
+        return
+    from canical.sets.signed_file import read_set_file
+
+    keys = trusted_keys(trust)
+    record = verify_set_file(path, keys, read_set_file(path))
+    print(f"{command}: {path} {describe(record)}: trusted")

@@ -10,7 +10,6 @@ import argparse
 
 from canical.commands import COMMANDS
 from canical.commands.trust_args import add_trust_argument, describe, trusted_keys, verify_set_file
-from canical.sets.signed_file import read_set_file
 
 
 def register(sub) -> None:
@@ -21,6 +20,8 @@ def register(sub) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.sets.signed_file import read_set_file
+
     keys = trusted_keys(args.trust)
     checked = read_set_file(args.set)
     record = verify_set_file(args.set, keys, checked)

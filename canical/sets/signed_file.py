@@ -32,7 +32,8 @@ from canical.sets.signing import (
     verify,
 )
 
-__all__ = ["SetFile", "load_imu", "load_set", "read_set_file", "sign_file", "verified"]
+__all__ = ["SetFile", "load_imu", "load_set", "next_version", "read_set_file", "sign_file", "sign_text",
+           "verified"]
 
 
 @dataclass(frozen=True)
@@ -99,24 +100,39 @@ def sign_file(path: str | os.PathLike[str], seed: bytes, version: int | None) ->
     The file is validated first (a damaged set is never signed) and rewritten atomically with the
     signature before the CRC; any signature it had is replaced.
     """
-    checked = read_set_file(path)
-    content, _ = _content(path)
-    if version is None:
-        previous = checked.signed.record
-        version = 1 if previous is None else previous.version + 1
-    record = sign(seed, checked.signed.canonical, version, checked.signed.sensor_id)
-    body = {k: v for k, v in content.items() if k not in (SIGNATURE_KEY, "crc32")}
-    text = yaml.safe_dump({**body, SIGNATURE_KEY: record.to_dict(), "crc32": content["crc32"]},
-                          sort_keys=False, default_flow_style=None, width=100)
-    if read_after(text, str(path)).record != record:
-        raise CanicalError(f"{path}: the signed file does not read back as signed")  # never written
-    write_text_atomic(path, text)
+    text = coefficient_file.read_text(path, "coefficient file")
+    signed, record = sign_text(text, str(path), seed, version)
+    write_text_atomic(path, signed)
     return record
 
 
-def read_after(text: str, source: str) -> SignedContent:
-    """The origin of a set's text, validated as its kind (a signed file is checked before it is written)."""
+def sign_text(text: str, source: str, seed: bytes, version: int | None) -> tuple[str, SignatureRecord]:
+    """A set's text with its signature as ``version`` (None: one more than the text's, or 1)."""
     content = parse_yaml(text, source)
-    if content.get("kind") == IMU_SET_KIND:
+    previous = _read_content(content, source)
+    if version is None:
+        version = 1 if previous.record is None else previous.record.version + 1
+    record = sign(seed, previous.canonical, version, previous.sensor_id)
+    body = {k: v for k, v in content.items() if k not in (SIGNATURE_KEY, "crc32")}
+    signed = yaml.safe_dump({**body, SIGNATURE_KEY: record.to_dict(), "crc32": content["crc32"]},
+                            sort_keys=False, default_flow_style=None, width=100)
+    if _read_content(parse_yaml(signed, source), source).record != record:
+        raise CanicalError(f"{source}: the signed set does not read back as signed")  # never written
+    return signed, record
+
+
+def next_version(path: str | os.PathLike[str]) -> int:
+    """The version a new set replacing ``path`` is signed as: one more than the file's, else 1
+    (no file, or not a signed set)."""
+    try:
+        record = read_set_file(path).signed.record
+    except CanicalError:
+        return 1
+    return 1 if record is None else record.version + 1
+
+
+def _read_content(content: Any, source: str) -> SignedContent:
+    """The origin of parsed set content, validated as its kind (a damaged set is never signed)."""
+    if isinstance(content, dict) and content.get("kind") == IMU_SET_KIND:
         return _origin(content, imu_set.from_content(content, source).sensor_id)
     return _origin(content, coefficient_file.from_content(content, source).sensor_id)

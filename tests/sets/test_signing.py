@@ -91,3 +91,30 @@ def test_a_damaged_set_is_never_signed(lab, tmp_path):
     with pytest.raises(CanicalError, match="CRC mismatch"):
         sign_file(path, read_secret(lab.key), 9)
     assert path.read_text() == text
+
+
+def test_the_command_line_bounds_versions_as_the_signer_does():
+    from canical.commands import sign
+    from canical.sets import signing
+
+    assert sign.MAX_VERSION == signing.MAX_VERSION
+
+
+def test_calibrate_signs_each_new_set_one_version_up(lab, tmp_path, capsys):
+    from support.sessions import write_session
+
+    from canical.sim.sessions import paper_session
+
+    session = write_session(tmp_path / "session.csv", paper_session(seed=5))
+    out = tmp_path / "imu-z.yaml"
+    for version in (1, 2):
+        assert main(["calibrate", str(session), "-o", str(out),
+                     "--sign-key", str(lab.key)]) == 0
+        assert capsys.readouterr().out.splitlines()[-1].endswith(f"version {version}, for sensor SIM-0001")
+    checked = read_set_file(out)
+    assert verified(checked.signed, trusted(lab), 2, str(out)).version == 2
+    (tmp_path / "bad.key").write_text("nonsense\n")
+    (tmp_path / "bad.key").chmod(0o600)
+    assert main(["calibrate", str(session), "-o", str(tmp_path / "x.yaml"), "--sign-key",
+                 str(tmp_path / "bad.key")]) == 2
+    assert not (tmp_path / "x.yaml").exists()
