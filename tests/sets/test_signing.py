@@ -8,9 +8,12 @@ through ``canical verify`` as a user runs it.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from support.signed_sets import REFUSALS, make_lab, refused_case, signed_copy
 
 from canical.commands.cli import main
@@ -18,7 +21,7 @@ from canical.errors import CanicalError
 from canical.files.key_file import read_public, read_secret
 from canical.sets import coefficient_file, imu_set
 from canical.sets.signed_file import read_set_file, sign_file, verified
-from canical.sets.signing import TrustedKey, key_id_of
+from canical.sets.signing import SignedContent, TrustedKey, key_id_of, new_seed, public_of, sign, verify
 
 SETS = Path(__file__).parents[1] / "data" / "sets"
 KINDS = {"single": SETS / "daemon-z.yaml", "imu": SETS / "imu-triad.yaml"}
@@ -118,3 +121,38 @@ def test_calibrate_signs_each_new_set_one_version_up(lab, tmp_path, capsys):
     assert main(["calibrate", str(session), "-o", str(tmp_path / "x.yaml"), "--sign-key",
                  str(tmp_path / "bad.key")]) == 2
     assert not (tmp_path / "x.yaml").exists()
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data())
+def test_any_change_to_what_is_signed_or_to_the_signature_is_refused(data, lab_keys) -> None:
+    """One bit of the content, of the signature, or another version or sensor: never verified."""
+    seed, trusted_keys = lab_keys
+    canonical = data.draw(st.binary(min_size=1, max_size=64), label="content")
+    good = sign(seed, canonical, 7, "S1")
+    verify(SignedContent(good, canonical, "S1"), trusted_keys, "set")  # the original passes
+    where = data.draw(st.sampled_from(["content", "signature", "version", "sensor"]))
+    if where == "content":
+        bit = data.draw(st.integers(0, 8 * len(canonical) - 1))
+        canonical = flip(canonical, bit)
+        record = good
+    elif where == "signature":
+        record = replace(good, signature=flip(good.signature, data.draw(st.integers(0, 8 * 64 - 1))))
+    elif where == "version":
+        record = replace(good, version=data.draw(st.integers(0, 2**63 - 1).filter(lambda v: v != 7)))
+    else:
+        record = replace(good, sensor_id=data.draw(st.text(min_size=1).filter(lambda s: s != "S1")))
+    with pytest.raises(CanicalError):
+        verify(SignedContent(record, canonical, record.sensor_id), trusted_keys, "set")
+
+
+def flip(data: bytes, bit: int) -> bytes:
+    out = bytearray(data)
+    out[bit // 8] ^= 1 << (bit % 8)
+    return bytes(out)
+
+
+@pytest.fixture(scope="module")
+def lab_keys():
+    seed = new_seed()
+    return seed, (TrustedKey(public_of(seed), "lab.pub"),)
