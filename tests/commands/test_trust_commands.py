@@ -50,3 +50,21 @@ def test_push_with_trust_refuses_before_opening_the_bus(lab, tmp_path, capsys) -
     signed = signed_copy(path, tmp_path / "signed-z.yaml", lab.key)
     assert main([*args[:1], str(signed), *args[2:]]) == 0  # the offline dry run, as without --trust
     assert "trusted" in capsys.readouterr().out
+
+
+def test_calibrate_signs_an_imu_set_that_verify_trusts(lab, tmp_path, capsys) -> None:
+    from support.triad import write_triad_sessions
+
+    sessions = write_triad_sessions(tmp_path, seed=2)
+    out = tmp_path / "imu.yaml"
+    assert main(["calibrate", *map(str, sessions), "-o", str(out), "--sign-key", str(lab.key)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1].endswith("version 1, for sensor " +
+                                                            imu_set_sensor(out))
+    assert main(["verify", str(out), "--trust", str(lab.pub)]) == 0
+    assert main(["verify", str(out), "--trust", str(lab.other_pub)]) == 2
+
+
+def imu_set_sensor(path: Path) -> str:
+    from canical.sets import imu_set
+
+    return imu_set.load(path).sensor_id
