@@ -60,6 +60,11 @@ def _content(path: str | os.PathLike[str]) -> tuple[Any, str]:
 def read_set_file(path: str | os.PathLike[str]) -> SetFile:
     """Read and fully validate a set file of either kind, with the signature it carries."""
     content, source = _content(path)
+    return _validated(content, source)
+
+
+def _validated(content: Any, source: str) -> SetFile:
+    """Parsed set content of either kind, validated as its kind, with its origin."""
     if isinstance(content, dict) and content.get("kind") == IMU_SET_KIND:
         imu = imu_set.from_content(content, source)
         return SetFile(None, imu, _origin(content, imu.sensor_id))
@@ -109,14 +114,14 @@ def sign_file(path: str | os.PathLike[str], seed: bytes, version: int | None) ->
 def sign_text(text: str, source: str, seed: bytes, version: int | None) -> tuple[str, SignatureRecord]:
     """A set's text with its signature as ``version`` (None: one more than the text's, or 1)."""
     content = parse_yaml(text, source)
-    previous = _read_content(content, source)
+    previous = _validated(content, source).signed  # a damaged set is never signed
     if version is None:
         version = 1 if previous.record is None else previous.record.version + 1
     record = sign(seed, previous.canonical, version, previous.sensor_id)
     body = {k: v for k, v in content.items() if k not in (SIGNATURE_KEY, "crc32")}
     signed = yaml.safe_dump({**body, SIGNATURE_KEY: record.to_dict(), "crc32": content["crc32"]},
                             sort_keys=False, default_flow_style=None, width=100)
-    if _read_content(parse_yaml(signed, source), source).record != record:
+    if _validated(parse_yaml(signed, source), source).signed.record != record:
         raise CanicalError(f"{source}: the signed set does not read back as signed")  # never written
     return signed, record
 
@@ -130,9 +135,3 @@ def next_version(path: str | os.PathLike[str]) -> int:
         return 1
     return 1 if record is None else record.version + 1
 
-
-def _read_content(content: Any, source: str) -> SignedContent:
-    """The origin of parsed set content, validated as its kind (a damaged set is never signed)."""
-    if isinstance(content, dict) and content.get("kind") == IMU_SET_KIND:
-        return _origin(content, imu_set.from_content(content, source).sensor_id)
-    return _origin(content, coefficient_file.from_content(content, source).sensor_id)
