@@ -120,9 +120,9 @@ def run(args: argparse.Namespace) -> int:
             print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}")
         if config.device is not None:
             check_device(config)
-        print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
         if config.trust is None:
             print("note: sets are not authenticated (no trust: in the configuration)")
+        print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
         if missing is not None:  # the configuration may be for the vehicle, not this machine
             print(f"note: serve would not start on this machine: {missing}: {NO_SOCKETCAN_HINT}")
         return 0
