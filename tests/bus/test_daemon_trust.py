@@ -11,9 +11,13 @@ authenticated.
 from __future__ import annotations
 
 import logging
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
 import can
@@ -21,6 +25,7 @@ import pytest
 from support.daemon_fixtures import (
     ALL_TERMS,
     AXES,
+    DBC,
     imu_set_config,
     imu_stream,
     write_config,
@@ -30,11 +35,15 @@ from support.daemon_fixtures import (
 from support.signed_sets import REFUSALS, Lab, edit, make_lab, refused_case, signed_copy
 from test_daemon_compiled import StandInSocket, kernel_frame, serve_socket
 from test_daemon_imu_set import sent_rates
+from test_daemon_reload_stress import PacedSocket
 
 from canical.bus.daemon import Daemon
 from canical.bus.daemon_config import load_config
+from canical.bus.link import SocketLink
+from canical.bus.reloads import Reload
 from canical.errors import CanicalError
 from canical.files.atomic_file import write_text_atomic
+from canical.frames.codec import load_dbc
 from canical.sets.coefficient_file import content_crc
 
 #: A set signed by the lab for the sensor the configuration names, but whose content is another
@@ -264,3 +273,70 @@ def test_the_keys_signed_content_covers_every_axis(imu_sets) -> None:
 
     content = yaml.safe_load(imu_sets[0].read_text())
     assert sorted(content["axes"]) == list(AXES) and int(content["crc32"], 16) == content_crc(content)
+
+
+def test_through_the_real_loop_and_sighup_a_refused_set_corrects_no_frame(imu_sets, lab, tmp_path,
+                                                                          caplog) -> None:
+    """``Daemon.run`` (receive loop, reload worker thread, the SIGHUP handler) while frames stream:
+    an operator thread offers a tampered set (CRC recomputed) with SIGHUP, then a newer signed one.
+    Every frame before the newer set's adoption carries the running set's tag, every one after it
+    the newer one's: the tampered set corrected none."""
+    signed_copy(imu_sets[0], tmp_path / "imu-set.yaml", lab.key, 2)
+    config = load_config(imu_set_config(tmp_path, "hup", trust=trust(lab), watch_period_s=3600.0,
+                                        status_period_s=0.05))
+    daemon: Daemon
+    sock: PacedSocket
+    daemon = Daemon(config, open_link=lambda channel, matches: SocketLink(sock))  # type: ignore[arg-type]
+    sock = PacedSocket(daemon, frames(2400, seed=5))
+    done: list[tuple[int, Reload]] = []
+    adopt = daemon._adopt
+
+    def recording_adopt(reload: Reload) -> None:
+        adopt(reload)
+        done.append((daemon.stats.frames_in, reload))
+
+    daemon._adopt = recording_adopt  # type: ignore[method-assign]
+    (tmp_path / "next").mkdir()
+    tampered = offered("tampered-crc-recomputed", imu_sets[1], tmp_path / "next", lab)
+    newer = signed_copy(imu_sets[1], tmp_path / "newer.yaml", lab.key, 3)
+    failures: list[str] = []
+
+    def operator() -> None:
+        try:
+            for k, offer in enumerate((tampered, newer), start=1):
+                while daemon.stats.frames_in < 600 * k:
+                    time.sleep(0.001)
+                write_text_atomic(tmp_path / "imu-set.yaml", offer.read_text())
+                os.kill(os.getpid(), signal.SIGHUP)
+                end = time.monotonic() + 20.0
+                while sum(r.why == "SIGHUP" for _, r in done) < k:
+                    if time.monotonic() > end:
+                        failures.append(f"reload {k} not finished within 20 s")
+                        return
+                    time.sleep(0.001)
+        except Exception as exc:  # reported by the test, not lost in the thread
+            failures.append(repr(exc))
+
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)}
+    daemon.install_signal_handlers()
+    thread = threading.Thread(target=operator, daemon=True)
+    try:
+        with caplog.at_level(logging.INFO):
+            thread.start()
+            assert daemon.run() == 0
+            thread.join(timeout=30)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    assert not failures, failures
+    hups = [(n, r) for n, r in done if r.why == "SIGHUP"]
+    assert len(hups) == 2
+    (_, refused), (switch, adopted) = hups
+    assert refused.new.combined_id == refused.base.combined_id  # the running set carried on
+    assert any("imu set: " in m.text and "does not match the content" in m.text and m.refused
+               for m in refused.messages)
+    assert adopted.new.combined_id != adopted.base.combined_id and daemon.sets is adopted.new
+    rate_id = load_dbc(DBC).get_message_by_name("CANICAL_RATE").frame_id
+    _, tags = sent_rates([payload for can_id, payload in sock.sent if can_id == rate_id])
+    assert len(tags) == 2400
+    assert tags == [refused.base.tag] * switch + [adopted.new.tag] * (len(tags) - switch)
