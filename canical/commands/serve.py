@@ -12,9 +12,13 @@ import argparse
 import logging
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
 from canical.errors import CanicalError
+
+if TYPE_CHECKING:
+    from canical.bus.active_sets import Origin
 
 # The daemon's modules (python-can, cantools, numpy) are imported by `run`, so that `--help`
 # answers at once.
@@ -97,6 +101,14 @@ def socketcan_missing() -> str | None:
     return None
 
 
+def signed_note(origin: Origin) -> str:
+    """What ``--check`` adds to a set's line under ``trust:``: its signed version, or the problem
+    let through (``require: false``)."""
+    if origin.warning is not None:
+        return f"; warning: {origin.warning}"
+    return "" if origin.version is None else f", signed by a trusted key as version {origin.version}"
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.bus import active_sets
     from canical.bus.daemon import Daemon
@@ -109,15 +121,17 @@ def run(args: argparse.Namespace) -> int:
         raise CanicalError(f"{config.path}: bus.interface socketcan: {missing}: {NO_SOCKETCAN_HINT}")
     if args.check:
         if config.imu_set is not None:
-            imu, correctors = active_sets.load_imu(config, config.imu_set)
+            imu, correctors, origin = active_sets.load_imu_origin(config, config.imu_set, None)
             print(f"imu set 0x{imu_set_crc(imu):08x} from {config.imu_set}: axes "
-                  + ", ".join(f"{c.cset.axis} 0x{c.set_id:08x}" for c in correctors) + ", coupling checked")
+                  + ", ".join(f"{c.cset.axis} 0x{c.set_id:08x}" for c in correctors) + ", coupling checked"
+                  + signed_note(origin))
         for axis in config.axes if config.imu_set is None else ():
             if axis.coefficients is None:
                 print(f"axis {axis.axis}: no coefficients configured (sent uncalibrated)")
                 continue
-            corrector = active_sets.load_axis(config, axis.axis, axis.coefficients)
-            print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}")
+            corrector, origin = active_sets.load_axis_origin(config, axis.axis, axis.coefficients, None)
+            print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}"
+                  + signed_note(origin))
         if config.device is not None:
             check_device(config)
         if config.trust is None:
