@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import can
+import numpy as np
 import pytest
 from support.daemon_fixtures import (
     ALL_TERMS,
@@ -34,7 +35,7 @@ from support.daemon_fixtures import (
 )
 from support.signed_sets import REFUSALS, Lab, edit, make_lab, refused_case, signed_copy
 from test_daemon_compiled import StandInSocket, kernel_frame, serve_socket
-from test_daemon_imu_set import sent_rates
+from test_daemon_imu_set import LSB, expected, messages, sent_rates
 from test_daemon_reload_stress import PacedSocket
 
 from canical.bus.daemon import Daemon
@@ -232,7 +233,10 @@ def test_no_frame_is_corrected_by_a_refused_imu_set(case, imu_sets, lab, tmp_pat
     daemon.load_sets()
     running = daemon.sets
     assert running.complete and running.coupling is not None
-    sock = StandInSocket(daemon, frames(100, seed=3))
+    msgs, signals = messages(200)
+    cut = [k for k, m in enumerate(msgs) if m.arbitration_id == 0x190][100]  # raw frame 100
+    stream = [(kernel_frame(m), m.timestamp) for m in msgs]
+    sock = StandInSocket(daemon, stream[:cut])
     serve_socket(daemon, sock)
     (tmp_path / "next").mkdir()
     bad = offered(case, imu_sets[1], tmp_path / "next", lab)
@@ -242,11 +246,15 @@ def test_no_frame_is_corrected_by_a_refused_imu_set(case, imu_sets, lab, tmp_pat
     daemon._reload(force=False, why="test")
     lines = refusals(caplog)
     assert len(lines) == 1 and lines[0].startswith("imu set: ") and CASES[case] in lines[0], lines
-    sock.frames = iter(frames(100, seed=4))
+    sock.frames = iter(stream[cut:])
     serve_socket(daemon, sock)
-    _, tags = sent_rates(sock.sent)
+    rates, tags = sent_rates(sock.sent)
     assert len(tags) == 200 and set(tags) == {running.tag}
     assert daemon.sets.combined_id == running.combined_id
+    # every frame's rates are the running set's, as apply computes them (the tag alone is 4 bits)
+    want, _ = expected(imu_sets[0], signals)
+    inside = np.abs(want).max(axis=1) < 327.0  # the frame saturates at its signals' range
+    assert inside.sum() > 150 and np.abs(rates - want)[inside].max() <= LSB / 2 + 1e-9
 
 
 def test_a_newer_signed_imu_set_is_adopted_between_two_frames(imu_sets, lab, tmp_path) -> None:
