@@ -8,7 +8,9 @@ its :class:`~canical.sets.corrector.Corrector` object, and with it the state of 
 A candidate set is validated completely before it can replace anything: the file's own checks
 (schema, CRC, every field), then that it is for this axis and sensor, that every run-time
 input it needs is mapped in the configuration, and that it evaluates to finite rates across
-its span. A set that fails is reported and the previous one stays in use.
+its span. A set that fails is reported and the previous one stays in use. With ``trust:`` in the
+configuration the set must also be signed by a trusted key for its sensor, and not be older than
+the set it replaces (:mod:`canical.sets.signing`): checked at load, nothing per frame.
 """
 
 from __future__ import annotations
@@ -24,11 +26,12 @@ import numpy as np
 from canical.bus.daemon_config import DaemonConfig
 from canical.errors import CanicalError
 from canical.frames.imu_frames import SET_TAG_MASK
-from canical.sets import coefficient_file, imu_set
+from canical.sets import signed_file
 from canical.sets.admission import raw_units_problem
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.imu_set import AXES, ImuSet, Matrix, imu_set_crc
+from canical.sets.signing import SignedContent
 
 SOURCE_NONE = 0
 SOURCE_FILE = 1
@@ -61,6 +64,7 @@ class AxisSet:
     reloads: int = 0
     path: Path | None = None
     stamp: FileStamp = None  # the file as last looked at (loaded or refused), to notice changes
+    version: int | None = None  # the running set's signed version (None: not verified), against rollback
 
     @property
     def required_inputs(self) -> tuple[str, ...]:
@@ -117,12 +121,44 @@ def build(axes: tuple[AxisSet, ...], imu: ImuSet | None = None) -> ActiveSets:
                       coupling=None if imu is None else imu.coupling)
 
 
-def load_axis(config: DaemonConfig, axis: str, path: Path) -> Corrector:
+@dataclass(frozen=True)
+class Origin:
+    """What verifying a set's signature against ``trust:`` found."""
+
+    version: int | None = None  # the signed version (None: not verified: no trust, or not required)
+    warning: str | None = None  # a signature problem let through because trust.require is false
+
+
+def verify_origin(config: DaemonConfig, signed: SignedContent, running: int | None, source: str) -> Origin:
+    """Check a set's signature as ``trust:`` says: refused (one CanicalError line) when required
+    and not signed by a trusted key for its sensor, or older than ``running``; warned otherwise."""
+    trust = config.trust
+    if trust is None:
+        return Origin()
+    try:
+        record = signed_file.verified(signed, trust.keys, running, source)
+    except CanicalError as exc:
+        if trust.require:
+            raise
+        return Origin(warning=f"{exc} (adopted: trust.require is false)")
+    return Origin(record.version)
+
+
+def load_axis(config: DaemonConfig, axis: str, path: Path, running: int | None = None) -> Corrector:
     """Load and fully validate the set for ``axis``; any defect is one CanicalError line (a missing
     file names the configuration key that points at it, where a user fixes it)."""
+    return load_axis_origin(config, axis, path, running)[0]
+
+
+def load_axis_origin(config: DaemonConfig, axis: str, path: Path,
+                     running: int | None) -> tuple[Corrector, Origin]:
+    """:func:`load_axis`, and the signature verified against ``trust:`` (``running``: the version
+    of the set it would replace)."""
     if not Path(path).exists():
         raise CanicalError(f"{path}: coefficient file not found (axes.{axis}.coefficients in {config.path})")
-    return check_set(config, axis, coefficient_file.load(path), path)
+    cset, signed = signed_file.load_set(path)
+    origin = verify_origin(config, signed, running, str(path))
+    return check_set(config, axis, cset, path), origin
 
 
 def check_set(config: DaemonConfig, axis: str, cset: CoefficientSet, path: Path | str) -> Corrector:
@@ -194,6 +230,10 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
             network.disconnect()
     except CanicalError as exc:
         messages.append(SetsNote(f"{where}: {exc}; using the coefficient files"))
+    if config.trust is not None and config.trust.require and (pulled or pulled_imu is not None):
+        messages.append(SetsNote(f"{where}: its sets carry no signature (trust: requires one); "
+                                 "using the coefficient files", refused=True))
+        pulled, pulled_imu = {}, None
     if pulled_imu is not None:
         try:
             return _device_imu(config, current, pulled_imu, where)
@@ -264,15 +304,18 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
             continue
         keep = "keeping set " + (f"0x{ax.set_id:08x}" if ax.corrector else "none")
         try:
-            corrector = load_axis(config, ax.axis, ax.path)
+            corrector, origin = load_axis_origin(config, ax.axis, ax.path, ax.version)
         except CanicalError as exc:
             messages.append(SetsNote(f"axis {ax.axis}: {exc}; {keep}", refused=True))
             axes[i] = replace(ax, stamp=stamp)
             changed = changed or stamp != ax.stamp
             continue
+        if origin.warning is not None:
+            messages.append(SetsNote(f"axis {ax.axis}: {origin.warning}"))
         if ax.corrector is not None and corrector.set_id == ax.set_id:
-            axes[i] = replace(ax, stamp=stamp)  # same content: keep the running corrector and its state
-            changed = changed or stamp != ax.stamp
+            # same content: keep the running corrector and its state (a re-signed set: its version)
+            axes[i] = replace(ax, stamp=stamp, version=origin.version)
+            changed = changed or stamp != ax.stamp or origin.version != ax.version
             continue
         old = f"0x{ax.set_id:08x}" if ax.corrector else "none"
         messages.append(SetsNote(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {ax.path} "
@@ -284,6 +327,7 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
             source=SOURCE_FILE,
             reloads=ax.reloads + (1 if ax.corrector is not None else 0),
             stamp=stamp,
+            version=origin.version,
         )
         changed = True
     if not changed:
@@ -295,13 +339,22 @@ def reload(config: DaemonConfig, current: ActiveSets, *, force: bool) -> tuple[A
 def load_imu(config: DaemonConfig, path: Path) -> tuple[ImuSet, tuple[Corrector, ...]]:
     """Load an IMU set and validate each of its axes as a single-axis set is validated (the
     coupling is checked by the loader); any defect is one CanicalError line."""
-    imu = imu_set.load(path)
+    imu, correctors, _ = load_imu_origin(config, path, None)
+    return imu, correctors
+
+
+def load_imu_origin(config: DaemonConfig, path: Path,
+                    running: int | None) -> tuple[ImuSet, tuple[Corrector, ...], Origin]:
+    """:func:`load_imu`, and the signature verified against ``trust:`` (``running``: the version
+    of the IMU set it would replace)."""
+    imu, signed = signed_file.load_imu(path)
+    origin = verify_origin(config, signed, running, str(path))
     configured = tuple(a.axis for a in config.axes)
     if configured != AXES:
         raise CanicalError(f"{path}: an IMU set corrects axes x, y and z; the configuration has "
                            f"{', '.join(configured)}")
     return imu, tuple(check_set(config, axis, cset, f"{path}: axes.{axis}")
-                      for axis, cset in zip(AXES, imu.axes, strict=True))
+                      for axis, cset in zip(AXES, imu.axes, strict=True)), origin
 
 
 def reload_imu(config: DaemonConfig, current: ActiveSets, path: Path, *,
@@ -315,27 +368,28 @@ def reload_imu(config: DaemonConfig, current: ActiveSets, path: Path, *,
     restamped = tuple(replace(ax, stamp=stamp) for ax in current.axes)
     keep = "keeping " + (f"IMU set 0x{current.combined_id:08x}" if current.complete else "no set")
     try:
-        imu, correctors = load_imu(config, path)
+        imu, correctors, origin = load_imu_origin(config, path, current.axes[0].version)
     except CanicalError as exc:
         same_file = all(ax.stamp == stamp for ax in current.axes)
         note = SetsNote(f"imu set: {exc}; {keep}", refused=True)
         return current if same_file else replace(current, axes=restamped), [note]
+    warned = [] if origin.warning is None else [SetsNote(f"imu set: {origin.warning}")]
     imu_id = imu_set_crc(imu)
     if current.complete and current.coupling is not None and imu_id == current.combined_id:
-        return replace(current, axes=restamped), []
-    axes = _imu_axes(current, correctors, SOURCE_FILE, (stamp,) * len(current.axes))
+        return replace(current, axes=tuple(replace(a, version=origin.version) for a in restamped)), warned
+    axes = _imu_axes(current, correctors, SOURCE_FILE, (stamp,) * len(current.axes), origin.version)
     was = f"0x{current.combined_id:08x}" if current.complete else "none"
-    return build(axes, imu), [SetsNote(f"imu set 0x{imu_id:08x} from {path} replaces {was}")]
+    return build(axes, imu), [*warned, SetsNote(f"imu set 0x{imu_id:08x} from {path} replaces {was}")]
 
 
 def _imu_axes(current: ActiveSets, correctors: list[Corrector] | tuple[Corrector, ...], source: int,
-              stamps: tuple[FileStamp, ...]) -> tuple[AxisSet, ...]:
+              stamps: tuple[FileStamp, ...], version: int | None = None) -> tuple[AxisSet, ...]:
     """An IMU set's three axes from ``correctors``: an axis whose model is the one running keeps
     its corrector (and the state of its terms); another counts a reload."""
     axes = []
     for old, corrector, stamp in zip(current.axes, correctors, stamps, strict=True):
         same = old.corrector is not None and old.set_id == corrector.set_id
         axes.append(replace(old, corrector=old.corrector if same else corrector, set_id=corrector.set_id,
-                            source=source, stamp=stamp,
+                            source=source, stamp=stamp, version=version,
                             reloads=old.reloads + (1 if old.corrector is not None and not same else 0)))
     return tuple(axes)

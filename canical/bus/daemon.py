@@ -138,6 +138,9 @@ class Daemon:
             self.sender.out = self.open_link(own.channel, None)
 
     def load_sets(self) -> None:
+        if self.config.trust is None:  # said once, at start: whoever can write a set file can change it
+            log.warning("sets are not authenticated: no trust: in %s, so any set that passes its "
+                        "checks is used, whoever wrote it", self.config.path)
         sets, notes = active_sets.initial(self.config)
         _log_notes(notes)
         self.sets = sets

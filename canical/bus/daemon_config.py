@@ -20,11 +20,13 @@ from typing import Any
 from cantools.database.can import Database, Message
 
 from canical.errors import CanicalError
+from canical.files.key_file import read_public
 from canical.files.yaml_text import parse_yaml
 from canical.frames.codec import load_dbc
 from canical.frames.dbc_files import ALL_EXTENDED, DbcSet, dbc_label, require_sound, undecoded_reason
 from canical.frames.frame_match import J1939Source, frame_match, parse_j1939_source
 from canical.sessions.canlog_format import HELD_AXIS_PREFIX
+from canical.sets.signing import TrustedKey
 from canical.tracking.settings import BiasTrackingSettings, parse_bias_tracking
 
 AXES = ("x", "y", "z")
@@ -34,7 +36,7 @@ FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
 _TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
-             "watch_period_s", "own_layout", "bias_tracking", "j1939", "imu_set"}
+             "watch_period_s", "own_layout", "bias_tracking", "j1939", "imu_set", "trust"}
 
 
 @dataclass(frozen=True)
@@ -107,6 +109,18 @@ class BiasTracking:
 
 
 @dataclass(frozen=True)
+class Trust:
+    """``trust:``: the public keys a set must be signed by (the calibration lab's).
+
+    ``require`` (the default) refuses, as a corrupt set is refused, a set no trusted key signed for
+    its sensor, or one older than the set it would replace; false checks and warns but adopts
+    (while a fleet's sets are being signed)."""
+
+    keys: tuple[TrustedKey, ...]
+    require: bool = True
+
+
+@dataclass(frozen=True)
 class DaemonConfig:
     path: Path
     interface: str
@@ -127,6 +141,7 @@ class DaemonConfig:
     bias_tracking: BiasTracking | None = None  # None: not enabled
     j1939_source: J1939Source = None  # J1939 messages matched by PGN and this source (None: the DBC's)
     imu_set: Path | None = None  # one IMU set for the three axes and their coupling (not per-axis files)
+    trust: Trust | None = None  # None: sets are not authenticated (one warning at start)
 
 
 def load_config(path: str | os.PathLike[str], *, channel: str | None = None) -> DaemonConfig:
@@ -234,7 +249,32 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         bias_tracking=tracking,
         j1939_source=j1939,
         imu_set=imu_set,
+        trust=_trust(content, base, fail),
     )
+
+
+def _trust(content: Json, base: Path, fail: Fail) -> Trust | None:
+    """``trust``: the public key files sets must be signed by, each read now (absent: none)."""
+    section = content.get("trust")
+    if section is None:
+        return None
+    if not isinstance(section, dict):
+        raise fail("trust", "must be a mapping {keys: [public key files], require: true}")
+    _no_unknown(section, {"keys", "require"}, "trust.", fail)
+    paths = section.get("keys")
+    if not isinstance(paths, list) or not paths:
+        raise fail("trust.keys", "must be a list of public key files (canical keygen's NAME.pub)")
+    keys = []
+    for i, value in enumerate(paths):
+        path = _path(value, base, f"trust.keys[{i}]", fail)
+        try:
+            keys.append(TrustedKey(read_public(path), str(path)))
+        except CanicalError as exc:
+            raise fail(f"trust.keys[{i}]", str(exc)) from None
+    require = section.get("require", True)
+    if not isinstance(require, bool):
+        raise fail("trust.require", f"must be true or false, got {require!r}")
+    return Trust(tuple(keys), require)
 
 
 def _imu_set(content: Json, base: Path, fail: Fail) -> Path | None:

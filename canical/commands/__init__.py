@@ -15,6 +15,7 @@ __all__ = [
     "demo_bus",
     "emulate",
     "serve",
+    "sign",
 ]
 
 # name -> one-line help, in the order ``canical --help`` lists them
@@ -31,4 +32,7 @@ COMMANDS = {
     "export": "write coefficient sets as a DCF any CANopen tool can download to the IMU",
     "install-service": "install the daemon as a systemd service (/opt/canical, /etc/canical, units)",
     "simulate": "write a simulated session, drive or triad (CSV, or a CAN log in your DBC's layout)",
+    "keygen": "write a key pair to sign coefficient sets with (NAME.key, NAME.pub)",
+    "sign": "sign a coefficient set file (Ed25519): content, sensor and version",
+    "verify": "say whether a coefficient set file is signed by a trusted key (exit 0 or 2)",
 }

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
+from canical.commands.trust_args import add_trust_argument, check_trusted
 from canical.errors import CanicalError
 from canical.files.output_plan import output_plan
 from canical.progress import Progress
@@ -37,6 +38,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, help="CSV to write (input + rate_dps, out_of_span)")
     p.add_argument("--raw-column", default="raw", help="column with the raw sensor output")
     p.add_argument("--sensor", help="sensor id of the input (default: its '# sensor:' line)")
+    add_trust_argument(p, what=" (else the set is refused)")
     add_canlog_arguments(p)
     track = p.add_argument_group("bias tracking (learn the bias at standstills, append bias_dps)")
     track.add_argument("--track-bias", action="store_true",
@@ -63,6 +65,7 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     if (args.standstill_column or args.report_dir or args.arw is not None) and not args.track_bias:
         raise CanicalError("--standstill-column, --report-dir and --arw need --track-bias")
+    check_trusted("apply", args.coefficients, args.trust)
     with output_plan(args.output, dirs=[args.report_dir]):
         return apply_set(args)
 

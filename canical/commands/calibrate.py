@@ -13,6 +13,7 @@ from canical.calibration.calibration_report import CalibrationReport
 from canical.commands import COMMANDS
 from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
+from canical.files.key_file import read_secret
 from canical.files.output_plan import output_plan
 from canical.models import MODEL_KINDS
 from canical.progress import Progress
@@ -21,6 +22,7 @@ from canical.sessions.canlog_format import CANLOG_FORMATS
 if TYPE_CHECKING:
     from canical.closed_loop.search import LoopResult
     from canical.sessions.session import Session
+    from canical.sets.signing import SignatureRecord
 
 # The fitting and plotting modules (numpy, scipy, matplotlib) are imported where they are
 # used, so that `--help` and argument errors answer at once.
@@ -170,6 +172,9 @@ def register(sub) -> None:
                    "plateaus pinned to one extreme value)")
     p.add_argument("--sensor", help="sensor id (default: the session's '# sensor:' line)")
     p.add_argument("--axis", help="axis name (default: the session's '# axis:' line, else z)")
+    p.add_argument("--sign-key", metavar="NAME.key",
+                   help="sign the set with this private key (canical keygen), as one more than the "
+                        "version of the signed set it replaces at -o, else version 1")
     add_session_arguments(p)
     add_plateau_arguments(p)
     add_canlog_arguments(p)
@@ -179,6 +184,7 @@ def register(sub) -> None:
 def run(args: argparse.Namespace) -> int:
     from canical.commands.calibrate_imu import is_triad_input, run_imu
 
+    args.sign_seed = read_secret(args.sign_key) if args.sign_key else None  # a bad key: before any work
     if is_triad_input(args):
         return run_imu(args)
     args.session = args.session[0]
@@ -192,6 +198,7 @@ def run(args: argparse.Namespace) -> int:
 
 def calibrate_session(args: argparse.Namespace) -> int:
     from canical.calibration.pipeline import calibrate
+    from canical.commands.trust_args import describe
     from canical.files.atomic_file import write_text_atomic
     from canical.sessions.canlog_format import is_canlog
     from canical.sessions.csv_file import read_session
@@ -239,12 +246,17 @@ def calibrate_session(args: argparse.Namespace) -> int:
         print(f"calibrate: strict: the attribution is ambiguous ({' / '.join(c.candidates)} explain the "
               f"same residual); name one with --prefer, or {c.recommendation}", file=sys.stderr)
         return 2
-    coefficient_file.save(args.output, result.coefficients)
+    if args.sign_seed is None:
+        coefficient_file.save(args.output, result.coefficients)
+    else:
+        signed = write_signed(args, coefficient_file.dumps(result.coefficients))
     if args.report:
         write_text_atomic(args.report, report_json(report))
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report, result.loop)
     print(summary(report))
+    if args.sign_seed is not None:
+        print(f"calibrate: {args.output} {describe(signed)}")
     left = report.unexplained
     if args.strict is not None and (left is None or left.ratio > args.strict):
         why = (f"{left.ratio:.1f}× the noise floor, above --strict {args.strict:g}" if left
@@ -252,6 +264,17 @@ def calibrate_session(args: argparse.Namespace) -> int:
         print(f"calibrate: strict: the residual stays unexplained ({why})", file=sys.stderr)
         return EXIT_UNEXPLAINED
     return 0
+
+
+def write_signed(args: argparse.Namespace, text: str) -> SignatureRecord:
+    """Write a set signed with ``--sign-key``: its version one more than that of the signed set it
+    replaces (a vehicle refuses an older version), else 1; validated before it is written."""
+    from canical.files.atomic_file import write_text_atomic
+    from canical.sets.signed_file import next_version, sign_text
+
+    signed, record = sign_text(text, str(args.output), args.sign_seed, next_version(args.output))
+    write_text_atomic(args.output, signed)
+    return record
 
 
 def calibrate_options(args: argparse.Namespace):

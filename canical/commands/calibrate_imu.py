@@ -52,7 +52,8 @@ def run_imu(args: argparse.Namespace) -> int:
 
 def calibrate_triad(args: argparse.Namespace) -> int:
     from canical.calibration.imu_pipeline import calibrate_imu
-    from canical.commands.calibrate import calibrate_options
+    from canical.commands.calibrate import calibrate_options, write_signed
+    from canical.commands.trust_args import describe
     from canical.files.atomic_file import write_text_atomic
     from canical.sessions.canlog_format import is_canlog
     from canical.sessions.triad_session import read_triad_session
@@ -76,12 +77,17 @@ def calibrate_triad(args: argparse.Namespace) -> int:
         sensor = "unspecified"
     result = calibrate_imu(sessions, calibrate_options(args), sensor_id=sensor, progress=progress.step)
     report = result.report_dict([str(p) for p in args.session], str(args.output))
-    imu_set.save(args.output, result.imu_set)
+    if args.sign_seed is None:
+        imu_set.save(args.output, result.imu_set)
+    else:
+        signed = write_signed(args, imu_set.dumps(result.imu_set))
     if args.report:
         write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report)
     print(summary(report, f"0x{imu_set.imu_set_crc(result.imu_set):08x}"))
+    if args.sign_seed is not None:
+        print(f"calibrate: {args.output} {describe(signed)}")
     return 0
 
 

@@ -13,6 +13,7 @@ import contextlib
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
+from canical.commands.trust_args import add_trust_argument, check_trusted
 from canical.device.can_network import (
     DEFAULT_SDO_TIMEOUT_S,
     add_bus_arguments,
@@ -41,6 +42,7 @@ def register(sub) -> None:
                    help="coefficient set YAML, one per axis, or one IMU set (three axes and their coupling)")
     add_node_arguments(p)
     p.add_argument("--dry-run", action="store_true", help="show what would be written, write nothing")
+    add_trust_argument(p, what=" (each file's; else nothing is pushed)")
     p.set_defaults(run=run)
 
 
@@ -111,6 +113,8 @@ def offline_dry_run(sets: dict[str, tuple[str, CoefficientSet]], imu: tuple[str,
 def run(args: argparse.Namespace) -> int:
     from canical.device.sdo_download import ImuClient, PushPlan, push_sets
 
+    for path in args.coefficients:  # all verified before the bus is opened
+        check_trusted("push", path, args.trust)
     imu = load_imu_set(args.coefficients)
     sets = {} if imu is not None else load_sets(args.coefficients)
     quiet_canopen_logging()

@@ -18,6 +18,7 @@ from canical.commands import COMMANDS
 from canical.errors import CanicalError
 
 if TYPE_CHECKING:
+    from canical.bus.active_sets import Origin
     from canical.bus.daemon_config import DaemonConfig
 
 # The daemon's modules (python-can, cantools, numpy) are imported by `run`, so that `--help`
@@ -110,6 +111,14 @@ def served_axes(config: DaemonConfig) -> str:
     return served + (f"; not corrected: {', '.join(other)}" if other else "")
 
 
+def signed_note(origin: Origin) -> str:
+    """What ``--check`` adds to a set's line under ``trust:``: its signed version, or the problem
+    let through (``require: false``)."""
+    if origin.warning is not None:
+        return f"; warning: {origin.warning}"
+    return "" if origin.version is None else f", signed by a trusted key as version {origin.version}"
+
+
 def run(args: argparse.Namespace) -> int:
     from canical.bus import active_sets
     from canical.bus.daemon import Daemon
@@ -122,9 +131,10 @@ def run(args: argparse.Namespace) -> int:
         raise CanicalError(f"{config.path}: bus.interface socketcan: {missing}: {NO_SOCKETCAN_HINT}")
     if args.check:
         if config.imu_set is not None:
-            imu, correctors = active_sets.load_imu(config, config.imu_set)
+            imu, correctors, origin = active_sets.load_imu_origin(config, config.imu_set, None)
             print(f"imu set 0x{imu_set_crc(imu):08x} from {config.imu_set}: axes "
-                  + ", ".join(f"{c.cset.axis} 0x{c.set_id:08x}" for c in correctors) + ", coupling checked")
+                  + ", ".join(f"{c.cset.axis} 0x{c.set_id:08x}" for c in correctors) + ", coupling checked"
+                  + signed_note(origin))
         for axis in config.axes if config.imu_set is None else ():
             if not axis.present:
                 print(f"axis {axis.axis}: not in axes (absent: not read, not corrected)")
@@ -132,11 +142,14 @@ def run(args: argparse.Namespace) -> int:
             if axis.coefficients is None:
                 print(f"axis {axis.axis}: no coefficients configured (sent uncalibrated)")
                 continue
-            corrector = active_sets.load_axis(config, axis.axis, axis.coefficients)
-            print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}")
+            corrector, origin = active_sets.load_axis_origin(config, axis.axis, axis.coefficients, None)
+            print(f"axis {axis.axis}: set 0x{corrector.set_id:08x} from {axis.coefficients}"
+                  + signed_note(origin))
         if config.device is not None:
             check_device(config)
         print(served_axes(config))
+        if config.trust is None:
+            print("note: sets are not authenticated (no trust: in the configuration)")
         print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
         if missing is not None:  # the configuration may be for the vehicle, not this machine
             print(f"note: serve would not start on this machine: {missing}: {NO_SOCKETCAN_HINT}")

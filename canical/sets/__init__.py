@@ -8,11 +8,12 @@ kind), :mod:`.terms` the validated term record, :mod:`.trackers` the terms' stat
 :mod:`.corrector` applies a set to samples (block and per-sample paths),
 :mod:`.fast_corrector` compiles it into straight-line code for the daemon, and
 :mod:`.admission` decides which sets a device may take; :mod:`.imu_set` is the IMU set (three axes and
-their coupling, one CRC) and :mod:`.imu_corrector` applies it. Imports only :mod:`canical.models`
-and the ground floor.
+their coupling, one CRC) and :mod:`.imu_corrector` applies it; :mod:`.signing` signs and
+verifies a set's origin (Ed25519) and :mod:`.signed_file` reads and signs set files with their
+signatures. Imports only :mod:`canical.models` and the ground floor.
 """
 
 # The package's public face: the submodules other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
 __all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "imu_corrector",
-           "imu_set", "set_model", "term_kinds", "terms", "trackers"]
+           "imu_set", "set_model", "signed_file", "signing", "term_kinds", "terms", "trackers"]

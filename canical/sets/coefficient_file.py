@@ -2,7 +2,9 @@
 
 The CRC is computed over a canonical JSON rendering of everything but the CRC
 itself (sorted keys, no spaces, shortest round-trip floats), so it does not
-depend on YAML formatting and a device can recompute it over the same bytes.
+depend on YAML formatting and a device can recompute it over the same bytes. A
+lab's signature (:mod:`canical.sets.signing`) sits beside the content, outside
+those bytes: it covers them, and a signed set keeps the CRC it had unsigned.
 Loading checks every field and refuses a damaged or hand-edited file with one
 line naming what is wrong.
 """
@@ -22,6 +24,7 @@ from canical.files.yaml_text import parse_yaml
 from canical.sets.coefficients import DEFAULT_RAW_UNITS, SCHEMA_VERSION, CoefficientSet
 from canical.sets.finite_outputs import check_finite_outputs
 from canical.sets.set_model import FailFn, finite, model_from_dict
+from canical.sets.signing import SIGNATURE_KEY
 from canical.sets.terms import term_from_file
 
 __all__ = ["FailFn", "canonical_bytes", "content_crc", "dumps", "from_content", "load", "loads", "read_text",
@@ -29,8 +32,9 @@ __all__ = ["FailFn", "canonical_bytes", "content_crc", "dumps", "from_content", 
 
 
 def canonical_bytes(content: dict[str, Any]) -> bytes:
-    """The bytes the CRC covers: the content without ``crc32``, as canonical JSON."""
-    body = {k: v for k, v in content.items() if k != "crc32"}
+    """The bytes the CRC (and a signature) covers: the content without ``crc32`` and without its
+    signature, as canonical JSON."""
+    body = {k: v for k, v in content.items() if k not in ("crc32", SIGNATURE_KEY)}
     return json.dumps(body, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
 
 

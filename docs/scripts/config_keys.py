@@ -217,6 +217,15 @@ KEYS: tuple[Key, ...] = (
     Key("j1939.messages", "`null` (the DBC's attributes)", "a list of message names, or `all`",
         "messages that are J1939 parameter groups though the DBC does not say so (a vendor's file "
         "without `VFrameFormat`/`ProtocolType`); `all`: every extended-id message of the DBC files"),
+    Key("trust", "`null` (sets not authenticated: one warning at start)", "a mapping",
+        "only sets the calibration lab signed (`canical sign`): one without a valid signature from a "
+        "trusted key, for another sensor, or older than the running set (a rollback) is refused as a "
+        "corrupt set is, at start, on SIGHUP and on a file change (see Signed sets)"),
+    Key("trust.keys", "required", "a non-empty list of public key files (`canical keygen`'s NAME.pub)",
+        "the keys a set's signature must be by; each read when the configuration is"),
+    Key("trust.require", "`true`", "`true` or `false`",
+        "`false`: a set's signature is checked and a problem is a warning, the set used all the same "
+        "(while a fleet's sets are being signed)"),
     Key("status_period_s", "`1.0`", "positive number of seconds", "status frames and systemd STATUS"),
     Key(
         "watch_period_s",
@@ -260,7 +269,17 @@ def base_content() -> dict[str, Any]:
     content["j1939"] = {"source_address": "any"}
     # off, so the example's inputs need not hold a cue; its sub-sections are probed all the same
     content["bias_tracking"] = {"enabled": False, "cue": {"input": "supply_v", "below": 0.1}}
+    content["trust"] = {"keys": [str(_probe_public_key())], "require": True}
     return content
+
+
+def _probe_public_key() -> Path:
+    """A public key file for the probe's ``trust`` section (the parser reads each key it names)."""
+    from canical.files.key_file import write_key_pair
+    from canical.sets.signing import new_seed, public_of
+
+    seed = new_seed()
+    return write_key_pair(Path(tempfile.mkdtemp(prefix="canical-docs-")) / "probe", seed, public_of(seed))[1]
 
 
 def parse_error(content: dict[str, Any]) -> str | None:
@@ -369,6 +388,7 @@ def default_checks() -> list[tuple[str, str, object]]:
         ("watch_period_s", documented["watch_period_s"], cfg.watch_period_s),
         ("sensor", documented["sensor"].split(" ")[0], cfg.sensor),
         ("bus.options", documented["bus.options"], cfg.bus_options),
+        ("trust", documented["trust"].split(" ")[0], cfg.trust),
     ]
 
 

@@ -102,11 +102,20 @@ FIELDS: tuple[Field, ...] = (
         "`arw_deg_rt_h` that bias tracking tells a standstill by): "
         "not used to correct",
     ),
+    Field("signature.key_id", "16 hex digits",
+          "a signed set only (`canical sign`): the signer's key, the first 8 bytes of its public "
+          "key's SHA-256"),
+    Field("signature.version", "integer 0..2⁶³−1",
+          "the set's version for its sensor: a daemon with `trust:` refuses one older than the set it runs"),
+    Field("signature.sensor", "string", "the sensor the set was signed for (its `sensor.id`)"),
+    Field("signature.ed25519", "base64 of 64 bytes",
+          "the Ed25519 signature over the version, the sensor and the canonical JSON the CRC covers "
+          "(see [signed sets](../signing.md))"),
     Field(
         "crc32",
         "`0x` and 8 hex digits",
-        "CRC32 over the canonical JSON of everything else (sorted keys, "
-        "no spaces); also the set's identifier on the bus",
+        "CRC32 over the canonical JSON of everything else but a signature (sorted keys, "
+        "no spaces); also the set's identifier on the bus; a signed set keeps the CRC it had unsigned",
     ),
 )
 
