@@ -150,13 +150,13 @@ def _drift_reason(c: Confound) -> str:
     """Why a channel's form was not blamed: what it failed to predict, and what the set carries."""
     name, drift = c.candidates[0], c.candidates[1]
     rms = c.held_out_rms_dps
-    gain = c.stretch_gain if c.stretch_gain is not None else float("nan")
+    stretches = "" if c.stretch_gain is None else (
+        f", and fitted on the rest of the session it predicts {c.stretch_gain:.0%} of the residual of "
+        "a stretch it did not see (a sensor's own effect repeats all session long and predicts most "
+        "of it; a drift does not repeat)")
     return (f"{name} predicts the held-out plateaus to {rms[name]:.4f} deg/s against {rms[drift]:.4f} "
-            f"for a drift of the session as flexible, and fitted on the rest of the session it removes "
-            f"{gain:.0%} of the error of a stretch it did not see (a sensor's own effect repeats all "
-            "session long and removes most of it; a drift does not repeat). No term of either is in "
-            "the set: a smooth function of this session's clock is a property of the session, not of "
-            "the sensor.")
+            f"for a drift of the session as flexible{stretches}. No term of either is in the set: a "
+            "smooth function of this session's clock is a property of the session, not of the sensor.")
 
 
 def _adopted(c: Confound) -> str:
