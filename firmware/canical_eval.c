@@ -2136,8 +2136,14 @@ static double condition_squared(const double m[3][3])
 
 static int check_coupling_matrix(const double m[3][3])
 {
-    double cond2 = condition_squared(m);
+    double cond2;
     int i, j;
+    for (i = 0; i < 3; i++) { /* written so that NaN fails too */
+        if (!(m[i][i] >= CE_COUPLING_MIN_DIAGONAL && m[i][i] <= CE_COUPLING_MAX_DIAGONAL)) {
+            return CE_ERR_COUPLING;
+        }
+    }
+    cond2 = condition_squared(m);
     if (cond2 < 0.0 || cond2 > CE_COUPLING_MAX_CONDITION * CE_COUPLING_MAX_CONDITION) {
         return CE_ERR_COUPLING;
     }

@@ -107,9 +107,9 @@ def forward_bound(model: ForwardPoly, reach: float) -> float:
     return bound if math.isfinite(bound) else math.inf
 
 
-def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
-                         raw_span: tuple[float, float]) -> Unbounded | None:
-    """None when every output in the envelope is within ±:data:`RATE_LIMIT_DPS`; else why not.
+def output_bound(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
+                 raw_span: tuple[float, float]) -> tuple[float, Unbounded | None]:
+    """The bound on |ω| over the envelope (inf when there is none), and why it is unbounded.
 
     ``raw_span`` is the set's span in ΔV (``span_raw`` − V0): raw values up to :data:`RAW_REACH`
     beyond it, shifted by the terms, are what the model must take. For a segmented model it is
@@ -118,15 +118,38 @@ def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, 
     with np.errstate(all="ignore"):
         lo, hi = model.span
     if not all(math.isfinite(v) for v in (lo, hi, *raw_span)):
-        return Unbounded("model", "the span relative to v0 overflows")
+        return math.inf, Unbounded("model", "the span relative to v0 overflows")
     dv_lo, dv_hi = raw_span[0] - RAW_REACH, raw_span[1] + RAW_REACH
     shift, unbounded = shift_bound(terms, max(abs(dv_lo), abs(dv_hi)))
     if unbounded is not None:
-        return unbounded
+        return math.inf, unbounded
     reach = max(lo - (dv_lo - shift), (dv_hi + shift) - hi, 0.0)
     piecewise = isinstance(model, PiecewisePoly)
     bound = piecewise_bound(model, reach) if piecewise else forward_bound(model, reach)  # type: ignore[arg-type]
     if not bound <= RATE_LIMIT_DPS:
-        return Unbounded("model.coefficients", f"rates unbounded over the span and its extrapolation "
-                         f"(beyond ±{RATE_LIMIT_DPS:g} deg/s, or a forward polynomial without an inverse)")
+        return math.inf, Unbounded("model.coefficients", f"rates unbounded over the span and its "
+                                   f"extrapolation (beyond ±{RATE_LIMIT_DPS:g} deg/s, or a forward "
+                                   f"polynomial without an inverse)")
+    return bound, None
+
+
+def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
+                         raw_span: tuple[float, float]) -> Unbounded | None:
+    """None when every output in the envelope is within ±:data:`RATE_LIMIT_DPS`; else why not."""
+    return output_bound(model, terms, raw_span)[1]
+
+
+def check_coupled_outputs(matrix: np.ndarray, bounds: tuple[float, float, float]) -> Unbounded | None:
+    """None when ``matrix @ rates`` stays within ±:data:`RATE_LIMIT_DPS` for any per-axis rates
+    within their proven ``bounds``; else why not.
+
+    Why: an IMU set's outputs are the coupling's rows applied to three per-axis outputs, each
+    proven bounded alone; row i is at most Σ_j |M_ij|·bound_j (the triangle inequality again),
+    so the proof carries through the product the run time computes."""
+    with np.errstate(all="ignore"):
+        rows = np.abs(np.asarray(matrix, dtype=float)) @ np.asarray(bounds, dtype=float)
+    for i, row in enumerate(rows):
+        if not row <= RATE_LIMIT_DPS:
+            return Unbounded(f"coupling.matrix row {i + 1}", f"coupled rates unbounded (beyond "
+                             f"±{RATE_LIMIT_DPS:g} deg/s over the axes' spans and extrapolation)")
     return None
