@@ -99,3 +99,12 @@ def test_any_mutation_loads_or_is_one_bounded_line(base, data) -> None:
         load_config(target)
     except CanicalError as exc:
         assert "\n" not in str(exc) and len(str(exc)) <= MAX_MESSAGE_CHARS
+
+
+@pytest.mark.parametrize("name", ["x" * 5000, "a\x00b"])
+def test_a_path_the_system_cannot_look_up_is_one_line(base, name: str) -> None:
+    """The fuzzer's finding: a 5,000-character ``dbc:`` raised OSError (File name too long)."""
+    folder, content = base
+    mutated = copy.deepcopy(content)
+    mutated["dbc"] = name
+    assert "dbc: file" in refusal(folder, mutated) and "not found" in refusal(folder, mutated)
