@@ -113,7 +113,9 @@ def parse(text: str, set_id: int, axes: tuple[str, ...], limits: StateLimits) ->
     if len(text) > MAX_BYTES:
         raise ValueError(f"larger than {MAX_BYTES // 1024} KiB: not a bias state file")
     try:
-        content = json.loads(text)
+        content = json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise ValueError(str(exc)) from None
     except (ValueError, RecursionError):  # RecursionError: nesting deeper than the parser's stack
         raise ValueError("damaged (not JSON)") from None
     if not isinstance(content, dict) or content.get("format") != FORMAT:
@@ -132,6 +134,21 @@ def parse(text: str, set_id: int, axes: tuple[str, ...], limits: StateLimits) ->
     if not isinstance(states, list) or len(states) != len(axes):
         raise ValueError("states missing or not one per axis")
     return tuple(_state(s, i, limits) for i, s in enumerate(states))
+
+
+class _DuplicateKey(ValueError):
+    """A key given twice in one object."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object's keys, each once. Why: json keeps a duplicate's last value without a word, so a
+    hand-edited file could say one thing to a reader and another to canical (as YAML is refused)."""
+    content: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in content:
+            raise _DuplicateKey(f"key {_short(key)} given twice")
+        content[key] = value
+    return content
 
 
 def _short(value: Any) -> str:

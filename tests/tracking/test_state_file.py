@@ -244,3 +244,17 @@ def test_a_foreign_value_is_echoed_in_one_short_line(tmp_path: Path, key: str, v
     loaded = state_file.load(path, SET_ID, AXES, LIMITS)
     assert loaded.learned is None and loaded.refused
     assert "\n" not in loaded.note and len(loaded.note) < len(str(path)) + 120, loaded.note
+
+
+def test_a_key_given_twice_is_refused(tmp_path: Path) -> None:
+    """json keeps the last of two equal keys without a word; a state file with one is refused,
+    as a YAML file is (the CRC recomputed over what json would have kept)."""
+    text = state_file.dumps(SET_ID, AXES, LEARNED)
+    twice = text.replace('"b0": ', '"b0": 0.5, "b0": ', 1)
+    content = json.loads(twice)
+    body = {k: v for k, v in content.items() if k != "crc32"}
+    crc = zlib.crc32(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+    path = tmp_path / "bias.json"
+    path.write_text(twice.replace(content["crc32"], f"0x{crc:08x}"))
+    loaded = state_file.load(path, SET_ID, AXES, LIMITS)
+    assert loaded.learned is None and loaded.refused and "key 'b0' given twice" in loaded.note
