@@ -1166,7 +1166,8 @@ static int term_fields_ok(const term_spec *spec, const term_fields *f, const ce_
     }
     return !(((spec->needs & NEEDS_CHANNEL) && !f->channel_ok) || !f->have_coefficient ||
              ((spec->needs & NEEDS_TAU) && !f->have_tau) ||
-             ((spec->needs & NEEDS_THRESHOLD) && !f->have_threshold) || (f->have_tau && !(f->tau > 0.0)) ||
+             ((spec->needs & NEEDS_THRESHOLD) && !f->have_threshold) ||
+             (f->have_tau && !(f->tau >= CE_MIN_TAU_S && f->tau <= CE_MAX_TAU_S)) ||
              (f->have_threshold && !(f->threshold > 0.0)));
 }
 

@@ -54,6 +54,8 @@ extern "C" {
 #ifndef CE_MAX_SPLINES
 #define CE_MAX_SPLINES 4 /* spline terms of a set (canical.sets.admission.MAX_SPLINE_TERMS) */
 #endif
+#define CE_MIN_TAU_S 1e-6 /* a term's time constant, s, at least (canical.sets.terms.MIN_TAU_S) */
+#define CE_MAX_TAU_S 1e9 /* and at most (canical.sets.terms.MAX_TAU_S) */
 #define CE_NAME_MAX 24 /* longest channel name, bytes */
 #define CE_NEWTON_MAX_ITER 40 /* Newton steps of the forward polynomial's inversion, at most */
 
