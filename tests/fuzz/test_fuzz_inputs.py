@@ -178,10 +178,15 @@ def work(root: Path, name: str) -> Path:
 def test_single_axis_sets(folder: Path, capsys: pytest.CaptureFixture[str]) -> None:
     base = yaml.safe_load((folder / "imu-x.yaml").read_text())
     here, findings = work(folder, "single"), Findings()
+    rng = random.Random(SEED)
     for mutant in mutants(base, count(100), SEED):
         seal_set(mutant.tree)
         path = here / "set.yaml"
-        path.write_text(mutant.text(dump_yaml))
+        text = mutant.text(dump_yaml)
+        if rng.random() < 0.1:
+            text = duplicate_a_key(text, rng)
+            mutant.done.append("a key given twice")
+        path.write_text(text)
         out = here / "out.csv"
         apply_run(findings, mutant, ["apply", str(path), str(folder / "drive.csv"), "-o", str(out),
                                      "--raw-column", "raw"], out, ("rate_dps",), capsys)
@@ -253,6 +258,17 @@ def seal_state(tree: Any) -> None:
             tree["crc32"] = "0x00000000"
 
 
+def state_key_twice(text: str) -> str:
+    """The first state's ``b0`` given twice, the CRC recomputed over what json keeps (the last)."""
+    twice = text.replace('"b0": ', '"b0": 0.5, "b0": ', 1)
+    try:
+        content = json.loads(twice)
+        crc = f"0x{state_file._crc({k: v for k, v in content.items() if k != 'crc32'}):08x}"
+        return twice.replace(str(content["crc32"]), crc, 1)
+    except (ValueError, TypeError, KeyError, RecursionError):
+        return twice
+
+
 def state_problem(loaded: state_file.LoadedState, limits: state_file.StateLimits) -> str | None:
     """Why what the loader gave is not fit to start a tracker from (None: it is)."""
     if "\n" in loaded.note or len(loaded.note) > MAX_MESSAGE_CHARS:
@@ -272,9 +288,14 @@ def test_learned_bias_state_files(tmp_path: Path) -> None:
                for i in range(3)]
     base = json.loads(state_file.dumps(STATE_SET_ID, STATE_AXES, learned))
     path, findings = tmp_path / "bias.json", Findings()
+    rng = random.Random(SEED + 3)
     for mutant in mutants(base, count(150), SEED + 3):
         seal_state(mutant.tree)
-        path.write_text(mutant.text(lambda t: json.dumps(t, indent=1)))
+        text = mutant.text(lambda t: json.dumps(t, indent=1))
+        if rng.random() < 0.1:
+            text = state_key_twice(text)
+            mutant.done.append("a key given twice")
+        path.write_text(text)
         findings.runs += 1
         try:
             with warnings.catch_warnings():
