@@ -115,7 +115,7 @@ def mutate_once(m: Mutant, rng: random.Random) -> None:
     elif kind == "duplicate" and isinstance(parent, dict):
         parent[f"{key}_"] = copy.deepcopy(value)  # a near-duplicate key (exact ones: the text level)
     elif kind == "deep":
-        parent[key] = _deep(rng.choice((33, 40, 100)))
+        parent[key] = _deep(rng.choice((3, 8, 33, 100)))  # within the YAML limit and beyond
     elif kind == "text":
         parent[key] = rng.choice(("x" * 5000, "a\nb", "\x00", "é" * 10, "../../etc/passwd", "0x" + "f" * 30))
     else:
