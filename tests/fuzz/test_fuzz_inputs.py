@@ -2,7 +2,7 @@
 
 Issue 34 found tracebacks, non-finite rates and implausible states applied in 1,050 mutated
 inputs. This fuzzer runs every surface a vehicle or a lab loads through the real entry point
-(``canical.commands.cli.main`` in-process) or the loader the daemon calls, with the CRC
+(``canical.commands.cli.main`` in-process, a few as a process) or the loader the daemon calls, with the CRC
 recomputed after each mutation so it reaches the checks behind it:
 
 * single-axis sets and IMU sets (``apply``, and ``serve --check`` for some IMU sets);
@@ -360,3 +360,23 @@ def test_table_reference_files(table_case: Any, tmp_path: Path, capsys: pytest.C
         path.unlink()
     findings.check()
 
+
+
+def test_a_few_mutants_as_a_process(folder: Path) -> None:
+    """The installed entry point as a separate process (``python -m canical``), on a few IMU set
+    mutants: the exit status and stderr a shell or systemd sees, as in-process."""
+    import subprocess
+    import sys
+
+    base = yaml.safe_load((folder / "imu-set.yaml").read_text())
+    here = work(folder, "process")
+    for mutant in mutants(base, 3, SEED + 5, most=2):
+        seal_set(mutant.tree)
+        path, out = here / "imu-set.yaml", here / "out.csv"
+        path.write_text(mutant.text(dump_yaml))
+        done = subprocess.run([sys.executable, "-m", "canical", "apply", str(path), str(folder / "drive.csv"),
+                               "-o", str(out)], capture_output=True, text=True, timeout=120)
+        assert "Traceback" not in done.stderr and done.returncode in (0, 2), done.stderr[-400:]
+        if done.returncode == 2:
+            assert refusal_problem(done.stderr) is None and not out.exists(), done.stderr
+        out.unlink(missing_ok=True)
