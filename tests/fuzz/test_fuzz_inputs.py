@@ -322,6 +322,7 @@ def dump_table(tree: Any) -> str:
         return v if isinstance(v, str) else repr(v)
 
     rows = tree.get("rows", []) if isinstance(tree, dict) else []
+    rows = rows if isinstance(rows, list) else [rows]  # the rows swapped for one value
     lines = [",".join(map(cell, r)) if isinstance(r, list) else cell(r) for r in rows]
     header = tree.get("header", "") if isinstance(tree, dict) else ""
     head = ",".join(map(cell, header)) if isinstance(header, list) else cell(header)
