@@ -35,6 +35,10 @@ RAW_REACH = 2.0**33
 INPUT_REACH = 1e9
 #: Largest |ω| (deg/s) a set may give anywhere in the envelope.
 RATE_LIMIT_DPS = 1e150
+#: The flattest a forward polynomial's slope may be, as a share of its mean slope over the span.
+#: Why: where ΔV(ω) is flat its inverse's gain is unbounded and Newton divides by (nearly) zero (a
+#: slope of 5e-324 at ω = 0 between grid points raised ZeroDivisionError per sample).
+MIN_SLOPE_SHARE = 1e-6
 #: Rate-span points at which a forward polynomial's slope must keep one sign (as its fit checks).
 FORWARD_GRID = 512
 
@@ -102,6 +106,9 @@ def forward_bound(model: ForwardPoly, reach: float) -> float:
             return math.inf
         if not ((slope > 0).all() or (slope < 0).all()):
             return math.inf
+        mean_slope = abs(hi - lo) / (model.rate_span[1] - model.rate_span[0])
+        if not _flattest_slope(model) >= MIN_SLOPE_SHARE * mean_slope:
+            return math.inf
         edge = float(min(abs(slope[0]), abs(slope[-1])))
         bound = max(abs(model.rate_span[0]), abs(model.rate_span[1])) + reach / edge
     return bound if math.isfinite(bound) else math.inf
@@ -131,6 +138,17 @@ def output_bound(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
                                    f"extrapolation (beyond ±{RATE_LIMIT_DPS:g} deg/s, or a forward "
                                    f"polynomial without an inverse)")
     return bound, None
+
+
+def _flattest_slope(model: ForwardPoly) -> float:
+    """The smallest |dΔV/dω| over the rate span: at its ends and wherever the slope turns (the
+    second derivative's real roots), so a flat point between grid points is found too."""
+    lo_u, hi_u = (w / model.rate_scale for w in model.rate_span)
+    bend = np.polynomial.polynomial.polyder(model.coeffs, 2)
+    roots = np.polynomial.polynomial.polyroots(bend) if bend.size > 1 and np.any(bend[1:]) else np.array([])
+    turns = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and lo_u <= r.real <= hi_u]
+    points = np.array([lo_u, hi_u, *turns]) * model.rate_scale
+    return float(np.min(np.abs(model._derivative(points))))
 
 
 def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
