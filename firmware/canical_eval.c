@@ -1166,7 +1166,8 @@ static int term_fields_ok(const term_spec *spec, const term_fields *f, const ce_
     }
     return !(((spec->needs & NEEDS_CHANNEL) && !f->channel_ok) || !f->have_coefficient ||
              ((spec->needs & NEEDS_TAU) && !f->have_tau) ||
-             ((spec->needs & NEEDS_THRESHOLD) && !f->have_threshold) || (f->have_tau && !(f->tau > 0.0)) ||
+             ((spec->needs & NEEDS_THRESHOLD) && !f->have_threshold) ||
+             (f->have_tau && !(f->tau >= CE_MIN_TAU_S && f->tau <= CE_MAX_TAU_S)) ||
              (f->have_threshold && !(f->threshold > 0.0)));
 }
 
@@ -2136,8 +2137,14 @@ static double condition_squared(const double m[3][3])
 
 static int check_coupling_matrix(const double m[3][3])
 {
-    double cond2 = condition_squared(m);
+    double cond2;
     int i, j;
+    for (i = 0; i < 3; i++) { /* written so that NaN fails too */
+        if (!(m[i][i] >= CE_COUPLING_MIN_DIAGONAL && m[i][i] <= CE_COUPLING_MAX_DIAGONAL)) {
+            return CE_ERR_COUPLING;
+        }
+    }
+    cond2 = condition_squared(m);
     if (cond2 < 0.0 || cond2 > CE_COUPLING_MAX_CONDITION * CE_COUPLING_MAX_CONDITION) {
         return CE_ERR_COUPLING;
     }

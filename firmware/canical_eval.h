@@ -54,6 +54,8 @@ extern "C" {
 #ifndef CE_MAX_SPLINES
 #define CE_MAX_SPLINES 4 /* spline terms of a set (canical.sets.admission.MAX_SPLINE_TERMS) */
 #endif
+#define CE_MIN_TAU_S 1e-6 /* a term's time constant, s, at least (canical.sets.terms.MIN_TAU_S) */
+#define CE_MAX_TAU_S 1e9 /* and at most (canical.sets.terms.MAX_TAU_S) */
 #define CE_NAME_MAX 24 /* longest channel name, bytes */
 #define CE_NEWTON_MAX_ITER 40 /* Newton steps of the forward polynomial's inversion, at most */
 
@@ -99,8 +101,10 @@ typedef enum ce_result {
     CE_ERR_AXIS = -11,         /* sensor.axis is not the bank's axis */
     CE_ERR_SPAN = -12,         /* the span does not reach +-rated range */
     CE_ERR_INPUT = -13,        /* a term reads a channel the device does not offer */
-    CE_ERR_COUPLING = -14,     /* coupling matrix singular (condition above CE_COUPLING_MAX_CONDITION)
-                                  or an off-diagonal term above CE_COUPLING_MAX_OFF_DIAGONAL */
+    CE_ERR_COUPLING = -14,     /* coupling matrix with a diagonal term outside CE_COUPLING_MIN_DIAGONAL..
+                                  CE_COUPLING_MAX_DIAGONAL, singular (condition above
+                                  CE_COUPLING_MAX_CONDITION) or an off-diagonal term above
+                                  CE_COUPLING_MAX_OFF_DIAGONAL */
     CE_ERR_IMU_SET = -15       /* the coupling belongs to another IMU set: the axes given are not its */
 } ce_result;
 
@@ -191,8 +195,12 @@ typedef struct {
  * checks, with the bytes it holds, that a coupling belongs to the axes it is activated with.
  * ---------------------------------------------------------------------------------------- */
 
-/* The rules of canical.sets.imu_set.check_coupling: the 2-norm condition number of M at most
- * this, every off-diagonal term's magnitude at most this. */
+/* The rules of canical.sets.imu_set.check_coupling: every diagonal term within
+ * CE_COUPLING_MIN_DIAGONAL..CE_COUPLING_MAX_DIAGONAL (near identity: each axis's own set fixes its
+ * scale), the 2-norm condition number of M at most this, every off-diagonal term's magnitude at
+ * most this. */
+#define CE_COUPLING_MIN_DIAGONAL 0.5
+#define CE_COUPLING_MAX_DIAGONAL 2.0
 #define CE_COUPLING_MAX_CONDITION 1e3
 #define CE_COUPLING_MAX_OFF_DIAGONAL 0.10
 

@@ -19,7 +19,7 @@ from typing import Any
 
 from cantools.database.can import Database, Message
 
-from canical.errors import CanicalError
+from canical.errors import CanicalError, one_line
 from canical.files.key_file import read_public
 from canical.files.yaml_text import parse_yaml
 from canical.frames.codec import load_dbc
@@ -672,6 +672,15 @@ def _path(value: Any, base: Path, key: str, fail: Fail, *, must_exist: bool = Fa
     path = Path(value)
     if not path.is_absolute():
         path = base / path
-    if must_exist and not path.is_file():
-        raise fail(key, f"file {path} not found")
+    if must_exist and not _is_file(path):
+        raise fail(key, f"file {one_line(str(path), 120)} not found")
     return path
+
+
+def _is_file(path: Path) -> bool:
+    """Whether ``path`` is a file; a name the system cannot look up (too long, a NUL byte) is not
+    one. Why: ``Path.is_file`` raises on those (the fuzzer's 5,000-character ``dbc:``), a traceback."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False

@@ -15,5 +15,6 @@ signatures. Imports only :mod:`canical.models` and the ground floor.
 
 # The package's public face: the submodules other rings and the tests import;
 # tests/test_rings.py keeps this list equal to those imports.
-__all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector", "imu_corrector",
-           "imu_set", "set_model", "signed_file", "signing", "term_kinds", "terms", "trackers"]
+__all__ = ["admission", "coefficient_file", "coefficients", "corrector", "fast_corrector",
+           "finite_outputs", "imu_corrector", "imu_set", "set_model", "signed_file", "signing",
+           "term_kinds", "terms", "trackers"]

@@ -35,6 +35,10 @@ RAW_REACH = 2.0**33
 INPUT_REACH = 1e9
 #: Largest |ω| (deg/s) a set may give anywhere in the envelope.
 RATE_LIMIT_DPS = 1e150
+#: The flattest a forward polynomial's slope may be, as a share of its mean slope over the span.
+#: Why: where ΔV(ω) is flat its inverse's gain is unbounded and Newton divides by (nearly) zero (a
+#: slope of 5e-324 at ω = 0 between grid points raised ZeroDivisionError per sample).
+MIN_SLOPE_SHARE = 1e-6
 #: Rate-span points at which a forward polynomial's slope must keep one sign (as its fit checks).
 FORWARD_GRID = 512
 
@@ -102,14 +106,17 @@ def forward_bound(model: ForwardPoly, reach: float) -> float:
             return math.inf
         if not ((slope > 0).all() or (slope < 0).all()):
             return math.inf
+        mean_slope = abs(hi - lo) / (model.rate_span[1] - model.rate_span[0])
+        if not _flattest_slope(model) >= MIN_SLOPE_SHARE * mean_slope:
+            return math.inf
         edge = float(min(abs(slope[0]), abs(slope[-1])))
         bound = max(abs(model.rate_span[0]), abs(model.rate_span[1])) + reach / edge
     return bound if math.isfinite(bound) else math.inf
 
 
-def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
-                         raw_span: tuple[float, float]) -> Unbounded | None:
-    """None when every output in the envelope is within ±:data:`RATE_LIMIT_DPS`; else why not.
+def output_bound(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
+                 raw_span: tuple[float, float]) -> tuple[float, Unbounded | None]:
+    """The bound on |ω| over the envelope (inf when there is none), and why it is unbounded.
 
     ``raw_span`` is the set's span in ΔV (``span_raw`` − V0): raw values up to :data:`RAW_REACH`
     beyond it, shifted by the terms, are what the model must take. For a segmented model it is
@@ -118,15 +125,49 @@ def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, 
     with np.errstate(all="ignore"):
         lo, hi = model.span
     if not all(math.isfinite(v) for v in (lo, hi, *raw_span)):
-        return Unbounded("model", "the span relative to v0 overflows")
+        return math.inf, Unbounded("model", "the span relative to v0 overflows")
     dv_lo, dv_hi = raw_span[0] - RAW_REACH, raw_span[1] + RAW_REACH
     shift, unbounded = shift_bound(terms, max(abs(dv_lo), abs(dv_hi)))
     if unbounded is not None:
-        return unbounded
+        return math.inf, unbounded
     reach = max(lo - (dv_lo - shift), (dv_hi + shift) - hi, 0.0)
     piecewise = isinstance(model, PiecewisePoly)
     bound = piecewise_bound(model, reach) if piecewise else forward_bound(model, reach)  # type: ignore[arg-type]
     if not bound <= RATE_LIMIT_DPS:
-        return Unbounded("model.coefficients", f"rates unbounded over the span and its extrapolation "
-                         f"(beyond ±{RATE_LIMIT_DPS:g} deg/s, or a forward polynomial without an inverse)")
+        return math.inf, Unbounded("model.coefficients", f"rates unbounded over the span and its "
+                                   f"extrapolation (beyond ±{RATE_LIMIT_DPS:g} deg/s, or a forward "
+                                   f"polynomial without an inverse)")
+    return bound, None
+
+
+def _flattest_slope(model: ForwardPoly) -> float:
+    """The smallest |dΔV/dω| over the rate span: at its ends and wherever the slope turns (the
+    second derivative's real roots), so a flat point between grid points is found too."""
+    lo_u, hi_u = (w / model.rate_scale for w in model.rate_span)
+    bend = np.polynomial.polynomial.polyder(model.coeffs, 2)
+    roots = np.polynomial.polynomial.polyroots(bend) if bend.size > 1 and np.any(bend[1:]) else np.array([])
+    turns = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and lo_u <= r.real <= hi_u]
+    points = np.array([lo_u, hi_u, *turns]) * model.rate_scale
+    return float(np.min(np.abs(model._derivative(points))))
+
+
+def check_finite_outputs(model: PiecewisePoly | ForwardPoly, terms: tuple[Term, ...],
+                         raw_span: tuple[float, float]) -> Unbounded | None:
+    """None when every output in the envelope is within ±:data:`RATE_LIMIT_DPS`; else why not."""
+    return output_bound(model, terms, raw_span)[1]
+
+
+def check_coupled_outputs(matrix: np.ndarray, bounds: tuple[float, float, float]) -> Unbounded | None:
+    """None when ``matrix @ rates`` stays within ±:data:`RATE_LIMIT_DPS` for any per-axis rates
+    within their proven ``bounds``; else why not.
+
+    Why: an IMU set's outputs are the coupling's rows applied to three per-axis outputs, each
+    proven bounded alone; row i is at most Σ_j |M_ij|·bound_j (the triangle inequality again),
+    so the proof carries through the product the run time computes."""
+    with np.errstate(all="ignore"):
+        rows = np.abs(np.asarray(matrix, dtype=float)) @ np.asarray(bounds, dtype=float)
+    for i, row in enumerate(rows):
+        if not row <= RATE_LIMIT_DPS:
+            return Unbounded(f"coupling.matrix row {i + 1}", f"coupled rates unbounded (beyond "
+                             f"±{RATE_LIMIT_DPS:g} deg/s over the axes' spans and extrapolation)")
     return None

@@ -7,7 +7,8 @@ the single-axis :class:`~canical.sets.coefficients.CoefficientSet`, unchanged; t
 axes' content under ``axes``, the coupling matrix M (corrected = M @ per-axis corrected rates)
 and its standard errors, and one ``crc32`` over everything, computed as
 :mod:`canical.sets.coefficient_file` computes a set's. Loading checks the CRC, each axis as a
-single-axis set is checked, and the coupling (3×3, finite, not singular, off-diagonal ≤ 10 %).
+single-axis set is checked, and the coupling (3×3, finite, diagonal within 0.5..2, off-diagonal
+≤ 10 %, not singular), and the coupled outputs are proven finite over the axes' spans.
 """
 
 from __future__ import annotations
@@ -24,11 +25,19 @@ from canical.files.atomic_file import write_text_atomic
 from canical.files.yaml_text import parse_yaml
 from canical.sets import coefficient_file
 from canical.sets.coefficients import SCHEMA_VERSION, CoefficientSet, finite
+from canical.sets.finite_outputs import check_coupled_outputs, output_bound
 
 IMU_SET_KIND = "imu-set"
 AXES = ("x", "y", "z")
 MAX_OFF_DIAGONAL = 0.10
 MAX_CONDITION = 1e3
+#: Bounds on each diagonal term. Why: each axis's own model already fixes that axis's scale
+#: against the table's rate, so the coupling only mixes in the other axes: its diagonal is 1 up
+#: to second-order terms of the (≤ 10 %) misalignment and the fit's error. A diagonal off by a
+#: factor 2 rescales an axis already calibrated; a negative one flips it (−I), a tiny one zeroes
+#: it (a turning vehicle reported standing), a huge one overflows (1e308·I): none is a coupling.
+MIN_DIAGONAL = 0.5
+MAX_DIAGONAL = 2.0
 
 Matrix = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 
@@ -139,6 +148,8 @@ def from_content(content: Any, source: str) -> ImuSet:
     matrix = _matrix(coupling.get("matrix"), "coupling.matrix", fail)
     errors = _matrix(coupling.get("standard_errors"), "coupling.standard_errors", fail)
     check_coupling(np.asarray(matrix), source)
+    _check_standard_errors(errors, fail)
+    _check_coupled_outputs(np.asarray(matrix), sets, fail)
     fit = content.get("fit", {})
     if not isinstance(fit, dict):
         raise fail("fit must be a mapping")
@@ -182,13 +193,50 @@ def _matrix(value: Any, key: str, fail: coefficient_file.FailFn) -> Matrix:
 
 
 def check_coupling(matrix: np.ndarray, source: str) -> None:
-    """Refuse a singular coupling or one with an off-diagonal term above 10 % (one line)."""
+    """Refuse, in one line, a coupling whose diagonal is outside :data:`MIN_DIAGONAL` ..
+    :data:`MAX_DIAGONAL`, that is singular, or that has an off-diagonal term above 10 %.
+
+    Why near identity: the coupling corrects how far an axis is mounted askew, after each axis's
+    own model fixed its scale (see :data:`MIN_DIAGONAL`). With the diagonal in 0.5..2 and the
+    off-diagonal terms within 10 % the matrix is diagonally dominant, so never singular; the
+    condition check stays as the device's rule too."""
     m = np.asarray(matrix, dtype=float)
-    cond = float(np.linalg.cond(m))
+    diagonal = np.diag(m)
+    _check_diagonal(diagonal, source)
+    with np.errstate(all="ignore"):
+        cond = float(np.linalg.cond(m))
     if not np.isfinite(cond) or cond > MAX_CONDITION:
         raise CanicalError(f"{source}: the coupling matrix is singular (condition {cond:.3g})")
-    off = np.abs(m - np.diag(np.diag(m)))
+    off = np.abs(m - np.diag(diagonal))
     if off.max() > MAX_OFF_DIAGONAL:
         i, j = np.unravel_index(int(np.argmax(off)), off.shape)
         raise CanicalError(f"{source}: coupling term {AXES[i]}{AXES[j]} is {100 * m[i, j]:+.1f} %, above "
                            f"{100 * MAX_OFF_DIAGONAL:g} %: an axis mislabelled or mounted askew")
+
+
+def _check_diagonal(diagonal: np.ndarray, source: str) -> None:
+    """Each diagonal term within :data:`MIN_DIAGONAL` .. :data:`MAX_DIAGONAL` (NaN fails too)."""
+    for name, d in zip(AXES, diagonal.tolist(), strict=True):
+        if not MIN_DIAGONAL <= d <= MAX_DIAGONAL:
+            raise CanicalError(f"{source}: coupling term {name}{name} is {d:.6g}, outside "
+                               f"{MIN_DIAGONAL:g}..{MAX_DIAGONAL:g}: the coupling must be near identity "
+                               f"(each axis's own model fixes its scale); recalibrate the IMU")
+
+
+def _check_standard_errors(errors: Matrix, fail: coefficient_file.FailFn) -> None:
+    """A standard error is a spread: never negative."""
+    if any(v < 0 for row in errors for v in row):
+        raise fail("coupling.standard_errors must not be negative")
+
+
+def _check_coupled_outputs(matrix: np.ndarray, sets: tuple[CoefficientSet, ...],
+                           fail: coefficient_file.FailFn) -> None:
+    """The finite-outputs proof through the coupling: each axis's bound, then the product's."""
+    bounds = []
+    for cset in sets:
+        lo, hi = cset.span_raw
+        bound, _ = output_bound(cset.rate_model(), cset.terms, (lo - cset.v0, hi - cset.v0))
+        bounds.append(bound)
+    unbounded = check_coupled_outputs(matrix, (bounds[0], bounds[1], bounds[2]))
+    if unbounded is not None:
+        raise fail(unbounded.message())

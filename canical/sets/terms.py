@@ -87,6 +87,11 @@ __all__ = [
 FORMS = ("bias", "scale")
 #: The channel features with state (a lag, a derivative, a direction).
 STATEFUL_CHANNEL = tuple(k.feature for k in ALL if k.kind == CHANNEL and k.tracker_type is not None)
+#: Bounds on a term's time constant. Why: below a microsecond (far under any sample interval) or
+#: beyond 30 years it describes no sensor, and a τ of 5e-324 s made t/τ overflow (numpy warned on
+#: every block; a negative time would give an infinite warm-up factor).
+MIN_TAU_S = 1e-6
+MAX_TAU_S = 1e9
 TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference", "tau_s", "threshold_raw",
                "knots", "pieces")
 
@@ -193,6 +198,9 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     if spec.needs_channel and (not isinstance(channel, str) or not channel):
         raise ValueError(f"{where}: channel must name an input")
     tau = number("tau_s", required=spec.needs_tau, positive=True)
+    if tau is not None and not MIN_TAU_S <= tau <= MAX_TAU_S:
+        raise ValueError(f"{where}: tau_s {tau:.3g} s is outside {MIN_TAU_S:g}..{MAX_TAU_S:g} s: "
+                         "not a time constant a sensor has")
     threshold = number("threshold_raw", required=spec.needs_threshold, positive=True)
     knots, pieces = _spline_fields(d, where) if spec.needs_spline else (None, None)
     coefficient = number("coefficient", required=True)

@@ -24,6 +24,7 @@ import zlib
 from dataclasses import dataclass
 from typing import Any
 
+from canical.errors import one_line
 from canical.files.atomic_file import write_text_atomic
 from canical.tracking.config import TrackerConfig
 from canical.tracking.estimate import AxisBias
@@ -112,24 +113,48 @@ def parse(text: str, set_id: int, axes: tuple[str, ...], limits: StateLimits) ->
     if len(text) > MAX_BYTES:
         raise ValueError(f"larger than {MAX_BYTES // 1024} KiB: not a bias state file")
     try:
-        content = json.loads(text)
+        content = json.loads(text, object_pairs_hook=_unique_keys)
+    except _DuplicateKey as exc:
+        raise ValueError(str(exc)) from None
     except (ValueError, RecursionError):  # RecursionError: nesting deeper than the parser's stack
         raise ValueError("damaged (not JSON)") from None
     if not isinstance(content, dict) or content.get("format") != FORMAT:
         raise ValueError("not a canical bias state file")
     if content.get("version") != VERSION:
-        raise ValueError(f"version {content.get('version')!r} not supported (this canical reads {VERSION})")
+        raise ValueError(f"version {_short(content.get('version'))} not supported "
+                         f"(this canical reads {VERSION})")
     body = {k: v for k, v in content.items() if k != "crc32"}
     if content.get("crc32") != f"0x{_crc(body):08x}":
         raise ValueError("damaged (CRC mismatch)")
     if content.get("set_id") != f"0x{set_id:08x}":
-        raise ValueError(f"learned for set {content.get('set_id')}, not this set 0x{set_id:08x}")
+        raise ValueError(f"learned for set {_short(content.get('set_id'))}, not this set 0x{set_id:08x}")
     if content.get("axes") != list(axes):
-        raise ValueError(f"learned for axes {content.get('axes')}, not {list(axes)}")
+        raise ValueError(f"learned for axes {_short(content.get('axes'))}, not {list(axes)}")
     states = content.get("states")
     if not isinstance(states, list) or len(states) != len(axes):
         raise ValueError("states missing or not one per axis")
     return tuple(_state(s, i, limits) for i, s in enumerate(states))
+
+
+class _DuplicateKey(ValueError):
+    """A key given twice in one object."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """An object's keys, each once. Why: json keeps a duplicate's last value without a word, so a
+    hand-edited file could say one thing to a reader and another to canical (as YAML is refused)."""
+    content: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in content:
+            raise _DuplicateKey(f"key {_short(key)} given twice")
+        content[key] = value
+    return content
+
+
+def _short(value: Any) -> str:
+    """A value from the file as a log line may echo it: one line, at most 40 characters (a file's
+    set id of 5,000 characters or nested 100 deep made a note of as many)."""
+    return one_line(repr(value), 40)
 
 
 def _number(raw: dict[str, Any], key: str, i: int) -> float:

@@ -99,3 +99,27 @@ def test_any_mutation_loads_or_is_one_bounded_line(base, data) -> None:
         load_config(target)
     except CanicalError as exc:
         assert "\n" not in str(exc) and len(str(exc)) <= MAX_MESSAGE_CHARS
+
+
+@pytest.mark.parametrize("name", ["x" * 5000, "a\x00b"])
+def test_a_path_the_system_cannot_look_up_is_one_line(base, name: str) -> None:
+    """The fuzzer's finding: a 5,000-character ``dbc:`` raised OSError (File name too long)."""
+    folder, content = base
+    mutated = copy.deepcopy(content)
+    mutated["dbc"] = name
+    assert "dbc: file" in refusal(folder, mutated) and "not found" in refusal(folder, mutated)
+
+
+def test_a_coefficients_path_the_system_cannot_look_up_is_one_line(base, capsys) -> None:
+    """The fuzzer's finding: a 5,000-character ``axes.z.coefficients`` raised OSError (File name
+    too long) in serve --check."""
+    from canical.commands.cli import main
+
+    folder, content = base
+    mutated = copy.deepcopy(content)
+    mutated["axes"]["z"]["coefficients"] = "x" * 5000
+    path = folder / "long.yaml"
+    path.write_text(yaml.safe_dump(mutated, sort_keys=False))
+    assert main(["serve", "--config", str(path), "--check"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "coefficient file not found" in err and len(err) < 500, err

@@ -258,3 +258,66 @@ def frames_signals(msgs: list[can.Message]) -> list[dict[str, float]]:
         else:
             rows.append({**held, **raw_msg.decode(m.data)})
     return rows
+
+
+#: Couplings far from identity (issue 34): each passed the checks before the diagonal bound and
+#: gave non-finite rates (1e308·I), zero rates with no flag (1e-300·I), flipped axes (−I) or an
+#: axis all but zeroed (diag(1, 1, 2e-3)).
+FAR_FROM_IDENTITY = {
+    "1e308 I": ([[1e308, 0.0, 0.0], [0.0, 1e308, 0.0], [0.0, 0.0, 1e308]], "xx is 1e+308"),
+    "1e-300 I": ([[1e-300, 0.0, 0.0], [0.0, 1e-300, 0.0], [0.0, 0.0, 1e-300]], "xx is 1e-300"),
+    "-I": ([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]], "xx is -1"),
+    "diag(1, 1, 2e-3)": ([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2e-3]], "zz is 0.002"),
+}
+
+
+def with_coupling(path: Path, matrix: list[list[float]]) -> None:
+    """Replace the IMU set's coupling matrix, CRC recomputed (the mutation reaches the checks)."""
+    from canical.sets import coefficient_file
+
+    content = yaml.safe_load(path.read_text())
+    content["coupling"]["matrix"] = matrix
+    content.pop("crc32")
+    content["crc32"] = f"0x{coefficient_file.content_crc(content):08x}"
+    atomic_file.write_text_atomic(path, yaml.safe_dump(content, sort_keys=False))
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    """The real entry point in-process: exit status, stdout, stderr."""
+    from canical.commands.cli import main
+
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 1
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.mark.parametrize("case", FAR_FROM_IDENTITY)
+def test_a_coupling_far_from_identity_is_refused_everywhere(folder: Path, case: str, caplog, capsys) -> None:
+    """apply and serve --check refuse it in one line (exit 2, no traceback, no output file); the
+    daemon never loads it, at start or on reload (the running IMU set is kept)."""
+    matrix, said = FAR_FROM_IDENTITY[case]
+    config = load_config(imu_set_config(folder, "far"))
+    daemon = Daemon(config)
+    daemon.load_sets()
+    running = daemon.sets
+    assert running.coupling is not None
+    with_coupling(folder / "imu-set.yaml", matrix)
+    daemon._reload(force=False, why="test")
+    assert daemon.sets.combined_id == running.combined_id and daemon.sets.coupling == running.coupling
+    fresh = Daemon(load_config(config.path))
+    fresh.load_sets()
+    assert fresh.sets.coupling is None and not any(a.corrector for a in fresh.sets.axes)
+    refusals = [r.getMessage() for r in caplog.records if said in r.getMessage()]
+    assert refusals and all("\n" not in m for m in refusals)
+    drive = folder / "drive.csv"
+    drive.write_text("time_s,raw_x,raw_y,raw_z\n0.0,100,200,300\n0.01,110,210,310\n")
+    out = folder / "out.csv"
+    for argv in (["apply", str(folder / "imu-set.yaml"), str(drive), "-o", str(out)],
+                 ["serve", "--config", str(config.path), "--check"]):
+        code, _, err = run_cli(argv, capsys)
+        assert code == 2 and said in err and len(err.strip().splitlines()) == 1, (argv, err)
+        assert "Traceback" not in err and "near identity" in err
+    assert not out.exists()

@@ -146,8 +146,9 @@ def test_a_device_without_coupling_runs_the_identity() -> None:
 
 @pytest.mark.parametrize(("matrix", "reason"), [
     ([[1.0, 0.12, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], r"coupling term xy is +12.0 %, above 10 %"),
-    ([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], "singular"),
-    ([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2e-4]], "singular"),
+    ([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]], "coupling term zz is 0, outside 0.5..2"),
+    ([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 2e-4]], "coupling term zz is 0.0002, outside 0.5..2"),
+    ([[-1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]], "coupling term xx is -1, outside 0.5..2"),
     ([[1.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], "3 rows of 3 finite numbers"),
 ])
 def test_an_implausible_coupling_is_refused_with_an_abort(matrix, reason: str) -> None:

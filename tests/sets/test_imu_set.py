@@ -62,7 +62,11 @@ def test_the_two_kinds_are_told_apart(imu, single, tmp_path):
 
 @pytest.mark.parametrize(("matrix", "message"), [
     ([[1, 0.12, 0], [0, 1, 0], [0, 0, 1]], r"coupling term xy is \+12.0 %, above 10 %"),
-    ([[1, 0, 0], [0, 1, 0], [0, 0, 0]], "singular"),
+    ([[1, 0, 0], [0, 1, 0], [0, 0, 0]], r"coupling term zz is 0, outside 0.5..2"),
+    ([[1e308, 0, 0], [0, 1e308, 0], [0, 0, 1e308]], r"coupling term xx is 1e\+308, outside 0.5..2"),
+    ([[1e-300, 0, 0], [0, 1e-300, 0], [0, 0, 1e-300]], r"coupling term xx is 1e-300, outside 0.5..2"),
+    ([[-1, 0, 0], [0, -1, 0], [0, 0, -1]], r"coupling term xx is -1, outside 0.5..2"),
+    ([[1, 0, 0], [0, 1, 0], [0, 0, 2e-3]], r"coupling term zz is 0.002, outside 0.5..2: .*near identity"),
     ([[1, 0, 0], [0, 1, 0], [1, 1, 1, 1]], "3 rows of 3 finite numbers"),
 ])
 def test_an_implausible_coupling_is_refused(imu, matrix, message):
@@ -71,6 +75,25 @@ def test_an_implausible_coupling_is_refused(imu, matrix, message):
     content["crc32"] = f"0x{coefficient_file.content_crc(content):08x}"
     with pytest.raises(CanicalError, match=message):
         imu_set.from_content(content, "imu.yaml")
+
+
+def test_negative_standard_errors_are_refused(imu):
+    content = imu.to_dict()
+    content["coupling"]["standard_errors"][1][2] = -1e-4
+    content["crc32"] = f"0x{coefficient_file.content_crc(content):08x}"
+    with pytest.raises(CanicalError, match="standard_errors must not be negative"):
+        imu_set.from_content(content, "imu.yaml")
+
+
+def test_the_finite_outputs_proof_covers_the_coupling():
+    """Per-axis bounds each within the limit, but a row of the product beyond it: refused."""
+    from canical.sets.finite_outputs import RATE_LIMIT_DPS, check_coupled_outputs
+
+    near = (0.95 * RATE_LIMIT_DPS,) * 3
+    assert check_coupled_outputs(np.eye(3), near) is None
+    unbounded = check_coupled_outputs(np.asarray(COUPLING) * 1.05, near)
+    assert unbounded is not None and "row 1" in unbounded.message()
+    assert check_coupled_outputs(np.eye(3), (1.0, 1.0, float("inf"))) is not None
 
 
 def test_the_corrector_couples_the_per_axis_rates(imu, single):

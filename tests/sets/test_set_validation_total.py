@@ -196,3 +196,17 @@ def test_a_term_coefficient_beyond_any_bound_is_refused() -> None:
     content["crc32"] = f"0x{content_crc(content):08x}"
     with pytest.raises(CanicalError, match=r"terms\[0\]\.coefficient"):
         loads(yaml.safe_dump(content))
+
+
+def test_a_forward_polynomial_flat_between_grid_points_is_refused() -> None:
+    """Hypothesis's finding: ΔV(u) = 3 + 5e-324·u + 1.5e-299·u² + 120·u³ has a slope of 5e-324 at
+    ω = 0, between the grid's points; it loaded, and Newton divided by zero per sample."""
+    content = {"schema": 1, "sensor": {"id": "S1", "axis": "z"}, "units": {"raw": "counts", "rate": "deg/s"},
+               "created": "2026", "v0": 12.0,
+               "model": {"kind": "forward-poly", "coefficients": [3.0, 5e-324, 1.5e-299, 120.0],
+                         "rate_scale": 60.0, "rate_span_dps": [-60.0, 60.0], "span_raw": [-24000.0, 24000.0],
+                         "out_of_span": "linear-extrapolation"},
+               "terms": [], "fit": {"rms_dps": 0.01}}
+    content["crc32"] = f"0x{content_crc(content):08x}"
+    with pytest.raises(CanicalError, match="forward polynomial without an inverse"):
+        loads(yaml.safe_dump(content), "flat.yaml")

@@ -74,6 +74,10 @@ def test_vectorised_lag_equals_the_tracker(seed, even, tau):
         ({"kind": "channel", "feature": "lag", "form": "bias", "coefficient": 1.0, "channel": "t"}, "tau_s"),
         ({"kind": "channel", "feature": "derivative", "form": "scale", "coefficient": 1.0, "channel": "t",
           "tau_s": -2.0}, "tau_s must be positive"),
+        ({"kind": "time", "feature": "warmup", "form": "scale", "coefficient": 1.0, "tau_s": 5e-324},
+         r"tau_s 4.94e-324 s is outside 1e-06..1e\+09 s"),  # t/τ overflowed (the fuzzer's finding)
+        ({"kind": "channel", "feature": "lag", "form": "bias", "coefficient": 1.0, "channel": "t",
+          "tau_s": 1e300}, "tau_s 1e\\+300 s is outside"),
         ({"kind": "channel", "feature": "direction", "form": "bias", "coefficient": 1.0, "channel": "t"},
          "threshold_raw"),
         ({"kind": "channel", "feature": "gated", "form": "scale", "coefficient": 1.0, "channel": "t"},

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import random
 import signal
 import time
+import zlib
 from pathlib import Path
 
 import pytest
@@ -226,3 +228,33 @@ def test_mutated_states_with_their_crc_recomputed_never_raise_nor_load_beyond_th
     for s in learned:
         assert abs(s.b0) <= LIMITS.bias_dps and abs(s.slope) <= LIMITS.slope_dps_per_c
         assert 0 <= s.p00 <= LIMITS.p00 and 0 <= s.p11 <= LIMITS.p11
+
+
+@pytest.mark.parametrize(("key", "value"), [
+    ("set_id", "x" * 5000), ("axes", "a\nb"), ("version", [[[[1]]]] * 300)])
+def test_a_foreign_value_is_echoed_in_one_short_line(tmp_path: Path, key: str, value) -> None:
+    """The fuzzer's finding: a set id of 5,000 characters (CRC recomputed) made a note as long,
+    one with a line break a note of two lines."""
+    content = json.loads(state_file.dumps(SET_ID, AXES, LEARNED))
+    content[key] = value
+    body = {k: v for k, v in content.items() if k != "crc32"}
+    content["crc32"] = f"0x{zlib.crc32(json.dumps(body, sort_keys=True, separators=(',', ':')).encode()):08x}"
+    path = tmp_path / "bias.json"
+    path.write_text(json.dumps(content))
+    loaded = state_file.load(path, SET_ID, AXES, LIMITS)
+    assert loaded.learned is None and loaded.refused
+    assert "\n" not in loaded.note and len(loaded.note) < len(str(path)) + 120, loaded.note
+
+
+def test_a_key_given_twice_is_refused(tmp_path: Path) -> None:
+    """json keeps the last of two equal keys without a word; a state file with one is refused,
+    as a YAML file is (the CRC recomputed over what json would have kept)."""
+    text = state_file.dumps(SET_ID, AXES, LEARNED)
+    twice = text.replace('"b0": ', '"b0": 0.5, "b0": ', 1)
+    content = json.loads(twice)
+    body = {k: v for k, v in content.items() if k != "crc32"}
+    crc = zlib.crc32(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+    path = tmp_path / "bias.json"
+    path.write_text(twice.replace(content["crc32"], f"0x{crc:08x}"))
+    loaded = state_file.load(path, SET_ID, AXES, LIMITS)
+    assert loaded.learned is None and loaded.refused and "key 'b0' given twice" in loaded.note
