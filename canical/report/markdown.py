@@ -126,7 +126,7 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
             "|---|---|---|---|",
         ]
         for e in report.effects:
-            terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e.terms)
+            terms = ", ".join(f"{t.feature}/{t.form} {t.coefficient:.3g}" for t in e.terms)
             ev = e.evidence
             lines.append(f"| {e.label} | {ev.held_out_gain:.0%} | {ev.p_value:.1e} | {terms} |")
     else:
