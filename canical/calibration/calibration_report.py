@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from canical.calibrate.plateaus import PlateauFinding
     from canical.closed_loop.findings import Confound, Effect, LoopStep, RoundRow
     from canical.closed_loop.unexplained import Unexplained
 
@@ -136,7 +137,7 @@ class CalibrationReport:
     v0: float
     samples: SampleCounts
     plateaus: int
-    plateau_finding: dict[str, Any]  # canical.calibrate.plateaus.Plateaus.describe()
+    plateau_finding: PlateauFinding
     saturated_rates_dps: tuple[float, ...]
     rates: int
     segment_points: tuple[SegmentPoint, ...]
@@ -189,7 +190,7 @@ class CalibrationReport:
             "samples": asdict(self.samples),
             **({"read_as_means": self.read_as_means} if self.read_as_means is not None else {}),
             "plateaus": self.plateaus,
-            "plateau_finding": self.plateau_finding,
+            "plateau_finding": self.plateau_finding.to_dict(),
             "saturated_rates_dps": list(self.saturated_rates_dps),
             "left_out_plateaus": [asdict(p) for p in self.left_out_plateaus],
             "rates": self.rates,

@@ -20,6 +20,7 @@ from canical.progress import Progress
 from canical.sessions.canlog_format import CANLOG_FORMATS
 
 if TYPE_CHECKING:
+    from canical.calibrate.plateaus import PlateauFinding
     from canical.closed_loop.search import LoopResult
     from canical.sessions.session import Session
     from canical.sets.signing import SignatureRecord
@@ -412,10 +413,10 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
     return log.session
 
 
-def _plateau_line(found: dict[str, Any]) -> str:
-    return (f"plateaus   reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
-            f"{found['rate_tol_dps']:.3g} deg/s, held {found['reference_update_s']:.3g} s, "
-            f"late {found['reference_latency_s']:.3g} s, {found['rate_changes']} rate changes")
+def _plateau_line(found: PlateauFinding) -> str:
+    return (f"plateaus   reference noise {found.reference_noise_dps:.3g} deg/s, tolerance "
+            f"{found.rate_tol_dps:.3g} deg/s, held {found.reference_update_s:.3g} s, "
+            f"late {found.reference_latency_s:.3g} s, {found.rate_changes} rate changes")
 
 
 def summary(report: CalibrationReport) -> str:

@@ -11,19 +11,20 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from canical.calibrate.plateaus import PlateauFinding
     from canical.calibration.calibration_report import CalibrationReport
     from canical.closed_loop.findings import Confound
     from canical.closed_loop.unexplained import Unexplained
 
 
-def _plateau_finding(found: dict[str, Any]) -> list[str]:
+def _plateau_finding(found: PlateauFinding) -> list[str]:
     """What plateau finding estimated from the session."""
     return [
-        f"- plateau finding: reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
-        f"{found['rate_tol_dps']:.3g} deg/s over {found['window_s']:.3g} s windows; reference held "
-        f"{found['reference_update_s']:.3g} s, late {found['reference_latency_s']:.3g} s; guards: "
-        f"settle {found['settle_s']:.3g} s ({_settle_source(found)}), end {found['end_guard_s']:.3g} s; "
-        f"{found['rate_changes']} rate changes"
+        f"- plateau finding: reference noise {found.reference_noise_dps:.3g} deg/s, tolerance "
+        f"{found.rate_tol_dps:.3g} deg/s over {found.window_s:.3g} s windows; reference held "
+        f"{found.reference_update_s:.3g} s, late {found.reference_latency_s:.3g} s; guards: "
+        f"settle {found.settle_s:.3g} s ({_settle_source(found)}), end {found.end_guard_s:.3g} s; "
+        f"{found.rate_changes} rate changes"
     ]
 
 
@@ -36,11 +37,11 @@ def _reference_clock(clock: dict[str, Any] | None) -> list[str]:
             f"(rms {clock['residual_ms']:.1f} ms)"]
 
 
-def _settle_source(found: dict[str, Any]) -> str:
+def _settle_source(found: PlateauFinding) -> str:
     """Where the start guard came from: given, or the settling the sensor showed."""
-    source = found.get("settle_source", "default")
+    source = found.settle_source
     if source == "observed":
-        return f"sensor settled in {found['observed_settling_s']:.3g} s"
+        return f"sensor settled in {found.observed_settling_s:.3g} s"
     return {"given": "--settle", "default": "0.5 s or a tenth of the plateau"}.get(source, source)
 
 
