@@ -8,13 +8,14 @@ the two give different numbers for the same model.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from canical.calibrate.plateaus import PlateauFinding
     from canical.calibration.calibration_report import CalibrationReport
     from canical.closed_loop.findings import Confound
     from canical.closed_loop.unexplained import Unexplained
+    from canical.sessions.reference_clock import ReferenceClock
 
 
 def _plateau_finding(found: PlateauFinding) -> list[str]:
@@ -28,13 +29,13 @@ def _plateau_finding(found: PlateauFinding) -> list[str]:
     ]
 
 
-def _reference_clock(clock: dict[str, Any] | None) -> list[str]:
+def _reference_clock(clock: ReferenceClock | None) -> list[str]:
     """How the table's own file was put on the session's clock, when it was."""
     if clock is None:
         return []
-    return [f"- reference: `{clock['file']}` on its own clock, offset {clock['offset_s']:.4f} s, drift "
-            f"{clock['drift_ppm']:.1f} ppm, {clock['rate_changes_matched']} rate changes matched "
-            f"(rms {clock['residual_ms']:.1f} ms)"]
+    fit = clock.fit
+    return [f"- reference: `{clock.file}` on its own clock, offset {fit.offset_s:.4f} s, drift "
+            f"{fit.drift_ppm:.1f} ppm, {fit.events} rate changes matched (rms {fit.residual_ms:.1f} ms)"]
 
 
 def _settle_source(found: PlateauFinding) -> str:
