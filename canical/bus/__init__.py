@@ -7,7 +7,9 @@ worker thread), :mod:`.outages` (the interface going and coming back) and :mod:`
 (counters, status frame, systemd STATUS). :mod:`.daemon_config` reads its configuration,
 :mod:`.active_sets` loads the sets from files or from the sensor, :mod:`.sd_notify` talks to
 systemd, :mod:`.service_install` installs the units, and :mod:`.recording` turns bus traffic
-into a session (the demo). Imports :mod:`canical.device` and the rings below it.
+into a session (the demo), reading it, as ``canical record`` does, through :mod:`.raw_bus` (on
+SocketCAN the daemon's own raw socket behind python-can's public bus class). Imports
+:mod:`canical.device` and the rings below it.
 
 The modules are imported where used (``canical.bus.daemon`` and so on): the package itself
 imports nothing, so a command that needs one part does not load python-can and cantools for
@@ -22,6 +24,7 @@ __all__ = [
     "daemon",
     "daemon_config",
     "link",
+    "raw_bus",
     "recording",
     "reloads",
     "sd_notify",

@@ -19,8 +19,9 @@ from typing import Any
 import can
 import numpy as np
 
-from canical.bus.socketcan import enlarge_receive_buffer
+from canical.bus.raw_bus import open_receive_bus
 from canical.errors import CanicalError
+from canical.frames.frame_match import FrameMatch
 from canical.frames.imu_dictionary import AXES
 from canical.frames.imu_frames import ImuFrames
 from canical.sessions.session import Session
@@ -129,14 +130,14 @@ def record(
 
 
 def open_recorder_bus(interface: str, channel: str, frames: ImuFrames, **options: Any) -> can.BusABC:
-    """A python-can bus receiving only the IMU's frames and the table's (kernel filters where it can).
+    """A bus receiving only the IMU's frames and the table's (kernel filters where it can); on
+    SocketCAN with a receive buffer of seconds of frames, so that a recorder busy decoding loses
+    none meanwhile (:func:`~canical.bus.raw_bus.open_receive_bus`).
 
     ``options`` are the interface's own settings, passed through as python-can types them (Any).
     """
-    filters = [{"can_id": fid, "can_mask": 0x7FF, "extended": False} for fid in frames.ids.values()]
+    matches = [FrameMatch(fid, False, 0x7FF) for fid in frames.ids.values()]
     try:
-        bus = can.Bus(interface=interface, channel=channel, can_filters=filters, **options)
+        return open_receive_bus(interface, channel, matches, **options)
     except Exception as exc:  # python-can raises many types
         raise CanicalError(f"cannot open CAN interface {interface} channel {channel}: {exc}") from None
-    enlarge_receive_buffer(bus)  # a recorder busy decoding must not lose the frames meanwhile
-    return bus

@@ -23,7 +23,7 @@ from can.interfaces.socketcan.constants import CAN_EFF_FLAG, CAN_RAW_ERR_FILTER
 from canical.bus.socketcan_constants import CAN_ERR_MASK, FRAME_HEAD, SO_RCVBUFFORCE, SO_TIMESTAMPNS
 from canical.frames.frame_match import FrameMatch
 
-__all__ = ["RECEIVE_BUFFER_BYTES", "TX_FULL", "BusLost", "enlarge_receive_buffer", "enlarge_socket_buffer",
+__all__ = ["RECEIVE_BUFFER_BYTES", "TX_FULL", "BusLost", "enlarge_socket_buffer",
            "frame_key", "kernel_filters", "open_raw_socket", "receive_filters", "socket_frame"]
 
 #: errno values that mean "not a problem of this frame": the transmit queue is full.
@@ -67,15 +67,16 @@ def kernel_filters(matches: Iterable[FrameMatch]) -> bytes:
     return struct.pack(f"={len(words)}I", *words)
 
 
-def open_raw_socket(channel: str, matches: Iterable[FrameMatch]) -> socket.socket:
+def open_raw_socket(channel: str, matches: Iterable[FrameMatch], *, fd_frames: bool = True) -> socket.socket:
     """A blocking raw CAN socket on ``channel`` receiving the frames ``matches`` name, CAN FD
-    frames (to count and drop them) and error frames, each with its receive time
+    frames (the daemon's, to count and drop them; not with ``fd_frames`` off: a recorder's, as
+    python-can's bus by default) and error frames, each with its receive time
     (``SO_TIMESTAMPNS``), and a receive buffer of seconds of frames. No match: send only.
     OSError when the channel cannot be bound."""
     sock = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
     try:
         sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FILTER, kernel_filters(matches))
-        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, 1)
+        sock.setsockopt(socket.SOL_CAN_RAW, socket.CAN_RAW_FD_FRAMES, int(fd_frames))
         sock.setsockopt(socket.SOL_CAN_RAW, CAN_RAW_ERR_FILTER, CAN_ERR_MASK)
         sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         enlarge_socket_buffer(sock)  # a moment's stall of the host loses no frame
@@ -97,12 +98,3 @@ def enlarge_socket_buffer(sock: socket.socket, size_bytes: int = RECEIVE_BUFFER_
             continue
         return True
     return False
-
-
-def enlarge_receive_buffer(bus: object, size_bytes: int = RECEIVE_BUFFER_BYTES) -> bool:
-    """:func:`enlarge_socket_buffer` for a python-can bus (the recorder's) on SocketCAN. False:
-    not a SocketCAN bus, or refused."""
-    sock = getattr(bus, "socket", None)
-    if not isinstance(sock, socket.socket) or sock.family != socket.AF_CAN:
-        return False
-    return enlarge_socket_buffer(sock, size_bytes)

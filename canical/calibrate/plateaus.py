@@ -36,7 +36,7 @@ plateaus at the same rate; cross-validation groups and hysteresis both rely on t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -98,23 +98,46 @@ class Plateaus:
     def n_used(self) -> int:
         return int(np.sum(self.stop - self.start))
 
-    def describe(self) -> dict[str, float | int | str | None]:
+    def describe(self) -> PlateauFinding:
         """What plateau finding saw and set, for the report."""
-        return {
-            "reference_noise_dps": self.ref_noise_dps,
-            "rate_tol_dps": self.rate_tol_dps,
-            "reference_update_s": self.update_s,
-            "window_s": self.window_s,
-            "settle_s": self.settle_s,
-            "settle_source": self.settle_source,
-            "observed_settling_s": self.observed_settling_s,
-            "end_guard_s": self.end_guard_s,
-            "reference_latency_s": self.latency_s,
-            "rate_changes": self.rate_changes,
-            "longest_steady_s": self.longest_steady_s,
-            "not_settled_samples": self.n_not_settled,
-            "short_stretches": self.n_short,
-        }
+        return PlateauFinding(
+            reference_noise_dps=self.ref_noise_dps,
+            rate_tol_dps=self.rate_tol_dps,
+            reference_update_s=self.update_s,
+            window_s=self.window_s,
+            settle_s=self.settle_s,
+            settle_source=self.settle_source,
+            observed_settling_s=self.observed_settling_s,
+            end_guard_s=self.end_guard_s,
+            reference_latency_s=self.latency_s,
+            rate_changes=self.rate_changes,
+            longest_steady_s=self.longest_steady_s,
+            not_settled_samples=self.n_not_settled,
+            short_stretches=self.n_short,
+        )
+
+
+@dataclass(frozen=True)
+class PlateauFinding:
+    """What plateau finding saw and set, as the report and the command's summary read it; the
+    fields are the report's keys, in its order (:meth:`to_dict`), so report.json stays as it was."""
+
+    reference_noise_dps: float
+    rate_tol_dps: float
+    reference_update_s: float
+    window_s: float
+    settle_s: float
+    settle_source: str  # "given", "observed" or "default"
+    observed_settling_s: float | None
+    end_guard_s: float
+    reference_latency_s: float
+    rate_changes: int
+    longest_steady_s: float
+    not_settled_samples: int
+    short_stretches: int
+
+    def to_dict(self) -> dict[str, float | int | str | None]:
+        return asdict(self)
 
 
 def check_time_order(time_s: np.ndarray, what: str = "time_s") -> None:

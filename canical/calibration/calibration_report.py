@@ -16,8 +16,10 @@ from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from canical.calibrate.plateaus import PlateauFinding
     from canical.closed_loop.findings import Confound, Effect, LoopStep, RoundRow
     from canical.closed_loop.unexplained import Unexplained
+    from canical.sessions.reference_clock import ReferenceClock
 
 RATE_MODEL_VALIDATION = "leave-rates-out cross-validation"
 UNTESTABLE_WHY = ("follows the table rate in this session; visit the rates in random order "
@@ -136,7 +138,7 @@ class CalibrationReport:
     v0: float
     samples: SampleCounts
     plateaus: int
-    plateau_finding: dict[str, Any]  # canical.calibrate.plateaus.Plateaus.describe()
+    plateau_finding: PlateauFinding
     saturated_rates_dps: tuple[float, ...]
     rates: int
     segment_points: tuple[SegmentPoint, ...]
@@ -155,13 +157,13 @@ class CalibrationReport:
     session: str | None = None  # the input and output paths, when the CLI knows them
     coefficients: str | None = None
     left_out_plateaus: tuple[LeftOutPlateau, ...] = ()
-    reference_clock: dict[str, Any] | None = None  # a table file aligned to the log (the CLI's)
+    reference_clock: ReferenceClock | None = None  # a table file aligned to the log (the CLI's)
     read_as_means: str | None = None  # "N rows read as M means of k": a session too long to hold
 
     def with_paths(self, session: str, coefficients: str) -> CalibrationReport:
         return replace(self, session=session, coefficients=coefficients)
 
-    def with_reference_clock(self, clock: dict[str, Any] | None) -> CalibrationReport:
+    def with_reference_clock(self, clock: ReferenceClock | None) -> CalibrationReport:
         return replace(self, reference_clock=clock)
 
     def written_model(self) -> str:
@@ -178,7 +180,7 @@ class CalibrationReport:
         if self.coefficients is not None:
             out["coefficients"] = self.coefficients
         if self.reference_clock is not None:
-            out["reference_clock"] = self.reference_clock
+            out["reference_clock"] = self.reference_clock.to_dict()
         out |= {
             "model": self.model,
             "spec": self.spec,
@@ -189,7 +191,7 @@ class CalibrationReport:
             "samples": asdict(self.samples),
             **({"read_as_means": self.read_as_means} if self.read_as_means is not None else {}),
             "plateaus": self.plateaus,
-            "plateau_finding": self.plateau_finding,
+            "plateau_finding": self.plateau_finding.to_dict(),
             "saturated_rates_dps": list(self.saturated_rates_dps),
             "left_out_plateaus": [asdict(p) for p in self.left_out_plateaus],
             "rates": self.rates,

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from canical.closed_loop.candidates import Candidate
+    from canical.sets.terms import Term
 
 EVIDENCE_TEST = "leave-plateaus-out cross-validation and nested F-test"
 
@@ -70,7 +71,7 @@ class Effect:
     channel: str | None
     name: str
     evidence: Evidence
-    terms: tuple[dict[str, Any], ...]  # the coefficient file's form of each term
+    terms: tuple[Term, ...]  # with their final coefficients; the file's form only in to_dict
     rms_before_dps: float
     rms_after_dps: float
     description: str = ""  # a readable name with the final time constant or knee; "" until known
@@ -84,7 +85,8 @@ class Effect:
         return self.description or self.name
 
     def to_dict(self) -> dict[str, Any]:
-        return {**asdict(self), "evidence": self.evidence.to_dict(), "terms": [dict(t) for t in self.terms]}
+        terms = [t.to_dict() for t in self.terms]
+        return {**asdict(self), "evidence": self.evidence.to_dict(), "terms": terms}
 
 
 @dataclass(frozen=True)

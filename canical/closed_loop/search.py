@@ -87,7 +87,7 @@ from canical.sets.term_kinds import (
     TIME,
     TIME_WARMUP,
 )
-from canical.sets.terms import Term, gated_name, spline_group, term_from_dict
+from canical.sets.terms import Term, gated_name, spline_group
 
 MIN_GAIN = 0.10
 ALPHA = 1e-3
@@ -697,12 +697,8 @@ def _effect(cand: Candidate, before: Score, after: Score, f: float, p: float, ba
     evidence = Evidence(held_out_gain=1.0 - after.held_out_rms_dps / before.held_out_rms_dps,
                         min_gain=bar.min_gain, f_statistic=f, p_value=p, alpha=bar.alpha)
     return Effect(kind=cand.kind, channel=cand.channel, name=cand.name, evidence=evidence,
-                  terms=tuple(t.to_dict() for t in terms), rms_before_dps=before.held_out_rms_dps,
+                  terms=terms, rms_before_dps=before.held_out_rms_dps,
                   rms_after_dps=after.held_out_rms_dps)
-
-
-def _term_key(t: dict[str, Any]) -> tuple[Any, ...]:
-    return _key(term_from_dict(t))
 
 
 def _key(t: Term) -> tuple[Any, ...]:
@@ -718,7 +714,7 @@ def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
     final_terms = {_key(t): t for t in final_fit.terms}
     out = []
     for eff in effects:
-        terms = tuple(final_terms[k].to_dict() for k in map(_term_key, eff.terms) if k in final_terms)
+        terms = tuple(final_terms[k] for k in map(_key, eff.terms) if k in final_terms)
         if terms:
             out.append(replace(eff, terms=terms, description=_describe_effect(eff, final_fit)))
     return out

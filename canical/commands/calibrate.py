@@ -7,7 +7,7 @@ import json
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from canical.calibration.calibration_report import CalibrationReport
 from canical.commands import COMMANDS
@@ -20,7 +20,9 @@ from canical.progress import Progress
 from canical.sessions.canlog_format import CANLOG_FORMATS
 
 if TYPE_CHECKING:
+    from canical.calibrate.plateaus import PlateauFinding
     from canical.closed_loop.search import LoopResult
+    from canical.sessions.reference_clock import ReferenceClock
     from canical.sessions.session import Session
     from canical.sets.signing import SignatureRecord
 
@@ -330,12 +332,12 @@ def reading_progress(path: str):
 
 
 def align_table_file(args: argparse.Namespace, session: Session, progress: Progress
-                     ) -> tuple[Session, dict[str, Any]]:
+                     ) -> tuple[Session, ReferenceClock]:
     """The session with the table's own file as its reference, aligned by the rate changes both show."""
     from canical.commands.canlog_args import canlog_source
     from canical.sessions.canlog import parse_signal_map
     from canical.sessions.canlog_format import is_canlog
-    from canical.sessions.reference_clock import align_reference, join_reference
+    from canical.sessions.reference_clock import ReferenceClock, align_reference, join_reference
     from canical.sessions.table_file import read_table_trace
 
     dbc = signal = j1939 = None
@@ -348,18 +350,18 @@ def align_table_file(args: argparse.Namespace, session: Session, progress: Progr
     progress.step(f"aligning {args.reference} ({table.time_s.size} rows) to the session by its rate changes")
     fit = align_reference(session.time_s, session.raw, table)
     joined = join_reference(session.time_s, table, fit)
-    outside = int((~joined.inside).sum())
-    clock = {"file": str(args.reference), **fit.describe(), "samples_outside": outside}
+    clock = ReferenceClock(str(args.reference), fit, int((~joined.inside).sum()))
     progress.step(reference_line(clock))
     return replace(session, ref_dps=joined.ref_dps, settled=None).take(joined.inside), clock
 
 
-def reference_line(clock: dict[str, Any]) -> str:
+def reference_line(clock: ReferenceClock) -> str:
     """One line on how the table's file was put on the session's clock."""
-    outside = f", {clock['samples_outside']} samples outside it left out" if clock["samples_outside"] else ""
-    return (f"reference  {clock['file']} on its own clock: offset {clock['offset_s']:.4f} s, drift "
-            f"{clock['drift_ppm']:.1f} ppm, {clock['rate_changes_matched']} rate changes matched "
-            f"(rms {clock['residual_ms']:.1f} ms){outside}")
+    outside = f", {clock.samples_outside} samples outside it left out" if clock.samples_outside else ""
+    fit = clock.fit
+    return (f"reference  {clock.file} on its own clock: offset {fit.offset_s:.4f} s, drift "
+            f"{fit.drift_ppm:.1f} ppm, {fit.events} rate changes matched "
+            f"(rms {fit.residual_ms:.1f} ms){outside}")
 
 
 def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session:
@@ -412,10 +414,10 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
     return log.session
 
 
-def _plateau_line(found: dict[str, Any]) -> str:
-    return (f"plateaus   reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
-            f"{found['rate_tol_dps']:.3g} deg/s, held {found['reference_update_s']:.3g} s, "
-            f"late {found['reference_latency_s']:.3g} s, {found['rate_changes']} rate changes")
+def _plateau_line(found: PlateauFinding) -> str:
+    return (f"plateaus   reference noise {found.reference_noise_dps:.3g} deg/s, tolerance "
+            f"{found.rate_tol_dps:.3g} deg/s, held {found.reference_update_s:.3g} s, "
+            f"late {found.reference_latency_s:.3g} s, {found.rate_changes} rate changes")
 
 
 def summary(report: CalibrationReport) -> str:

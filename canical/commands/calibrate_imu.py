@@ -113,7 +113,7 @@ def read_triad_log_with_reference(args: argparse.Namespace, path: str, reference
     mounted upside down turns against the table)."""
     from canical.commands.calibrate import reference_line
     from canical.sessions.canlog import default_inputs
-    from canical.sessions.reference_clock import align_reference, join_reference
+    from canical.sessions.reference_clock import ReferenceClock, align_reference, join_reference
     from canical.sessions.triad_session import read_triad_log_unreferenced, triad_with_reference
 
     source = canlog_source_for_triad(args, path)
@@ -127,7 +127,7 @@ def read_triad_log_with_reference(args: argparse.Namespace, path: str, reference
     fit = align_reference(raws.time_s, raws.raw[:, axis], table)
     joined = join_reference(raws.time_s, table, fit)
     session, r = triad_with_reference(raws, axis, joined.ref_dps, joined.inside)
-    clock = {"file": reference, **fit.describe(), "samples_outside": int((~joined.inside).sum())}
+    clock = ReferenceClock(reference, fit, int((~joined.inside).sum()))
     # Printed, not progress: the axis and its sign are inferred, and the user must see them.
     print(reference_line(clock))
     print(f"axis       {path}: the table turns about IMU axis {session.axis_label} (raw {AXES[axis]} "

@@ -168,7 +168,7 @@ def closed_loop_demo(out: Path, seed: int) -> Path:
     assert loop is not None, "the default options close the loop"
     print("held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
     for e in result.report.effects:
-        terms = ", ".join(f"{t['feature']}/{t['form']}" for t in e.terms)
+        terms = ", ".join(f"{t.feature}/{t.form}" for t in e.terms)
         ev = e.evidence
         print(f"  (found {e.name} ({terms}): held-out gain {ev.held_out_gain:.0%} when added, "
               f"p = {ev.p_value:.1e})")

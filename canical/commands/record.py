@@ -110,19 +110,20 @@ def run(args: argparse.Namespace) -> int:
     what = _frames(args)
     db = load_dbc(what.dbc)
     matches = [frame_match(db.get_message_by_name(n), what.j1939_source) for n in what.names]
-    filters = [{"can_id": m.frame_id, "can_mask": m.mask, "extended": m.extended} for m in matches]
     with output_plan(out) as plan:
-        recorded = _record(plan.temp_path(out), args, what, filters, matches[0])
+        recorded = _record(plan.temp_path(out), args, what, matches)
     print(f"record: {recorded['raw']} {what.names[0]} frames, {recorded['all']} frames in all -> {out}")
     return 0
 
 
-def _record(tmp: Path, args: argparse.Namespace, what: Recording, filters: list,
-            raw: FrameMatch) -> dict[str, int]:
-    """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts."""
+def _record(tmp: Path, args: argparse.Namespace, what: Recording,
+            matches: list[FrameMatch]) -> dict[str, int]:
+    """Frames into ``tmp`` until the duration, the frame count or a signal; returns the counts.
+    On SocketCAN the bus has a receive buffer of seconds of frames, so that writing the log
+    loses none meanwhile (:func:`~canical.bus.raw_bus.open_receive_bus`)."""
     import can
 
-    from canical.bus.socketcan import enlarge_receive_buffer
+    from canical.bus.raw_bus import open_receive_bus
 
     stop = False
 
@@ -133,10 +134,9 @@ def _record(tmp: Path, args: argparse.Namespace, what: Recording, filters: list,
     previous = signal.signal(signal.SIGINT, on_signal), signal.signal(signal.SIGTERM, on_signal)
     counts = {"raw": 0, "all": 0}
     interface, channel, names = what.interface, what.channel, what.names
+    raw = matches[0]
     try:
-        with can.Bus(interface=interface, channel=channel, can_filters=filters) as bus, \
-                can.Logger(str(tmp)) as logger:
-            enlarge_receive_buffer(bus)  # writing the log must not lose frames meanwhile
+        with open_receive_bus(interface, channel, matches) as bus, can.Logger(str(tmp)) as logger:
             print(f"record: {', '.join(names)} on {interface} {channel} -> {args.output} (Ctrl-C ends)",
                   flush=True)
             end = time.monotonic() + args.duration if args.duration else None

@@ -8,39 +8,41 @@ the two give different numbers for the same model.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from canical.calibrate.plateaus import PlateauFinding
     from canical.calibration.calibration_report import CalibrationReport
     from canical.closed_loop.findings import Confound
     from canical.closed_loop.unexplained import Unexplained
+    from canical.sessions.reference_clock import ReferenceClock
 
 
-def _plateau_finding(found: dict[str, Any]) -> list[str]:
+def _plateau_finding(found: PlateauFinding) -> list[str]:
     """What plateau finding estimated from the session."""
     return [
-        f"- plateau finding: reference noise {found['reference_noise_dps']:.3g} deg/s, tolerance "
-        f"{found['rate_tol_dps']:.3g} deg/s over {found['window_s']:.3g} s windows; reference held "
-        f"{found['reference_update_s']:.3g} s, late {found['reference_latency_s']:.3g} s; guards: "
-        f"settle {found['settle_s']:.3g} s ({_settle_source(found)}), end {found['end_guard_s']:.3g} s; "
-        f"{found['rate_changes']} rate changes"
+        f"- plateau finding: reference noise {found.reference_noise_dps:.3g} deg/s, tolerance "
+        f"{found.rate_tol_dps:.3g} deg/s over {found.window_s:.3g} s windows; reference held "
+        f"{found.reference_update_s:.3g} s, late {found.reference_latency_s:.3g} s; guards: "
+        f"settle {found.settle_s:.3g} s ({_settle_source(found)}), end {found.end_guard_s:.3g} s; "
+        f"{found.rate_changes} rate changes"
     ]
 
 
-def _reference_clock(clock: dict[str, Any] | None) -> list[str]:
+def _reference_clock(clock: ReferenceClock | None) -> list[str]:
     """How the table's own file was put on the session's clock, when it was."""
     if clock is None:
         return []
-    return [f"- reference: `{clock['file']}` on its own clock, offset {clock['offset_s']:.4f} s, drift "
-            f"{clock['drift_ppm']:.1f} ppm, {clock['rate_changes_matched']} rate changes matched "
-            f"(rms {clock['residual_ms']:.1f} ms)"]
+    fit = clock.fit
+    return [f"- reference: `{clock.file}` on its own clock, offset {fit.offset_s:.4f} s, drift "
+            f"{fit.drift_ppm:.1f} ppm, {fit.events} rate changes matched (rms {fit.residual_ms:.1f} ms)"]
 
 
-def _settle_source(found: dict[str, Any]) -> str:
+def _settle_source(found: PlateauFinding) -> str:
     """Where the start guard came from: given, or the settling the sensor showed."""
-    source = found.get("settle_source", "default")
+    source = found.settle_source
     if source == "observed":
-        return f"sensor settled in {found['observed_settling_s']:.3g} s"
+        return f"sensor settled in {found.observed_settling_s:.3g} s"
     return {"given": "--settle", "default": "0.5 s or a tenth of the plateau"}.get(source, source)
 
 
@@ -126,7 +128,7 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
             "|---|---|---|---|",
         ]
         for e in report.effects:
-            terms = ", ".join(f"{t['feature']}/{t['form']} {t['coefficient']:.3g}" for t in e.terms)
+            terms = ", ".join(f"{t.feature}/{t.form} {t.coefficient:.3g}" for t in e.terms)
             ev = e.evidence
             lines.append(f"| {e.label} | {ev.held_out_gain:.0%} | {ev.p_value:.1e} | {terms} |")
     else:

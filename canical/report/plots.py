@@ -32,7 +32,6 @@ from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
 from canical.files.atomic_file import make_dirs, write_bytes_atomic
 from canical.sets.term_kinds import CHANNEL_LAG, CHANNEL_OFFSET, CHANNEL_RATE_SPLINE, TIME
-from canical.sets.terms import term_from_dict
 
 
 def _save(fig, path: Path) -> None:
@@ -136,7 +135,7 @@ def effect_plot(loop: LoopResult, effect: Effect, path: Path) -> None:
     """Partial residual: the final model's residual plus this effect's own contribution."""
     blocks = loop.blocks
     resid = blocks.points.rate - predict(loop.fit, blocks)
-    terms = tuple(term_from_dict(t) for t in effect.terms)
+    terms = effect.terms
     contribution = effect_contribution(loop.fit, blocks, terms)
     x, label = variable_of(effect.name, blocks, loop)
     by_rate = any(t.spec is CHANNEL_RATE_SPLINE for t in terms)

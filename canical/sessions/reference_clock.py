@@ -79,6 +79,10 @@ class ClockFit:
     def to_table(self, session_s: np.ndarray) -> np.ndarray:
         return self.offset_s + (1.0 + self.drift_ppm * 1e-6) * np.asarray(session_s, dtype=float)
 
+    @property
+    def residual_ms(self) -> float:
+        return 1e3 * self.residual_s
+
     def describe(self) -> dict[str, float | int]:
         """For report.json."""
         return {
@@ -87,9 +91,23 @@ class ClockFit:
             "rate_changes_matched": self.events,
             "rate_changes_off_the_line": self.rejected,
             "rate_changes_unmatched": self.unmatched,
-            "residual_ms": 1e3 * self.residual_s,
+            "residual_ms": self.residual_ms,
             "overlap_s": self.overlap_s,
         }
+
+
+@dataclass(frozen=True)
+class ReferenceClock:
+    """A table's own file put on the session's clock: which file, the fit, and the session's
+    samples it does not cover (left out). The command prints it and the report writes it, both
+    from this record; report.json's form is :meth:`to_dict`."""
+
+    file: str
+    fit: ClockFit
+    samples_outside: int
+
+    def to_dict(self) -> dict[str, str | float | int]:
+        return {"file": self.file, **self.fit.describe(), "samples_outside": self.samples_outside}
 
 
 @dataclass(frozen=True)

@@ -106,7 +106,7 @@ def test_measured_reference_noise_is_estimated_and_sets_the_tolerance(jitter):
     _, p = _check_all_found(TableBehaviour(accel_dps2=10.0, reference="measured", jitter_dps=jitter))
     assert p.ref_noise_dps == pytest.approx(jitter, rel=0.25)
     assert p.rate_tol_dps > 2 * jitter / np.sqrt(p.window_s * 100.0)
-    assert p.describe()["reference_noise_dps"] == p.ref_noise_dps
+    assert p.describe().reference_noise_dps == p.ref_noise_dps
 
 
 @pytest.mark.parametrize("asynchronous", [False, True])

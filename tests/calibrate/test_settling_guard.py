@@ -47,8 +47,8 @@ def _ringing_rows(result, rec, noise_dps):
 def test_ringing_with_a_commanded_reference_is_not_used(seed):
     result, rec = _run(RINGING, seed=seed)
     found = result.report.plateau_finding
-    assert found["settle_source"] == "observed"
-    assert found["settle_s"] > OLD_RULE_S
+    assert found.settle_source == "observed"
+    assert found.settle_s > OLD_RULE_S
     assert _ringing_rows(result, rec, GyroModel().noise_dps) == 0
     assert result.base.plateaus.count == grid_rates().size
     ideal = _run(IDEAL, seed=seed)[0].report.held_out.rms_dps
@@ -64,7 +64,7 @@ def test_slow_sensor_filter_is_waited_for():
     tau = 1 / (2 * np.pi * SLOW_FILTER.bandwidth_hz)
     # A 3 deg/s step decays as 3·exp(-s/τ): within twice the sensor's noise after τ·ln(3/(2·0.08)).
     lag_s = tau * np.log(3.0 / (2 * SLOW_FILTER.noise_dps))
-    assert result.report.plateau_finding["settle_s"] >= lag_s
+    assert result.report.plateau_finding.settle_s >= lag_s
     ticks = rec.time_s[rec.kept]
     used = p.label >= 0
     since_step = ticks[used] - rec.schedule.end[p.label[used]]
@@ -76,9 +76,9 @@ def test_slow_sensor_filter_is_waited_for():
 def test_ideal_session_keeps_a_short_guard():
     result, _ = _run(IDEAL)
     found = result.report.plateau_finding
-    assert found["settle_source"] == "observed"
-    assert found["settle_s"] == pytest.approx(0.1)
-    assert found["observed_settling_s"] < 0.1
+    assert found.settle_source == "observed"
+    assert found.settle_s == pytest.approx(0.1)
+    assert found.observed_settling_s < 0.1
 
 
 @settings(max_examples=25, deadline=None)
