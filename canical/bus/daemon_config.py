@@ -255,12 +255,10 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
 
 def _trust(content: Json, base: Path, fail: Fail) -> Trust | None:
     """``trust``: the public key files sets must be signed by, each read now (absent: none)."""
-    section = content.get("trust")
+    section = _optional_section(content, "trust", {"keys", "require"},
+                                "{keys: [public key files], require: true}", fail)
     if section is None:
         return None
-    if not isinstance(section, dict):
-        raise fail("trust", "must be a mapping {keys: [public key files], require: true}")
-    _no_unknown(section, {"keys", "require"}, "trust.", fail)
     paths = section.get("keys")
     if not isinstance(paths, list) or not paths:
         raise fail("trust.keys", "must be a list of public key files (canical keygen's NAME.pub)")
@@ -567,12 +565,10 @@ def _held_ids(spec: Any, held: list[str], dbc: _Dbc) -> tuple[tuple[str, int, bo
 
 def _j1939_source(content: Json, fail: Fail) -> J1939Source:
     """``j1939``: which source address J1939 messages are matched with (absent: the DBC's)."""
-    section = content.get("j1939")
+    section = _optional_section(content, "j1939", {"source_address", "messages"},
+                                "{source_address: any or 0..253, messages: [...] or all}", fail)
     if section is None:
         return None
-    if not isinstance(section, dict):
-        raise fail("j1939", "must be a mapping {source_address: any or 0..253, messages: [...] or all}")
-    _no_unknown(section, {"source_address", "messages"}, "j1939.", fail)
     try:
         return parse_j1939_source(section.get("source_address"), "source_address")
     except ValueError as exc:
@@ -613,16 +609,25 @@ def _raw_frames_can_match(frames: _Frames, axes: tuple[AxisConfig, ...], dbc: _D
 
 def _device(content: Json, fail: Fail) -> DeviceSource | None:
     """``device``: the IMU as a CANopen node whose own sets are used (absent: files only)."""
-    device_in = content.get("device")
+    device_in = _optional_section(content, "device", {"node", "timeout_s"},
+                                  "{node: CANopen node id, timeout_s: seconds}", fail)
     if device_in is None:
         return None
-    if not isinstance(device_in, dict):
-        raise fail("device", "must be a mapping {node: CANopen node id, timeout_s: seconds}")
-    _no_unknown(device_in, {"node", "timeout_s"}, "device.", fail)
     node = device_in.get("node")
     if not isinstance(node, int) or isinstance(node, bool) or not 1 <= node <= 127:
         raise fail("device.node", f"must be a CANopen node id 1..127, got {node!r}")
     return DeviceSource(node, _positive(device_in.get("timeout_s", 1.0), "device.timeout_s", fail))
+
+
+def _optional_section(content: Json, name: str, allowed: set[str], shape: str, fail: Fail) -> Json | None:
+    """An optional mapping section of the configuration, its keys checked (absent: None)."""
+    section = content.get(name)
+    if section is None:
+        return None
+    if not isinstance(section, dict):
+        raise fail(name, f"must be a mapping {shape}")
+    _no_unknown(section, allowed, f"{name}.", fail)
+    return section
 
 
 def _no_unknown(section: Mapping[str, Any], allowed: set[str], prefix: str, fail: Fail) -> None:
