@@ -16,6 +16,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from canical.commands.cli import main
+from canical.sim.gyro import GyroModel
+
+T0 = 1_700_000_000.0  # the logger's clock
 
 ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "own-imu.md"
@@ -73,13 +76,32 @@ def test_the_whole_page_is_run_but_what_needs_a_bus_or_a_tables_file() -> None:
     run = sum(1 for s in steps if s.argv)
     written = len(re.findall(r"^\$ canical ", page, flags=re.M))
     not_run = sum(page.count(f"```console {title}") for title in NOT_RUN)
-    assert run == 19 and written == run + 3 and not_run == 3, (run, written, not_run)
+    assert run == 20 and written == run + 2 and not_run == 2, (run, written, not_run)
+
+
+def _table_files(folder: Path) -> None:
+    """§5's imu.log (vendor.dbc's TPDO2_Gyro) and table.csv: the table's own file, on its own clock."""
+    import struct
+
+    import can
+    from support.table_clock import own_clock_case, table_csv
+
+    gyro = GyroModel(sensitivity=1.0, bias_counts=0.3, lsb=0.1, rail_counts=3276.7)
+    case = own_clock_case(0, gyro=gyro, fs_hz=100.0, offset_s=5000.25, drift_ppm=-75.0)
+    with can.Logger(str(folder / "imu.log")) as log:
+        for t, raw in zip(case.session.time_s, case.session.raw, strict=True):
+            data = struct.pack("<hhh", 3, -2, round(float(raw) * 10))
+            log.on_message_received(
+                can.Message(timestamp=T0 + float(t), arbitration_id=0x288, is_extended_id=False, data=data)
+            )
+    (folder / "table.csv").write_text(table_csv(case.table), encoding="utf-8")
 
 
 def test_every_command_of_the_walkthrough_runs_as_shown(tmp_path: Path, monkeypatch, capsys) -> None:
     for name in DBCS:
         shutil.copy(ROOT / "tests" / "data" / name, tmp_path / name)
     shutil.copy(ROOT / "tests" / "data" / DBCS[1], tmp_path / "vendor.dbc")
+    _table_files(tmp_path)
     monkeypatch.chdir(tmp_path)
     for step in walkthrough_steps(PAGE.read_text(encoding="utf-8"), whole=True):
         if step.file:
