@@ -1,8 +1,8 @@
-"""docs/own-imu.md's walkthrough, run as written: a J1939 and a CANopen IMU from their DBCs as shipped.
+"""docs/own-imu.md, run as written: a J1939 and a CANopen IMU from their DBCs as shipped.
 
-Between the page's walkthrough markers, each YAML block whose first line is ``# NAME.yaml`` is
-written to that file, and each ``$ canical ...`` line of a console block is run, in page
-order, in one folder holding the two vendor DBCs (``tests/data``); the lines a console block
+On the whole page, each YAML block whose first line is ``# NAME.yaml`` is written to that file,
+and each ``$ canical ...`` line of a console block is run, in page order, in one folder holding
+the two vendor DBCs (``tests/data``, the CANopen one also as ``vendor.dbc``); the lines a console block
 shows after a command must be among what that command printed. A command that fails, or an
 output line the command no longer prints, fails the test: the page cannot drift from the code.
 """
@@ -16,11 +16,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from canical.commands.cli import main
+from canical.sim.gyro import GyroModel
+
+T0 = 1_700_000_000.0  # the logger's clock
 
 ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "own-imu.md"
 DBCS = ("vendor_j1939_gyro.dbc", "vendor_canopen_gyro.dbc")
 START, END = "<!-- walkthrough: run by tests/docs/test_docs_own_imu.py -->", "<!-- end of walkthrough -->"
+# Console blocks the test cannot run, by their title: what each needs.
+NOT_RUN = {'title="on the vehicle"': "a live bus", 'title="needs the table\'s own file"': "a table's file"}
 
 
 @dataclass
@@ -33,19 +38,22 @@ class Step:
     shown: list[str] = field(default_factory=list)
 
 
-def walkthrough_steps(page: str) -> list[Step]:
-    """The walkthrough's files and commands, in page order."""
-    section = page.split(START, 1)[1].split(END, 1)[0]
+def walkthrough_steps(page: str, *, whole: bool = False) -> list[Step]:
+    """The walkthrough's (or the whole page's) files and commands, in page order."""
+    section = page if whole else page.split(START, 1)[1].split(END, 1)[0]
     steps: list[Step] = []
-    for kind, body in re.findall(r"```(yaml|console)\n(.*?)```", section, flags=re.S):
+    for kind, title, body in re.findall(r"```(yaml|console)( [^\n]*)?\n(.*?)```", section, flags=re.S):
         if kind == "yaml":
             first, _, rest = body.partition("\n")
-            assert first.startswith("# ") and first.endswith(".yaml"), first
-            steps.append(Step(file=first[2:], text=rest))
+            if first.startswith("# ") and first.endswith(".yaml"):
+                steps.append(Step(file=first[2:], text=rest))
             continue
-        for line in body.splitlines():
+        if title:
+            assert title.strip() in NOT_RUN, f"console block titled {title.strip()}: not known to the test"
+            continue
+        for line in body.replace("\\\n", " ").splitlines():
             if line.startswith("$ "):
-                argv = shlex.split(line[2:])
+                argv = shlex.split(line[2:], comments=True)
                 assert argv[0] == "canical", line
                 steps.append(Step(argv=argv[1:]))
             elif line.strip():
@@ -61,11 +69,41 @@ def test_the_page_has_a_walkthrough_of_both_imus() -> None:
     assert verbs.count("calibrate") == 2 and verbs.count("apply") == 2 and verbs.count("serve") == 2
 
 
+def test_the_whole_page_is_run_but_what_needs_a_bus_or_a_tables_file() -> None:
+    page = PAGE.read_text(encoding="utf-8")
+    steps = walkthrough_steps(page, whole=True)
+    assert [s.file for s in steps if s.file] == ["vendor.yaml", "j1939-imu.yaml", "canopen-imu.yaml"]
+    run = sum(1 for s in steps if s.argv)
+    written = len(re.findall(r"^\$ canical ", page, flags=re.M))
+    not_run = sum(page.count(f"```console {title}") for title in NOT_RUN)
+    assert run == 20 and written == run + 2 and not_run == 2, (run, written, not_run)
+
+
+def _table_files(folder: Path) -> None:
+    """§5's imu.log (vendor.dbc's TPDO2_Gyro) and table.csv: the table's own file, on its own clock."""
+    import struct
+
+    import can
+    from support.table_clock import own_clock_case, table_csv
+
+    gyro = GyroModel(sensitivity=1.0, bias_counts=0.3, lsb=0.1, rail_counts=3276.7)
+    case = own_clock_case(0, gyro=gyro, fs_hz=100.0, offset_s=5000.25, drift_ppm=-75.0)
+    with can.Logger(str(folder / "imu.log")) as log:
+        for t, raw in zip(case.session.time_s, case.session.raw, strict=True):
+            data = struct.pack("<hhh", 3, -2, round(float(raw) * 10))
+            log.on_message_received(
+                can.Message(timestamp=T0 + float(t), arbitration_id=0x288, is_extended_id=False, data=data)
+            )
+    (folder / "table.csv").write_text(table_csv(case.table), encoding="utf-8")
+
+
 def test_every_command_of_the_walkthrough_runs_as_shown(tmp_path: Path, monkeypatch, capsys) -> None:
     for name in DBCS:
         shutil.copy(ROOT / "tests" / "data" / name, tmp_path / name)
+    shutil.copy(ROOT / "tests" / "data" / DBCS[1], tmp_path / "vendor.dbc")
+    _table_files(tmp_path)
     monkeypatch.chdir(tmp_path)
-    for step in walkthrough_steps(PAGE.read_text(encoding="utf-8")):
+    for step in walkthrough_steps(PAGE.read_text(encoding="utf-8"), whole=True):
         if step.file:
             (tmp_path / step.file).write_text(step.text, encoding="utf-8")
             continue
