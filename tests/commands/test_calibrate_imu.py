@@ -184,33 +184,39 @@ def test_apply_an_imu_set_to_a_can_log_as_to_the_same_rows_of_a_csv(calibrated, 
 def write_triad_log(csv_path, log_path) -> None:
     """A triad session CSV as the bus carries it: IMU_RAW with the three raw signals, TABLE_REF
     with the table's rate, axis and mounting, IMU_AUX now and then."""
+    from canical.sessions.triad_session import read_triad_session
+
+    write_bus_log(read_triad_session(csv_path), log_path, with_table=True)
+
+
+def write_bus_log(session, log_path, with_table: bool) -> None:
+    """The session's frames in a log: IMU_RAW each sample (just after TABLE_REF, ``with_table``),
+    IMU_AUX every tenth."""
     import can
     import cantools
 
-    from canical.sessions.triad_session import read_triad_session
-
-    session = read_triad_session(csv_path)
     db = cantools.database.load_file(str(DBC))
     raw_msg, ref_msg, aux_msg = (db.get_message_by_name(n) for n in ("IMU_RAW", "TABLE_REF", "IMU_AUX"))
     axis = session.table_axis
     with can.Logger(str(log_path)) as logger:
+
+        def log(message, stamp: float, values: dict) -> None:
+            logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=message.frame_id,
+                                                   is_extended_id=False, data=message.encode(values)))
+
         rows = zip(session.time_s, session.raw.tolist(), session.rate_dps, strict=True)
         for i, (t, raw, rate) in enumerate(rows):
             stamp = 1000.0 + float(t)
-            table = ref_msg.encode({"TableRate": float(axis.sign * rate[axis.index]), "TableAxis": axis.index,
-                                    "TableSettled": 1, "TableAxisInverted": int(axis.sign < 0),
-                                    "TableCounter": i & 0xF})
-            logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=ref_msg.frame_id,
-                                                   is_extended_id=False, data=table))
+            if with_table:
+                log(ref_msg, stamp, {"TableRate": float(axis.sign * rate[axis.index]),
+                                     "TableAxis": axis.index, "TableSettled": 1,
+                                     "TableAxisInverted": int(axis.sign < 0), "TableCounter": i & 0xF})
             if i % 10 == 0:
-                aux = aux_msg.encode({"SupplyVoltage": 12.0, "Uptime": float(t),
-                                      "AuxCounter": (i // 10) & 0xF})
-                logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=aux_msg.frame_id,
-                                                       is_extended_id=False, data=aux))
-            data = raw_msg.encode({"GyroRawX": raw[0], "GyroRawY": raw[1], "GyroRawZ": raw[2],
-                                   "Temperature": 25.0, "Counter": i & 0xF, "SensorFault": 0})
-            logger.on_message_received(can.Message(timestamp=stamp + 1e-4, arbitration_id=raw_msg.frame_id,
-                                                   is_extended_id=False, data=data))
+                log(aux_msg, stamp, {"SupplyVoltage": 12.0, "Uptime": float(t),
+                                     "AuxCounter": (i // 10) & 0xF})
+            log(raw_msg, stamp + (1e-4 if with_table else 0.0),
+                {"GyroRawX": raw[0], "GyroRawY": raw[1], "GyroRawZ": raw[2], "Temperature": 25.0,
+                 "Counter": i & 0xF, "SensorFault": 0})
 
 
 def test_calibrate_from_the_bus_as_from_the_csvs(calibrated, sessions, tmp_path, capsys):
@@ -255,26 +261,10 @@ def test_calibrate_from_the_bus_as_from_the_csvs(calibrated, sessions, tmp_path,
 def write_unreferenced_log(csv_path, log_path, table_path, offset_s: float, drift_ppm: float) -> None:
     """A triad session as a bus without the table's frame (IMU_RAW, IMU_AUX) and the table's own
     file: its rate about its own axis at 10 Hz, on its own clock (offset and drift)."""
-    import can
-    import cantools
-
     from canical.sessions.triad_session import read_triad_session
 
     session = read_triad_session(csv_path)
-    db = cantools.database.load_file(str(DBC))
-    raw_msg, aux_msg = db.get_message_by_name("IMU_RAW"), db.get_message_by_name("IMU_AUX")
-    with can.Logger(str(log_path)) as logger:
-        for i, (t, raw) in enumerate(zip(session.time_s, session.raw.tolist(), strict=True)):
-            stamp = 1000.0 + float(t)
-            if i % 10 == 0:
-                aux = aux_msg.encode({"SupplyVoltage": 12.0, "Uptime": float(t),
-                                      "AuxCounter": (i // 10) & 0xF})
-                logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=aux_msg.frame_id,
-                                                       is_extended_id=False, data=aux))
-            data = raw_msg.encode({"GyroRawX": raw[0], "GyroRawY": raw[1], "GyroRawZ": raw[2],
-                                   "Temperature": 25.0, "Counter": i & 0xF, "SensorFault": 0})
-            logger.on_message_received(can.Message(timestamp=stamp, arbitration_id=raw_msg.frame_id,
-                                                   is_extended_id=False, data=data))
+    write_bus_log(session, log_path, with_table=False)
     axis = session.table_axis
     own = axis.sign * session.rate_dps[::20, axis.index]  # the table's rate about its own axis
     clock = offset_s + (1.0 + drift_ppm * 1e-6) * session.time_s[::20]

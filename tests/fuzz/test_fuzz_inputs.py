@@ -26,6 +26,7 @@ import random
 import re
 import warnings
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -83,10 +84,15 @@ def dump_yaml(tree: Any) -> str:
 
 def seal_set(tree: Any) -> None:
     """The set's CRC recomputed over the mutated content (0 where the content has no JSON form)."""
+    seal(tree, coefficient_file.content_crc)
+
+
+def seal(tree: Any, crc: Callable[[Any], int]) -> None:
+    """``crc32`` recomputed by ``crc`` over the rest of ``tree`` (0 where it has no JSON form)."""
     if isinstance(tree, dict):
         tree.pop("crc32", None)
         try:
-            tree["crc32"] = f"0x{coefficient_file.content_crc(tree):08x}"
+            tree["crc32"] = f"0x{crc(tree):08x}"
         except (TypeError, ValueError, RecursionError):
             tree["crc32"] = "0x00000000"
 
@@ -250,12 +256,7 @@ STATE_SET_ID = 0x1234ABCD
 
 def seal_state(tree: Any) -> None:
     """The state file's CRC recomputed as the daemon writes it."""
-    if isinstance(tree, dict):
-        tree.pop("crc32", None)
-        try:
-            tree["crc32"] = f"0x{state_file._crc(tree):08x}"
-        except (TypeError, ValueError, RecursionError):
-            tree["crc32"] = "0x00000000"
+    seal(tree, state_file._crc)
 
 
 def state_key_twice(text: str) -> str:
