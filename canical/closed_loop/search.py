@@ -236,9 +236,9 @@ def plateau_folds(blocks: Blocks, k: int = FOLDS) -> list[np.ndarray]:
 
 #: Stretches of the session a channel's form is tried on, fitted on the others (:func:`stretch_gain`).
 STRETCHES = 4
-#: The share of a stretch's held-out error a channel's form must remove to be blamed: a third. On
-#: the blind generator's development seeds forms fitted to a drift's wander removed 0.03-0.32 of
-#: it; the real effects nearest the bar 0.35 and 0.38 (where another error is large beside them).
+#: The share of a stretch's held-out error a channel's form must remove to be blamed: a third, set on
+#: the blind generator's development seeds, where forms fitted to a drift's wander and the weakest
+#: real effects (another error large beside them) both come close to it; bench_blind scores it.
 STRETCH_MIN_GAIN = 1.0 / 3.0
 
 
@@ -255,8 +255,9 @@ def stretch_folds(blocks: Blocks, k: int = STRETCHES) -> list[np.ndarray]:
 
 def stretch_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...], duration_s: float) -> float | None:
     """The share of the held-out error of stretches of the session that adding ``terms`` to ``s``
-    removes, each stretch predicted by the whole model fitted on the other stretches: the larger
-    of the pooled share and the median stretch's. None where too few plateaus can be judged.
+    removes, each stretch predicted by the whole model (coefficients and time constants) fitted on
+    the other stretches: the larger of the pooled share and the median stretch's. None where too
+    few plateaus can be judged.
 
     Only plateaus whose rate the other stretches also hold are judged: a stretch of time is also a
     part of the table's sweep, and at a rate no other stretch has the rate model would extrapolate,
@@ -268,9 +269,8 @@ def stretch_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...], duration
     judged = [held & np.isin(rate, rate[~held]) for held in folds]
     if sum(int(m.sum()) for m in judged) < 0.5 * sum(int(m.sum()) for m in folds):
         return None
-    fresh = tuple(replace(t, coefficient=0.0) for t in terms)
     before = held_out_errors(blocks, s, folds, duration_s)
-    after = held_out_errors(blocks, replace(s, terms=s.terms + fresh), folds, duration_s)
+    after = held_out_errors(blocks, replace(s, terms=s.terms + terms), folds, duration_s)
     every = np.any(judged, axis=0)
     pooled = 1.0 - rms(after[every]) / rms(before[every])
     each = [1.0 - rms(after[m]) / rms(before[m]) for m in judged if np.any(m)]
@@ -655,8 +655,7 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     with_drift = replace(s, terms=s.terms + drift.terms)
     r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
     p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
-    fitted = fit_structure(scorer.blocks, with_channel, scorer.duration_s).terms[len(s.terms):]
-    gain = stretch_gain(scorer.blocks, s, fitted, scorer.duration_s) if _has_bias(best) else None
+    gain = stretch_gain(scorer.blocks, s, best.terms, scorer.duration_s) if _has_bias(best) else None
     if r_channel < r_drift and (gain is None or gain >= STRETCH_MIN_GAIN):
         return None
     ch = best.channel or ""
