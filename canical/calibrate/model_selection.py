@@ -2,7 +2,8 @@
 
 More segments and higher orders always lower the training error; only error on
 rates the fit did not see says whether they describe the sensor or its noise.
-Each candidate size is cross-validated (segment points re-chosen inside every
+Orders above 3 are a second round, taken only when they are clearly better (see
+:data:`HIGH_ORDERS`). Each candidate size is cross-validated (segment points re-chosen inside every
 fold, since choosing them is part of the fit), and the *smallest* candidate whose
 held-out rms is within one standard error of the best wins (the rms of n
 held-out errors is uncertain by about 1/sqrt(2n) of itself): fewer coefficients are
@@ -24,6 +25,16 @@ from canical.models import RateModel
 
 SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
 ORDER_CHOICES = (1, 2, 3)
+#: Orders tried in a second round. Why: a sensor whose scale factor bends sharply (compression
+#: near its output's rail, a ripple) leaves orders up to 3 at several times the noise, and a
+#: higher order removes most of it; on a sensor orders up to 3 describe, a higher order's held-out
+#: rms is as low only by chance, and choosing among more sizes by held-out rms then picks noise.
+#: So they are chosen only when their best is lower than the first round's best by more than
+#: :data:`HIGH_ORDER_MARGIN` of that figure's standard errors.
+HIGH_ORDERS = (4, 5)
+#: Three standard errors: a sixth of the error gone on 200 held-out blocks, a third on 40. Where
+#: a higher order is needed it removes far more (sensors compressing near their rail: 2-10x).
+HIGH_ORDER_MARGIN = 3.0
 
 
 @dataclass(frozen=True)
@@ -68,20 +79,56 @@ def select_model(
     *,
     segments: tuple[int, ...] = SEGMENT_CHOICES,
     orders: tuple[int, ...] = ORDER_CHOICES,
+    high_orders: tuple[int, ...] = HIGH_ORDERS,
 ) -> tuple[ModelSpec, list[Candidate]]:
-    """The chosen spec and every candidate tried (for the report)."""
-    candidates = []
-    for order in orders:
-        for n in segments:
-            cand = evaluate_candidate(points, replace(base, n_segments=n, order=order))
-            if cand is not None:
-                candidates.append(cand)
+    """The chosen spec and every candidate tried (for the report).
+
+    Orders in ``high_orders`` are a second round: they take part only when their best beats the
+    first round's best clearly (see :data:`HIGH_ORDERS`).
+    """
+    candidates = _candidates(points, base, segments, orders)
     if not candidates:
         raise CanicalError("no model size fits this session: too few plateau rates")
-    usable = [c for c in candidates if c.monotone] if data_monotone(points) else candidates
-    usable = usable or candidates
+    monotone = data_monotone(points)
+    first = _choose(candidates, monotone)
+    higher = _candidates(points, base, segments, tuple(o for o in high_orders if o not in orders))
+    if not _clearly_better(_usable(higher, monotone), _usable(candidates, monotone)):
+        return first.spec, candidates + higher
+    return _choose(candidates + higher, monotone).spec, candidates + higher
+
+
+def _candidates(points: FitPoints, base: ModelSpec, segments: tuple[int, ...],
+                orders: tuple[int, ...]) -> list[Candidate]:
+    sizes = (replace(base, n_segments=n, order=o) for o in orders for n in segments)
+    tried = (evaluate_candidate(points, spec) for spec in sizes)
+    return [c for c in tried if c is not None]
+
+
+def _usable(candidates: list[Candidate], monotone: bool) -> list[Candidate]:
+    """The candidates that may be chosen: monotone ones where the data is (if any is)."""
+    usable = [c for c in candidates if c.monotone] if monotone else candidates
+    return usable or candidates
+
+
+def _tolerance(best: Candidate) -> float:
+    """The relative uncertainty of a held-out rms of n errors, about 1/sqrt(2n)."""
+    return 1.0 / float(np.sqrt(2.0 * best.held_out.errors.size))
+
+
+def _choose(candidates: list[Candidate], monotone: bool) -> Candidate:
+    """The fewest coefficients among candidates within the tolerance of the best."""
+    usable = _usable(candidates, monotone)
     best = min(usable, key=lambda c: c.held_out.rms_dps)
-    tolerance = 1.0 / np.sqrt(2.0 * best.held_out.errors.size)
-    good = [c for c in usable if c.held_out.rms_dps <= best.held_out.rms_dps * (1.0 + tolerance)]
-    chosen = min(good, key=lambda c: (c.n_coefficients, c.held_out.rms_dps))
-    return chosen.spec, candidates
+    good = [c for c in usable if c.held_out.rms_dps <= best.held_out.rms_dps * (1.0 + _tolerance(best))]
+    return min(good, key=lambda c: (c.n_coefficients, c.held_out.rms_dps))
+
+
+def _clearly_better(higher: list[Candidate], first: list[Candidate]) -> bool:
+    """Whether the best of ``higher`` beats the best of ``first`` by more than
+    :data:`HIGH_ORDER_MARGIN` of its standard errors (:func:`_tolerance`): a margin chance seldom
+    gives one of many sizes."""
+    if not higher:
+        return False
+    best_high = min(c.held_out.rms_dps for c in higher)
+    best = min(first, key=lambda c: c.held_out.rms_dps)
+    return best_high < best.held_out.rms_dps * (1.0 - HIGH_ORDER_MARGIN * _tolerance(best))

@@ -18,7 +18,7 @@ import numpy as np
 from canical.calibrate.cross_validation import cross_validate, prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
-from canical.calibrate.model_selection import Candidate, select_model
+from canical.calibrate.model_selection import HIGH_ORDERS, ORDER_CHOICES, Candidate, select_model
 from canical.calibrate.noise_records import name_a_rise, noise_analysis, sample_interval, zero_rate_records
 from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few
 from canical.calibrate.rails import RailCheck, RailLimits, rail_plateaus
@@ -183,13 +183,13 @@ def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, tup
     if o.kind is FORWARD_POLY:
         if o.order is not None:
             return replace(base, order=o.order), ()
-        spec, cands = select_model(points, base, segments=(1,), orders=FORWARD_ORDERS)
+        spec, cands = select_model(points, base, segments=(1,), orders=FORWARD_ORDERS, high_orders=())
         return spec, tuple(_size_candidate(c) for c in cands)
     if o.segments is not None and o.order is not None:
         return base, ()
     segments = (o.segments,) if o.segments is not None else (1, 2, 3, 4, 5, 6)
-    orders = (o.order,) if o.order is not None else (1, 2, 3)
-    spec, cands = select_model(points, base, segments=segments, orders=orders)
+    orders, high = ((o.order,), ()) if o.order is not None else (ORDER_CHOICES, HIGH_ORDERS)
+    spec, cands = select_model(points, base, segments=segments, orders=orders, high_orders=high)
     return spec, tuple(_size_candidate(c) for c in cands)
 
 

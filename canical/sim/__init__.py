@@ -13,6 +13,8 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
 * :mod:`canical.sim.sessions` — ready-made sessions: the paper's protocol, its validation records;
 * :mod:`canical.sim.blind` — blind cases for the closed loop: effect forms, channel trajectories and
   drifts drawn at random from a seed, with what a right answer is;
+* :mod:`canical.sim.compression` — sensors whose output compresses near its rail, drawn at random,
+  and a model's error against their truth;
 * :mod:`canical.sim.triad` — a gyro triad with coupling between its axes, single- and multi-axis tables.
 """
 
@@ -21,6 +23,7 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
 __all__ = [
     "blind",
     "bus_log",
+    "compression",
     "drive",
     "effects",
     "environment",

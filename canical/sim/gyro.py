@@ -63,6 +63,12 @@ class GyroModel:
     bandwidth_hz: float = 40.0
     lsb: float = 1.0  # quantisation step, counts
     rail_counts: float = 32767.0
+    #: An output stage that compresses as it nears its limit: ΔV becomes ΔV/(1+|ΔV/A|^p)^(1/p),
+    #: A = ``compression_counts`` (None: no compression), p = ``compression_sharpness`` (the
+    #: larger, the later and sharper the knee). With A a little beyond ``rail_counts`` the sensor
+    #: bends sharply in the last rates before it clips.
+    compression_counts: float | None = None
+    compression_sharpness: float = 6.0
     effects: tuple[Effect, ...] = field(default_factory=tuple)
 
     def transfer(self, rate_dps: np.ndarray) -> np.ndarray:
@@ -74,7 +80,14 @@ class GyroModel:
             + self.full_scale_dps * (self.quadratic * x**2 + self.cubic * x**3)
             + self.full_scale_dps * self.ripple * np.sin(2 * np.pi * w / self.ripple_period_dps)
         )
-        return self.sensitivity * shape
+        return self.compressed(self.sensitivity * shape)
+
+    def compressed(self, dv: np.ndarray) -> np.ndarray:
+        """ΔV through the output stage's compression near its limit (unchanged without one)."""
+        if self.compression_counts is None:
+            return dv
+        p = self.compression_sharpness
+        return dv / (1.0 + np.abs(dv / self.compression_counts) ** p) ** (1.0 / p)
 
     def output(
         self,
