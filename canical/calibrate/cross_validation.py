@@ -29,6 +29,8 @@ class HeldOutError:
     max_dps: float
     errors: np.ndarray  # per held-out point, in the order of ``rates``
     rates: np.ndarray
+    #: Per fold: the rms of its held-out errors (one fold's big error shows here, not in a median).
+    fold_rms_dps: tuple[float, ...] = ()
 
 
 def rate_folds(points: FitPoints, k: int = DEFAULT_FOLDS) -> list[np.ndarray]:
@@ -55,9 +57,12 @@ def cross_validate(
 ) -> HeldOutError:
     """Fit on each fold's training part, predict its held-out rates, pool the errors."""
     errors = np.full(len(points), np.nan)
+    folds = []
     for held in rate_folds(points, k):
         model = fit(points.take(~held))
         errors[held] = prediction_errors(model, points.take(held))
+        folds.append(float(np.sqrt(np.mean(errors[held] ** 2))))
     mask = ~np.isnan(errors)
     e = errors[mask]
-    return HeldOutError(float(np.sqrt(np.mean(e**2))), float(np.max(np.abs(e))), e, points.rate[mask])
+    return HeldOutError(float(np.sqrt(np.mean(e**2))), float(np.max(np.abs(e))), e, points.rate[mask],
+                        tuple(folds))

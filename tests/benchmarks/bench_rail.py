@@ -1,6 +1,9 @@
 """Benchmark: sensors that compress near their rail, calibrated with and without a higher order.
 
-Prints figures; asserts nothing. Run: python tests/benchmarks/bench_rail.py [--quick] [--seeds N]
+Prints figures; asserts nothing. Run: python tests/benchmarks/bench_rail.py [--quick] [--seeds N] [--blind N]
+
+Development seeds are 1000 onwards (``--seeds``, printed seed by seed). Blind seeds are drawn from
+BLIND_ROOT, picked once at random and never printed one by one: only their scores (``--blind``).
 
 Each seed draws a sensor (:func:`canical.sim.compression.draw_compressing`): a rail at 60-90 %
 of the table's range, an output that bends before it (hard knees and gentle bends), noise and
@@ -32,6 +35,7 @@ from canical.errors import CanicalError
 from canical.models.kinds import FORWARD_POLY, SEGMENTED_INVERSE
 from canical.sim.compression import CompressingCase, draw_compressing, true_error_dps
 
+BLIND_ROOT = 7493028996101
 BENDS = {"hard knee": (1.02, 1.3), "gentle bend": (1.3, 2.0)}
 
 
@@ -74,28 +78,51 @@ def one_seed(seed: int, bend: tuple[float, float]) -> tuple[float, float, float,
             best_size(case, base), size)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="two seeds per bend: checks the script runs")
-    parser.add_argument("--seeds", type=int, default=12, help="seeds per bend [12]")
-    args = parser.parse_args()
-    n = 2 if args.quick else args.seeds
+def scores(rows: list[tuple[float, float, float, float, str]]) -> str:
+    """The aggregate figures of a list of seeds' rows."""
+    low, chosen, hind, best = (np.array([r[k] for r in rows]) for k in range(4))
+    n = len(rows)
+    return (f"median: orders<=3 {np.median(low):.5f}, chosen {np.median(chosen):.5f} "
+            f"({np.median(low) / np.median(chosen):.1f}x lower); worse than orders<=3 in "
+            f"{int(np.sum(chosen > 1.05 * low))}/{n}\n"
+            f"  within 1.2x of the hindsight polynomial in {int(np.sum(chosen <= 1.2 * hind))}/{n}; "
+            f"of the best size: orders<=3 in {int(np.sum(low <= 1.2 * best))}/{n}, chosen in "
+            f"{int(np.sum(chosen <= 1.2 * best))}/{n} (median chosen/best {np.median(chosen / best):.2f})")
+
+
+def development(n: int) -> None:
     print(f"sensors compressing near their rail, {n} seeds per bend (seeds 1000..{1000 + n - 1}); "
           "error against the truth, deg/s rms")
     for name, bend in BENDS.items():
         rows = [one_seed(1000 + i, bend) for i in range(n)]
-        low, chosen, hind, best = (np.array([r[k] for r in rows]) for k in range(4))
         print(f"\n{name} (asymptote {bend[0]:g}-{bend[1]:g}x the rail)")
         print("  seed   orders<=3    chosen  size  hindsight  best size  chosen/hindsight  chosen/best")
         for i, (lo, ch, hi, bs, size) in enumerate(rows):
             print(f"  {1000 + i:4d}  {lo:10.5f} {ch:9.5f}  {size:>4}  {hi:9.5f}  {bs:9.5f}  {ch / hi:16.2f}"
                   f"  {ch / bs:11.2f}")
-        print(f"  median: orders<=3 {np.median(low):.5f}, chosen {np.median(chosen):.5f} "
-              f"({np.median(low) / np.median(chosen):.1f}x lower); worse than orders<=3 in "
-              f"{int(np.sum(chosen > 1.05 * low))}/{n}")
-        print(f"  within 1.2x of the hindsight polynomial in {int(np.sum(chosen <= 1.2 * hind))}/{n}; "
-              f"of the best size: orders<=3 in {int(np.sum(low <= 1.2 * best))}/{n}, chosen in "
-              f"{int(np.sum(chosen <= 1.2 * best))}/{n} (median chosen/best {np.median(chosen / best):.2f})")
+        print("  " + scores(rows))
+
+
+def blind(n: int, stream: int = 0) -> None:
+    """Scores on ``n`` seeds per bend drawn from BLIND_ROOT (``stream`` 0: the blind seeds; quick
+    mode draws from another stream, so a CI log never shows a blind seed's figures)."""
+    for k, (name, bend) in enumerate(BENDS.items()):
+        seeds = np.random.default_rng([BLIND_ROOT, stream, k]).integers(10_000, 2**31 - 1, n)
+        rows = [one_seed(int(s), bend) for s in seeds]
+        print(f"\nblind, {name}, {n} seeds: " + scores(rows))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="two seeds per bend: checks the script runs")
+    parser.add_argument("--seeds", type=int, default=12, help="development seeds per bend [12]")
+    parser.add_argument("--blind", type=int, default=0, help="blind seeds per bend (scores only) [0]")
+    args = parser.parse_args()
+    development(2 if args.quick else args.seeds)
+    if args.quick:
+        blind(1, stream=1)
+    elif args.blind:
+        blind(args.blind)
 
 
 if __name__ == "__main__":
