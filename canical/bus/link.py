@@ -12,7 +12,6 @@ from __future__ import annotations
 import errno
 import logging
 import socket
-import struct
 from collections.abc import Callable, Iterable
 from socket import MSG_DONTWAIT
 from typing import Any
@@ -33,11 +32,6 @@ log = logging.getLogger("canical.serve")
 _DATA, _FD_DATA = CAN_MTU - FRAME_HEAD.size, CANFD_MTU - FRAME_HEAD.size  # data bytes in a frame
 _ZEROS = bytes(_FD_DATA)
 _pack_head, _pack_stamp, _SOL_SOCKET = FRAME_HEAD.pack, TIMEVAL.pack, socket.SOL_SOCKET
-#: The reference path pays python-can's translation per frame: only what it needs of the head,
-#: unpacked by one bound call, and constants in module globals (issue 31: the reference path's
-#: per-frame figure rose 16.6 -> 19.8 µs with the one receive and one send path, most of it here).
-_unpack_id_length = struct.Struct("=IB").unpack_from  # can_id (flags included), length
-_HEAD = FRAME_HEAD.size
 
 #: ``recvmsg``'s result: the frame, the ancillary data (the receive time), flags, address.
 Received = tuple[bytes, list[tuple[int, int, bytes]], int, Any]
@@ -99,23 +93,22 @@ class BusLink:
             can_id |= CAN_ERR_FLAG
         data = msg.data
         size = len(data)
-        frame = _pack_head(can_id, size, 0, 0) + data  # bytes, whatever the type of data
-        if size != _DATA or msg.is_fd:  # a classic frame of 8 bytes, the usual one, needs no padding
-            frame += _ZEROS[:max((_FD_DATA if msg.is_fd else _DATA) - size, 0)]
+        pad = (_FD_DATA if msg.is_fd else _DATA) - size
+        frame = _pack_head(can_id, size, 0, 0) + bytes(data) + (_ZEROS[:pad] if pad > 0 else b"")
         stamp = msg.timestamp
         sec = int(stamp)
         nsec = int((stamp - sec) * 1e9 + 0.5)
-        if nsec >= 1_000_000_000:
-            nsec = 999_999_999
+        nsec = nsec if nsec < 1_000_000_000 else 999_999_999
         return frame, [(_SOL_SOCKET, SO_TIMESTAMPNS, _pack_stamp(sec, nsec))], 0, None
 
     def send(self, frame: bytes, flags: int = 0) -> int:
         """A kernel frame through python-can's ``send``: ENOBUFS (an OSError, as the socket's)
         when the transmit queue was full, :class:`BusLost` when the interface failed."""
-        can_id, length = _unpack_id_length(frame)
-        extended = can_id & CAN_EFF_FLAG != 0
+        can_id, length, _, _ = FRAME_HEAD.unpack_from(frame)
+        extended = bool(can_id & CAN_EFF_FLAG)
         msg = can.Message(arbitration_id=can_id & (0x1FFFFFFF if extended else 0x7FF),
-                          is_extended_id=extended, data=frame[_HEAD:_HEAD + length], check=False)
+                          is_extended_id=extended, data=frame[FRAME_HEAD.size:FRAME_HEAD.size + length],
+                          check=False)
         try:
             self.bus.send(msg)
         except can.CanOperationError as exc:
