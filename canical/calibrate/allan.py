@@ -243,7 +243,89 @@ def nnls_few(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return best
 
 
-def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:
+@dataclass(frozen=True)
+class NoiseTerms:
+    """The three IEEE 952 read-outs of one curve, by name: readers (the report, the set's ARW, the
+    plot) take the term they need as a field, not by a key spelled in each of them."""
+
+    arw: NoiseTerm
+    bias_instability: NoiseTerm
+    rrw: NoiseTerm
+
+    def items(self) -> tuple[tuple[str, NoiseTerm], ...]:
+        """(report key, term) in the report's order."""
+        return (("arw", self.arw), ("bias_instability", self.bias_instability), ("rrw", self.rrw))
+
+    def __getitem__(self, key: str) -> NoiseTerm:
+        """A term by its report key, for tables that loop over keys (tests/benchmarks/bench_allan.py)."""
+        return dict(self.items())[key]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {key: t.to_dict() for key, t in self.items()}
+
+
+METHOD = ("overlapping Allan deviation (allantools); lines of slope -1/2, 0, +1/2 fitted together, "
+          "IEEE Std 952 read-outs; intervals ±2/sqrt(2(K-1)) with K independent clusters where the "
+          "term dominates")
+
+
+@dataclass(frozen=True)
+class NoiseAnalysis:
+    """An Allan analysis as the report, the plot and ``canical noise`` read it: the curve and its terms.
+
+    One record built once (:func:`canical.calibrate.noise_records.noise_analysis`) and read by field,
+    so the keys of report.json are spelled once, in :meth:`to_dict`.
+    """
+
+    source: str
+    curve: AllanCurve
+    terms: NoiseTerms
+    samples_per_point: int | None = None  # the records are means of this many samples
+
+    @property
+    def tau_range_s(self) -> tuple[float, float]:
+        return float(self.curve.tau_s[0]), float(self.curve.tau_s[-1])
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON form (report.json's ``allan``, ``canical noise --json``), keys in the file's order."""
+        curve = self.curve
+        low = int(np.argmin(curve.adev))
+        out: dict[str, Any] = {
+            "source": self.source,
+            "method": METHOD,
+            "records": curve.records,
+            "duration_s": curve.duration_s,
+            "sample_rate_hz": curve.sample_rate_hz,
+            "tau_range_s": list(self.tau_range_s),
+            "terms": self.terms.to_dict(),
+            "curve_minimum": {
+                "tau_s": float(curve.tau_s[low]),
+                "adev_dps": float(curve.adev[low]),
+                "bias_instability_deg_h": float(curve.adev[low]) / FLICKER_FLOOR * 3600.0,
+            },
+            "curve": {
+                "tau_s": curve.tau_s.tolist(),
+                "adev_dps": curve.adev.tolist(),
+                "clusters": curve.clusters.tolist(),
+            },
+        }
+        if self.samples_per_point is not None:
+            out["samples_per_point"] = self.samples_per_point
+        return out
+
+
+@dataclass(frozen=True)
+class NoiseSkipped:
+    """No analysis, and why: the records had no evenly sampled stretch long enough."""
+
+    source: str
+    skipped: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"source": self.source, "skipped": self.skipped}
+
+
+def noise_terms(curve: AllanCurve) -> NoiseTerms:
     """ARW (deg/√h), bias instability (deg/h) and RRW (deg/h/√h) from a curve in deg/s.
 
     Read-outs of the fitted lines: ARW = σ of the −1/2 line at τ = 1 s (σ² = N²/τ), BI = level
@@ -255,18 +337,18 @@ def noise_terms(curve: AllanCurve) -> dict[str, NoiseTerm]:
         total = total + a[k] * curve.tau_s**p
     hi = float(curve.tau_s[-1])
     lo = float(curve.tau_s[0])
-    return {
-        "arw": _term(curve, a, total, "arw", "angle random walk", "deg/sqrt(h)", np.sqrt, SQRT_HOUR,
-                     f"white rate noise dominates nowhere between tau {lo:.3g} and {hi:.3g} s"),
-        "bias_instability": _term(
+    return NoiseTerms(
+        arw=_term(curve, a, total, "arw", "angle random walk", "deg/sqrt(h)", np.sqrt, SQRT_HOUR,
+                  f"white rate noise dominates nowhere between tau {lo:.3g} and {hi:.3g} s"),
+        bias_instability=_term(
             curve, a, total, "bias_instability", "bias instability", "deg/h",
             lambda x: np.sqrt(x) / FLICKER_FLOOR, 3600.0,
             f"the curve has no flat floor between tau {lo:.3g} and {hi:.3g} s: a longer record is needed"),
-        "rrw": _term(curve, a, total, "rrw", "rate random walk", "deg/h/sqrt(h)",
-                     lambda x: np.sqrt(RRW_TAU_S * x), 3600.0 * SQRT_HOUR,
-                     f"the curve does not rise as tau^+1/2 up to {hi:.3g} s: a longer record is needed",
-                     min_span=RRW_MIN_SPAN),
-    }
+        rrw=_term(curve, a, total, "rrw", "rate random walk", "deg/h/sqrt(h)",
+                  lambda x: np.sqrt(RRW_TAU_S * x), 3600.0 * SQRT_HOUR,
+                  f"the curve does not rise as tau^+1/2 up to {hi:.3g} s: a longer record is needed",
+                  min_span=RRW_MIN_SPAN),
+    )
 
 
 def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, name: str, unit: str,
@@ -306,28 +388,3 @@ def _term(curve: AllanCurve, a: dict[str, float], total: np.ndarray, key: str, n
 def _long_enough(taus: np.ndarray, min_span: float) -> bool:
     """The τ where rate random walk dominates: a decade of it, reaching its read-out τ."""
     return bool(taus.max() >= min_span * taus.min() and taus.max() >= RRW_TAU_S)
-
-
-def analysis_dict(curve: AllanCurve, terms: dict[str, NoiseTerm]) -> dict[str, Any]:
-    """The analysis as JSON-ready data: the curve (for the plot) and the three terms."""
-    low = int(np.argmin(curve.adev))
-    return {
-        "method": "overlapping Allan deviation (allantools); lines of slope -1/2, 0, +1/2 fitted "
-        "together, IEEE Std 952 read-outs; intervals ±2/sqrt(2(K-1)) with K independent clusters "
-        "where the term dominates",
-        "records": curve.records,
-        "duration_s": curve.duration_s,
-        "sample_rate_hz": curve.sample_rate_hz,
-        "tau_range_s": [float(curve.tau_s[0]), float(curve.tau_s[-1])],
-        "terms": {key: t.to_dict() for key, t in terms.items()},
-        "curve_minimum": {
-            "tau_s": float(curve.tau_s[low]),
-            "adev_dps": float(curve.adev[low]),
-            "bias_instability_deg_h": float(curve.adev[low]) / FLICKER_FLOOR * 3600.0,
-        },
-        "curve": {
-            "tau_s": curve.tau_s.tolist(),
-            "adev_dps": curve.adev.tolist(),
-            "clusters": curve.clusters.tolist(),
-        },
-    }

@@ -8,10 +8,11 @@ pools per cluster size; no sample is interpolated and no gap is averaged across.
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import replace
 
 import numpy as np
 
+from canical.calibrate.allan import NoiseAnalysis, NoiseSkipped, allan_deviation, noise_terms
 from canical.models.robust_stats import median_step, time_steps
 
 GAP_FACTOR = 1.5  # a step longer than this many sample intervals is a gap (rows lost)
@@ -50,49 +51,46 @@ def zero_rate_records(
     return out
 
 
-def noise_analysis(records: list[np.ndarray], dt: float, source: str) -> dict[str, Any]:
-    """The Allan analysis of the records as report data, or why there is none."""
-    from canical.calibrate.allan import allan_deviation, analysis_dict, noise_terms
-
+def noise_analysis(records: list[np.ndarray], dt: float, source: str) -> NoiseAnalysis | NoiseSkipped:
+    """The Allan analysis of the records, or why there is none."""
     if dt <= 0 or not records:
-        return {"source": source, "skipped": f"no evenly sampled stretch of at least {MIN_RECORD} samples"}
+        return NoiseSkipped(source, f"no evenly sampled stretch of at least {MIN_RECORD} samples")
     curve = allan_deviation(records, 1.0 / dt)
-    return {"source": source, **analysis_dict(curve, noise_terms(curve))}
+    return NoiseAnalysis(source, curve, noise_terms(curve))
 
 
-def name_a_rise(analysis: dict[str, Any], channel: str, values: np.ndarray, unit: str) -> dict[str, Any]:
+def name_a_rise(analysis: NoiseAnalysis, channel: str, values: np.ndarray, unit: str) -> NoiseAnalysis:
     """A rise of the curve not claimed as rate random walk, named for what moved in the records.
 
     When the curve rises over too short a stretch of τ to be rate random walk and ``channel``
     (the temperature) changes across the records, the note says by how much: that rise is the
     session's drift with it, not a noise term of the sensor.
     """
-    rrw = analysis.get("terms", {}).get("rrw")
-    if rrw is None or rrw["resolved"] or "rises" not in rrw["note"] or values.size < 2:
+    rrw = analysis.terms.rrw
+    if rrw.resolved or "rises" not in rrw.note or values.size < 2:
         return analysis
     span = float(np.max(values) - np.min(values))
     if span <= 0.0:
         return analysis
-    note = f"{rrw['note']}; the records' {channel} spans {span:.3g} {unit}: likely that drift"
-    terms = {**analysis["terms"], "rrw": {**rrw, "note": note}}
-    return {**analysis, "terms": terms}
+    note = f"{rrw.note}; the records' {channel} spans {span:.3g} {unit}: likely that drift"
+    return replace(analysis, terms=replace(analysis.terms, rrw=replace(rrw, note=note)))
 
 
-def describe(analysis: dict[str, Any]) -> list[str]:
+def describe(analysis: NoiseAnalysis | NoiseSkipped) -> list[str]:
     """Lines for a terminal or a report: the τ range and each term, resolved or not."""
-    if "skipped" in analysis:
-        return [f"noise analysis skipped: {analysis['skipped']}"]
-    lo, hi = analysis["tau_range_s"]
-    lines = [f"{analysis['source']}: {analysis['records']} record(s), {analysis['duration_s']:.1f} s at "
-             f"{analysis['sample_rate_hz']:.4g} Hz; tau {lo:.3g} to {hi:.3g} s"]
-    for t in analysis["terms"].values():
-        if t["resolved"]:
-            low, high = t["interval"]
-            lines.append(f"{t['name']:<18} {t['value']:.4g} {t['unit']} [{low:.3g}, {high:.3g}] "
-                         f"(tau {t['tau_s']:.3g} s, {t['clusters']} clusters)")
+    if isinstance(analysis, NoiseSkipped):
+        return [f"noise analysis skipped: {analysis.skipped}"]
+    curve = analysis.curve
+    lo, hi = analysis.tau_range_s
+    lines = [f"{analysis.source}: {curve.records} record(s), {curve.duration_s:.1f} s at "
+             f"{curve.sample_rate_hz:.4g} Hz; tau {lo:.3g} to {hi:.3g} s"]
+    for _, t in analysis.terms.items():
+        if t.resolved:
+            lines.append(f"{t.name:<18} {t.value:.4g} {t.unit} [{t.low:.3g}, {t.high:.3g}] "
+                         f"(tau {t.tau_s:.3g} s, {t.clusters} clusters)")
         else:
-            bound = f"at most {t['upper_bound']:.3g} {t['unit']}"
-            lines.append(f"{t['name']:<18} not resolved: {t['note']} ({bound})")
+            bound = f"at most {t.value:.3g} {t.unit}"
+            lines.append(f"{t.name:<18} not resolved: {t.note} ({bound})")
     return lines
 
 

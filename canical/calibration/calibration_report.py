@@ -16,6 +16,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from canical.calibrate.allan import NoiseAnalysis, NoiseSkipped
     from canical.calibrate.plateaus import PlateauFinding
     from canical.closed_loop.findings import Confound, Effect, LoopStep, RoundRow
     from canical.closed_loop.unexplained import Unexplained
@@ -146,7 +147,7 @@ class CalibrationReport:
     held_out: ErrorStats  # leave-rates-out cross-validation on plateau means
     noise: NoiseLevels
     candidates: tuple[SizeCandidate, ...]
-    allan: dict[str, Any]  # canical.calibrate.noise_records.noise_analysis()
+    allan: NoiseAnalysis | NoiseSkipped | None  # None: not analysed yet (the base report)
     written: Written
     max_jump_at_segment_points_dps: float | None = None  # None: a model without jumps
     effects: tuple[Effect, ...] = ()
@@ -204,7 +205,7 @@ class CalibrationReport:
         }
         if self.max_jump_at_segment_points_dps is not None:
             out["max_jump_at_segment_points_dps"] = self.max_jump_at_segment_points_dps
-        out["allan"] = self.allan
+        out["allan"] = self.allan.to_dict() if self.allan is not None else {}
         if self.closed_loop is not None:
             out["confounded"] = [c.to_dict() for c in self.confounded]
             out["closed_loop"] = self.closed_loop.to_dict()

@@ -24,12 +24,12 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
-from canical.calibrate.coupling import CouplingFit, angle_mrad, fit_coupling, held_out_corrected
+from canical.calibrate.coupling import CouplingFit, fit_coupling, held_out_corrected
 from canical.calibrate.plateaus import Plateaus
+from canical.calibration.imu_calibration_report import AxisModel, ImuReport, SessionErrors
 from canical.calibration.pipeline import (
     CalibrateOptions,
     CalibrationResult,
@@ -58,24 +58,6 @@ class PlateauRates:
 
 
 @dataclass(frozen=True)
-class SessionErrors:
-    """Held-out plateau errors of one session per axis, deg/s rms, before and after the coupling."""
-
-    session: str
-    axis: str  # the table axis (x, -y...) or multi
-    plateaus: int
-    before_rms_dps: tuple[float, float, float]
-    after_rms_dps: tuple[float, float, float]
-    after_max_dps: float
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"session": self.session, "axis": self.axis, "plateaus": self.plateaus,
-                "before_rms_dps": dict(zip(AXES, self.before_rms_dps, strict=True)),
-                "after_rms_dps": dict(zip(AXES, self.after_rms_dps, strict=True)),
-                "after_max_dps": self.after_max_dps}
-
-
-@dataclass(frozen=True)
 class ImuCalibration:
     """What a triad calibration produced."""
 
@@ -85,29 +67,19 @@ class ImuCalibration:
     errors: tuple[SessionErrors, ...]
     joint_refits: int = 0
 
-    def report_dict(self, sources: Sequence[str], output: str) -> dict[str, Any]:
-        """The report.json content: coupling with standard errors, errors per session and axis."""
-        m, se = self.coupling.matrix, self.coupling.standard_errors
-        terms = [{"row": AXES[i], "column": AXES[j], "value": float(m[i, j]),
-                  "standard_error": float(se[i, j]), "percent": 100.0 * float(m[i, j]),
-                  "mrad": angle_mrad(m[i, j])}
-                 for i in range(3) for j in range(3) if i != j]
-        return {
-            "kind": "imu-set",
-            "sessions": list(sources),
-            "coefficients": output,
-            "estimation": "per-axis models on their own sessions, then u = C w by least squares on the "
-                          "table rates over all single-axis plateaus, M = inverse(C); then "
-                          f"{self.joint_refits} joint refit(s) kept (each axis refitted on all sessions' "
-                          "plateaus with decoupled targets, C refitted)",
-            "joint_refits": self.joint_refits,
-            "coupling": {"matrix": m.tolist(), "standard_errors": se.tolist(),
-                         "plateaus": self.coupling.points, "off_diagonal": terms},
-            "held_out": [e.to_dict() for e in self.errors],
-            "axes": {name: {"model": r.report.spec, "held_out_rms_dps": r.report.held_out.rms_dps,
-                            "effects": [e.name for e in r.report.effects]}
-                     for name, r in zip(AXES, self.axes, strict=True)},
-        }
+    def report(self, sources: Sequence[str], output: str) -> ImuReport:
+        """The report: coupling with standard errors, errors per session and axis."""
+        return ImuReport(
+            sessions=tuple(sources), coefficients=output, joint_refits=self.joint_refits,
+            matrix=self.coupling.matrix, standard_errors=self.coupling.standard_errors,
+            coupling_plateaus=self.coupling.points, held_out=self.errors,
+            axes=(axis_model(self.axes[0]), axis_model(self.axes[1]), axis_model(self.axes[2])))
+
+
+def axis_model(result: CalibrationResult) -> AxisModel:
+    """An axis's line in the triad's report."""
+    report = result.report
+    return AxisModel(report.spec, report.held_out.rms_dps, tuple(e.name for e in report.effects))
 
 
 MAX_REFITS = 3

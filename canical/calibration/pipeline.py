@@ -11,10 +11,10 @@ from __future__ import annotations
 import datetime as dt
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import Any
 
 import numpy as np
 
+from canical.calibrate.allan import NoiseAnalysis, NoiseSkipped
 from canical.calibrate.cross_validation import cross_validate, prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
@@ -36,6 +36,7 @@ from canical.calibration.calibration_report import (
     Untestable,
     Written,
 )
+from canical.calibration.set_fit import set_fit
 from canical.closed_loop.blocks import BLOCK_S, make_blocks
 from canical.closed_loop.search import LoopResult, predict, run_loop
 from canical.closed_loop.unexplained import account
@@ -258,14 +259,14 @@ def base_report(session: Session, base: BaseFit) -> CalibrationReport:
         noise=NoiseLevels(per_sample_dps=per_sample_noise,
                           plateau_mean_dps=float(np.median(rate_noise(base.points)))),
         candidates=base.candidates,
-        allan={},
+        allan=None,
         written=Written(spec=spec.describe(), effect_terms=0),
         max_jump_at_segment_points_dps=(
             float(np.max(np.abs(jumps()), initial=0.0)) if jumps is not None else None),
     )
 
 
-def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
+def zero_rate_noise(session: Session, base: BaseFit) -> NoiseAnalysis | NoiseSkipped:
     """Allan analysis of the zero-rate plateaus, as rate through the fitted model.
 
     Only the plateaus' used samples count (no ramp, no settling); each plateau is its own
@@ -280,10 +281,12 @@ def zero_rate_noise(session: Session, base: BaseFit) -> dict[str, Any]:
     dt = sample_interval(session.time_s)
     records = zero_rate_records(session.time_s, rate, start, stop, dt)
     analysis = noise_analysis(records, dt, f"{zero.size} zero-rate plateaus")
-    if session.means is not None and "curve" in analysis:
+    if isinstance(analysis, NoiseSkipped):
+        return analysis
+    if session.means is not None:
         # The records are means of k samples: the curve starts at τ = k samples (exact there
         # for non-overlapping clusters, fewer overlaps for the overlapping estimate).
-        analysis["samples_per_point"] = session.samples_per_row
+        analysis = replace(analysis, samples_per_point=session.samples_per_row)
     temp = session.aux.get("temp_c")
     if temp is not None:
         inside = np.concatenate([temp[a:b] for a, b in zip(start, stop, strict=True)] or [np.zeros(0)])
@@ -365,63 +368,6 @@ def with_loop(report: CalibrationReport, loop: LoopResult, n_terms: int) -> Cali
     )
 
 
-def set_arw(report: CalibrationReport) -> float | None:
-    """The angle random walk the set carries (deg/√h), for telling a standstill on the vehicle.
-
-    From the Allan analysis of the zero-rate plateaus when it resolved the term; else from the
-    plateaus' per-sample noise at the session's sample rate (white noise: N = σ·√Δt). None when
-    the session shows neither.
-    """
-    term = report.allan.get("terms", {}).get("arw", {})
-    if term.get("resolved"):
-        return float(term["value"])
-    rate_hz = report.allan.get("sample_rate_hz", 0.0) * report.allan.get("samples_per_point", 1)
-    sigma = report.noise.per_sample_dps
-    if rate_hz and np.isfinite(sigma) and sigma > 0:
-        return float(sigma / np.sqrt(rate_hz) * 60.0)
-    return None
-
-
-def fit_stats(report: CalibrationReport) -> dict[str, Any]:
-    """The coefficient file's ``fit`` section: the figures a set carries about its own fit."""
-    stats: dict[str, Any] = {
-        "samples_used": report.samples.used,
-        "plateaus": report.plateaus,
-        "training_rms_dps": report.training.rms_dps,
-        "training_max_dps": report.training.max_dps,
-        "held_out_rms_dps": report.held_out.rms_dps,
-        "held_out_max_dps": report.held_out.max_dps,
-    }
-    loop = report.closed_loop
-    if loop is not None:  # the headline is the written set's, effects and all; the rate model's kept apart
-        stats |= {"held_out_rms_dps": loop.held_out_rms_after_dps,
-                  "held_out_max_dps": loop.held_out_max_after_dps,
-                  "held_out_method": loop.method,
-                  "rate_model_held_out_rms_dps": report.held_out.rms_dps,
-                  "rate_model_held_out_max_dps": report.held_out.max_dps}
-    arw = set_arw(report)
-    if arw is not None:
-        stats["arw_deg_rt_h"] = arw
-    if report.closed_loop is not None:
-        stats["extended_held_out_rms_dps"] = report.closed_loop.held_out_rms_after_dps
-        stats["effects"] = [e.name for e in report.effects]
-        ambiguous = ambiguity_record(report)
-        if ambiguous:
-            stats["ambiguous"] = ambiguous
-        if report.unexplained is not None and np.isfinite(report.unexplained.ratio):
-            stats["unexplained_ratio"] = report.unexplained.ratio
-    return stats
-
-
-def ambiguity_record(report: CalibrationReport) -> list[dict[str, Any]]:
-    """Each confounded group as the set records it: the explanation adopted, those the session
-    could not tell from it, why that one, and the session that would separate them. The set then
-    says itself that its attribution is a choice, wherever it is read without its report."""
-    return [{"adopted": c.adopted, "alternatives": [n for n in c.candidates if n != c.adopted],
-             "rule": c.adoption_rule, "separate_by": c.recommendation}
-            for c in report.confounded if c.adopted]
-
-
 def calibrate(
     session: Session,
     options: CalibrateOptions,
@@ -462,7 +408,7 @@ def calibrate(
         v0=base.v0,
         model=model,
         terms=terms,
-        fit=fit_stats(report),
+        fit=set_fit(report).to_dict(),
         created=dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         raw_units=raw_units,
     )

@@ -305,6 +305,7 @@ def report_json(report: CalibrationReport) -> str:
 
 def write_report_dir(directory: Path, report: CalibrationReport, loop: LoopResult | None) -> None:
     """report.json, report.md and the plots, side by side."""
+    from canical.calibrate.allan import NoiseAnalysis
     from canical.files.atomic_file import make_dirs, write_text_atomic
     from canical.report.allan_plot import write_allan_plot
     from canical.report.markdown import render
@@ -312,7 +313,7 @@ def write_report_dir(directory: Path, report: CalibrationReport, loop: LoopResul
 
     make_dirs(directory)
     plots = [p.name for p in write_plots(loop, directory)] if loop is not None else []
-    if "curve" in report.allan:
+    if isinstance(report.allan, NoiseAnalysis):
         plots.append(write_allan_plot(report.allan, directory / "allan.png",
                                       "Allan deviation, zero-rate plateaus").name)
     write_text_atomic(directory / "report.json", report_json(report))
@@ -422,6 +423,8 @@ def _plateau_line(found: PlateauFinding) -> str:
 
 def summary(report: CalibrationReport) -> str:
     """A few lines a calibration engineer reads first."""
+    from canical.calibrate.allan import NoiseAnalysis  # numpy: --help does not import it
+
     s = report.samples
     lines = [
         f"rate model {report.spec} (size chosen on held-out plateau means)",
@@ -453,11 +456,10 @@ def summary(report: CalibrationReport) -> str:
             terms = f", {step.terms} effect terms" if step.terms else ""
             lines.append(f"           {step.held_out_rms_dps:.4f}  {step.step} ({step.spec}{terms})")
     allan = report.allan
-    if "terms" in allan:
-        lo, hi = allan["tau_range_s"]
-        terms = "; ".join(
-            f"{t['name']} {t['value']:.3g} {t['unit']}" if t["resolved"] else f"{t['name']} not resolved"
-            for t in allan["terms"].values())
+    if isinstance(allan, NoiseAnalysis):
+        lo, hi = allan.tau_range_s
+        terms = "; ".join(f"{t.name} {t.value:.3g} {t.unit}" if t.resolved else f"{t.name} not resolved"
+                          for _, t in allan.terms.items())
         lines.append(f"noise      {terms} (zero-rate plateaus, tau {lo:.2g}-{hi:.2g} s)")
     if report.unexplained is not None:
         from canical.closed_loop.unexplained import one_line

@@ -11,11 +11,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from canical.errors import CanicalError
 from canical.files.output_plan import output_plan
 from canical.progress import Progress
+
+if TYPE_CHECKING:
+    from canical.calibration.imu_calibration_report import ImuReport
 
 AXES = ("x", "y", "z")
 #: Options of the single-axis flow a triad calibration does not take yet, and why one line says so.
@@ -76,13 +79,13 @@ def calibrate_triad(args: argparse.Namespace) -> int:
         print("calibrate: no sensor id given (--sensor) or recorded; using 'unspecified'", file=sys.stderr)
         sensor = "unspecified"
     result = calibrate_imu(sessions, calibrate_options(args), sensor_id=sensor, progress=progress.step)
-    report = result.report_dict([str(p) for p in args.session], str(args.output))
+    report = result.report([str(p) for p in args.session], str(args.output))
     if args.sign_seed is None:
         imu_set.save(args.output, result.imu_set)
     else:
         signed = write_signed(args, imu_set.dumps(result.imu_set))
     if args.report:
-        write_text_atomic(args.report, json.dumps(report, indent=2) + "\n")
+        write_text_atomic(args.report, json.dumps(report.to_dict(), indent=2) + "\n")
     if args.report_dir:
         write_report_dir(Path(args.report_dir), report)
     print(summary(report, f"0x{imu_set.imu_set_crc(result.imu_set):08x}"))
@@ -184,29 +187,30 @@ def read_triad_log_args(args: argparse.Namespace, path: str):
                           raw_signals=source.raw_signals, j1939_source=source.j1939_source)
 
 
-def write_report_dir(directory: Path, report: dict[str, Any]) -> None:
+def write_report_dir(directory: Path, report: ImuReport) -> None:
+    """report.json, report.md and coupling.png, side by side."""
     from canical.files.atomic_file import make_dirs, write_text_atomic
     from canical.report.imu_report import FIGURE, render, write_coupling_plot
 
     make_dirs(directory)
     write_coupling_plot(report, directory / FIGURE)
-    write_text_atomic(directory / "report.json", json.dumps(report, indent=2) + "\n")
+    write_text_atomic(directory / "report.json", json.dumps(report.to_dict(), indent=2) + "\n")
     write_text_atomic(directory / "report.md", render(report, [FIGURE]))
 
 
-def summary(report: dict[str, Any], crc: str) -> str:
+def summary(report: ImuReport, crc: str) -> str:
     """A few lines: each axis's model, the coupling in % and mrad, held-out errors before/after."""
-    lines = [f"axis {a}     {report['axes'][a]['model']}, held-out rms "
-             f"{report['axes'][a]['held_out_rms_dps']:.4f} deg/s" for a in AXES]
-    c = report["coupling"]
-    lines.append(f"coupling   {c['plateaus']} plateaus; off-diagonal terms (% / mrad ± standard error %):")
-    for t in c["off_diagonal"]:
-        lines.append(f"           {t['row']} from {t['column']}  {t['percent']:+.3f} %  "
-                     f"{t['mrad']:+.2f} mrad  ± {100 * t['standard_error']:.4f} %")
+    lines = [f"axis {a}     {ax.model}, held-out rms {ax.held_out_rms_dps:.4f} deg/s"
+             for a, ax in zip(AXES, report.axes, strict=True)]
+    lines.append(f"coupling   {report.coupling_plateaus} plateaus; off-diagonal terms "
+                 "(% / mrad ± standard error %):")
+    for t in report.off_diagonal:
+        lines.append(f"           {t.row} from {t.column}  {t.percent:+.3f} %  "
+                     f"{t.mrad:+.2f} mrad  ± {100 * t.standard_error:.4f} %")
     lines.append("held-out   plateau error rms per axis x/y/z, deg/s: per-axis only -> with coupling")
-    for e in report["held_out"]:
-        b = "/".join(f"{e['before_rms_dps'][a]:.4f}" for a in AXES)
-        after = "/".join(f"{e['after_rms_dps'][a]:.4f}" for a in AXES)
-        lines.append(f"           {e['session']} ({e['axis']}, {e['plateaus']} plateaus): {b} -> {after}")
-    lines.append(f"wrote      {report['coefficients']}: IMU set 0x{crc[2:]} (three axes and their coupling)")
+    for e in report.held_out:
+        b = "/".join(f"{v:.4f}" for v in e.before_rms_dps)
+        after = "/".join(f"{v:.4f}" for v in e.after_rms_dps)
+        lines.append(f"           {e.session} ({e.axis}, {e.plateaus} plateaus): {b} -> {after}")
+    lines.append(f"wrote      {report.coefficients}: IMU set 0x{crc[2:]} (three axes and their coupling)")
     return "\n".join(lines)

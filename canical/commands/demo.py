@@ -136,8 +136,8 @@ def triad_demo(out: Path, seed: int) -> Path:
     result = calibrate_imu(sessions, CalibrateOptions(), sensor_id="SIM-TRIAD")
     path = out / "imu.yaml"
     imu_set.save(path, result.imu_set)
-    report = result.report_dict([str(out / n) for n in names], str(path))
-    write_text_atomic(out / "report.json", json.dumps(report, indent=2) + "\n")
+    report = result.report([str(out / n) for n in names], str(path))
+    write_text_atomic(out / "report.json", json.dumps(report.to_dict(), indent=2) + "\n")
     write_report_dir(out / "report", report)
     check = result.errors[-1]
     before = float(np.sqrt(np.mean(np.square(check.before_rms_dps))))

@@ -46,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def characterise(args: argparse.Namespace) -> int:
+    from canical.calibrate.allan import NoiseSkipped
     from canical.calibrate.noise_records import (
         AT_REST_SPAN_DPS,
         describe,
@@ -71,9 +72,9 @@ def characterise(args: argparse.Namespace) -> int:
     records = uniform_records(time_s, rate, dt)
     del time_s, rate  # the records are views of the rate; the times' memory goes to the Allan sums
     analysis = noise_analysis(records, dt, str(args.record))
-    if "skipped" in analysis:
-        raise CanicalError(f"{args.record}: {analysis['skipped']}")
-    text = json.dumps(analysis, indent=2) + "\n"
+    if isinstance(analysis, NoiseSkipped):
+        raise CanicalError(f"{args.record}: {analysis.skipped}")
+    text = json.dumps(analysis.to_dict(), indent=2) + "\n"
     if args.plot:
         from canical.report.allan_plot import write_allan_plot
 

@@ -1,7 +1,7 @@
 """The report of a triad calibration: the coupling as a table and a heatmap, the errors per axis.
 
-Works on the report's plain content (``report.json``, built by
-:meth:`canical.calibration.imu_pipeline.ImuCalibration.report_dict`): the markdown page and one figure,
+Works on the report's record (:class:`canical.calibration.imu_calibration_report.ImuReport`, whose
+``to_dict`` is ``report.json``): the markdown page and one figure,
 ``coupling.png``: left, the coupling matrix as an annotated heatmap (each off-diagonal term in %
 and mrad, ± its standard error); right, per axis, the held-out plateau error before and after
 the coupling, as bars (single-axis sessions pooled, and the multi-axis motion when there is one).
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import matplotlib
 
@@ -21,29 +21,28 @@ import numpy as np
 
 from canical.files.atomic_file import write_bytes_atomic
 
+if TYPE_CHECKING:
+    from canical.calibration.imu_calibration_report import ImuReport
+
 AXES = ("x", "y", "z")
 FIGURE = "coupling.png"
 
 
-def pooled_errors(report: dict[str, Any], multi: bool) -> tuple[np.ndarray, np.ndarray] | None:
+def pooled_errors(report: ImuReport, multi: bool) -> tuple[np.ndarray, np.ndarray] | None:
     """Per axis, rms before and after over the single-axis sessions' plateaus (or the multi-axis ones)."""
-    rows = [e for e in report["held_out"] if (e["axis"] == "multi") == multi]
+    rows = [e for e in report.held_out if (e.axis == "multi") == multi]
     if not rows:
         return None
-    n = np.array([e["plateaus"] for e in rows], dtype=float)
-
-    def pool(key: str) -> np.ndarray:
-        squares = np.array([[e[key][a] ** 2 for a in AXES] for e in rows])
-        return np.sqrt(n @ squares / n.sum())
-
-    return pool("before_rms_dps"), pool("after_rms_dps")
+    n = np.array([e.plateaus for e in rows], dtype=float)
+    before = np.array([[v**2 for v in e.before_rms_dps] for e in rows])
+    after = np.array([[v**2 for v in e.after_rms_dps] for e in rows])
+    return np.sqrt(n @ before / n.sum()), np.sqrt(n @ after / n.sum())
 
 
-def write_coupling_plot(report: dict[str, Any], path: Path) -> Path:
+def write_coupling_plot(report: ImuReport, path: Path) -> Path:
     """The heatmap and the before/after bars, as one PNG."""
-    coupling = report["coupling"]
-    m = np.asarray(coupling["matrix"])
-    se = np.asarray(coupling["standard_errors"])
+    m = np.asarray(report.matrix)
+    se = np.asarray(report.standard_errors)
     fig, (left, right) = plt.subplots(1, 2, figsize=(13, 4.6),
                                       gridspec_kw={"width_ratios": [1, 1.2], "wspace": 0.5})
     off = 100.0 * (m - np.diag(np.diag(m)))
@@ -79,37 +78,35 @@ def write_coupling_plot(report: dict[str, Any], path: Path) -> Path:
     return path
 
 
-def render(report: dict[str, Any], plots: list[str]) -> str:
+def render(report: ImuReport, plots: list[str]) -> str:
     """report.md: the coupling with standard errors, each term in % and mrad, errors per axis."""
-    m = report["coupling"]
     lines = ["# IMU calibration (three axes)", "",
-             f"Sessions: {', '.join(report['sessions'])}. IMU set: `{report['coefficients']}`.", "",
-             f"Estimation: {report['estimation']}.", "", "## Per-axis models", "",
+             f"Sessions: {', '.join(report.sessions)}. IMU set: `{report.coefficients}`.", "",
+             f"Estimation: {report.estimation}.", "", "## Per-axis models", "",
              "| axis | model | held-out rms (deg/s) | effects |", "|---|---|---|---|"]
-    for a in AXES:
-        ax = report["axes"][a]
-        effects = ", ".join(ax["effects"]) or "–"
-        lines.append(f"| {a} | {ax['model']} | {ax['held_out_rms_dps']:.4f} | {effects} |")
-    lines += ["", f"## Coupling ({m['plateaus']} plateaus)", "",
+    for a, ax in zip(AXES, report.axes, strict=True):
+        effects = ", ".join(ax.effects) or "–"
+        lines.append(f"| {a} | {ax.model} | {ax.held_out_rms_dps:.4f} | {effects} |")
+    lines += ["", f"## Coupling ({report.coupling_plateaus} plateaus)", "",
               "corrected = M @ (per-axis corrected rates x, y, z); each term ± its standard error.", "",
               "| | x | y | z |", "|---|---|---|---|"]
+    m, se = report.matrix.tolist(), report.standard_errors.tolist()
     for i, a in enumerate(AXES):
-        cells = [f"{m['matrix'][i][j]:.6f} ± {m['standard_errors'][i][j]:.1e}" for j in range(3)]
+        cells = [f"{m[i][j]:.6f} ± {se[i][j]:.1e}" for j in range(3)]
         lines.append(f"| {a} | {' | '.join(cells)} |")
     lines += ["", "| term | % | mrad | standard error (%) |", "|---|---|---|---|"]
-    for t in m["off_diagonal"]:
-        lines.append(f"| {t['row']} from {t['column']} | {t['percent']:+.3f} | {t['mrad']:+.2f} | "
-                     f"{100 * t['standard_error']:.4f} |")
+    for t in report.off_diagonal:
+        lines.append(f"| {t.row} from {t.column} | {t.percent:+.3f} | {t.mrad:+.2f} | "
+                     f"{100 * t.standard_error:.4f} |")
     lines += ["", "## Held-out plateau error per axis (deg/s rms)", "",
               "Before: the per-axis models alone. After: with the coupling. Single-axis sessions: each "
               "plateau corrected with a coupling fitted without it; multi-axis motion is never fitted.", "",
               "| session | table axis | plateaus | before x | before y | before z "
               "| after x | after y | after z |",
               "|---|---|---|---|---|---|---|---|---|"]
-    for e in report["held_out"]:
-        b, a = e["before_rms_dps"], e["after_rms_dps"]
-        lines.append(f"| {e['session']} | {e['axis']} | {e['plateaus']} | "
-                     + " | ".join(f"{b[x]:.4f}" for x in AXES) + " | "
-                     + " | ".join(f"{a[x]:.4f}" for x in AXES) + " |")
+    for e in report.held_out:
+        lines.append(f"| {e.session} | {e.axis} | {e.plateaus} | "
+                     + " | ".join(f"{v:.4f}" for v in e.before_rms_dps) + " | "
+                     + " | ".join(f"{v:.4f}" for v in e.after_rms_dps) + " |")
     lines += [""] + [f"![{p}]({p})" for p in plots]
     return "\n".join(lines) + "\n"

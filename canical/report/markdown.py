@@ -84,7 +84,7 @@ def render(report: CalibrationReport, plots: list[str]) -> str:
         lines += _closed_loop(report)
     elif report.loop_skipped is not None:
         lines += [f"Closed loop skipped: {report.loop_skipped}.", ""]
-    if report.allan:
+    if report.allan is not None:
         from canical.calibrate.noise_records import describe  # numpy: calibrate's --help imports this module
 
         lines += ["## Noise: Allan deviation of the zero-rate plateaus", ""]

@@ -18,17 +18,16 @@ from __future__ import annotations
 
 import dataclasses
 import gc
-import os
-import signal
 import socket
-import threading
 import time
 import weakref
+from collections.abc import Callable
 from pathlib import Path
 
 import can
 import pytest
 from support.daemon_fixtures import ALL_TERMS, AXES, base_set, decode_stream, imu_stream, write_config
+from support.sighup_operator import Offer, run_with_operator
 
 from canical.bus.active_sets import SOURCE_FILE, ActiveSets, AxisSet, build
 from canical.bus.daemon import Daemon
@@ -153,42 +152,19 @@ def test_every_frame_is_corrected_by_exactly_one_generation(tmp_path: Path) -> N
 
     daemon._adopt = recording_adopt  # type: ignore[method-assign]
 
-    failures: list[str] = []
+    def replace_changed(gen: int) -> Callable[[], None]:
+        def write() -> None:
+            for axis in AXES:
+                if variant(gen, axis) != variant(gen - 1, axis):
+                    text = (folders[variant(gen, axis)] / f"imu-{axis}.yaml").read_text()
+                    write_text_atomic(live / f"imu-{axis}.yaml", text)
+        return write
 
-    def operator() -> None:
-        """Replace the changed set files, SIGHUP, wait for the adoption; a second SIGHUP at
-        times, while the first reload is still being built."""
-        try:
-            for gen in range(1, GENERATIONS):
-                while daemon.stats.frames_in < gen * SPACING:
-                    time.sleep(0.001)
-                for axis in AXES:
-                    if variant(gen, axis) != variant(gen - 1, axis):
-                        text = (folders[variant(gen, axis)] / f"imu-{axis}.yaml").read_text()
-                        write_text_atomic(live / f"imu-{axis}.yaml", text)
-                os.kill(os.getpid(), signal.SIGHUP)
-                if gen % 3 == 0:
-                    os.kill(os.getpid(), signal.SIGHUP)
-                end = time.monotonic() + 20.0
-                while len(adopted) < gen:
-                    if time.monotonic() > end:
-                        failures.append(f"generation {gen} not adopted within 20 s")
-                        return
-                    time.sleep(0.001)
-        except Exception as exc:  # reported by the test, not lost in the thread
-            failures.append(repr(exc))
-
-    handlers = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)}
-    daemon.install_signal_handlers()
-    thread = threading.Thread(target=operator, daemon=True)
-    try:
-        thread.start()
-        assert daemon.run() == 0
-        thread.join(timeout=30)
-    finally:
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-    assert not failures, failures
+    # Replace the changed set files, SIGHUP, wait for the adoption; a second SIGHUP at times,
+    # while the first reload is still being built.
+    run_with_operator(daemon, [Offer(gen * SPACING, replace_changed(gen), lambda gen=gen: len(adopted) >= gen,
+                                     f"generation {gen} adopted", hups=2 if gen % 3 == 0 else 1)
+                               for gen in range(1, GENERATIONS)])
     assert len(adopted) == GENERATIONS - 1
 
     # The reference, sharing no per-frame code with the daemon: the same frames, the same

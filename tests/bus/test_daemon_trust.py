@@ -11,13 +11,10 @@ authenticated.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
-import signal
 import subprocess
 import sys
-import threading
-import time
+from collections.abc import Callable
 from pathlib import Path
 
 import can
@@ -33,6 +30,7 @@ from support.daemon_fixtures import (
     write_imu_set,
     write_sets,
 )
+from support.sighup_operator import Offer, run_with_operator
 from support.signed_sets import REFUSALS, Lab, edit, make_lab, refused_case, signed_copy
 from test_daemon_compiled import StandInSocket, kernel_frame, serve_socket
 from test_daemon_imu_set import LSB, expected, messages, sent_rates
@@ -309,36 +307,16 @@ def test_through_the_real_loop_and_sighup_a_refused_set_corrects_no_frame(imu_se
     (tmp_path / "next").mkdir()
     tampered = offered("tampered-crc-recomputed", imu_sets[1], tmp_path / "next", lab)
     newer = signed_copy(imu_sets[1], tmp_path / "newer.yaml", lab.key, 3)
-    failures: list[str] = []
 
-    def operator() -> None:
-        try:
-            for k, offer in enumerate((tampered, newer), start=1):
-                while daemon.stats.frames_in < 600 * k:
-                    time.sleep(0.001)
-                write_text_atomic(tmp_path / "imu-set.yaml", offer.read_text())
-                os.kill(os.getpid(), signal.SIGHUP)
-                end = time.monotonic() + 20.0
-                while sum(r.why == "SIGHUP" for _, r in done) < k:
-                    if time.monotonic() > end:
-                        failures.append(f"reload {k} not finished within 20 s")
-                        return
-                    time.sleep(0.001)
-        except Exception as exc:  # reported by the test, not lost in the thread
-            failures.append(repr(exc))
+    def offer(path: Path) -> Callable[[], None]:
+        return lambda: write_text_atomic(tmp_path / "imu-set.yaml", path.read_text())
 
-    handlers = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGTERM, signal.SIGINT)}
-    daemon.install_signal_handlers()
-    thread = threading.Thread(target=operator, daemon=True)
-    try:
-        with caplog.at_level(logging.INFO):
-            thread.start()
-            assert daemon.run() == 0
-            thread.join(timeout=30)
-    finally:
-        for sig, handler in handlers.items():
-            signal.signal(sig, handler)
-    assert not failures, failures
+    def reloads(k: int) -> Callable[[], bool]:
+        return lambda: sum(r.why == "SIGHUP" for _, r in done) >= k
+
+    with caplog.at_level(logging.INFO):
+        run_with_operator(daemon, [Offer(600 * k, offer(path), reloads(k), f"reload {k}")
+                                   for k, path in enumerate((tampered, newer), start=1)])
     hups = [(n, r) for n, r in done if r.why == "SIGHUP"]
     assert len(hups) == 2
     (_, refused), (switch, adopted) = hups

@@ -10,13 +10,15 @@ finite record is reached from below (median 1% low, worst 12%: 20% allowed).
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from support.allan_noise import flicker_rate, rate_random_walk, rrw_for_crossover, white_rate
 
-from canical.calibrate.allan import allan_deviation, noise_terms
+from canical.calibrate.allan import NoiseAnalysis, allan_deviation, noise_terms
 from canical.calibrate.noise_records import name_a_rise
 
 
@@ -28,9 +30,9 @@ def test_white_rate_noise_gives_its_arw_and_nothing_else(seed: int, arw: float) 
     fs = 100.0
     curve = allan_deviation([white_rate(rng, 60_000, fs, arw)], fs)
     terms = noise_terms(curve)
-    assert terms["arw"].resolved
-    assert terms["arw"].value == pytest.approx(arw, rel=0.03)
-    assert terms["arw"].low <= terms["arw"].value <= terms["arw"].high
+    assert terms.arw.resolved
+    assert terms.arw.value == pytest.approx(arw, rel=0.03)
+    assert terms.arw.low <= terms.arw.value <= terms.arw.high
     # 10 minutes of white noise: the curve falls all the way, no floor and no rise to claim
     for key in ("bias_instability", "rrw"):
         assert not terms[key].resolved, terms[key]
@@ -46,9 +48,9 @@ def test_rate_random_walk_is_read_at_long_tau(seed: int) -> None:
     rrw = rrw_for_crossover(arw, crossover_s)
     x = white_rate(rng, n, fs, arw) + rate_random_walk(rng, n, fs, rrw)
     terms = noise_terms(allan_deviation([x], fs))
-    assert terms["arw"].resolved and terms["arw"].value == pytest.approx(arw, rel=0.03)
-    assert terms["rrw"].resolved and terms["rrw"].value == pytest.approx(rrw, rel=0.4)
-    assert terms["rrw"].tau_s > crossover_s / 2
+    assert terms.arw.resolved and terms.arw.value == pytest.approx(arw, rel=0.03)
+    assert terms.rrw.resolved and terms.rrw.value == pytest.approx(rrw, rel=0.4)
+    assert terms.rrw.tau_s > crossover_s / 2
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -58,9 +60,9 @@ def test_flicker_floor_gives_the_bias_instability(seed: int) -> None:
     bi = rng.uniform(2.0, 20.0)
     x = white_rate(rng, n, fs, 0.2) + flicker_rate(rng, n, fs, bi)
     terms = noise_terms(allan_deviation([x], fs))
-    assert terms["bias_instability"].resolved
-    assert terms["bias_instability"].value == pytest.approx(bi, rel=0.2)
-    assert terms["arw"].value == pytest.approx(0.2, rel=0.05)
+    assert terms.bias_instability.resolved
+    assert terms.bias_instability.value == pytest.approx(bi, rel=0.2)
+    assert terms.arw.value == pytest.approx(0.2, rel=0.05)
 
 
 def test_short_records_pool_and_do_not_claim_long_tau_terms() -> None:
@@ -73,9 +75,9 @@ def test_short_records_pool_and_do_not_claim_long_tau_terms() -> None:
     assert curve.tau_s[-1] <= 30.0 / 3 + 1e-9  # three independent clusters in the longest record
     assert curve.clusters[0] == 4 * 6000
     terms = noise_terms(curve)
-    assert terms["arw"].value == pytest.approx(0.4, rel=0.03)
-    assert not terms["rrw"].resolved and "longer record" in terms["rrw"].note
-    assert terms["rrw"].value > 0  # the bound the data gives
+    assert terms.arw.value == pytest.approx(0.4, rel=0.03)
+    assert not terms.rrw.resolved and "longer record" in terms.rrw.note
+    assert terms.rrw.value > 0  # the bound the data gives
 
 
 def test_pooled_curve_equals_one_record_cut_in_pieces_up_to_the_lost_joins() -> None:
@@ -102,8 +104,8 @@ def test_a_rise_over_less_than_a_decade_is_not_claimed_as_rate_random_walk(seed:
         drift = rng.uniform(0.05, 0.2) * rng.choice([-1.0, 1.0]) * t  # deg/s per s: a thermal drift
         records.append(white_rate(rng, t.size, fs, 0.3) + drift)
     terms = noise_terms(allan_deviation(records, fs))
-    assert not terms["rrw"].resolved
-    assert "less than a decade" in terms["rrw"].note
+    assert not terms.rrw.resolved
+    assert "less than a decade" in terms.rrw.note
 
 
 def test_the_calibration_names_the_temperature_behind_a_rise() -> None:
@@ -115,18 +117,23 @@ def test_the_calibration_names_the_temperature_behind_a_rise() -> None:
 
     scenario = next(s for s in SCENARIOS if s.name.startswith("temperature bias + scale"))
     result = calibrate(scenario.session(0), CalibrateOptions(extend=False), sensor_id="SIM", axis="z")
-    rrw = result.report.allan["terms"]["rrw"]
-    assert not rrw["resolved"]
-    assert "less than a decade" in rrw["note"] and "temperature spans" in rrw["note"], rrw["note"]
+    assert isinstance(result.report.allan, NoiseAnalysis)
+    rrw = result.report.allan.terms.rrw
+    assert not rrw.resolved
+    assert "less than a decade" in rrw.note and "temperature spans" in rrw.note, rrw.note
 
 
 def test_a_rise_is_named_only_when_the_channel_moved() -> None:
-    analysis = {"terms": {"rrw": {"resolved": False, "note": "the curve rises between tau 1 and 3 s only"}}}
+    fs = 100.0
+    curve = allan_deviation([white_rate(np.random.default_rng(0), 600, fs, 0.3)], fs)
+    terms = noise_terms(curve)
+    risen = replace(terms.rrw, resolved=False, note="the curve rises between tau 1 and 3 s only")
+    analysis = NoiseAnalysis("test", curve, replace(terms, rrw=risen))
     named = name_a_rise(analysis, "temperature", np.array([20.0, 21.5, 23.0]), "°C")
-    assert named["terms"]["rrw"]["note"].endswith("the records' temperature spans 3 °C: likely that drift")
-    assert name_a_rise(analysis, "temperature", np.array([20.0, 20.0]), "°C") == analysis
-    resolved = {"terms": {"rrw": {"resolved": True, "note": ""}}}
-    assert name_a_rise(resolved, "temperature", np.array([20.0, 23.0]), "°C") == resolved
+    assert named.terms.rrw.note.endswith("the records' temperature spans 3 °C: likely that drift")
+    assert name_a_rise(analysis, "temperature", np.array([20.0, 20.0]), "°C") is analysis
+    resolved = replace(analysis, terms=replace(terms, rrw=replace(risen, resolved=True, note="")))
+    assert name_a_rise(resolved, "temperature", np.array([20.0, 23.0]), "°C") is resolved
 
 
 @pytest.mark.parametrize("n", [12, 1000, 200_000])

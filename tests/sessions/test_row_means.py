@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from support.table_clock import own_clock_case, table_csv
 
+from canical.calibrate.allan import NoiseAnalysis
 from canical.calibration.pipeline import CalibrateOptions, calibrate, fit_base
 from canical.commands.cli import main
 from canical.errors import CanicalError
@@ -96,10 +97,11 @@ def test_calibration_on_means_gives_the_set_within_the_fits_tolerance(tmp_path, 
     assert np.max(np.abs(rate_reduced - rate_full)) < a.held_out.rms_dps
     assert b.held_out.rms_dps == pytest.approx(a.held_out.rms_dps, rel=0.1)
     assert b.noise.per_sample_dps == pytest.approx(a.noise.per_sample_dps, rel=0.05)
-    arw_a, arw_b = (r.allan["terms"]["arw"] for r in (a, b))
-    assert arw_a["resolved"] and arw_b["resolved"]
-    assert arw_b["value"] == pytest.approx(arw_a["value"], rel=0.1)
-    assert b.allan["samples_per_point"] == 5 and b.allan["tau_range_s"][0] == pytest.approx(0.005)
+    assert isinstance(a.allan, NoiseAnalysis) and isinstance(b.allan, NoiseAnalysis)
+    arw_a, arw_b = a.allan.terms.arw, b.allan.terms.arw
+    assert arw_a.resolved and arw_b.resolved
+    assert arw_b.value == pytest.approx(arw_a.value, rel=0.1)
+    assert b.allan.samples_per_point == 5 and b.allan.tau_range_s[0] == pytest.approx(0.005)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

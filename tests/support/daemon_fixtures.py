@@ -7,7 +7,6 @@ is loaded by every daemon test and cannot rot.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import itertools
 import os
@@ -24,8 +23,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from canical.bus.raw_bus import RawSocketBus
+from canical.bus.socketcan import enlarge_socket_buffer
 from canical.calibration.pipeline import CalibrateOptions, calibrate
 from canical.frames.codec import load_dbc
+from canical.frames.frame_match import FrameMatch
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.terms import term_from_dict
@@ -303,15 +305,21 @@ class DaemonProcess:
         return code
 
 
+#: Every standard and every extended frame (a mask of 0 compares no id bit).
+EVERY_FRAME = (FrameMatch(0, False, 0), FrameMatch(0, True, 0))
+
+
 class Recorder:
-    """Receives everything on a channel in a thread (big kernel buffer), keeps it in order."""
+    """Receives every frame on a channel in a thread (big kernel buffer), keeps it in order.
+
+    On canical's own raw socket (:class:`canical.bus.raw_bus.RawSocketBus`, as ``canical record``
+    reads): its socket is canical's, so the buffer is asked for through it, not through python-can's
+    non-public ``bus.socket``. Error frames come too; CAN FD frames do not (nothing canical sends is one).
+    """
 
     def __init__(self, channel: str) -> None:
-        import can
-
-        self.bus = can.Bus(interface="socketcan", channel=channel, fd=True)
-        with contextlib.suppress(OSError):  # root in the guest: room for bursts
-            self.bus.socket.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 8 << 20)
+        self.bus = RawSocketBus(channel, EVERY_FRAME)
+        enlarge_socket_buffer(self.bus.socket, 8 << 20)  # root in the guest: room for bursts
         self.messages: list = []
         self.errors = 0
         self._stop = False
@@ -348,8 +356,6 @@ class Recorder:
         self._thread.join(timeout=2)
         self.bus.shutdown()
 
-
-SO_RCVBUFFORCE = 33
 
 
 def send_paced(bus, frames: list[tuple[int, bytes]], rate_hz: float) -> None:
