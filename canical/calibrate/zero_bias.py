@@ -31,13 +31,14 @@ def zero_bias(raw: np.ndarray, plateaus: Plateaus, *, zero_tol: float = ZERO_RAT
 
 
 def zero_crossing_bias(raw: np.ndarray, plateaus: Plateaus) -> float:
-    """A sweep's V0: the output at zero rate of a line through the windows around zero.
+    """A sweep's V0: the output at zero rate of a parabola through the windows around zero.
 
     The windows within ``ZERO_BAND_DPS`` of zero, and at least the ``MIN_ZERO_WINDOWS`` nearest
     on each side: they bracket zero, so the line interpolates rather than extrapolates, and
-    they are enough to average the noise. The sensor's bend there (its asymmetry's knee) moves V0
-    by a fraction of a deg/s's output, which the fitted model's own constant term takes up (V0
-    only shifts ΔV).
+    they are enough to average the noise. A parabola, not a line: the sensor bends there (its
+    asymmetry's knee is even in the rate), which would lift a line's value at zero by the bend's
+    mean over the band (0.007 deg/s for the simulated sensor's knee). What is left, a fraction of
+    that, the fitted model's own constant term takes up (V0 only shifts ΔV).
     """
     rate = plateaus.rate_dps
     near = np.abs(rate) <= ZERO_BAND_DPS
@@ -48,7 +49,7 @@ def zero_crossing_bias(raw: np.ndarray, plateaus: Plateaus) -> float:
         nearest = np.flatnonzero(side)[np.argsort(np.abs(rate[side]))[:MIN_ZERO_WINDOWS]]
         near[nearest] = True
     means = plateau_means(raw, plateaus)[near]
-    return float(np.polyval(np.polyfit(rate[near], means, 1), 0.0))
+    return float(np.polyval(np.polyfit(rate[near], means, 2), 0.0))
 
 
 def zero_rate(plateaus: Plateaus, *, zero_tol: float = ZERO_RATE_TOL_DPS) -> np.ndarray:

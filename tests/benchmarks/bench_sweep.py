@@ -16,8 +16,8 @@ are judged on a **third** step session of that sensor, with its own noise, at th
 between the protocol's (−58.5…58.5 deg/s and 0): neither calibration saw that session, and the
 step one never saw those rates. That error on the third session's plateau means is the
 comparable figure. Each calibration's own held-out rms is printed too, and is **not**
-comparable: the step session's leaves out 10 s plateaus, the sweep's 1.7 s windows (six times
-the noise per point).
+comparable: the step session's leaves out 10 s plateaus, the sweep's windows of under a second
+(3.4 times the noise per point).
 
 The bar (issue 32): the sweep's error within 1.5× the step's. Development seeds are fixed below;
 blind seeds are drawn from the operating system's entropy at every run (printed, so a run can be
@@ -122,11 +122,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="two seeds of each kind: checks the script runs")
     parser.add_argument("--blind", type=int, default=20, help="blind seeds drawn at random [20]")
-    parser.add_argument("--seeds", default="", help="these seeds only (comma-separated), e.g. to repeat a run")
+    parser.add_argument("--seeds", default="", help="these seeds only (comma-separated): repeat a run")
     args = parser.parse_args()
     start = time.perf_counter()
-    print("a sensor calibrated from a 412 s continuous sweep (encoder rate at 100 Hz) and from a step session "
-          "of the same length; both sets judged on a third step session of the sensor at the rates midway")
+    print("a sensor calibrated from a 412 s continuous sweep (encoder rate at 100 Hz) and from a step "
+          "session of the same length; both sets judged on a third step session of the sensor at the "
+          "rates midway")
     if args.seeds:
         report("given seeds", [int(s) for s in args.seeds.split(",")])
     else:
