@@ -125,6 +125,7 @@ class Plateaus:
             longest_steady_s=self.longest_steady_s,
             not_settled_samples=self.n_not_settled,
             short_stretches=self.n_short,
+            sweep_window_s=self.sweep_window_s or None,
         )
 
 
@@ -146,9 +147,13 @@ class PlateauFinding:
     longest_steady_s: float
     not_settled_samples: int
     short_stretches: int
+    sweep_window_s: float | None = None  # a continuous sweep's windows (None: plateaus, and no key)
 
     def to_dict(self) -> dict[str, float | int | str | None]:
-        return asdict(self)
+        out = asdict(self)
+        if self.sweep_window_s is None:
+            del out["sweep_window_s"]
+        return out
 
 
 def check_time_order(time_s: np.ndarray, what: str = "time_s") -> None:

@@ -161,7 +161,7 @@ def sweep_or_plateaus(session: Session, found: Plateaus, options: CalibrateOptio
                                            what="no constant-rate plateau found", why_not_sweep=refusal))
     windows = sweep_windows(t, ref, session.raw, found, check, options.latency_s)
     progress(f"a continuous sweep at {found.sweep_dps2:.3g} deg/s²: {windows.count} windows of "
-             f"{check.window_s:.3g} s, delay {-windows.latency_s * 1e3:.3g} ms fitted")
+             f"{check.window_s:.3g} s, sensor {-windows.latency_s * 1e3:.3g} ms behind the reference")
     return windows
 
 
