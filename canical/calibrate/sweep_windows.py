@@ -13,7 +13,7 @@ the reports) runs unchanged.
 **The window's length.** Its rate spread ``a·W`` is kept within ``MAX_SPREAD_DPS`` (0.5 deg/s):
 the sharpest bend a MEMS scale factor shows is the knee of its positive/negative asymmetry, a
 few deg/s wide (up to 5 % over 3-10 deg/s in the simulated sensors: ``f''`` up to about 0.03 per
-deg/s in rate terms); over 0.5 deg/s its curvature moves a window's mean by 0.0003 deg/s at most,
+deg/s in rate terms); over 0.5 deg/s its curvature moves a window's mean by about 0.0003 deg/s at most,
 a tenth of the held-out error of a good step calibration. Each window holds at least
 ``WINDOW_UPDATES`` reference updates, so the reference's noise and quantisation average over as
 many values as plateau finding's steadiness window uses. Why not longer: the windows' noise is
@@ -26,8 +26,8 @@ sweep within 1.5x of the step session on 9, 7, 5 and 6 seeds of 10.
 reference lags by its transport and its hold; on a sweep a delay ``D`` is a rate error ``a·D``,
 of opposite sign on the way up and down. With both directions swept, ``D`` is fitted: the
 window rates against a polynomial of the raw output plus ``D`` times each window's sweep rate
-(a lag makes the two directions differ, the polynomial cannot). One direction only: ``D`` is the
-reference's latency estimated from the rate changes (:func:`~canical.calibrate.plateaus.
+(a lag makes the two directions differ, the polynomial cannot). One direction only: ``D`` is minus
+the reference's latency estimated from the rate changes (:func:`~canical.calibrate.plateaus.
 reference_latency`). A sensor whose output depends on the direction of rotation is, at one sweep
 rate, indistinguishable from a delay; a second session swept at another rate would separate them.
 
