@@ -1,6 +1,7 @@
 """From a session's samples to a fitted rate model: the paper's calibration steps.
 
-Plateaus of constant table rate (:mod:`.plateaus`), the zero-rate bias V0 (:mod:`.zero_bias`),
+Plateaus of constant table rate (:mod:`.plateaus`), or a continuous sweep's short windows
+in their place (:mod:`.sweep_windows`), the zero-rate bias V0 (:mod:`.zero_bias`),
 one fit point per plateau (:mod:`.fit_points`), segment points at extrema of a global fit's
 residual (:mod:`.segment_points`), plateaus at a rail of the output left out
 (:mod:`.rails`), the models fitted (:mod:`.model_fit`) and their size chosen
@@ -24,5 +25,6 @@ __all__ = [
     "plateaus",
     "rails",
     "segment_points",
+    "sweep_windows",
     "zero_bias",
 ]

@@ -85,10 +85,21 @@ class Plateaus:
     rate_sem_dps: np.ndarray | None = None  # per plateau: standard error of its rate
     n_short: int = 0  # steady stretches left out as shorter than the minimum
     sweep_dps2: float = 0.0  # median net change of the reference per second, window to window
+    #: > 0: these are a continuous sweep's consecutive windows of this length, not steady stretches
+    #: (:mod:`canical.calibrate.sweep_windows`); no window stands at zero rate.
+    sweep_window_s: float = 0.0
 
     def rate_uncertainty(self) -> np.ndarray:
         """Per plateau: the standard error of its reference rate (0 for a noiseless reference)."""
         return self.rate_sem_dps if self.rate_sem_dps is not None else np.zeros(self.count)
+
+    @property
+    def sweeping(self) -> bool:
+        """The reference never stands still: its net change over a window is many times its noise
+        (and the tolerance) and no stretch is a window long. A continuous sweep, not a noisy
+        reference."""
+        moved = self.sweep_dps2 * self.window_s > max(SWEEP_NOISES * self.ref_noise_dps, self.rate_tol_dps)
+        return self.longest_steady_s < self.window_s and moved
 
     @property
     def count(self) -> int:
@@ -114,6 +125,7 @@ class Plateaus:
             longest_steady_s=self.longest_steady_s,
             not_settled_samples=self.n_not_settled,
             short_stretches=self.n_short,
+            sweep_window_s=self.sweep_window_s or None,
         )
 
 
@@ -135,9 +147,13 @@ class PlateauFinding:
     longest_steady_s: float
     not_settled_samples: int
     short_stretches: int
+    sweep_window_s: float | None = None  # a continuous sweep's windows (None: plateaus, and no key)
 
     def to_dict(self) -> dict[str, float | int | str | None]:
-        return asdict(self)
+        out = asdict(self)
+        if self.sweep_window_s is None:
+            del out["sweep_window_s"]
+        return out
 
 
 def check_time_order(time_s: np.ndarray, what: str = "time_s") -> None:
@@ -577,19 +593,22 @@ def sweep_rate(t: np.ndarray, ref: np.ndarray, window_s: float) -> float:
     return float(np.median(np.abs(np.diff(ref[at])))) / window_s
 
 
-def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str) -> str:
-    """One line for a session where too little was found: what was seen, which option helps."""
+def explain_too_few(p: Plateaus, *, min_duration_s: float, what: str, why_not_sweep: str = "") -> str:
+    """One line for a session where too little was found: what was seen, which option helps.
+
+    ``why_not_sweep``: why a sweeping session could not be calibrated from windows instead
+    (:mod:`canical.calibrate.sweep_windows`), said before the advice.
+    """
     seen = (
         f"longest steady stretch {p.longest_steady_s:.3g} s, reference noise {p.ref_noise_dps:.3g} deg/s "
         f"(tolerance {p.rate_tol_dps:.3g} deg/s), {p.rate_changes} rate changes"
     )
     if p.n_not_settled:
         seen += f", {p.n_not_settled} steady rows flagged not settled by the table"
-    sweeping = p.sweep_dps2 * p.window_s > max(SWEEP_NOISES * p.ref_noise_dps, p.rate_tol_dps)
-    if p.longest_steady_s < p.window_s and sweeping:
-        hint = (f"the reference never stands still: it moves {p.sweep_dps2:.3g} deg/s every second, window "
-                f"after window (a continuous sweep, not a noisy reference); calibration takes plateaus: "
-                f"record the rates as steps, each held for at least {p.window_s + DEFAULT_SETTLE_S:.3g} s")
+    if p.sweeping:
+        hint = (f"the reference never stands still: it moves {p.sweep_dps2:.3g} deg/s every second (a "
+                f"continuous sweep, not a noisy reference){why_not_sweep}; record the rates as steps, each "
+                f"held for at least {p.window_s + DEFAULT_SETTLE_S:.3g} s")
     elif p.longest_steady_s < p.window_s:
         hint = f"a larger --rate-tol than {p.rate_tol_dps:.3g} deg/s would accept a noisier reference"
     elif p.n_short:

@@ -23,6 +23,7 @@ from canical.calibrate.noise_records import name_a_rise, noise_analysis, sample_
 from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few
 from canical.calibrate.rails import RailCheck, RailLimits, rail_plateaus
 from canical.calibrate.segment_points import rate_noise
+from canical.calibrate.sweep_windows import sweep_check, sweep_windows
 from canical.calibrate.zero_bias import zero_bias, zero_rate
 from canical.calibration.calibration_report import (
     CalibrationReport,
@@ -116,11 +117,11 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
     """Plateaus, V0, points, and the fitted rate model (size chosen or given)."""
     session.reference()  # fail before any work when the table rate is missing
     progress("finding plateaus")
-    plateaus = find_plateaus(session, options)
+    plateaus = sweep_or_plateaus(session, find_plateaus(session, options), options, progress)
     if plateaus.count == 0:
         raise CanicalError(explain_too_few(plateaus, min_duration_s=options.min_duration_s,
                                            what="no constant-rate plateau found"))
-    if not np.any(np.abs(plateaus.rate_dps) <= np.maximum(1e-3, 4.0 * plateaus.rate_uncertainty())):
+    if not (plateaus.sweep_window_s or np.any(zero_rate(plateaus))):
         raise CanicalError(explain_too_few(
             plateaus, min_duration_s=options.min_duration_s,
             what=f"no zero-rate plateau among {plateaus.count} plateaus (V0 cannot be measured)"))
@@ -145,6 +146,24 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
     fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
     return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates, left_out)
+
+
+def sweep_or_plateaus(session: Session, found: Plateaus, options: CalibrateOptions,
+                      progress: ProgressFn = _quiet) -> Plateaus:
+    """A continuous sweep with no zero plateau, as consecutive windows where its reference
+    supports that (refused in one line where it does not); any other session's plateaus as found."""
+    if not found.sweeping or np.any(zero_rate(found)):
+        return found
+    t, ref = session.time_s, session.reference()
+    check = sweep_check(t, ref, session.raw, found)
+    refusal = check.refusal()
+    if refusal:
+        raise CanicalError(explain_too_few(found, min_duration_s=options.min_duration_s,
+                                           what="no constant-rate plateau found", why_not_sweep=refusal))
+    windows = sweep_windows(t, ref, session.raw, found, check, options.latency_s)
+    progress(f"a continuous sweep at {found.sweep_dps2:.3g} deg/s²: {windows.count} windows of "
+             f"{check.window_s:.3g} s, sensor {-windows.latency_s * 1e3:.3g} ms behind the reference")
+    return windows
 
 
 def rail_limits(session: Session) -> RailLimits | None:

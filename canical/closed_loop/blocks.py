@@ -28,13 +28,14 @@ as the set says.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from canical.calibrate.fit_points import FitPoints
-from canical.calibrate.plateaus import Plateaus
+from canical.calibrate.plateaus import Plateaus, plateau_means
 from canical.sessions.session import Session
 from canical.sets.term_kinds import (
     CHANNEL_DIRECTION,
@@ -263,6 +264,18 @@ def _block_bounds(plateaus: Plateaus, time_s: np.ndarray, block_s: float) -> tup
     return np.array(starts), np.array(stops), np.array(owner)
 
 
+def _block_rates(ref: np.ndarray, plateaus: Plateaus, means: Callable[[np.ndarray], np.ndarray],
+                 owner: np.ndarray) -> np.ndarray:
+    """Each block's table rate: the mean reference over it, and on a sweep's windows shifted as its
+    window's rate was (by the sensor's delay behind the reference times the sweep rate): on a
+    sweep that delay is a rate error of opposite sign in the two directions, which the loop would
+    otherwise take for an effect of the rate's direction or change."""
+    rate = means(ref)
+    if plateaus.sweep_window_s > 0:
+        rate = rate + (plateaus.rate_dps - plateau_means(ref, plateaus))[owner]
+    return rate
+
+
 def make_blocks(
     session: Session,
     plateaus: Plateaus,
@@ -286,8 +299,8 @@ def make_blocks(
     raw = session.raw
     mean_raw = means(raw)
     sd = np.sqrt(np.maximum(means(raw * raw) - mean_raw**2, 0.0) * n / np.maximum(n - 1, 1))
-    rate = session.reference()
-    points = FitPoints(means(rate), mean_raw - v0, n, sd / np.sqrt(n))
+    points = FitPoints(_block_rates(session.reference(), plateaus, means, owner), mean_raw - v0, n,
+                       sd / np.sqrt(n))
     direction = direction_steps(raw, direction_threshold_raw)
     return Blocks(
         points=points,

@@ -418,7 +418,9 @@ def read_canlog_session(args: argparse.Namespace, progress: Progress) -> Session
 def _plateau_line(found: PlateauFinding) -> str:
     return (f"plateaus   reference noise {found.reference_noise_dps:.3g} deg/s, tolerance "
             f"{found.rate_tol_dps:.3g} deg/s, held {found.reference_update_s:.3g} s, "
-            f"late {found.reference_latency_s:.3g} s, {found.rate_changes} rate changes")
+            f"late {found.reference_latency_s:.3g} s, {found.rate_changes} rate changes"
+            + (f"; a continuous sweep, its plateaus {found.sweep_window_s:.3g} s windows"
+               if found.sweep_window_s else ""))
 
 
 def summary(report: CalibrationReport) -> str:

@@ -26,6 +26,8 @@ def _plateau_finding(found: PlateauFinding) -> list[str]:
         f"{found.reference_update_s:.3g} s, late {found.reference_latency_s:.3g} s; guards: "
         f"settle {found.settle_s:.3g} s ({_settle_source(found)}), end {found.end_guard_s:.3g} s; "
         f"{found.rate_changes} rate changes"
+        + (f"; a continuous sweep, its plateaus {found.sweep_window_s:.3g} s windows"
+           if found.sweep_window_s else "")
     ]
 
 

@@ -11,6 +11,8 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
   bandwidth, white noise, quantisation, saturation, and pluggable *effects* the calibrator is
   not told about (:class:`canical.sim.gyro.Effect`);
 * :mod:`canical.sim.sessions` — ready-made sessions: the paper's protocol, its validation records;
+* :mod:`canical.sim.sweeps` — a session recorded as a slow continuous triangle sweep, its reference
+  an encoder's rate (quantised, held at 100 Hz);
 * :mod:`canical.sim.blind` — blind cases for the closed loop: effect forms, channel trajectories and
   drifts drawn at random from a seed, with what a right answer is;
 * :mod:`canical.sim.compression` — sensors whose output compresses near its rail, drawn at random,
@@ -32,6 +34,7 @@ __all__ = [
     "rate_table",
     "scenarios",
     "sessions",
+    "sweeps",
     "table_recording",
     "triad",
 ]
