@@ -37,9 +37,9 @@ from canical.calibration.pipeline import (
     calibrate,
     find_plateaus,
 )
-from canical.sessions.session import Session
+from canical.sessions.session import RAW_UNITS, Session
 from canical.sessions.triad_session import AXES, TriadSession, check_axes_covered
-from canical.sets.coefficients import CoefficientSet
+from canical.sets.coefficients import DEFAULT_RAW_UNITS, CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.imu_set import ImuSet, as_matrix, check_coupling
 from canical.sets.term_kinds import TIME_INPUT
@@ -150,17 +150,21 @@ def calibrate_imu(sessions: Sequence[TriadSession], options: CalibrateOptions, *
     held-out errors (before: today's per-axis models alone; after: the IMU set written)."""
     check_axes_covered(sessions)
     own = {s.table_axis.index: s for s in sessions if s.table_axis is not None}
+    # A CAN log's raw values are its signal's physical value: each axis's set says in which unit,
+    # or the daemon (rightly) refuses a set "in counts" on a deg/s signal.
+    units = [own[i].meta.get(RAW_UNITS, DEFAULT_RAW_UNITS) for i in range(len(AXES))]
     results = []
     for i, name in enumerate(AXES):
         progress(f"axis {name}: calibrating channel raw_{name} on {own[i].source}")
-        results.append(calibrate(own[i].axis_session(i), options, sensor_id=sensor_id, axis=name))
+        results.append(calibrate(own[i].axis_session(i), options, sensor_id=sensor_id, axis=name,
+                                 raw_units=units[i]))
     first = best = estimate(sessions, results, options)
     progress(f"coupling: least squares on {first.fit.points} plateaus, held-out rms "
              f"{first.held_out_rms_dps:.4f} deg/s")
     refits = 0
     for _ in range(MAX_REFITS):
         refit = [calibrate(decoupled_session(i, sessions, best.fit.sensed), options, sensor_id=sensor_id,
-                           axis=name) for i, name in enumerate(AXES)]
+                           axis=name, raw_units=units[i]) for i, name in enumerate(AXES)]
         candidate = estimate(sessions, refit, options)
         progress(f"joint refit: held-out rms {candidate.held_out_rms_dps:.4f} deg/s")
         if candidate.held_out_rms_dps > (1.0 - REFIT_GAIN) * best.held_out_rms_dps:

@@ -24,6 +24,14 @@ steps instead of a pass over every sample per τ), read at each block's mean tim
 function of the channel's rate of change, whose τ is fixed, is averaged sample by sample (a
 transient can cross S's bend within a block). The run time evaluates the lag and S per sample,
 as the set says.
+
+A session of more than :data:`FEATURE_SAMPLES` samples (hours at 1 kHz) keeps its channels, time
+and ΔV for these transforms as means of a few consecutive samples (:func:`channel_samples`), never
+across a block's edge, each weighted by its count in a block's mean. Why: every τ, knee and
+candidate tried is a pass over the kept samples, and the confound checks try hundreds; on a
+10-million-row session with two channels those passes were the whole run. A mean of ten samples
+at 1 kHz spans 10 ms: a lag or a derivative's smoothing of τ ≥ 0.5 s hardly moves within it, and a
+block's mean of a channel itself is exact. Sessions within the bound are not touched.
 """
 
 from __future__ import annotations
@@ -55,6 +63,8 @@ BLOCK_S = 2.0
 SLOPE_TAU_S = 0.5
 #: Seconds of samples one step of the coarse lag averages (see the module's docstring).
 COARSE_STEP_S = 0.25
+#: Samples above which the channels' transforms run on means of consecutive samples (see above).
+FEATURE_SAMPLES = 250_000
 
 
 @dataclass(frozen=True)
@@ -71,6 +81,8 @@ class ChannelSamples:
     stops: np.ndarray
     cache: dict[Any, np.ndarray] = field(default_factory=dict, compare=False)
     dv: np.ndarray | None = None  # raw − V0 per sample, for rate-gated transforms
+    #: Samples behind each kept value (None: one each); a block's mean weighs its values by them.
+    weights: np.ndarray | None = None
 
     def _make_room(self) -> None:
         """τ and knee searches visit many values: keep memory bounded by dropping theirs only.
@@ -84,8 +96,20 @@ class ChannelSamples:
                 del self.cache[key]
 
     def means(self, values: np.ndarray) -> np.ndarray:
+        if self.weights is not None:
+            values = values * self.weights
         csum = np.concatenate(([0.0], np.cumsum(values, dtype=float)))
-        return (csum[self.stops] - csum[self.starts]) / (self.stops - self.starts)
+        return (csum[self.stops] - csum[self.starts]) / self._counts()
+
+    def _counts(self) -> np.ndarray:
+        """Samples in each block (the weights' sums when the values are means)."""
+        if ("counts",) not in self.cache:
+            if self.weights is None:
+                self.cache[("counts",)] = (self.stops - self.starts).astype(float)
+            else:
+                wsum = np.concatenate(([0.0], np.cumsum(self.weights)))
+                self.cache[("counts",)] = wsum[self.stops] - wsum[self.starts]
+        return self.cache[("counts",)]
 
     def lag_means(self, channel: str, tau_s: float) -> np.ndarray:
         """Block means of the channel's lag y with time constant τ (all blocks)."""
@@ -250,6 +274,26 @@ class Blocks:
         return (self.aux[ch] - y) / (term.tau_s or 1.0)
 
 
+def channel_samples(time_s: np.ndarray, aux: dict[str, np.ndarray], starts: np.ndarray,
+                    stops: np.ndarray, dv: np.ndarray) -> ChannelSamples:
+    """The samples the channels' transforms run on: as they are up to :data:`FEATURE_SAMPLES`;
+    above, means of ``k`` consecutive samples (fewer where a block's edge falls), ``k`` the
+    smallest that brings them to the bound, each block's edges kept as edges."""
+    n = time_s.size
+    k = -(-n // FEATURE_SAMPLES)
+    if k <= 1:
+        return ChannelSamples(time_s, dict(aux), starts, stops, dv=dv)
+    edges = np.unique(np.concatenate([np.arange(0, n, k), starts, stops, [n]]))
+    counts = np.diff(edges).astype(float)
+
+    def binned(values: np.ndarray) -> np.ndarray:
+        return np.add.reduceat(np.asarray(values, dtype=float), edges[:-1]) / counts
+
+    return ChannelSamples(binned(time_s), {name: binned(v) for name, v in aux.items()},
+                          np.searchsorted(edges, starts), np.searchsorted(edges, stops), dv=binned(dv),
+                          weights=counts)
+
+
 def _block_bounds(plateaus: Plateaus, time_s: np.ndarray, block_s: float) -> tuple[np.ndarray, ...]:
     starts: list[int] = []
     stops: list[int] = []
@@ -310,5 +354,5 @@ def make_blocks(
         direction=means(direction),
         direction_threshold_raw=direction_threshold_raw,
         slope=means(slope_filter(raw, session.time_s, SLOPE_TAU_S)),
-        samples=ChannelSamples(session.time_s, dict(session.aux), starts, stops, dv=raw - v0),
+        samples=channel_samples(session.time_s, session.aux, starts, stops, raw - v0),
     )

@@ -7,6 +7,7 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
 * :mod:`canical.sim.table_recording` — the table as real equipment records it: acceleration- and
   jerk-limited rate changes, servo ringing, a commanded or measured reference, held, late or
   asynchronous, rows lost in bursts (``sweep_session(..., table=TableBehaviour(...))``);
+* :mod:`canical.sim.table_file` — a table that logs its rate to its own file, on its own clock;
 * :mod:`canical.sim.gyro` — the sensor: scale factor, smooth asymmetric nonlinearity, bias,
   bandwidth, white noise, quantisation, saturation, and pluggable *effects* the calibrator is
   not told about (:class:`canical.sim.gyro.Effect`);
@@ -35,6 +36,7 @@ __all__ = [
     "scenarios",
     "sessions",
     "sweeps",
+    "table_file",
     "table_recording",
     "triad",
 ]

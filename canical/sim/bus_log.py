@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import can
 import numpy as np
-from cantools.database.can import Message
+from cantools.database.can import Database, Message
 
 #: How often a channel's message is sent: a temperature or a speed changes slowly.
 CHANNEL_RATE_HZ = 10.0
@@ -43,6 +43,18 @@ class LogPlan:
     raw: tuple[SignalTrack, ...]  # one per axis sent, all of one message
     channels: tuple[SignalTrack, ...]
     table: tuple[SignalTrack, ...] = ()  # TABLE_REF's signals per sample (a turntable session)
+
+
+def table_tracks(db: Database, ref_dps: np.ndarray, axis_index: int, settled: np.ndarray,
+                 inverted: bool = False) -> tuple[SignalTrack, ...]:
+    """canical's ``TABLE_REF`` per sample, as a table on the bus sends it: its rate, the IMU axis
+    it turns about (and whether the IMU is mounted against it), its settled flag."""
+    ref = db.get_message_by_name(TABLE_REF)
+    n = len(ref_dps)
+    return (SignalTrack(ref, "TableRate", np.asarray(ref_dps, dtype=float)),
+            SignalTrack(ref, "TableAxis", np.full(n, float(axis_index))),
+            SignalTrack(ref, "TableSettled", np.asarray(settled, dtype=float)),
+            SignalTrack(ref, "TableAxisInverted", np.full(n, float(inverted))))
 
 
 def physical(message: Message, signal: str, values: np.ndarray) -> np.ndarray:

@@ -2,10 +2,14 @@
 
 Generates a session CSV of ``--rows`` rows at 1 kHz (the simulator's sweeps up and down the
 paper's 41 rates, 30 s plateaus; written one sweep at a time, so generating is bounded too; several
-sizes one after the other, each file deleted before the next is written) and a static record of
+sizes one after the other, each file deleted before the next is written), the same session with two
+auxiliary channels (``temp_c`` cycling through the chamber's swings, with the sensor's bias
+following it at 0.01 deg/s/°C, and ``supply_v`` wandering with no effect: the closed loop's
+candidates of both, lags and derivatives included, searched at that size), and a static record of
 ``--noise-rows`` rows, then runs each step in its own process, so that its peak resident memory
 (``ru_maxrss`` of that child) is its own: ``numpy.loadtxt`` of the same file (the I/O floor),
-``canical calibrate`` (the default, closed loop), ``canical apply`` of the set to the session, and
+``canical calibrate`` (the default, closed loop), ``canical apply`` of the set to the session,
+``loadtxt`` and ``calibrate`` of the session with channels, and
 ``canical noise`` of the static record through the set. Prints a table: step, wall seconds, peak
 MB, multiple of the floor; then how calibrate read each session (as samples, or as means of k)
 and the load average before and after (the machine may be shared). ``--baseline DIR`` runs the
@@ -35,6 +39,8 @@ sys.path.insert(0, str(ROOT))
 
 from canical.sessions.csv_file import format_session  # noqa: E402
 from canical.sessions.session import Session  # noqa: E402
+from canical.sim.effects import TemperatureEffect  # noqa: E402
+from canical.sim.environment import temperature_cycle  # noqa: E402
 from canical.sim.gyro import GyroModel  # noqa: E402
 from canical.sim.rate_table import step_profile  # noqa: E402
 from canical.sim.sessions import paper_rates  # noqa: E402
@@ -53,9 +59,21 @@ class Step:
     peak_mb: float
 
 
-def write_session(path: Path, rows: int, *, static: bool, dwell_s: float = DWELL_S, seed: int = 0) -> None:
-    """``rows`` rows at 1 kHz, one sweep (or one static stretch) generated and written at a time."""
-    gyro = GyroModel()
+#: The chamber's swings over a session of hours (the channels session's temp_c).
+CHAMBER = temperature_cycle(periods_s=(2300.0, 970.0))
+
+
+def channels(t: np.ndarray, rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """temp_c cycling, supply_v wandering about 12 V (a channel the sensor does not feel)."""
+    supply = 12.0 + 0.2 * np.sin(2 * np.pi * t / 900.0) + 0.01 * rng.standard_normal(t.size)
+    return {"temp_c": CHAMBER(t, None, rng), "supply_v": supply}
+
+
+def write_session(path: Path, rows: int, *, static: bool, dwell_s: float = DWELL_S, seed: int = 0,
+                  with_channels: bool = False) -> None:
+    """``rows`` rows at 1 kHz, one sweep (or one static stretch) generated and written at a time;
+    ``with_channels``: temp_c (which the sensor's bias follows) and supply_v beside them."""
+    gyro = GyroModel(effects=(TemperatureEffect(),) if with_channels else ())
     rng = np.random.default_rng(seed)
     written, sweep, t0 = 0, 0, 0.0
     with path.open("w") as out:
@@ -67,8 +85,9 @@ def write_session(path: Path, rows: int, *, static: bool, dwell_s: float = DWELL
                 rates = paper_rates() if sweep % 2 == 0 else paper_rates()[::-1]
                 t, w = step_profile(rates, dwell_s=dwell_s, fs_hz=FS_HZ, t0_s=t0)
                 t, w = t[: rows - written], w[: rows - written]
-            raw = gyro.output(t, w, rng=rng, fs_hz=FS_HZ)
-            text = format_session(Session(t, raw, w, {}, {"sensor": "BENCH", "axis": "z"}))
+            aux = channels(t, rng) if with_channels else {}
+            raw = gyro.output(t, w, aux=aux, rng=rng, fs_hz=FS_HZ)
+            text = format_session(Session(t, raw, w, aux, {"sensor": "BENCH", "axis": "z"}))
             if written:  # metadata and header once
                 text = text.split("\n", 3)[3]
             out.write(text)
@@ -128,6 +147,27 @@ def canical_steps(tmp: Path, session: Path, static: Path, tag: str) -> list[tupl
     ]
 
 
+def channels_steps(tmp: Path, rows: int, size: str, trees: list[tuple[str, str]], *,
+                   quick: bool) -> tuple[Step, list[Step]]:
+    """loadtxt and calibrate of the session with two channels (then deleted): its floor, its steps."""
+    session = tmp / "channels.csv"
+    t0 = time.perf_counter()
+    write_session(session, rows, static=False, dwell_s=2.0 if quick else DWELL_S, with_channels=True)
+    print(f"session with temp_c, supply_v {rows:,} rows ({session.stat().st_size / 1e6:.0f} MB), generated "
+          f"in {time.perf_counter() - t0:.0f} s")
+    floor = measure(f"loadtxt channels{size}", loadtxt_argv(session), str(ROOT))
+    measured = []
+    for tag, path in trees:
+        out: list[str] = []
+        argv = [sys.executable, "-m", "canical", "calibrate", str(session), "-o",
+                str(tmp / "set-channels.yaml")]
+        measured.append(measure(f"calibrate channels{size}{tag}", argv, path, out))
+        effects = next((line.split(None, 1)[1] for line in out if line.startswith("effects ")), "?")
+        print(f"calibrate channels{size}{tag}: effects {effects}")
+    session.unlink()
+    return floor, measured
+
+
 def load() -> str:
     """The load average (1, 5, 15 min), beside figures taken on a machine that may be shared."""
     return " ".join(f"{x:.2f}" for x in os.getloadavg())
@@ -177,6 +217,9 @@ def main() -> None:
                 same.append(applied[0] == applied[1])
             for leftover in tmp.glob("*.csv"):
                 leftover.unlink()
+            floor, measured = channels_steps(tmp, rows, size, trees, quick=args.quick)
+            floors.append(floor)
+            steps += [(step, floor) for step in measured]
         static = tmp / "static.csv"
         t0 = time.perf_counter()
         write_session(static, noise_rows, static=True, seed=1)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import pytest
@@ -91,3 +92,93 @@ def test_a_j1939_imus_groups_come_from_its_configured_address(tmp_path: Path) ->
     assert main(["simulate", "drive", "--config", str(config), "-o", str(log)]) == 0
     ids = {m.arbitration_id for m, _ in zip(can.LogReader(str(log)), range(2000), strict=False)}
     assert ids == {0x18FF3780, 0x18FF3880}, sorted(map(hex, ids))
+
+
+def canopen_config(folder: Path, axes: str = "z") -> Path:
+    """The CANopen IMU of own-imu.md (Gyr_X, Gyr_Y, Gyr_Z at 0.1 deg/s in TPDO2_Gyro)."""
+    content = {"bus": {"interface": "virtual", "channel": "vendor"},
+               "dbc": str(DATA / "vendor_canopen_gyro.dbc"),
+               "axes": {a: {"raw": f"TPDO2_Gyro.Gyr_{a.upper()}"} for a in axes},
+               "inputs": {"temp_c": {"signal": "TPDO3_Temp.Temp", "max_age_s": 1.0}}}
+    if axes == "xyz":
+        content["imu_set"] = str(folder / "imu.yaml")
+    else:
+        content["axes"][axes[-1]]["coefficients"] = str(folder / "imu-z.yaml")
+    path = folder / f"canopen-{axes}.yaml"
+    path.write_text(yaml.safe_dump(content, sort_keys=False))
+    return path
+
+
+def frame_ids(log: Path) -> set[int]:
+    import can
+
+    return {m.arbitration_id for m in can.LogReader(str(log))}
+
+
+def test_a_session_with_the_tables_own_file(tmp_path: Path, capsys) -> None:
+    """--table-file: the log holds the IMU's frames alone (no TABLE_REF, 0x120), the table's rate
+    is in imu-table.csv on its own clock; calibrate --reference finds that clock (5000.25 s off,
+    75 ppm slow) and the temperature effect, as from the log with the table on the bus."""
+    config, log = canopen_config(tmp_path), tmp_path / "imu.log"
+    assert main(["simulate", "session", "--config", str(config), "--table-file", "-o", str(log)]) == 0
+    assert "its own file imu-table.csv" in capsys.readouterr().out
+    assert frame_ids(log) == {0x288, 0x388}
+    table = read_table(tmp_path / "imu-table.csv").columns
+    assert set(table) == {"time_s", "ref_dps"} and 5000.0 < table["time_s"][0] < 5000.6
+    cset = tmp_path / "imu-z.yaml"
+    assert main(["calibrate", str(log), "--config", str(config), "--reference",
+                 str(tmp_path / "imu-table.csv"), "--sensor", "SIM-0001", "-o", str(cset)]) == 0, \
+        capsys.readouterr().err
+    printed = capsys.readouterr().out
+    offset, drift = re.search(r"offset ([\d.]+) s, drift ([-\d.]+) ppm", printed).groups()
+    assert abs(float(offset) - 5000.25) < 0.01 and abs(float(drift) + 75.0) < 5.0, printed
+    assert "temp_c" in str(coefficient_file.load(cset).terms)
+
+
+def test_a_triad_of_vendor_logs_with_the_tables_own_files(tmp_path: Path, capsys) -> None:
+    """simulate triad --config --table-file: x.log, y.log, z.log (the IMU's frames alone) and the
+    table's file beside each; calibrate --reference makes an IMU set whose axes say deg/s (the
+    signal's unit), so the daemon's configuration takes it (it refused one that said counts)."""
+    config, folder = canopen_config(tmp_path, "xyz"), tmp_path / "logs"
+    assert main(["simulate", "triad", "--config", str(config), "--table-file", "-o", str(folder)]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["x-table.csv", "x.log", "y-table.csv", "y.log",
+                                                         "z-table.csv", "z.log"]
+    assert frame_ids(folder / "x.log") == {0x288, 0x388}
+    logs = [str(folder / f"{a}.log") for a in "xyz"]
+    refs = [arg for a in "xyz" for arg in ("--reference", str(folder / f"{a}-table.csv"))]
+    capsys.readouterr()
+    assert main(["calibrate", *logs, "--config", str(config), *refs, "--sensor", "SIM-TRIAD",
+                 "-o", str(tmp_path / "imu.yaml")]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    for a in "xyz":
+        assert f"{folder / a}.log: the table turns about IMU axis {a} (" in printed
+    assert (tmp_path / "imu.yaml").read_text().count("units: {raw: deg/s") == 3
+    assert main(["serve", "--config", str(config), "--check"]) == 0, capsys.readouterr().err
+
+
+def test_a_triad_log_with_the_table_on_the_bus(tmp_path: Path, capsys) -> None:
+    """Without --table-file each log carries TABLE_REF naming the axis: calibrate reads it alone."""
+    config, folder = canopen_config(tmp_path, "xyz"), tmp_path / "logs"
+    assert main(["simulate", "triad", "--config", str(config), "-o", str(folder)]) == 0
+    assert sorted(p.name for p in folder.iterdir()) == ["x.log", "y.log", "z.log"]
+    assert frame_ids(folder / "y.log") == {0x120, 0x288, 0x388}
+    logs = [str(folder / f"{a}.log") for a in "xyz"]
+    assert main(["calibrate", *logs, "--config", str(config), "-o", str(tmp_path / "imu.yaml")]) == 0, \
+        capsys.readouterr().err
+    assert "IMU set" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["drive", "--table-file", "-o", "d.log"], "--table-file: a drive has no rate table"),
+    (["session", "--table-file", "-o", "s.log"], "--table-file: the table's file goes beside a CAN log"),
+    (["session", "--table-file", "-o", "s.csv", "CONFIG"], "--table-file: s.csv is a CSV"),
+    (["triad", "-o", "logs", "CONFIG"], "a triad needs axes x, y and z named (axes.AXIS.raw); x, y missing"),
+])
+def test_what_cannot_be_simulated_is_one_line(tmp_path: Path, monkeypatch, capsys, argv, message) -> None:
+    monkeypatch.chdir(tmp_path)
+    if "CONFIG" in argv:
+        argv = [*(a for a in argv if a != "CONFIG"), "--config", str(canopen_config(tmp_path))]
+    assert main(["simulate", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+    assert not any(p.suffix in (".log", ".csv") for p in tmp_path.rglob("*"))

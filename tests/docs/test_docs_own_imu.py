@@ -16,16 +16,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from canical.commands.cli import main
-from canical.sim.gyro import GyroModel
-
-T0 = 1_700_000_000.0  # the logger's clock
 
 ROOT = Path(__file__).resolve().parents[2]
 PAGE = ROOT / "docs" / "own-imu.md"
 DBCS = ("vendor_j1939_gyro.dbc", "vendor_canopen_gyro.dbc")
 START, END = "<!-- walkthrough: run by tests/docs/test_docs_own_imu.py -->", "<!-- end of walkthrough -->"
-# Console blocks the test cannot run, by their title: what each needs.
-NOT_RUN = {'title="on the vehicle"': "a live bus", 'title="needs the table\'s own file"': "a table's file"}
+# Console blocks the test cannot run, by their title: what each needs (the vcan test runs it).
+NOT_RUN = {'title="on the vehicle"': "a live bus: tests/docs/test_docs_own_imu_vcan.py"}
 
 
 @dataclass
@@ -69,39 +66,26 @@ def test_the_page_has_a_walkthrough_of_both_imus() -> None:
     assert verbs.count("calibrate") == 2 and verbs.count("apply") == 2 and verbs.count("serve") == 2
 
 
-def test_the_whole_page_is_run_but_what_needs_a_bus_or_a_tables_file() -> None:
+def test_the_whole_page_is_run_but_what_needs_a_live_bus() -> None:
+    """Every command but serve on the vehicle's bus, which the vcan test runs; the tables' own
+    files of §5 come from ``simulate --table-file``, on the page, not from the test."""
     page = PAGE.read_text(encoding="utf-8")
     steps = walkthrough_steps(page, whole=True)
-    assert [s.file for s in steps if s.file] == ["vendor.yaml", "j1939-imu.yaml", "canopen-imu.yaml"]
+    assert [s.file for s in steps if s.file] == ["vendor.yaml", "vendor-imu.yaml", "j1939-imu.yaml",
+                                                 "canopen-imu.yaml"]
     run = sum(1 for s in steps if s.argv)
     written = len(re.findall(r"^\$ canical ", page, flags=re.M))
     not_run = sum(page.count(f"```console {title}") for title in NOT_RUN)
-    assert run == 20 and written == run + 2 and not_run == 2, (run, written, not_run)
-
-
-def _table_files(folder: Path) -> None:
-    """§5's imu.log (vendor.dbc's TPDO2_Gyro) and table.csv: the table's own file, on its own clock."""
-    import struct
-
-    import can
-    from support.table_clock import own_clock_case, table_csv
-
-    gyro = GyroModel(sensitivity=1.0, bias_counts=0.3, lsb=0.1, rail_counts=3276.7)
-    case = own_clock_case(0, gyro=gyro, fs_hz=100.0, offset_s=5000.25, drift_ppm=-75.0)
-    with can.Logger(str(folder / "imu.log")) as log:
-        for t, raw in zip(case.session.time_s, case.session.raw, strict=True):
-            data = struct.pack("<hhh", 3, -2, round(float(raw) * 10))
-            log.on_message_received(
-                can.Message(timestamp=T0 + float(t), arbitration_id=0x288, is_extended_id=False, data=data)
-            )
-    (folder / "table.csv").write_text(table_csv(case.table), encoding="utf-8")
+    assert run == 24 and written == run + 1 and not_run == 1, (run, written, not_run)
+    assert (ROOT / NOT_RUN['title="on the vehicle"'].split(": ")[1]).is_file()
+    assert [s.argv[1] for s in steps if "--table-file" in s.argv] == ["session", "triad"]
+    assert any(s.argv.count("--reference") == 3 for s in steps)  # three axes from three logs
 
 
 def test_every_command_of_the_walkthrough_runs_as_shown(tmp_path: Path, monkeypatch, capsys) -> None:
     for name in DBCS:
         shutil.copy(ROOT / "tests" / "data" / name, tmp_path / name)
     shutil.copy(ROOT / "tests" / "data" / DBCS[1], tmp_path / "vendor.dbc")
-    _table_files(tmp_path)
     monkeypatch.chdir(tmp_path)
     for step in walkthrough_steps(PAGE.read_text(encoding="utf-8"), whole=True):
         if step.file:
