@@ -27,12 +27,13 @@ SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
 ORDER_CHOICES = (1, 2, 3)
 #: Orders tried in a second round, for a sensor that reached its rail inside the table's range,
 #: or a continuous sweep (the caller decides: :func:`canical.calibration.pipeline.fit_base`).
-#: Why: an output stage that saturates bends the scale factor sharply in the last rates before the rail, and orders up to
-#: 3 leave several times the noise there; a higher order removes most of it. On a sensor orders
-#: up to 3 describe, a higher order's held-out rms is as low only by chance, and choosing among
-#: more sizes by held-out rms then picks noise (seen on 3 of 60 clean sensors: 2 of them worse
-#: against the truth), so the round is not offered there at all, and where it is, its best must
-#: be clearly lower than the first round's best (:func:`_clearly_better`).
+#: Why: an output stage that saturates bends the scale factor sharply in the last rates before
+#: the rail, and orders up to 3 leave several times the noise there; a higher order removes most
+#: of it. On a step session of a sensor orders up to 3 describe, a higher order's held-out rms is
+#: as low only by chance, and choosing among more sizes by held-out rms then picks noise (seen on
+#: 3 of 60 clean sensors: 2 of them worse against the truth), so the round is not offered there
+#: at all, and where it is, its best must be clearly lower than the first round's best
+#: (:func:`_clearly_better`).
 HIGH_ORDERS = (4, 5)
 #: Three standard errors: a sixth of the error gone on 200 held-out blocks, a third on 40. Where
 #: a higher order is needed it removes far more (sensors compressing near their rail: 2-10x).
