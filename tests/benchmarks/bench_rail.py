@@ -25,35 +25,23 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # before numpy loads its BLAS
 
 import argparse
+import sys
+from pathlib import Path
 
 import numpy as np
 
-from canical.calibrate.model_fit import ModelSpec, fit_model
+from canical.calibrate.model_fit import ModelSpec
 from canical.calibrate.model_selection import select_model
 from canical.calibration.pipeline import BaseFit, CalibrateOptions, fit_base
 from canical.errors import CanicalError
-from canical.models.kinds import FORWARD_POLY, SEGMENTED_INVERSE
-from canical.sim.compression import CompressingCase, draw_compressing, true_error_dps
+from canical.models.kinds import SEGMENTED_INVERSE
+from canical.sim.compression import CompressingCase, draw_compressing
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from support.rail_truth import error_of, hindsight
 
 BLIND_ROOT = 7493028996101
 BENDS = {"hard knee": (1.02, 1.3), "gentle bend": (1.3, 2.0)}
-
-
-def error_of(case: CompressingCase, base: BaseFit, spec: ModelSpec) -> float:
-    rates = base.points.rate
-    model = fit_model(base.points, spec).model
-    return true_error_dps(case.gyro, model, base.v0, (float(rates.min()), float(rates.max())))
-
-
-def hindsight(case: CompressingCase, base: BaseFit) -> float:
-    errors = []
-    for kind in (FORWARD_POLY, SEGMENTED_INVERSE):
-        for order in range(1, 10):
-            try:
-                errors.append(error_of(case, base, ModelSpec(kind, 1, order)))
-            except CanicalError:  # a forward polynomial that is not monotone has no inverse
-                continue
-    return min(errors)
 
 
 def best_size(case: CompressingCase, base: BaseFit) -> float:

@@ -11,8 +11,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from support.rail_truth import error_of, hindsight
 
-from canical.calibrate.model_fit import ModelSpec, fit_model
+from canical.calibrate.model_fit import ModelSpec
 from canical.calibrate.model_selection import (
     HIGH_ORDERS,
     ORDER_CHOICES,
@@ -21,32 +22,13 @@ from canical.calibrate.model_selection import (
     _clearly_better,
     select_model,
 )
-from canical.calibration.pipeline import BaseFit, CalibrateOptions, fit_base
-from canical.errors import CanicalError
-from canical.models.kinds import FORWARD_POLY, SEGMENTED_INVERSE
-from canical.sim.compression import CompressingCase, draw_compressing, true_error_dps
+from canical.calibration.pipeline import CalibrateOptions, fit_base
+from canical.models.kinds import SEGMENTED_INVERSE
+from canical.sim.compression import draw_compressing
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import paper_session
 
 START = ModelSpec(SEGMENTED_INVERSE, 4, 2, 0)
-
-
-def error_of(case: CompressingCase, base: BaseFit, spec: ModelSpec) -> float:
-    rates = base.points.rate
-    model = fit_model(base.points, spec).model
-    return true_error_dps(case.gyro, model, base.v0, (float(rates.min()), float(rates.max())))
-
-
-def hindsight(case: CompressingCase, base: BaseFit) -> float:
-    """The best single polynomial, forward or inverse, order 1-9, picked by its true error."""
-    errors = []
-    for kind in (FORWARD_POLY, SEGMENTED_INVERSE):
-        for order in range(1, 10):
-            try:
-                errors.append(error_of(case, base, ModelSpec(kind, 1, order)))
-            except CanicalError:
-                continue
-    return min(errors)
 
 
 @pytest.mark.parametrize("bend", [(1.02, 1.3), (1.3, 2.0)], ids=["hard knee", "gentle bend"])
