@@ -30,17 +30,17 @@ ORDER_CHOICES = (1, 2, 3)
 #: Why: an output stage that saturates bends the scale factor sharply in the last rates before
 #: the rail, and orders up to 3 leave several times the noise there; a higher order removes most
 #: of it. On a step session of a sensor orders up to 3 describe, a higher order's held-out rms is
-#: as low only by chance, and choosing among more sizes by held-out rms then picks noise (seen on
-#: 3 of 60 clean sensors: 2 of them worse against the truth), so the round is not offered there
+#: as low only by chance, and choosing among more sizes by held-out rms then picks noise (offered
+#: to every session, it failed a clean drifting sensor of ``tests/closed_loop/test_closed_loop.py``
+#: ``test_clean_sensors_get_nothing_blamed_on_a_channel``), so the round is not offered there
 #: at all, and where it is, its best must be clearly lower than the first round's best
 #: (:func:`_clearly_better`).
 HIGH_ORDERS = (4, 5)
 #: Three standard errors: a sixth of the error gone on 200 held-out blocks, a third on 40. Where
-#: a higher order is needed it removes far more (sensors compressing near their rail: 2-10x).
+#: a higher order is needed it removes far more (``tests/benchmarks/bench_rail.py`` prints it).
 HIGH_ORDER_MARGIN = 3.0
 #: ...and the typical fold must improve too: its held-out rms at most this share of the first
-#: round's (a tenth lower). On sensors compressing near their rail the median fold falls by a
-#: quarter to five sixths.
+#: round's (a tenth lower).
 TYPICAL_FOLD_RATIO = 0.9
 
 
@@ -137,7 +137,7 @@ def _clearly_better(higher: list[Candidate], first: list[Candidate]) -> bool:
 
     Why both: the standard error takes the held-out errors as independent; a drifting bias
     makes them correlated, and one fold whose drift a higher order happens to follow can then
-    carry the overall figure alone (seen: 35 % lower overall, the median fold unchanged).
+    carry the overall figure alone.
     """
     if not higher:
         return False

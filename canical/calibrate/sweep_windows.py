@@ -19,8 +19,7 @@ a tenth of the held-out error of a good step calibration. Each window holds at l
 many values as plateau finding's steadiness window uses. Why not longer: the windows' noise is
 the same in total whatever their length, but model selection judges sizes by held-out error
 against its standard error, and a longer window trades noise for curvature bias at the knee and
-a ripple; on the development seeds of ``bench_sweep.py`` spreads of 0.5, 1, 2 and 3 deg/s put the
-sweep within 1.5x of the step session on 9, 7, 5 and 6 seeds of 10.
+a ripple; on the development seeds of ``bench_sweep.py`` wider spreads met the bar less often.
 
 **Time.** The sensor's output lags the table by its filter (a 40 Hz bandwidth is 4 ms), the
 reference lags by its transport and its hold; on a sweep a delay ``D`` is a rate error ``a·D``,

@@ -484,7 +484,7 @@ def loop_orders(spec: ModelSpec) -> tuple[int, ...]:
     """The orders the loop may choose the base size among: the first round's, and the base's own.
 
     Why not the higher ones: once effects come in, a higher order fits part of what an effect
-    left (seen: the demo's set 0.0046 -> 0.0062 deg/s held-out); the base chose a higher order
+    left (the demo's own set came out worse that way); the base chose a higher order
     only where the rate alone needed it.
     """
     return tuple(sorted({*ORDER_CHOICES, spec.order}))
