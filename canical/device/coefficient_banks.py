@@ -23,6 +23,15 @@ CRC32, and one selector naming the active bank of every axis. The rules:
   so a device without one corrects as a single-axis device always has. An active coupling,
   like a calibrated axis, cannot be switched to none, and axes it does not belong to cannot
   be activated under it: a new IMU set replaces it whole;
+* signed sets (:mod:`canical.device.bank_signature`): a bank's "Signature" (cleared by a write of
+  its content) holds the lab's signature of it. Once a trust key is provisioned, activation needs,
+  for every bank it newly selects, a valid signature by that key for this device's sensor id, of
+  a version not below the anti-rollback counter (the highest version ever activated); an IMU
+  set's axes are covered by its coupling bank's signature, over the whole IMU set. The key is
+  writable only while provisioning is open; closing it is one-way. Key, provisioning state and
+  counter are written to the state file as soon as they change (beside the banks as last stored),
+  so a power cycle keeps them; a state file without them loads as a device never provisioned.
+  Without a key the device activates as it always has;
 * an optional cooperative lock (a token) stops a second honest download tool
   from interleaving with a running one; it expires after :data:`LOCK_LEASE_S`
   without activity, so a tool that died does not lock the device forever.
@@ -46,6 +55,7 @@ from pathlib import Path
 from typing import Generic, TypeVar
 
 from canical.device.bank_payload import CouplingContent, decode_coupling, decode_set, join_imu_set
+from canical.device.bank_signature import joined_imu_canonical, verify_bank
 from canical.errors import CanicalError
 from canical.files.atomic_file import write_text_atomic
 from canical.frames.imu_dictionary import (
@@ -54,11 +64,14 @@ from canical.frames.imu_dictionary import (
     ABORT_TOO_LONG,
     ABORT_VALUE_RANGE,
     AXES,
+    BANK_SIGNATURE_BYTES,
     BANKS,
+    PROVISION_CLOSE_SIGNATURE,
     STATUS_CRC_MISMATCH,
     STATUS_EMPTY,
     STATUS_REFUSED,
     STATUS_VALID,
+    TRUST_KEY_BYTES,
     pack_active,
     sensor_id_for_serial,
     unpack_active,
@@ -67,6 +80,7 @@ from canical.frames.imu_dictionary import (
 from canical.sets.admission import DeviceLimits, admission_problem
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.imu_set import ImuSet
+from canical.sets.signing import key_id_of
 
 STATE_FORMAT = "canical-imu-banks 1"
 LOCK_LEASE_S = 5.0
@@ -88,6 +102,30 @@ class Bank:
     content: bytes = b""
     crc: int = 0
     imu_set_id: int = 0  # coupling banks only: the IMU set the content belongs to
+    signature: bytes = b""  # the "Signature" sub-index: empty (unsigned) until written
+
+
+@dataclass
+class Trust:
+    """What the device trusts: the provisioned key (empty: none), whether provisioning is still
+    open, and the anti-rollback counter (the highest signed version ever activated)."""
+
+    key: bytes = b""
+    provisioning_open: bool = True
+    counter: int = 0
+
+    def to_dict(self) -> dict[str, object]:
+        return {"key": base64.b64encode(self.key).decode(), "provisioning_open": self.provisioning_open,
+                "counter": self.counter}
+
+
+def trust_from_dict(entry: dict[str, object]) -> Trust:
+    """A state file's trust section; any defect is a ValueError (the state is then unreadable)."""
+    key = base64.b64decode(str(entry["key"]), validate=True)
+    opened, counter = entry["provisioning_open"], entry["counter"]
+    if len(key) not in (0, TRUST_KEY_BYTES) or not isinstance(opened, bool) or not isinstance(counter, int):
+        raise ValueError("trust section malformed")
+    return Trust(key, opened, counter)
 
 
 @dataclass(frozen=True)
@@ -151,12 +189,14 @@ class BankStore:
     lock_token: int = 0
     lock_seen: float = 0.0
     generation: int = 0  # bumped on every activation, for listeners
+    trust: Trust = field(default_factory=Trust)
 
     def __post_init__(self) -> None:
         self._lock = threading.RLock()
         self._checks: dict[tuple[str, str], CachedCheck[BankCheck]] = {}
         self._coupling_checks: dict[str, CachedCheck[CouplingCheck]] = {}
         self._active_imu = JoinedImu((), None)
+        self._stored_body = self._body(dict.fromkeys(AXES), None)  # what the state file's banks say
         for key in ((a, b) for a in AXES for b in BANKS):
             self.banks.setdefault(key, Bank())
 
@@ -318,7 +358,20 @@ class BankStore:
                     ABORT_TOO_LONG, f"bank {axis.upper()} {bank}: {len(data)} bytes, capacity {self.capacity}"
                 )
             b.content = bytes(data)
+            b.signature = b""
             self._touch()
+
+    def write_signature(self, axis: str, bank: str, data: bytes) -> None:
+        """A bank's signature (checked at activation, like its content)."""
+        with self._lock:
+            self._writable(axis, bank).signature = self._signature_bytes(data, f"bank {axis.upper()} {bank}")
+            self._touch()
+
+    def _signature_bytes(self, data: bytes, where: str) -> bytes:
+        if len(data) > BANK_SIGNATURE_BYTES:
+            raise self._refuse(ABORT_TOO_LONG, f"{where}: signature of {len(data)} bytes, at most "
+                                               f"{BANK_SIGNATURE_BYTES}")
+        return bytes(data)
 
     def write_crc(self, axis: str, bank: str, crc: int) -> None:
         with self._lock:
@@ -338,6 +391,13 @@ class BankStore:
                     ABORT_TOO_LONG, f"coupling bank {bank}: {len(data)} bytes, capacity {self.capacity}"
                 )
             b.content = bytes(data)
+            b.signature = b""
+            self._touch()
+
+    def write_coupling_signature(self, bank: str, data: bytes) -> None:
+        """A coupling bank's signature: the IMU set's (checked at activation with its axes)."""
+        with self._lock:
+            self._writable_coupling(bank).signature = self._signature_bytes(data, f"coupling bank {bank}")
             self._touch()
 
     def write_coupling_crc(self, bank: str, crc: int) -> None:
@@ -349,6 +409,31 @@ class BankStore:
         with self._lock:
             self._writable_coupling(bank).imu_set_id = int(imu_set_id) & 0xFFFFFFFF
             self._touch()
+
+    def write_trust_key(self, data: bytes) -> None:
+        """Provision the public key banks must be signed by: only while provisioning is open."""
+        with self._lock:
+            if not self.trust.provisioning_open:
+                raise self._refuse(ABORT_DEVICE_STATE,
+                                   "provisioning is closed: the trust key cannot be changed")
+            if len(data) != TRUST_KEY_BYTES:
+                raise self._refuse(ABORT_VALUE_RANGE,
+                                   f"trust key of {len(data)} bytes, not {TRUST_KEY_BYTES}: an Ed25519 key")
+            self.trust.key = bytes(data)
+            self._persist()
+            log.info("trust key provisioned (key id %s)", key_id_of(self.trust.key))
+
+    def close_provisioning(self, value: int) -> None:
+        """Close provisioning for good (the value must be the signature "lock"), once a key is in."""
+        with self._lock:
+            if value != PROVISION_CLOSE_SIGNATURE:
+                raise self._refuse(ABORT_VALUE_RANGE, "provisioning closes by writing the signature 'lock'")
+            if not self.trust.key:
+                raise self._refuse(ABORT_DEVICE_STATE, "no trust key provisioned: closing would leave the "
+                                                       "device unable to check signatures for good")
+            self.trust.provisioning_open = False
+            self._persist()
+            log.info("provisioning closed: trust key %s for good", key_id_of(self.trust.key))
 
     def take_lock(self, token: int) -> None:
         """Nonzero token: take (or renew) the lock; 0: release it."""
@@ -394,12 +479,16 @@ class BankStore:
             self._touch()
             if not changes and not coupling_changes:
                 return
+            versions = self._signed_versions(changes, coupling)
             before = {a: self.active_id(a) for a in changes}
             before_imu = self.active_imu_set_id()
             self.active.update(changes)
             self.active_coupling = coupling
             self.activation_count += 1
             self.generation += 1
+            if versions and max(versions) > self.trust.counter:
+                self.trust.counter = max(versions)
+                self._persist()
             for axis, bank in changes.items():
                 log.info(
                     "activation %d: axis %s bank %s set 0x%08x (was 0x%08x), serial %d",
@@ -409,13 +498,34 @@ class BankStore:
                 log.info("activation %d: coupling bank %s IMU set 0x%08x (was 0x%08x)", self.activation_count,
                          coupling, self.active_imu_set_id(), before_imu)
 
+    def _signed_versions(self, changes: dict[str, str | None], coupling: str | None) -> list[int]:
+        """With a trust key: the signed version of every bank an activation newly selects (an IMU
+        set's, on its coupling bank, covers its axes), else a refusal naming the first bad one.
+        Without a key: none (no signature needed)."""
+        if not self.trust.key:
+            return []
+        sensor = sensor_id_for_serial(self.limits.serial)
+        try:
+            if coupling is not None:
+                selected = {**self.active, **changes}
+                axes = tuple(self.banks[(a, selected[a])].content for a in AXES)  # type: ignore[index]
+                b = self.coupling[coupling]
+                canonical = joined_imu_canonical(b.content, axes)
+                return [verify_bank(b.signature, canonical, sensor, self.trust.key, self.trust.counter,
+                                    f"coupling bank {coupling} (IMU set 0x{b.imu_set_id:08x})")]
+            return [verify_bank(self.banks[(a, k)].signature, self.banks[(a, k)].content, sensor,
+                                self.trust.key, self.trust.counter, f"bank {a.upper()} {k}")
+                    for a, k in changes.items() if k is not None]
+        except CanicalError as exc:
+            raise self._refuse(ABORT_REFUSED, f"activation refused: {exc}") from None
+
     def store(self, signature_ok: bool) -> None:
         """CiA 301 store: persist banks and selector (atomically) to the state file."""
         with self._lock:
             if not signature_ok:
                 raise self._refuse(ABORT_REFUSED, "store needs the signature 'save'")
-            if self.state_path is not None:
-                write_text_atomic(self.state_path, self._state_text())
+            self._stored_body = self._body(self.active, self.active_coupling)
+            self._persist()
             self.stored_active = dict(self.active)
             self.stored_coupling = self.active_coupling
             self._touch()
@@ -426,10 +536,10 @@ class BankStore:
         with self._lock:
             if not signature_ok:
                 raise self._refuse(ABORT_REFUSED, "restore needs the signature 'load'")
-            if self.state_path is not None:
-                empty = BankStore(self.limits, self.capacity)
-                empty.activation_count = self.activation_count
-                write_text_atomic(self.state_path, empty._state_text())
+            empty = BankStore(self.limits, self.capacity)
+            empty.activation_count = self.activation_count
+            self._stored_body = empty._body(empty.active, None)  # the trust is kept: it is not a set
+            self._persist()
             self.stored_active = dict.fromkeys(AXES)
             self.stored_coupling = None
             log.info("restore defaults: no coefficient sets after the next power cycle")
@@ -438,27 +548,32 @@ class BankStore:
     # Persistence
     # ---------------------------------------------------------------------------------------
 
-    def _state_text(self) -> str:
-        return json.dumps(
-            {
-                "format": STATE_FORMAT,
-                "serial": self.limits.serial,
-                "active": pack_active(self.active, self.active_coupling),
-                "activation_count": self.activation_count,
-                "banks": {
-                    f"{a}.{b}": {"content": base64.b64encode(bank.content).decode(), "crc": bank.crc}
-                    for (a, b), bank in self.banks.items()
-                    if bank.content or bank.crc
-                },
-                "coupling": {
-                    b: {"content": base64.b64encode(bank.content).decode(), "crc": bank.crc,
-                        "imu_set_id": bank.imu_set_id}
-                    for b, bank in self.coupling.items()
-                    if bank.content or bank.crc or bank.imu_set_id
-                },
+    def _body(self, active: dict[str, str | None], coupling: str | None) -> dict[str, object]:
+        """The banks and selector as a store writes them (the state file's body)."""
+        return {
+            "format": STATE_FORMAT,
+            "serial": self.limits.serial,
+            "active": pack_active(active, coupling),
+            "activation_count": self.activation_count,
+            "banks": {
+                f"{a}.{b}": {"content": base64.b64encode(bank.content).decode(), "crc": bank.crc,
+                             "signature": base64.b64encode(bank.signature).decode()}
+                for (a, b), bank in self.banks.items()
+                if bank.content or bank.crc
             },
-            indent=1,
-        ) + "\n"
+            "coupling": {
+                b: {"content": base64.b64encode(bank.content).decode(), "crc": bank.crc,
+                    "imu_set_id": bank.imu_set_id, "signature": base64.b64encode(bank.signature).decode()}
+                for b, bank in self.coupling.items()
+                if bank.content or bank.crc or bank.imu_set_id
+            },
+        }
+
+    def _persist(self) -> None:
+        """Write the state file: the banks as last stored, the trust as it is now (atomically)."""
+        if self.state_path is not None:
+            text = json.dumps({**self._stored_body, "trust": self.trust.to_dict()}, indent=1) + "\n"
+            write_text_atomic(self.state_path, text)
 
     @classmethod
     def boot(
@@ -476,15 +591,18 @@ class BankStore:
                 raise ValueError(f"state belongs to serial {content.get('serial')}")
             for key, entry in content["banks"].items():
                 axis, bank = key.split(".")
-                store.banks[(axis, bank)] = Bank(base64.b64decode(entry["content"]), int(entry["crc"]))
+                store.banks[(axis, bank)] = Bank(base64.b64decode(entry["content"]), int(entry["crc"]),
+                                                 signature=base64.b64decode(entry.get("signature", "")))
             for bank, entry in content.get("coupling", {}).items():
                 if bank not in BANKS:
                     raise ValueError(f"coupling bank {bank!r}")
                 store.coupling[bank] = Bank(base64.b64decode(entry["content"]), int(entry["crc"]),
-                                            int(entry["imu_set_id"]))
+                                            int(entry["imu_set_id"]),
+                                            base64.b64decode(entry.get("signature", "")))
             selected = unpack_active(int(content["active"]))
             coupling = unpack_coupling(int(content["active"]))
             store.activation_count = int(content.get("activation_count", 0))
+            store.trust = trust_from_dict(content["trust"]) if "trust" in content else Trust()
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             log.error("stored state %s unreadable (%s): starting without coefficient sets", state_path, exc)
             return cls(limits, capacity, store.state_path)
@@ -504,6 +622,7 @@ class BankStore:
                 log.error("boot: coupling left out (identity): %s", exc)
         store.stored_active = dict(store.active)
         store.stored_coupling = store.active_coupling
+        store._stored_body = {k: v for k, v in content.items() if k != "trust"}
         log.info("boot: active banks %s", _describe(store.active, store))
         if store.active_coupling is not None:
             log.info("boot: coupling bank %s, IMU set 0x%08x", store.active_coupling,

@@ -45,6 +45,8 @@ from canical.errors import CanicalError
 from canical.frames.imu_dictionary import (
     ABORT_VALUE_RANGE,
     AXES,
+    PROVISIONING_CLOSED,
+    PROVISIONING_OPEN,
     RESTORE_SIGNATURE,
     STORE_SIGNATURE,
     imu_objects,
@@ -114,10 +116,12 @@ class EmulatedImu:
         self._crc_at = {(b.index, b.crc): k for k, b in o.banks.items()}
         self._status_at = {(b.index, b.status): k for k, b in o.banks.items()}
         self._size_at = {(b.index, b.size): k for k, b in o.banks.items()}
+        self._signature_at = {(b.index, b.signature): k for k, b in o.banks.items()}
         self._id_at = {v: a for a, v in o.active_set_id.items()}
         self._coupling_at = {(c.index, sub): (c.bank, what) for c in o.coupling_banks.values()
                              for sub, what in ((c.content, "content"), (c.crc, "crc"), (c.status, "status"),
-                                               (c.size, "size"), (c.imu_set_id, "imu_set_id"))}
+                                               (c.size, "size"), (c.imu_set_id, "imu_set_id"),
+                                               (c.signature, "signature"))}
         self.stop_event = threading.Event()
         #: the active IMU set's coupling as the device runs it: the C evaluator's three-axis
         #: sample, or the matrix applied in Python (where the C library cannot); None: identity
@@ -188,6 +192,8 @@ class EmulatedImu:
             return s.check(*self._status_at[key]).status
         if key in self._size_at:
             return len(s.banks[self._size_at[key]].content)
+        if key in self._signature_at:
+            return s.banks[self._signature_at[key]].signature
         if key in self._id_at:
             return s.active_id(self._id_at[key])
         if key in self._coupling_at:
@@ -195,9 +201,10 @@ class EmulatedImu:
             b = s.coupling[bank]
             if what == "status":
                 return s.check_coupling(bank).status
-            values = {"content": b.content, "crc": b.crc, "size": len(b.content), "imu_set_id": b.imu_set_id}
+            values = {"content": b.content, "crc": b.crc, "size": len(b.content), "imu_set_id": b.imu_set_id,
+                      "signature": b.signature}
             return values[what]
-        simple = {
+        simple: dict[tuple[int, int], Callable[[], object]] = {
             o.active_imu_set_id: s.active_imu_set_id,
             o.active_banks: s.active_value,
             o.activation_count: lambda: s.activation_count,
@@ -205,6 +212,9 @@ class EmulatedImu:
             o.download_lock: s.current_lock,
             o.correction_mode: lambda: int(self.correction),
             o.stored_state: s.stored_value,
+            o.trust_key: lambda: s.trust.key,
+            o.provisioning: lambda: PROVISIONING_OPEN if s.trust.provisioning_open else PROVISIONING_CLOSED,
+            o.rollback_counter: lambda: s.trust.counter,
         }
         getter = simple.get(key)
         return getter() if getter else None
@@ -217,6 +227,8 @@ class EmulatedImu:
                 s.write_content(*self._bank_at[key], bytes(data))
             elif key in self._crc_at:
                 s.write_crc(*self._crc_at[key], int.from_bytes(data, "little"))
+            elif key in self._signature_at:
+                s.write_signature(*self._signature_at[key], bytes(data))
             elif key in self._coupling_at:
                 self._write_coupling(*self._coupling_at[key], bytes(data))
             elif key == o.active_banks:
@@ -225,6 +237,10 @@ class EmulatedImu:
                 s.store(int.from_bytes(data, "little") == STORE_SIGNATURE)
             elif key == o.restore:
                 s.restore_defaults(int.from_bytes(data, "little") == RESTORE_SIGNATURE)
+            elif key == o.trust_key:
+                s.write_trust_key(bytes(data))
+            elif key == o.provisioning:
+                s.close_provisioning(int.from_bytes(data, "little"))
             elif key == o.download_lock:
                 s.take_lock(int.from_bytes(data, "little"))
             elif key == o.correction_mode:
@@ -243,6 +259,8 @@ class EmulatedImu:
             s.write_coupling_crc(bank, int.from_bytes(data, "little"))
         elif what == "imu_set_id":
             s.write_imu_set_id(bank, int.from_bytes(data, "little"))
+        elif what == "signature":
+            s.write_coupling_signature(bank, data)
         else:  # Status and Size are read-only in the EDS: canopen refuses them before this
             raise BankRefusal(ABORT_VALUE_RANGE, f"coupling bank {bank}: {what} is read-only")
 

@@ -34,6 +34,18 @@ COUPLING_SHIFT = BITS_PER_AXIS * len(AXES)
 #: CiA 301 signatures: "save" / "load" as little-endian UNSIGNED32.
 STORE_SIGNATURE = int.from_bytes(b"save", "little")
 RESTORE_SIGNATURE = int.from_bytes(b"load", "little")
+#: Written to "Provisioning" (0x2233): closes the provisioning state for good ("lock").
+PROVISION_CLOSE_SIGNATURE = int.from_bytes(b"lock", "little")
+PROVISIONING_OPEN = 1
+PROVISIONING_CLOSED = 0
+
+#: A bank's "Signature" sub-index: version (UNSIGNED64, little-endian), the signing key's id
+#: (the first 8 bytes of the public key's SHA-256) and the Ed25519 signature (64 bytes).
+SIGNATURE_VERSION_BYTES = 8
+SIGNATURE_KEY_ID_BYTES = 8
+SIGNATURE_ED25519_BYTES = 64
+BANK_SIGNATURE_BYTES = SIGNATURE_VERSION_BYTES + SIGNATURE_KEY_ID_BYTES + SIGNATURE_ED25519_BYTES
+TRUST_KEY_BYTES = 32  # an Ed25519 public key
 
 # Bank status (sub-index "Status" of each bank record).
 STATUS_EMPTY = 0
@@ -108,6 +120,7 @@ class BankRef:
     crc: int
     status: int
     size: int
+    signature: int
 
 
 @dataclass(frozen=True)
@@ -121,6 +134,7 @@ class CouplingBankRef:
     status: int
     size: int
     imu_set_id: int
+    signature: int
 
 
 @dataclass(frozen=True)
@@ -142,6 +156,9 @@ class ImuObjects:
     download_lock: tuple[int, int]
     correction_mode: tuple[int, int]
     stored_state: tuple[int, int]
+    trust_key: tuple[int, int]
+    provisioning: tuple[int, int]
+    rollback_counter: tuple[int, int]
     tpdo_cob_ids: tuple[int, ...]
 
     def bank(self, axis: str, bank: str) -> BankRef:
@@ -182,6 +199,7 @@ def imu_objects() -> ImuObjects:
                 member(od, record, "CRC32").subindex,
                 member(od, record, "Status").subindex,
                 member(od, record, "Size").subindex,
+                member(od, record, "Signature").subindex,
             )
     coupling = {}
     for bank in BANKS:
@@ -190,7 +208,7 @@ def imu_objects() -> ImuObjects:
             bank,
             od[record].index,
             *(member(od, record, entry).subindex
-              for entry in ("Content", "CRC32", "Status", "Size", "IMU set id")),
+              for entry in ("Content", "CRC32", "Status", "Size", "IMU set id", "Signature")),
         )
     return ImuObjects(
         serial=_var(od, "Identity object", "Serial number"),
@@ -208,6 +226,9 @@ def imu_objects() -> ImuObjects:
         download_lock=_var(od, "Download lock"),
         correction_mode=_var(od, "Correction mode"),
         stored_state=_var(od, "Stored state"),
+        trust_key=_var(od, "Trust key"),
+        provisioning=_var(od, "Provisioning"),
+        rollback_counter=_var(od, "Rollback counter"),
         # COB-ID base, node id 1
         tpdo_cob_ids=tuple(int(default_value(member(od, 0x1800 + i, 1))) - 1 for i in range(3)),
     )
