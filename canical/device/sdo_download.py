@@ -8,15 +8,16 @@ A push, for the sets given (one per axis):
    or content longer than its banks (:mod:`canical.sets.admission`, the checks the
    device makes);
 2. takes the device's download lock (a random token; a second tool is refused);
-3. writes each set's canonical bytes and CRC32 into the axis's *inactive* bank,
-   reads both back and compares, and checks the device reports the bank valid;
+3. writes each set's canonical bytes and CRC32 into the axis's *inactive* bank, and the
+   set file's signature (:mod:`canical.device.bank_signature`) when it is signed, reads them
+   back and compares, and checks the device reports the bank valid;
 4. activates all axes with one write of the active-bank selector (the device
    re-validates every bank it switches to, and switches all or none);
 5. stores (CiA 301 "save" to 0x1010) so the new sets survive a power cycle;
 6. reads back what the device runs and stores, and checks it is what was pushed.
 
 An IMU set pushes its three axes as above and its coupling into the inactive
-coupling bank (content, CRC32 and the IMU set's id), read back and compared like
+coupling bank (content, CRC32, the IMU set's id and the IMU set's signature), read back and compared like
 the axes, and the one selector write activates axes and coupling together (the
 device checks the coupling belongs to the axes). A device running an IMU set
 refuses single-axis sets under its coupling: the tool says so before writing.
@@ -61,6 +62,8 @@ from canical.frames.imu_dictionary import (
     STATUS_TEXT,
     STATUS_VALID,
     STORE_SIGNATURE,
+    BankRef,
+    CouplingBankRef,
     imu_objects,
     object_dictionary,
     other_bank,
@@ -231,6 +234,15 @@ class ImuClient:
         crc = self.read_uint((ref.index, ref.crc), f"reading the CRC of {name}")
         return content, crc, status
 
+    def signature(self, axis: str | None, bank: str) -> bytes:
+        """The "Signature" bytes of an axis bank (``axis`` None: of coupling bank ``bank``)."""
+        if axis is None:
+            ref: BankRef | CouplingBankRef = self.objects.coupling_bank(bank)
+            name = f"coupling bank {bank}"
+        else:
+            ref, name = self.objects.bank(axis, bank), f"bank {axis.upper()} {bank}"
+        return self.upload((ref.index, ref.signature), f"reading the signature of {name}")
+
     def coupling_bank(self, bank: str) -> tuple[CouplingPayload, int]:
         """(content, CRC, IMU set id) and status of one coupling bank."""
         ref = self.objects.coupling_bank(bank)
@@ -277,6 +289,7 @@ class AxisPlan:
     bank: str
     was_bank: str | None
     was_id: int
+    signature: bytes = b""  # the bank's "Signature" (empty: an unsigned set)
 
     @property
     def unchanged(self) -> bool:
@@ -292,6 +305,7 @@ class CouplingPlan:
     bank: str
     was_bank: str | None
     was_id: int
+    signature: bytes = b""  # the IMU set's signature (empty: unsigned)
 
     @property
     def imu_set_id(self) -> int:
@@ -348,12 +362,15 @@ def plan_push(
     node_id: int,
     imu: tuple[str, ImuSet] | None = None,
     coupling: DeviceCoupling = DeviceCoupling(),
+    signatures: Mapping[str, bytes] | None = None,
 ) -> PushPlan:
     """Which bank each set goes to, and the selector that activates them; refuses inadmissible sets.
 
     ``sets`` maps axis → (where the set came from, the set); ``imu`` (where from, the IMU set) adds
-    its coupling (``sets`` then holds its three axes). Pure: the device's state is passed in.
+    its coupling (``sets`` then holds its three axes); ``signatures`` the banks' signatures by axis
+    (``"imu"``: the IMU set's, for its coupling bank). Pure: the device's state is passed in.
     """
+    signatures = signatures or {}
     axes = []
     after = dict(active)
     for axis in AXES:
@@ -365,7 +382,8 @@ def plan_push(
             raise CanicalError(f"{source}: not for this device (node 0x{node_id:02x}): {problem}")
         content, crc = encode_set(cset)
         was = active.get(axis)
-        plan = AxisPlan(axis, source, crc, content, other_bank(was), was, int(active_ids.get(axis, 0)))
+        plan = AxisPlan(axis, source, crc, content, other_bank(was), was, int(active_ids.get(axis, 0)),
+                        signatures.get(axis, b""))
         if not plan.unchanged:
             after[axis] = plan.bank
         axes.append(plan)
@@ -378,7 +396,7 @@ def plan_push(
             raise CanicalError(f"{source}: not for this device (node 0x{node_id:02x}): IMU set for sensor "
                                f"{imu_set.sensor_id!r}, the device is serial {serial}")
         coupling_plan = CouplingPlan(source, encode_coupling(imu_set), other_bank(coupling.bank),
-                                     coupling.bank, coupling.imu_set_id)
+                                     coupling.bank, coupling.imu_set_id, signatures.get("imu", b""))
         size = len(coupling_plan.payload.content)
         if limits.bank_capacity is not None and size > limits.bank_capacity:
             raise CanicalError(f"{source}: not for this device (node 0x{node_id:02x}): its coupling is "
@@ -411,9 +429,11 @@ def push_sets(
     imu: tuple[str, ImuSet] | None = None,
     dry_run: bool = False,
     progress: Progress = lambda _: None,
+    signatures: Mapping[str, bytes] | None = None,
 ) -> PushResult | PushPlan:
     """Push sets, or an IMU set (``imu``: where from, the set; ``sets`` then empty), to the device
-    (see module doc); with ``dry_run`` only the plan, nothing written."""
+    (see module doc), with their signatures (see :func:`plan_push`); with ``dry_run`` only the
+    plan, nothing written."""
     t0 = time.perf_counter()
     limits = client.limits()
     if imu is not None:
@@ -421,7 +441,8 @@ def push_sets(
             raise CanicalError("an IMU set is pushed alone: its three axes are in it")
         sets = {c.axis: (f"{imu[0]} axes.{c.axis}", c) for c in imu[1].axes}
     coupling = DeviceCoupling(client.active_coupling(), client.active_imu_set_id())
-    plan = plan_push(sets, limits, client.active(), client.active_ids(), client.node_id, imu, coupling)
+    plan = plan_push(sets, limits, client.active(), client.active_ids(), client.node_id, imu, coupling,
+                     signatures)
     if dry_run:
         return plan
     timings: dict[str, float] = {"read_state": time.perf_counter() - t0}
@@ -440,7 +461,9 @@ def push_sets(
             progress(f"downloading {len(p.content)} bytes to {name}")
             client.download((ref.index, ref.content), p.content, f"downloading {name}")
             client.write_uint((ref.index, ref.crc), p.set_id, 4, f"writing the CRC of {name}")
-            written += len(p.content) + 4
+            if p.signature:
+                client.download((ref.index, ref.signature), p.signature, f"writing the signature of {name}")
+            written += len(p.content) + 4 + len(p.signature)
         written += _download_coupling(client, plan.coupling, progress)
         timings["download"] = time.perf_counter() - t
         t = time.perf_counter()
@@ -449,7 +472,8 @@ def push_sets(
                 continue
             content, crc, bank_status = client.bank(p.axis, p.bank)
             name = f"bank {p.axis.upper()} {p.bank}"
-            if content != p.content or crc != p.set_id:
+            signature = client.signature(p.axis, p.bank) if p.signature else b""
+            if content != p.content or crc != p.set_id or signature != p.signature:
                 raise CanicalError(f"node 0x{client.node_id:02x}: read-back of {name} differs from what was "
                                    f"written (another writer on the bus?); nothing activated")
             if bank_status != STATUS_VALID:
@@ -495,7 +519,9 @@ def _download_coupling(client: ImuClient, plan: CouplingPlan | None, progress: P
     client.download((ref.index, ref.content), plan.payload.content, f"downloading {name}")
     client.write_uint((ref.index, ref.crc), plan.payload.crc, 4, f"writing the CRC of {name}")
     client.write_uint((ref.index, ref.imu_set_id), plan.imu_set_id, 4, f"writing the IMU set id of {name}")
-    return len(plan.payload.content) + 8
+    if plan.signature:
+        client.download((ref.index, ref.signature), plan.signature, f"writing the signature of {name}")
+    return len(plan.payload.content) + 8 + len(plan.signature)
 
 
 def _verify_coupling(client: ImuClient, plan: CouplingPlan | None) -> None:
@@ -504,7 +530,8 @@ def _verify_coupling(client: ImuClient, plan: CouplingPlan | None) -> None:
         return
     back, bank_status = client.coupling_bank(plan.bank)
     name = f"coupling bank {plan.bank}"
-    if back != plan.payload:
+    signature = client.signature(None, plan.bank) if plan.signature else b""
+    if back != plan.payload or signature != plan.signature:
         raise CanicalError(f"node 0x{client.node_id:02x}: read-back of {name} differs from what was "
                            f"written (another writer on the bus?); nothing activated")
     if bank_status != STATUS_VALID:
