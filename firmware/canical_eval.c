@@ -2159,6 +2159,164 @@ static int check_coupling_matrix(const double m[3][3])
     return CE_OK;
 }
 
+/* ------------------------------------------------------------------------------------------
+ * Signed sets: the signed message built in the caller's scratch, verified by the caller's function.
+ * ---------------------------------------------------------------------------------------- */
+
+/* A growing message in a fixed buffer; `fits` turns 0 for good once a piece does not fit. */
+typedef struct {
+    uint8_t *at;
+    uint32_t size, used;
+    int fits;
+} ce_message;
+
+static void message_put(ce_message *m, const uint8_t *data, uint32_t length)
+{
+    uint32_t i;
+    if (!m->fits || length > m->size - m->used) {
+        m->fits = 0;
+        return;
+    }
+    for (i = 0; i < length; i++) {
+        m->at[m->used + i] = data[i];
+    }
+    m->used += length;
+}
+
+static void message_text(ce_message *m, const char *text)
+{
+    message_put(m, (const uint8_t *)text, (uint32_t)text_length(text));
+}
+
+/* An unsigned integer in decimal, as JSON writes it. */
+static void message_decimal(ce_message *m, uint64_t value)
+{
+    uint8_t digits[20];
+    uint32_t n = 0, i;
+    uint8_t out[20];
+    do {
+        digits[n++] = (uint8_t)('0' + (uint8_t)(value % 10u));
+        value /= 10u;
+    } while (value != 0u);
+    for (i = 0; i < n; i++) {
+        out[i] = digits[n - 1u - i];
+    }
+    message_put(m, out, n);
+}
+
+static uint64_t read_u64_le(const uint8_t *p)
+{
+    uint64_t v = 0;
+    int i;
+    for (i = 7; i >= 0; i--) {
+        v = (v << 8) | p[i];
+    }
+    return v;
+}
+
+/* The first checks, on the Signature's bytes alone: signed, its length, the key id. */
+static int signature_header(const ce_trust *trust, const uint8_t *signature, uint32_t signature_length)
+{
+    int i;
+    if (trust == NULL || trust->public_key == NULL || trust->key_id == NULL || trust->verify == NULL ||
+        trust->scratch == NULL) {
+        return CE_ERR_ARG;
+    }
+    if (signature_length == 0u) {
+        return CE_ERR_UNSIGNED;
+    }
+    if (signature == NULL) {
+        return CE_ERR_ARG;
+    }
+    if (signature_length != CE_SIGNATURE_BYTES) {
+        return CE_ERR_SIGNATURE_FORMAT;
+    }
+    for (i = 0; i < CE_KEY_ID_BYTES; i++) {
+        if (signature[8 + i] != trust->key_id[i]) {
+            return CE_ERR_KEY;
+        }
+    }
+    return CE_OK;
+}
+
+/* The domain and header of the signed message: "canical signed set v1\n" {"sensor":"S","version":N}\n. */
+static ce_message message_start(const ce_trust *trust, uint32_t serial, uint64_t version)
+{
+    ce_message m;
+    m.at = trust->scratch;
+    m.size = trust->scratch_size;
+    m.used = 0u;
+    m.fits = 1;
+    message_text(&m, "canical signed set v1\n{\"sensor\":\"");
+    message_decimal(&m, serial);
+    message_text(&m, "\",\"version\":");
+    message_decimal(&m, version);
+    message_text(&m, "}\n");
+    return m;
+}
+
+/* The last checks, once the message is built: the signature, then the version. */
+static int signature_verdict(const ce_trust *trust, const uint8_t *signature, const ce_message *m,
+                             uint64_t *version)
+{
+    uint64_t v = read_u64_le(signature);
+    if (!m->fits) {
+        return CE_ERR_LIMIT;
+    }
+    if (trust->verify(trust->context, signature + 16, m->at, m->used, trust->public_key) != 0) {
+        return CE_ERR_SIGNATURE;
+    }
+    if (v < trust->counter) {
+        return CE_ERR_ROLLBACK;
+    }
+    *version = v;
+    return CE_OK;
+}
+
+int ce_signature_check(const ce_trust *trust, const uint8_t *signature, uint32_t signature_length,
+                       const uint8_t *content, uint32_t length, uint32_t serial, uint64_t *version)
+{
+    ce_message m;
+    int code = signature_header(trust, signature, signature_length);
+    if (code != CE_OK) {
+        return code;
+    }
+    if (content == NULL || version == NULL) {
+        return CE_ERR_ARG;
+    }
+    m = message_start(trust, serial, read_u64_le(signature));
+    message_put(&m, content, length);
+    return signature_verdict(trust, signature, &m, version);
+}
+
+int ce_signature_check3(const ce_trust *trust, const uint8_t *signature, uint32_t signature_length,
+                        const uint8_t *content, uint32_t length, const uint8_t *const axis_content[3],
+                        const uint32_t axis_length[3], uint32_t serial, uint64_t *version)
+{
+    static const char *const HEADS[3] = {"{\"axes\":{\"x\":", ",\"y\":", ",\"z\":"};
+    ce_message m;
+    int i;
+    int code = signature_header(trust, signature, signature_length);
+    if (code != CE_OK) {
+        return code;
+    }
+    if (content == NULL || length < 2u || content[0] != '{' || axis_content == NULL || axis_length == NULL ||
+        version == NULL) {
+        return CE_ERR_ARG;
+    }
+    m = message_start(trust, serial, read_u64_le(signature));
+    for (i = 0; i < 3; i++) {
+        if (axis_content[i] == NULL) {
+            return CE_ERR_ARG;
+        }
+        message_text(&m, HEADS[i]);
+        message_put(&m, axis_content[i], axis_length[i]);
+    }
+    message_text(&m, "},");
+    message_put(&m, content + 1, length - 1u);
+    return signature_verdict(trust, signature, &m, version);
+}
+
 /* The IMU set's CRC32 from its axis banks and its coupling bank (see canical_eval.h). */
 static uint32_t imu_set_crc(const uint8_t *const axis_content[3], const uint32_t axis_length[3],
                             const uint8_t *content, uint32_t length)
@@ -2496,6 +2654,16 @@ const char *ce_strerror(int code)
         return "coupling matrix singular or an off-diagonal term above 10 %";
     case CE_ERR_IMU_SET:
         return "coupling belongs to another IMU set (not these axes)";
+    case CE_ERR_UNSIGNED:
+        return "not signed";
+    case CE_ERR_SIGNATURE_FORMAT:
+        return "signature of the wrong length (truncated or garbage)";
+    case CE_ERR_KEY:
+        return "signed by another key than the device's trust key";
+    case CE_ERR_SIGNATURE:
+        return "signature does not match the content (changed, or for another sensor)";
+    case CE_ERR_ROLLBACK:
+        return "version older than the device has run (rollback)";
     default:
         return "unknown code";
     }

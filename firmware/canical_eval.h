@@ -105,7 +105,13 @@ typedef enum ce_result {
                                   CE_COUPLING_MAX_DIAGONAL, singular (condition above
                                   CE_COUPLING_MAX_CONDITION) or an off-diagonal term above
                                   CE_COUPLING_MAX_OFF_DIAGONAL */
-    CE_ERR_IMU_SET = -15       /* the coupling belongs to another IMU set: the axes given are not its */
+    CE_ERR_IMU_SET = -15,      /* the coupling belongs to another IMU set: the axes given are not its */
+    CE_ERR_UNSIGNED = -16,     /* the bank's Signature is empty: the set is not signed */
+    CE_ERR_SIGNATURE_FORMAT = -17, /* the Signature is not CE_SIGNATURE_BYTES long (truncated, garbage) */
+    CE_ERR_KEY = -18,          /* signed by another key than the device's trust key (key id differs) */
+    CE_ERR_SIGNATURE = -19,    /* the signature does not verify: the content changed after signing, or
+                                  it was signed for another sensor */
+    CE_ERR_ROLLBACK = -20      /* signed with a version below the device's anti-rollback counter */
 } ce_result;
 
 /* What the device says about itself; what a set must fit. */
@@ -248,6 +254,59 @@ int ce_eval3(ce_set *const axes[3], const ce_coupling *coupling, const ce_sample
 int ce_eval3_block(ce_set *const axes[3], const ce_coupling *coupling, uint32_t n, const float *raw,
                    const uint32_t *time_ms, const float *inputs, uint8_t n_inputs, float *rate_dps,
                    uint8_t *out_of_span);
+
+/* ------------------------------------------------------------------------------------------
+ * Signed sets: the check before activation, once the device has a trust key.
+ *
+ * A bank's "Signature" sub-index (0x2210-0x2217, sub 5 of an axis bank, sub 6 of a coupling bank)
+ * holds CE_SIGNATURE_BYTES: the set's version (uint64, little-endian), the signing key's id (the
+ * first CE_KEY_ID_BYTES of the SHA-256 of its public key) and the Ed25519 signature. The signed
+ * message is "canical signed set v1\n" '{"sensor":"SERIAL","version":N}' "\n" and the set's
+ * canonical content (SERIAL and N in decimal): for an axis bank its content, for an IMU set the
+ * whole IMU set rebuilt from the coupling bank and the three axis banks as ce_coupling_load does.
+ * The cryptography is not here: the device gives its vendor's Ed25519 verification as a function.
+ * Checks, in this order (the emulated IMU's order, so both give the same refusal): signed at all,
+ * the length, the key id, the signature, the version against the counter.
+ * ---------------------------------------------------------------------------------------- */
+
+#define CE_SIGNATURE_BYTES 80 /* version (8) + key id (8) + Ed25519 signature (64) */
+#define CE_KEY_ID_BYTES 8
+#define CE_ED25519_BYTES 64
+#define CE_PUBLIC_KEY_BYTES 32
+#define CE_SIGNED_HEADER_MAX 80 /* the domain and '{"sensor":...,"version":...}\n' at most, bytes */
+
+/* The device's Ed25519 verification: 0 when `signature` (CE_ED25519_BYTES) is a valid signature by
+ * `public_key` (CE_PUBLIC_KEY_BYTES) of message[0..length), anything else when not (libsodium's
+ * crypto_sign_verify_detached has this meaning). `context` is ce_trust.context, passed through. */
+typedef int (*ce_verify_fn)(void *context, const uint8_t *signature, const uint8_t *message, uint32_t length,
+                            const uint8_t *public_key);
+
+/* What the device trusts, and the room to check with. */
+typedef struct {
+    const uint8_t *public_key;   /* the provisioned key, CE_PUBLIC_KEY_BYTES */
+    const uint8_t *key_id;       /* its id, CE_KEY_ID_BYTES (computed once, at provisioning) */
+    uint64_t counter;            /* the anti-rollback counter: the highest version ever activated */
+    ce_verify_fn verify;         /* the vendor's verification */
+    void *context;               /* passed to verify */
+    uint8_t *scratch;            /* where the signed message is built (no heap): at least
+                                    CE_SIGNED_HEADER_MAX plus the bytes signed */
+    uint32_t scratch_size;
+} ce_trust;
+
+/* Check an axis bank's signature (`signature`, `signature_length` bytes: the Signature sub-index as
+ * written) over its content for the device with serial `serial`, before activating it. Returns
+ * CE_OK and the signed version in *version (raise the counter to it once activated), or
+ * CE_ERR_UNSIGNED, CE_ERR_SIGNATURE_FORMAT, CE_ERR_KEY, CE_ERR_SIGNATURE, CE_ERR_ROLLBACK,
+ * CE_ERR_LIMIT (scratch too small) or CE_ERR_ARG (a NULL pointer). Check the content itself
+ * (ce_load) too: a signature says who made the bytes, not that this device can run them. */
+int ce_signature_check(const ce_trust *trust, const uint8_t *signature, uint32_t signature_length,
+                       const uint8_t *content, uint32_t length, uint32_t serial, uint64_t *version);
+
+/* The same for an IMU set: the signature on its coupling bank covers the whole IMU set, rebuilt
+ * from the coupling bank's content and the three axis banks (x, y, z) it is activated with. */
+int ce_signature_check3(const ce_trust *trust, const uint8_t *signature, uint32_t signature_length,
+                        const uint8_t *content, uint32_t length, const uint8_t *const axis_content[3],
+                        const uint32_t axis_length[3], uint32_t serial, uint64_t *version);
 
 /* sizeof(ce_coupling), for bindings that treat it as opaque bytes. */
 uint32_t ce_sizeof_coupling(void);

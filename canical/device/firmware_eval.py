@@ -56,6 +56,11 @@ ERROR_NAMES = {
     -13: "CE_ERR_INPUT",
     -14: "CE_ERR_COUPLING",
     -15: "CE_ERR_IMU_SET",
+    -16: "CE_ERR_UNSIGNED",
+    -17: "CE_ERR_SIGNATURE_FORMAT",
+    -18: "CE_ERR_KEY",
+    -19: "CE_ERR_SIGNATURE",
+    -20: "CE_ERR_ROLLBACK",
 }
 
 

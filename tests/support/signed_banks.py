@@ -141,3 +141,68 @@ def imu_cases(imu: ImuSet) -> list[ImuCase]:
         case("garbage signature", bytes(80), "not by the device's trust key"),
         case("valid", valid, None),
     ]
+
+
+# ---------------------------------------------------------------------------------------------
+# The emulated IMU's verdict on a case (BankStore: what `canical emulate` runs)
+# ---------------------------------------------------------------------------------------------
+
+#: The words of the emulated IMU's refusal for each of the C library's result codes.
+REFUSAL_OF_CODE = {
+    "CE_ERR_CRC": "CRC mismatch",
+    "CE_ERR_UNSIGNED": "not signed",
+    "CE_ERR_SIGNATURE_FORMAT": "bytes, not 80",
+    "CE_ERR_KEY": "not by the device's trust key",
+    "CE_ERR_SIGNATURE": "does not match the content",
+    "CE_ERR_ROLLBACK": "a rollback",
+}
+
+
+def _store() -> Any:
+    from canical.device.coefficient_banks import BankStore
+    from canical.frames.imu_dictionary import AXES
+    from canical.sets.admission import DeviceLimits
+    from support.imu_fixtures import SERIAL
+
+    store = BankStore(DeviceLimits(SERIAL, dict.fromkeys(AXES, 50.0)), 16384)
+    store.write_trust_key(LAB_PUBLIC)
+    store.trust.counter = COUNTER
+    return store
+
+
+def device_verdict(case: BankCase, axis: str = "z") -> str | None:
+    """The emulated IMU's refusal of an axis case (None: activated)."""
+    from canical.device.coefficient_banks import BankRefusal
+    from canical.frames.imu_dictionary import pack_active
+
+    store = _store()
+    store.write_content(axis, "A", case.content)
+    store.write_crc(axis, "A", case.crc)
+    if case.signature:
+        store.write_signature(axis, "A", case.signature)
+    try:
+        store.activate(pack_active({axis: "A"}))
+    except BankRefusal as exc:
+        return exc.reason
+    return None
+
+
+def device_verdict3(case: ImuCase) -> str | None:
+    """The emulated IMU's refusal of an IMU set case (None: activated)."""
+    from canical.device.coefficient_banks import BankRefusal
+    from canical.frames.imu_dictionary import AXES, pack_active
+
+    store = _store()
+    for axis, content in zip(AXES, case.axes, strict=True):
+        store.write_content(axis, "A", content)
+        store.write_crc(axis, "A", crc(content))
+    store.write_coupling_content("A", case.coupling)
+    store.write_coupling_crc("A", case.coupling_crc)
+    store.write_imu_set_id("A", case.imu_set_id)
+    if case.signature:
+        store.write_coupling_signature("A", case.signature)
+    try:
+        store.activate(pack_active(dict.fromkeys(AXES, "A"), "A"))
+    except BankRefusal as exc:
+        return exc.reason
+    return None
