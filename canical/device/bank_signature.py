@@ -25,7 +25,7 @@ from canical.frames.imu_dictionary import (
     SIGNATURE_VERSION_BYTES,
     TRUST_KEY_BYTES,
 )
-from canical.sets.signing import SignatureRecord, key_id_of, signed_message
+from canical.sets.signing import SignatureRecord, SignedContent, TrustedKey, key_id_of, signed_message, verify
 
 
 @dataclass(frozen=True)
@@ -61,6 +61,20 @@ def unpack(data: bytes, where: str) -> BankSignature:
     version = struct.unpack("<Q", data[:SIGNATURE_VERSION_BYTES])[0]
     key_end = SIGNATURE_VERSION_BYTES + SIGNATURE_KEY_ID_BYTES
     return BankSignature(version, data[SIGNATURE_VERSION_BYTES:key_end], data[key_end:])
+
+
+def record_of(data: bytes, sensor_id: str, where: str) -> SignatureRecord | None:
+    """The signature record a bank's "Signature" bytes make for a set of ``sensor_id`` (None:
+    empty, unsigned); one CanicalError line when they cannot be one."""
+    return None if not data else unpack(data, where).record(sensor_id)
+
+
+def verify_pulled(data: bytes, canonical: bytes, sensor_id: str, trusted: tuple[TrustedKey, ...],
+                  where: str) -> SignatureRecord:
+    """The record of a set read from a device (its canonical content, the bank's "Signature"
+    bytes) if a trusted key signed it for its sensor; else one CanicalError line: what a set file
+    gets (:func:`canical.sets.signing.verify`), for the bytes the device holds."""
+    return verify(SignedContent(record_of(data, sensor_id, where), canonical, sensor_id), trusted, where)
 
 
 def joined_imu_canonical(envelope: bytes, axes: tuple[bytes, ...]) -> bytes:

@@ -88,6 +88,9 @@ class DeviceSilent(CanicalError):
 #: SDO aborts that say an object or sub-index is not in the node's dictionary at all.
 NOT_IN_DICTIONARY = (0x06020000, 0x06090011)
 IDENTITY_VENDOR, IDENTITY_PRODUCT = (0x1018, 1), (0x1018, 2)
+#: SDO aborts a "Signature" read answers for a bank without one: no data (an empty DOMAIN), or
+#: the sub-index not in the dictionary (firmware older than signed banks).
+NO_SIGNATURE = (0x08000024, *NOT_IN_DICTIONARY)
 
 
 class NotCanicalDevice(CanicalError):
@@ -241,7 +244,14 @@ class ImuClient:
             name = f"coupling bank {bank}"
         else:
             ref, name = self.objects.bank(axis, bank), f"bank {axis.upper()} {bank}"
-        return self.upload((ref.index, ref.signature), f"reading the signature of {name}")
+        try:
+            return bytes(self.node.sdo.upload(ref.index, ref.signature))
+        except SdoAbortedError as exc:
+            if exc.code in NO_SIGNATURE:
+                return b""  # an empty Signature (unsigned), or a device without the sub-index
+            raise self._fail(exc, f"reading the signature of {name}") from None
+        except (SdoCommunicationError, can.CanError) as exc:
+            raise self._fail(exc, f"reading the signature of {name}") from None
 
     def coupling_bank(self, bank: str) -> tuple[CouplingPayload, int]:
         """(content, CRC, IMU set id) and status of one coupling bank."""
@@ -583,12 +593,25 @@ def pull_imu_set(client: ImuClient) -> ImuSet:
     return join_imu_set(envelope, tuple(sets[a] for a in AXES), imu_set_id, source)
 
 
+def active_signatures(client: ImuClient, axes: tuple[str, ...] = (), *,
+                      imu: bool = False) -> dict[str, bytes]:
+    """The "Signature" bytes of the active banks of ``axes``, or (``imu``) of the active coupling
+    bank under ``"imu"``: what a verifier checks the pulled sets against."""
+    if imu:
+        bank = client.active_coupling()
+        return {} if bank is None else {"imu": client.signature(None, bank)}
+    active = client.active()
+    return {a: client.signature(a, active[a]) for a in axes if active[a] is not None}  # type: ignore[arg-type]
+
+
 @dataclass(frozen=True)
 class ActiveOnDevice:
     """What a device runs: its IMU set when a coupling is active (``imu``), else its single-axis sets."""
 
     sets: dict[str, CoefficientSet]
     imu: ImuSet | None = None
+    #: the banks' "Signature" bytes: by axis, or ``"imu"`` (the coupling bank's) for an IMU set
+    signatures: dict[str, bytes] = field(default_factory=dict)
 
 
 def pull_active(network: canopen.Network, node_id: int, axes: tuple[str, ...] = AXES,
@@ -599,7 +622,9 @@ def pull_active(network: canopen.Network, node_id: int, axes: tuple[str, ...] = 
     try:
         client.require_canical_objects()
         if tuple(axes) == AXES and client.active_coupling() is not None:
-            return ActiveOnDevice({}, pull_imu_set(client))
-        return ActiveOnDevice(pull_sets(client, axes))
+            imu = pull_imu_set(client)
+            return ActiveOnDevice({}, imu, active_signatures(client, imu=True))
+        sets = pull_sets(client, axes)
+        return ActiveOnDevice(sets, None, active_signatures(client, tuple(sets)))
     finally:
         client.close()

@@ -33,7 +33,7 @@ from canical.sets.signing import (
 )
 
 __all__ = ["SetFile", "load_imu", "load_set", "next_version", "read_set_file", "sign_file", "sign_text",
-           "verified"]
+           "verified", "with_signature"]
 
 
 @dataclass(frozen=True)
@@ -118,12 +118,24 @@ def sign_text(text: str, source: str, seed: bytes, version: int | None) -> tuple
     if version is None:
         version = 1 if previous.record is None else previous.record.version + 1
     record = sign(seed, previous.canonical, version, previous.sensor_id)
+    return _with_record(content, source, record), record
+
+
+def with_signature(text: str, source: str, record: SignatureRecord) -> str:
+    """A set's text with ``record`` as its signature (a signature read from a device's bank):
+    written beside the content, so the content and its CRC are unchanged."""
+    content = parse_yaml(text, source)
+    _validated(content, source)  # a damaged set is never given a signature
+    return _with_record(content, source, record)
+
+
+def _with_record(content: dict[str, Any], source: str, record: SignatureRecord) -> str:
     body = {k: v for k, v in content.items() if k not in (SIGNATURE_KEY, "crc32")}
     signed = yaml.safe_dump({**body, SIGNATURE_KEY: record.to_dict(), "crc32": content["crc32"]},
                             sort_keys=False, default_flow_style=None, width=100)
     if _validated(parse_yaml(signed, source), source).signed.record != record:
         raise CanicalError(f"{source}: the signed set does not read back as signed")  # never written
-    return signed, record
+    return signed
 
 
 def next_version(path: str | os.PathLike[str]) -> int:

@@ -26,10 +26,12 @@ from canical.commands.cli import main
 from canical.device.bank_payload import encode_set
 from canical.device.sdo_download import DeviceSilent, ImuClient, push_sets
 from canical.errors import CanicalError
+from canical.files.key_file import write_key_pair
 from canical.frames.imu_dictionary import AXES, PROVISION_CLOSE_SIGNATURE, imu_objects, pack_active
 from canical.sets import coefficient_file
 from canical.sets import imu_set as imu_file
-from canical.sets.signed_file import sign_file
+from canical.sets.signed_file import read_set_file, sign_file
+from canical.sets.signing import public_of
 
 
 def provision(c: ImuClient, *, close: bool = True) -> None:
@@ -186,3 +188,58 @@ def test_the_trust_survives_a_power_cycle_over_sdo(tmp_path: Path, capsys) -> No
         with pytest.raises(CanicalError, match="provisioning is closed"):
             c.download(o.trust_key, bytes(32), "writing the trust key")
         assert dev.store.trust.key == LAB_PUBLIC
+
+
+def key_files(folder: Path) -> tuple[Path, Path]:
+    """The lab's public key file and a stranger's."""
+    folder.mkdir(exist_ok=True)
+    _, lab = write_key_pair(folder / "lab", LAB_SEED, LAB_PUBLIC)
+    _, stranger = write_key_pair(folder / "stranger", STRANGER_SEED, public_of(STRANGER_SEED))
+    return lab, stranger
+
+
+#: A device activates no bank whose CRC does not match; a rollback is the device's and the daemon's
+#: check (a pull has no running version to compare with).
+PULLED = [c for c in axis_cases(imu_set("z")) if c.name not in ("tampered, CRC kept", "rolled back")]
+
+
+@pytest.mark.parametrize("case", PULLED, ids=lambda c: c.name)
+def test_pull_trust_verifies_what_it_reads(tmp_path: Path, capsys, case) -> None:
+    """A device without a trust key activates anything; `pull --trust` refuses, in one line and with
+    exit 2, every set the lab did not sign for it, and writes the signed one with its signature."""
+    lab, _ = key_files(tmp_path / "keys")
+    out = tmp_path / "pulled.yaml"
+    with emulated(tmp_path) as (_, channel):
+        with client(channel) as c:
+            write_bank(c, "z", "A", case.content, case.crc, case.signature)
+            c.write_uint(c.objects.active_banks, pack_active({"z": "A"}), 1, "activating")
+        code = main(["pull", *bus(channel), "--axis", "z", "-o", str(out), "--trust", str(lab)])
+    if case.refusal is None:
+        assert code == 0 and "trusted" in capsys.readouterr().out
+        assert read_set_file(out).signed.record is not None
+        assert main(["verify", str(out), "--trust", str(lab)]) == 0
+        return
+    line = one_line(capsys)
+    assert code == 2 and not out.exists(), line
+    expected = {"untrusted key": "not trusted", "garbage signature": "not trusted",
+                "another sensor": "changed after signing", "unsigned": "not signed"}
+    fallback = case.refusal if "bytes" in case.refusal else "changed after signing"
+    assert expected.get(case.name, fallback) in line
+
+
+def test_pull_of_a_signed_imu_set_gives_back_the_signed_file(tmp_path: Path, capsys) -> None:
+    lab, stranger = key_files(tmp_path / "keys")
+    path = tmp_path / "imu.yaml"
+    imu_file.save(path, imu_triad_set(0))
+    sign_file(path, LAB_SEED, 6)
+    back = tmp_path / "back.yaml"
+    with emulated(tmp_path) as (_, channel):
+        with client(channel) as c:
+            provision(c)
+        assert main(["push", str(path), *bus(channel)]) == 0
+        capsys.readouterr()
+        assert main(["pull", *bus(channel), "--imu-set", "-o", str(back), "--trust", str(stranger)]) == 2
+        assert "not trusted" in one_line(capsys) and not back.exists()
+        assert main(["pull", *bus(channel), "--imu-set", "-o", str(back), "--trust", str(lab)]) == 0
+    assert read_set_file(back).signed.record == read_set_file(path).signed.record
+    assert imu_file.load(back) == imu_file.load(path) == imu_triad_set(0)
