@@ -227,6 +227,7 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
     where = f"device node 0x{device.node:02x}"
     pulled: dict[str, CoefficientSet] = {}
     pulled_imu: ImuSet | None = None
+    signatures: dict[str, bytes] = {}
     messages: list[SetsNote] = []
     try:
         network = open_network(config.interface, config.channel, can_filters=sdo_client_filters(device.node),
@@ -235,18 +236,24 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
             # An axis the configuration leaves out is not corrected, whatever the device holds for it.
             present = tuple(a.axis for a in config.axes if a.present)
             got = pull_active(network, device.node, present, device.timeout_s)
-            pulled, pulled_imu = got.sets, got.imu
+            pulled, pulled_imu, signatures = got.sets, got.imu, got.signatures
         finally:
             network.disconnect()
     except CanicalError as exc:
         messages.append(SetsNote(f"{where}: {exc}; using the coefficient files"))
-    if config.trust is not None and config.trust.require and (pulled or pulled_imu is not None):
-        messages.append(SetsNote(f"{where}: its sets carry no signature (trust: requires one); "
-                                 "using the coefficient files", refused=True))
-        pulled, pulled_imu = {}, None
+    versions: dict[str, int | None] = {}
+    if config.trust is not None and (pulled or pulled_imu is not None):
+        try:
+            versions = device_versions(config, current, DeviceSets(pulled, pulled_imu, signatures), where)
+        except CanicalError as exc:
+            if config.trust.require:
+                messages.append(SetsNote(f"{exc}; using the coefficient files", refused=True))
+                pulled, pulled_imu = {}, None
+            else:
+                messages.append(SetsNote(f"{exc} (adopted: trust.require is false)"))
     if pulled_imu is not None:
         try:
-            return _device_imu(config, current, pulled_imu, where)
+            return _device_imu(config, current, pulled_imu, where, versions.get("imu"))
         except CanicalError as exc:
             messages.append(SetsNote(f"imu set: {exc}; using the coefficient files"))
     files, file_messages = reload(config, current, force=True)
@@ -269,18 +276,57 @@ def from_device(config: DaemonConfig, current: ActiveSets) -> tuple[ActiveSets, 
             continue
         old = current.axes[i]
         if old.corrector is not None and old.set_id == corrector.set_id:
-            axes[i] = replace(old, source=SOURCE_DEVICE, stamp=file_stamp(ax.path))
+            axes[i] = replace(old, source=SOURCE_DEVICE, stamp=file_stamp(ax.path),
+                              version=versions.get(ax.axis))
             continue
         was = f"0x{old.set_id:08x}" if old.corrector else "none"
         messages.append(SetsNote(f"axis {ax.axis}: set 0x{corrector.set_id:08x} from {where} replaces {was}"))
         axes[i] = replace(ax, corrector=corrector, set_id=corrector.set_id, source=SOURCE_DEVICE,
                           reloads=old.reloads + (1 if old.corrector is not None else 0),
-                          stamp=file_stamp(ax.path))
+                          stamp=file_stamp(ax.path), version=versions.get(ax.axis))
     return build(tuple(axes)), messages
 
 
+@dataclass(frozen=True)
+class DeviceSets:
+    """What a device runs, as pulled: single-axis sets, or an IMU set, and its banks' signatures."""
+
+    sets: dict[str, CoefficientSet]
+    imu: ImuSet | None
+    signatures: dict[str, bytes]
+
+
+def device_versions(config: DaemonConfig, current: ActiveSets, pulled: DeviceSets,
+                    where: str) -> dict[str, int | None]:
+    """The signed version of each set a device runs (by axis, ``"imu"`` for an IMU set), verified
+    against ``trust:`` as a file is: signed by a trusted key for its sensor over the bytes the device
+    holds, and not older than the set it replaces; else one CanicalError line."""
+    from canical.device.bank_payload import encode_set
+    from canical.device.bank_signature import verify_pulled
+    from canical.sets.coefficient_file import canonical_bytes
+    from canical.sets.signing import check_not_older
+
+    assert config.trust is not None
+    keys = config.trust.keys
+    running = {ax.axis: ax.version for ax in current.axes}
+    if pulled.imu is not None:
+        source = f"{where} IMU set"
+        record = verify_pulled(pulled.signatures.get("imu", b""), canonical_bytes(pulled.imu.to_dict()),
+                               pulled.imu.sensor_id, keys, source)
+        check_not_older(record, running.get("x"), source)
+        return {"imu": record.version}
+    versions: dict[str, int | None] = {}
+    for axis, cset in pulled.sets.items():
+        source = f"{where} axis {axis}"
+        record = verify_pulled(pulled.signatures.get(axis, b""), encode_set(cset)[0], cset.sensor_id, keys,
+                               source)
+        check_not_older(record, running.get(axis), source)
+        versions[axis] = record.version
+    return versions
+
+
 def _device_imu(config: DaemonConfig, current: ActiveSets, imu: ImuSet,
-                where: str) -> tuple[ActiveSets, list[SetsNote]]:
+                where: str, version: int | None = None) -> tuple[ActiveSets, list[SetsNote]]:
     """The IMU set a device runs, each axis checked as a file's is (the coupling was, on pulling)."""
     if tuple(a.axis for a in config.axes) != AXES:
         raise CanicalError(f"{where}: runs an IMU set; the configuration has axes "
@@ -288,7 +334,8 @@ def _device_imu(config: DaemonConfig, current: ActiveSets, imu: ImuSet,
     correctors = [check_set(config, axis, cset, f"{where}: axes.{axis}")
                   for axis, cset in zip(AXES, imu.axes, strict=True)]
     imu_id = imu_set_crc(imu)
-    axes = _imu_axes(current, correctors, SOURCE_DEVICE, tuple(file_stamp(a.path) for a in current.axes))
+    axes = _imu_axes(current, correctors, SOURCE_DEVICE, tuple(file_stamp(a.path) for a in current.axes),
+                     version)
     if current.coupling is not None and current.combined_id == imu_id:
         return build(axes, imu), []
     was = f"0x{current.combined_id:08x}" if current.complete else "none"

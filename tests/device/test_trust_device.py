@@ -1,7 +1,9 @@
-"""A daemon with ``trust: {require: true}`` and ``device:`` does not take the device's sets: their
-bank payloads carry no signature yet, so whatever a node wrote into the IMU over SDO is refused
-with one warning and the signed files are used (in-process, the emulated IMU on python-can's
-virtual bus, as ``test_imu_set_device``)."""
+"""A daemon with ``trust: {require: true}`` and ``device:`` verifies the device's sets as it does a
+file's: the signature each bank carries (an IMU set's, on its coupling bank) must be a trusted
+key's over the bytes the device holds, for its sensor, and not older than the running set. A
+device set that verifies is adopted (source: the device, its signed version); one that does not
+(unsigned, another key) is refused with one warning and the signed files are used (in-process, the
+emulated IMU on python-can's virtual bus, as ``test_imu_set_device``)."""
 
 from __future__ import annotations
 
@@ -18,6 +20,15 @@ from canical.commands.cli import main
 from canical.sets import imu_set as imu_file
 
 
+def daemon_sets(tmp_path: Path, channel: str, lab_pub: Path) -> tuple[active_sets.ActiveSets, list]:
+    cfg = write_config(tmp_path, channel, interface="virtual", sensor=None, inputs={},
+                       device={"node": NODE, "timeout_s": 2.0},
+                       axes={a: {"raw": f"GyroRaw{a.upper()}"} for a in AXES},
+                       imu_set=str(tmp_path / "file.yaml"),
+                       trust={"keys": [str(lab_pub)]})
+    return active_sets.initial(load_config(cfg))
+
+
 def test_the_devices_unsigned_sets_are_refused_and_the_signed_file_used(tmp_path: Path) -> None:
     lab = make_lab(tmp_path / "keys")
     on_device, on_file = imu_triad_set(0), imu_triad_set(1)
@@ -26,14 +37,39 @@ def test_the_devices_unsigned_sets_are_refused_and_the_signed_file_used(tmp_path
     signed_copy(tmp_path / "unsigned.yaml", tmp_path / "file.yaml", lab.key, 1)
     with emulated(tmp_path) as (_, channel):
         assert main(["push", str(tmp_path / "device.yaml"), *bus(channel)]) == 0
-        cfg = write_config(tmp_path, channel, interface="virtual", sensor=None, inputs={},
-                           device={"node": NODE, "timeout_s": 2.0},
-                           axes={a: {"raw": f"GyroRaw{a.upper()}"} for a in AXES},
-                           imu_set=str(tmp_path / "file.yaml"),
-                           trust={"keys": [str(lab.pub)]})
-        sets, notes = active_sets.initial(load_config(cfg))
+        sets, notes = daemon_sets(tmp_path, channel, lab.pub)
     assert sets.combined_id == imu_file.imu_set_crc(on_file) and sets.complete
     assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_FILE] * 3
     assert [ax.version for ax in sets.axes] == [1, 1, 1]
     refused = [n.text for n in notes if n.refused]
-    assert len(refused) == 1 and "carry no signature" in refused[0], notes
+    assert len(refused) == 1 and "not signed" in refused[0] and "\n" not in refused[0], notes
+
+
+def test_the_devices_set_signed_by_another_key_is_refused(tmp_path: Path) -> None:
+    lab = make_lab(tmp_path / "keys")
+    imu_file.save(tmp_path / "unsigned.yaml", imu_triad_set(1))
+    signed_copy(tmp_path / "unsigned.yaml", tmp_path / "file.yaml", lab.key, 1)
+    imu_file.save(tmp_path / "device.yaml", imu_triad_set(0))
+    signed_copy(tmp_path / "device.yaml", tmp_path / "stranger.yaml", lab.other_key, 2)
+    with emulated(tmp_path) as (_, channel):
+        assert main(["push", str(tmp_path / "stranger.yaml"), *bus(channel)]) == 0
+        sets, notes = daemon_sets(tmp_path, channel, lab.pub)
+    assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_FILE] * 3
+    refused = [n.text for n in notes if n.refused]
+    assert len(refused) == 1 and "not trusted" in refused[0], notes
+
+
+def test_the_devices_signed_set_is_adopted(tmp_path: Path) -> None:
+    lab = make_lab(tmp_path / "keys")
+    on_device, on_file = imu_triad_set(0), imu_triad_set(1)
+    imu_file.save(tmp_path / "unsigned.yaml", on_file)
+    signed_copy(tmp_path / "unsigned.yaml", tmp_path / "file.yaml", lab.key, 1)
+    imu_file.save(tmp_path / "device.yaml", on_device)
+    signed_copy(tmp_path / "device.yaml", tmp_path / "signed.yaml", lab.key, 3)
+    with emulated(tmp_path) as (_, channel):
+        assert main(["push", str(tmp_path / "signed.yaml"), *bus(channel)]) == 0
+        sets, notes = daemon_sets(tmp_path, channel, lab.pub)
+    assert sets.combined_id == imu_file.imu_set_crc(on_device) and sets.complete
+    assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_DEVICE] * 3
+    assert [ax.version for ax in sets.axes] == [3, 3, 3]
+    assert not [n for n in notes if n.refused], notes
