@@ -75,7 +75,7 @@ def export_dcf(args: argparse.Namespace) -> int:
 
     from canopen.objectdictionary import ODVariable
 
-    from canical.commands.push import load_imu_set, load_sets
+    from canical.commands.push import bank_signatures, load_imu_set, load_sets
     from canical.device.bank_payload import encode_coupling
     from canical.device.dcf_export import bank_values, dcf_text
     from canical.errors import CanicalError
@@ -131,7 +131,8 @@ def export_dcf(args: argparse.Namespace) -> int:
                       else f"node 0x{args.node:02x}")
             raise CanicalError(f"{path}: {problem} ({source})")
     coupling = None if imu is None else encode_coupling(imu[1])
-    values = bank_values(objects, {a: c for a, (_, c) in sets.items()}, args.bank, coupling)
+    signatures = bank_signatures(args.coefficients)
+    values = bank_values(objects, {a: c for a, (_, c) in sets.items()}, args.bank, coupling, signatures)
     out = Path(args.output)
     text = dcf_text(eds_path().read_text(encoding="utf-8"), values, node_id=args.node,
                     bitrate_kbit=args.bitrate, name=out.name)  # fmt: skip
@@ -139,7 +140,8 @@ def export_dcf(args: argparse.Namespace) -> int:
     axes = ", ".join(f"{a} set 0x{set_crc(c):08x}" for a, (_, c) in sorted(sets.items()))
     if coupling is not None:
         axes += f", coupling of IMU set 0x{coupling.imu_set_id:08x}"
-    print(f"export: {out} for node 0x{args.node:02x}, serial {sensor}, bank {args.bank}: {axes}")
+    signed = f"; signed: {', '.join(sorted(signatures))}" if signatures else "; unsigned"
+    print(f"export: {out} for node 0x{args.node:02x}, serial {sensor}, bank {args.bank}: {axes}{signed}")
     if device is None:
         print(f"export: offline: node 0x{args.node:02x} was not asked whether it carries canical's "
               "coefficient objects (--channel asks it)")

@@ -2,7 +2,8 @@
 
 It is the IMU's EDS, text for text, with ``ParameterValue`` filled for each set's bank
 (Content as the hex of the set's canonical JSON, which is how DOMAIN values are
-written, and its CRC32) and for the active-bank selector, plus the
+written, its CRC32, and a signed set's Signature, after them in sub-index order: a Content
+write clears the bank's Signature) and for the active-bank selector, plus the
 ``[DeviceComissioning]`` section naming the node. A CANopen configuration tool
 downloads writable objects with a ParameterValue in ascending index order, so the
 banks (0x2210-0x2215) are written before the selector (0x2220) activates them in one
@@ -17,6 +18,7 @@ Pure: text in, text out.
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 
 from canical.device.bank_payload import CouplingPayload, encode_set
 from canical.frames.imu_dictionary import BANKS, ImuObjects, pack_active
@@ -31,22 +33,29 @@ def section_name(index: int, subindex: int | None) -> str:
 
 
 def bank_values(objects: ImuObjects, sets: dict[str, CoefficientSet], bank: str,
-                coupling: CouplingPayload | None = None) -> dict[str, str]:
+                coupling: CouplingPayload | None = None,
+                signatures: Mapping[str, bytes] | None = None) -> dict[str, str]:
     """ParameterValue per EDS section: each set in ``bank`` of its axis, an IMU set's ``coupling``
-    in coupling bank ``bank``, and the selector."""
+    in coupling bank ``bank``, the banks' ``signatures`` (by axis, ``"imu"`` for the coupling
+    bank's; a device with a trust key activates nothing without), and the selector."""
     if bank not in BANKS:
         raise ValueError(f"bank {bank!r}: A or B")
+    signatures = signatures or {}
     values: dict[str, str] = {}
     for axis, cset in sorted(sets.items()):
         ref = objects.bank(axis, bank)
         content, crc = encode_set(cset)
         values[section_name(ref.index, ref.content)] = content.hex().upper()
         values[section_name(ref.index, ref.crc)] = f"0x{crc:08X}"
+        if signatures.get(axis):
+            values[section_name(ref.index, ref.signature)] = signatures[axis].hex().upper()
     if coupling is not None:
         cref = objects.coupling_bank(bank)
         values[section_name(cref.index, cref.content)] = coupling.content.hex().upper()
         values[section_name(cref.index, cref.crc)] = f"0x{coupling.crc:08X}"
         values[section_name(cref.index, cref.imu_set_id)] = f"0x{coupling.imu_set_id:08X}"
+        if signatures.get("imu"):
+            values[section_name(cref.index, cref.signature)] = signatures["imu"].hex().upper()
     index, sub = objects.active_banks
     selector = pack_active({axis: bank for axis in sets}, None if coupling is None else bank)
     values[section_name(index, sub if sub else None)] = f"0x{selector:02X}"

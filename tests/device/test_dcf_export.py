@@ -212,3 +212,41 @@ def test_export_with_a_channel_checks_the_sets_against_the_node(tmp_path: Path, 
         assert main(["export", "dcf", str(other), "-o", str(out), *bus]) == 2
         err = capsys.readouterr().err.strip()
         assert f"this device is serial {SERIAL}" in err and "\n" not in err and not out.exists()
+
+
+def test_a_dcf_of_signed_sets_carries_their_signatures_and_a_provisioned_device_takes_it(
+        tmp_path: Path) -> None:
+    """Each bank's Signature follows its Content and CRC32 (sub-index order, so the Content write
+    does not clear it); a device with a trust key activates the signed DCF and refuses the same
+    sets unsigned, keeping the sets it ran."""
+    from support.signed_banks import LAB_PUBLIC, LAB_SEED
+
+    from canical.sets.signed_file import sign_file
+
+    sets = imu_sets()
+    signed = tmp_path / "signed"
+    signed.mkdir()
+    paths = []
+    for axis, cset in sets.items():
+        paths.append(signed / f"imu-{axis}.yaml")
+        coefficient_file.save(paths[-1], cset)
+        sign_file(paths[-1], LAB_SEED, 2)
+    dcf = tmp_path / "signed.dcf"
+    command = [sys.executable, "-m", "canical", "export", "dcf", *map(str, paths), "-o", str(dcf)]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    assert done.returncode == 0 and "signed: x, y, z" in done.stdout, done.stderr
+    o = imu_objects()
+    od = canopen.import_od(str(dcf), NODE)
+    for axis in AXES:
+        ref = o.bank(axis, "A")
+        assert len(od[ref.index][ref.signature].value) == 80
+    unsigned, _ = export(tmp_path, sets, name="unsigned.dcf")
+    with emulated(tmp_path, "trusting.json") as (imu, channel):
+        imu.store.write_trust_key(LAB_PUBLIC)
+        with writer(channel, unsigned) as net, pytest.raises(SdoAbortedError):
+            download(net[NODE])
+        assert imu.store.active_value() == 0 and "not signed" in imu.store.last_refusal
+        with writer(channel, dcf) as net:
+            assert download(net[NODE]) == 3 * len(AXES) + 1  # content, CRC, signature; the selector
+        assert {a: imu.store.active_id(a) for a in AXES} == {a: encode_set(c)[1] for a, c in sets.items()}
+        assert imu.store.trust.counter == 2
