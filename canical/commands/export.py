@@ -75,8 +75,9 @@ def export_dcf(args: argparse.Namespace) -> int:
 
     from canopen.objectdictionary import ODVariable
 
-    from canical.commands.push import bank_signatures, load_imu_set, load_sets
+    from canical.commands.push import load_imu_set, load_sets
     from canical.device.bank_payload import encode_coupling
+    from canical.device.bank_signature import bank_signatures
     from canical.device.dcf_export import bank_values, dcf_text
     from canical.errors import CanicalError
     from canical.files.atomic_file import write_text_atomic

@@ -88,22 +88,6 @@ def load_imu_set(paths: list[str]) -> tuple[str, ImuSet] | None:
     return paths[0], imu
 
 
-def bank_signatures(paths: list[str]) -> dict[str, bytes]:
-    """The signatures the files carry, as banks carry them: by axis, ``"imu"`` for an IMU set's
-    (written to its coupling bank). A device with a trust key refuses to activate a set without."""
-    from canical.device.bank_signature import from_record
-    from canical.sets.signed_file import read_set_file
-
-    out = {}
-    for path in paths:
-        checked = read_set_file(path)
-        record = checked.signed.record
-        if record is not None:
-            key = "imu" if checked.single is None else checked.single.axis
-            out[key] = from_record(record).pack()
-    return out
-
-
 def offline_dry_run(sets: dict[str, tuple[str, CoefficientSet]], imu: tuple[str, ImuSet] | None,
                     why: str) -> int:
     """``--dry-run`` where the bus cannot be opened: what can be checked without the device (each
@@ -127,6 +111,7 @@ def offline_dry_run(sets: dict[str, tuple[str, CoefficientSet]], imu: tuple[str,
 
 
 def run(args: argparse.Namespace) -> int:
+    from canical.device.bank_signature import bank_signatures
     from canical.device.sdo_download import ImuClient, PushPlan, push_sets
 
     for path in args.coefficients:  # all verified before the bus is opened

@@ -12,7 +12,9 @@ the three axis contents (:func:`joined_imu_canonical`: "axes" sorts before every
 
 from __future__ import annotations
 
+import os
 import struct
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import nacl.exceptions
@@ -25,6 +27,7 @@ from canical.frames.imu_dictionary import (
     SIGNATURE_VERSION_BYTES,
     TRUST_KEY_BYTES,
 )
+from canical.sets.signed_file import read_set_file
 from canical.sets.signing import SignatureRecord, SignedContent, TrustedKey, key_id_of, signed_message, verify
 
 
@@ -48,6 +51,19 @@ class BankSignature:
 def from_record(record: SignatureRecord) -> BankSignature:
     """A set file's signature record as a bank carries it (its sensor is the device's)."""
     return BankSignature(record.version, bytes.fromhex(record.key_id), record.signature)
+
+
+def bank_signatures(paths: Sequence[str | os.PathLike[str]]) -> dict[str, bytes]:
+    """The signatures set files carry, as banks carry them: by axis, ``"imu"`` for an IMU set's
+    (written to its coupling bank). A device with a trust key refuses to activate a set without."""
+    out = {}
+    for path in paths:
+        checked = read_set_file(path)
+        record = checked.signed.record
+        if record is not None:
+            key = "imu" if checked.single is None else checked.single.axis
+            out[key] = from_record(record).pack()
+    return out
 
 
 def unpack(data: bytes, where: str) -> BankSignature:

@@ -103,9 +103,9 @@ def test_every_imu_set_case_over_sdo(tmp_path: Path) -> None:
 
 
 def _signatures(path: Path) -> dict[str, bytes]:
-    from canical.commands.push import bank_signatures
+    from canical.device.bank_signature import bank_signatures
 
-    return bank_signatures([str(path)])
+    return bank_signatures([path])
 
 
 def test_push_writes_the_signature_of_a_signed_file(tmp_path: Path, capsys) -> None:
