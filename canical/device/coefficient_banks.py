@@ -50,7 +50,7 @@ import threading
 import time
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Generic, TypeVar
 
@@ -105,7 +105,7 @@ class Bank:
     signature: bytes = b""  # the "Signature" sub-index: empty (unsigned) until written
 
 
-@dataclass
+@dataclass(frozen=True)
 class Trust:
     """What the device trusts: the provisioned key (empty: none), whether provisioning is still
     open, and the anti-rollback counter (the highest signed version ever activated)."""
@@ -419,7 +419,7 @@ class BankStore:
             if len(data) != TRUST_KEY_BYTES:
                 raise self._refuse(ABORT_VALUE_RANGE,
                                    f"trust key of {len(data)} bytes, not {TRUST_KEY_BYTES}: an Ed25519 key")
-            self.trust.key = bytes(data)
+            self.trust = replace(self.trust, key=bytes(data))
             self._persist()
             log.info("trust key provisioned (key id %s)", key_id_of(self.trust.key))
 
@@ -431,7 +431,7 @@ class BankStore:
             if not self.trust.key:
                 raise self._refuse(ABORT_DEVICE_STATE, "no trust key provisioned: closing would leave the "
                                                        "device unable to check signatures for good")
-            self.trust.provisioning_open = False
+            self.trust = replace(self.trust, provisioning_open=False)
             self._persist()
             log.info("provisioning closed: trust key %s for good", key_id_of(self.trust.key))
 
@@ -487,7 +487,7 @@ class BankStore:
             self.activation_count += 1
             self.generation += 1
             if versions and max(versions) > self.trust.counter:
-                self.trust.counter = max(versions)
+                self.trust = replace(self.trust, counter=max(versions))
                 self._persist()
             for axis, bank in changes.items():
                 log.info(
@@ -605,7 +605,9 @@ class BankStore:
             store.trust = trust_from_dict(content["trust"]) if "trust" in content else Trust()
         except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
             log.error("stored state %s unreadable (%s): starting without coefficient sets", state_path, exc)
-            return cls(limits, capacity, store.state_path)
+            fresh = cls(limits, capacity, store.state_path)
+            fresh.trust = _surviving_trust(store.state_path)
+            return fresh
         for axis, bank in selected.items():
             if bank is None:
                 continue
@@ -628,6 +630,17 @@ class BankStore:
             log.info("boot: coupling bank %s, IMU set 0x%08x", store.active_coupling,
                      store.active_imu_set_id())
         return store
+
+
+def _surviving_trust(path: Path) -> Trust:
+    """The trust section of a state file whose banks cannot be read: a damaged bank must not
+    reopen provisioning or reset the counter. Only a damaged trust section itself gives a device
+    never provisioned (logged)."""
+    try:
+        return trust_from_dict(json.loads(path.read_text(encoding="utf-8"))["trust"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        log.error("stored state %s: trust unreadable (%s): no trust key, provisioning open", path, exc)
+        return Trust()
 
 
 def _describe(active: dict[str, str | None], store: BankStore | None = None) -> str:

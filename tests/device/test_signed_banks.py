@@ -163,6 +163,20 @@ def test_key_provisioning_and_counter_survive_a_power_cycle(tmp_path: Path) -> N
         again.activate(pack_active({"z": "B"}))
 
 
+def test_damaged_banks_in_the_state_file_keep_the_trust(tmp_path: Path) -> None:
+    state = tmp_path / "imu.json"
+    store = provisioned(state)
+    store.close_provisioning(PROVISION_CLOSE_SIGNATURE)
+    store.store(True)
+    damaged = json.loads(state.read_text())
+    damaged["banks"] = "garbage"
+    state.write_text(json.dumps(damaged))
+    again = BankStore.boot(LIMITS, 16384, state)
+    assert again.active["z"] is None
+    trust = again.trust
+    assert (trust.key, trust.provisioning_open, trust.counter) == (LAB_PUBLIC, False, COUNTER)
+
+
 def test_an_old_state_file_without_trust_loads_unprovisioned(tmp_path: Path) -> None:
     state = tmp_path / "imu.json"
     store = BankStore(LIMITS, 16384, state)

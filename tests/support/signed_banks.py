@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from canical.device.bank_payload import encode_coupling, encode_set
@@ -166,7 +166,7 @@ def _store() -> Any:
 
     store = BankStore(DeviceLimits(SERIAL, dict.fromkeys(AXES, 50.0)), 16384)
     store.write_trust_key(LAB_PUBLIC)
-    store.trust.counter = COUNTER
+    store.trust = replace(store.trust, counter=COUNTER)
     return store
 
 
