@@ -73,3 +73,41 @@ def test_the_devices_signed_set_is_adopted(tmp_path: Path) -> None:
     assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_DEVICE] * 3
     assert [ax.version for ax in sets.axes] == [3, 3, 3]
     assert not [n for n in notes if n.refused], notes
+
+
+def single_axis_sets(tmp_path: Path, lab, *, signed_on_device: bool) -> tuple[active_sets.ActiveSets, list]:
+    """Single-axis sets on the device (signed as version 4, or not) and signed files (version 1)."""
+    from support.imu_fixtures import imu_set
+
+    from canical.sets import coefficient_file
+
+    pushed = []
+    for axis in AXES:
+        coefficient_file.save(tmp_path / f"plain-{axis}.yaml", imu_set(axis, family=1))
+        signed_copy(tmp_path / f"plain-{axis}.yaml", tmp_path / f"imu-{axis}.yaml", lab.key, 1)
+        coefficient_file.save(tmp_path / f"device-{axis}.yaml", imu_set(axis))
+        if signed_on_device:
+            signed_copy(tmp_path / f"device-{axis}.yaml", tmp_path / f"signed-{axis}.yaml", lab.key, 4)
+        pushed.append(str(tmp_path / f"{'signed' if signed_on_device else 'device'}-{axis}.yaml"))
+    with emulated(tmp_path) as (_, channel):
+        assert main(["push", *pushed, *bus(channel)]) == 0
+        cfg = write_config(tmp_path, channel, interface="virtual", sensor=None, inputs={},
+                           device={"node": NODE, "timeout_s": 2.0},
+                           axes={a: {"raw": f"GyroRaw{a.upper()}",
+                                     "coefficients": str(tmp_path / f"imu-{a}.yaml")} for a in AXES},
+                           trust={"keys": [str(lab.pub)]})
+        return active_sets.initial(load_config(cfg))
+
+
+def test_the_devices_signed_single_axis_sets_are_adopted_and_unsigned_ones_refused(tmp_path: Path) -> None:
+    lab = make_lab(tmp_path / "keys")
+    (tmp_path / "signed").mkdir()
+    sets, notes = single_axis_sets(tmp_path / "signed", lab, signed_on_device=True)
+    assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_DEVICE] * 3
+    assert [ax.version for ax in sets.axes] == [4, 4, 4] and not [n for n in notes if n.refused], notes
+    (tmp_path / "unsigned").mkdir()
+    sets, notes = single_axis_sets(tmp_path / "unsigned", lab, signed_on_device=False)
+    assert [ax.source for ax in sets.axes] == [active_sets.SOURCE_FILE] * 3
+    assert [ax.version for ax in sets.axes] == [1, 1, 1]
+    refused = [n.text for n in notes if n.refused]
+    assert len(refused) == 1 and "not signed" in refused[0], notes
