@@ -344,16 +344,22 @@ class PushPlan:
                 lines.append(f"  IMU set 0x{c.imu_set_id:08x} already active (coupling bank {c.was_bank})")
             else:
                 lines.append(f"  IMU set 0x{c.imu_set_id:08x}: coupling {len(c.payload.content):5d} bytes -> "
-                             f"coupling bank {c.bank} (active now: {was})  from {c.source}")
+                             f"coupling bank {c.bank} (active now: {was})  from {c.source}"
+                             f"{_signed(c.signature)}")
         for p in self.axes:
             was = "no set" if p.was_bank is None else f"bank {p.was_bank} 0x{p.was_id:08x}"
             if p.unchanged:
                 lines.append(f"  {p.axis}  set 0x{p.set_id:08x} already active (bank {p.was_bank})")
             else:
                 lines.append(f"  {p.axis}  set 0x{p.set_id:08x} {len(p.content):5d} bytes -> bank {p.bank} "
-                             f"(active now: {was})  from {p.source}")
+                             f"(active now: {was})  from {p.source}{_signed(p.signature)}")
         lines.append(f"  selector 0x{self.selector_before:02x} -> 0x{self.selector_after:02x} (one write)")
         return lines
+
+
+def _signed(signature: bytes) -> str:
+    """What a plan line adds for a signed bank: its version (the first 8 bytes, little-endian)."""
+    return f", signed as version {int.from_bytes(signature[:8], 'little')}" if signature else ""
 
 
 @dataclass(frozen=True)

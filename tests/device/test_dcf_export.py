@@ -250,3 +250,18 @@ def test_a_dcf_of_signed_sets_carries_their_signatures_and_a_provisioned_device_
             assert download(net[NODE]) == 3 * len(AXES) + 1  # content, CRC, signature; the selector
         assert {a: imu.store.active_id(a) for a in AXES} == {a: encode_set(c)[1] for a, c in sets.items()}
         assert imu.store.trust.counter == 2
+
+
+def test_an_imu_sets_signature_goes_to_its_coupling_bank_in_the_dcf() -> None:
+    from support.imu_fixtures import imu_triad_set
+
+    from canical.device.bank_payload import encode_coupling
+    from canical.device.dcf_export import bank_values, section_name
+
+    imu = imu_triad_set(0)
+    o = imu_objects()
+    signature = bytes(range(80))
+    values = bank_values(o, {c.axis: c for c in imu.axes}, "B", encode_coupling(imu), {"imu": signature})
+    ref = o.coupling_bank("B")
+    assert values[section_name(ref.index, ref.signature)] == signature.hex().upper()
+    assert not any(section_name(o.bank(a, "B").index, o.bank(a, "B").signature) in values for a in AXES)

@@ -124,7 +124,7 @@ def test_push_writes_the_signature_of_a_signed_file(tmp_path: Path, capsys) -> N
         assert "not by the device's trust key" in one_line(capsys)
         sign_file(first, LAB_SEED, 3)
         assert main(["push", str(first), *bus(channel)]) == 0
-        capsys.readouterr()
+        assert "signed as version 3" in capsys.readouterr().out
         assert dev.store.active_id("z") == coefficient_file.set_crc(imu_set("z"))
         assert dev.store.trust.counter == 3
         sign_file(second, LAB_SEED, 2)  # an older version than the running one
