@@ -629,6 +629,9 @@ class BankStore:
         if store.active_coupling is not None:
             log.info("boot: coupling bank %s, IMU set 0x%08x", store.active_coupling,
                      store.active_imu_set_id())
+        if store.trust.key:
+            log.info("boot: trust key %s, provisioning %s, rollback counter %d", key_id_of(store.trust.key),
+                     "open" if store.trust.provisioning_open else "closed", store.trust.counter)
         return store
 
 
