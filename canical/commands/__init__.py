@@ -35,4 +35,5 @@ COMMANDS = {
     "keygen": "write a key pair to sign coefficient sets with (NAME.key, NAME.pub)",
     "sign": "sign a coefficient set file (Ed25519): content, sensor and version",
     "verify": "say whether a coefficient set file is signed by a trusted key (exit 0 or 2)",
+    "provision": "give an IMU the lab's public key it checks signed sets against (once; --close)",
 }

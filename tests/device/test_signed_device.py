@@ -243,3 +243,20 @@ def test_pull_of_a_signed_imu_set_gives_back_the_signed_file(tmp_path: Path, cap
         assert main(["pull", *bus(channel), "--imu-set", "-o", str(back), "--trust", str(lab)]) == 0
     assert read_set_file(back).signed.record == read_set_file(path).signed.record
     assert imu_file.load(back) == imu_file.load(path) == imu_triad_set(0)
+
+
+def test_provision_writes_the_key_once_and_closes(tmp_path: Path, capsys) -> None:
+    lab, stranger = key_files(tmp_path / "keys")
+    with emulated(tmp_path) as (dev, channel):
+        assert main(["provision", "--key", str(lab), *bus(channel)]) == 0
+        assert "provisioning open" in capsys.readouterr().out and dev.store.trust.provisioning_open
+        # replaced while open, then closed
+        assert main(["provision", "--key", str(stranger), *bus(channel), "--close"]) == 0
+        assert "closed for good" in capsys.readouterr().out
+        assert dev.store.trust.key == public_of(STRANGER_SEED)
+        assert main(["provision", "--key", str(lab), *bus(channel), "--close"]) == 2
+        assert "provisioning is closed with key" in one_line(capsys)
+        assert dev.store.trust.key == public_of(STRANGER_SEED)
+        # the same key again: said, not refused
+        assert main(["provision", "--key", str(stranger), *bus(channel)]) == 0
+        assert "trusts key" in capsys.readouterr().out
