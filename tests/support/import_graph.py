@@ -19,7 +19,7 @@ RINGS: tuple[tuple[str, ...], ...] = (
     ("files",),
     ("models", "frames"),
     ("calibrate", "sessions", "tracking"),
-    ("sets",),
+    ("sets", "fieldlog"),
     ("closed_loop", "sim"),
     ("calibration",),
     ("report",),
