@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from datetime import datetime
+from datetime import datetime, timedelta
 
 from canical.fieldlog.record import POWER_ON, FieldRecord
 from canical.tracking.events import PowerOnEvent, StandstillEvent
@@ -60,3 +60,26 @@ def records(standstills: Sequence[StandstillEvent], power_ons: Sequence[PowerOnE
                      + [(r.power_on, 1, r.since_power_on_s, i, r) for i, r in enumerate(stops)],
                      key=lambda k: k[:4])
     return [k[4] for k in ordered]
+
+
+def drive_clock(power_ons: Sequence[PowerOnEvent], start: datetime) -> Clock:
+    """A recorded drive's clock: it began at ``start`` and its power-ons followed each other (each
+    power-on's time since power-on runs from where the one before ended)."""
+    offsets = {0: 0.0}
+    elapsed = 0.0
+    for event in sorted(power_ons, key=lambda e: e.power_cycle):
+        if event.power_cycle > 0:
+            elapsed += event.previous_end_s if event.previous_end_s == event.previous_end_s else 0.0
+            offsets[event.power_cycle] = elapsed
+
+    def when(power_cycle: int, t_s: float) -> datetime:
+        return start + timedelta(seconds=offsets.get(power_cycle, elapsed) + t_s)
+
+    return when
+
+
+def drive_seconds(power_ons: Sequence[PowerOnEvent], end_s: float) -> float:
+    """How long a recorded drive lasted: its power-ons' spans and the last one's ``end_s``."""
+    spans = [e.previous_end_s for e in power_ons
+             if e.power_cycle > 0 and e.previous_end_s == e.previous_end_s]
+    return sum(spans) + (end_s if end_s == end_s else 0.0)

@@ -46,6 +46,7 @@ class PowerOnEvent:
     power_cycle: int
     bias_dps: tuple[float, ...]  # per axis, the learned bias at the reference temperature
     sigma_dps: tuple[float, ...]  # its 1σ: the turn-on spread (and the slope's at the reference)
+    previous_end_s: float = float("nan")  # the last time since power-on of the power-on before
 
 
 @dataclass(frozen=True)

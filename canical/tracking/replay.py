@@ -33,6 +33,7 @@ class Replay:
     #: temperature, which nobody measured, so the report must not show it as a temperature.
     temperature_recorded: bool = True
     power_ons: tuple[PowerOnEvent, ...] = ()  # the start's, then one per power-on seen
+    end_s: float = math.nan  # time since power-on of the last row
 
 
 class Replayer:
@@ -83,7 +84,7 @@ class Replayer:
         tracker.finish()
         return Replay(np.empty((0, len(tracker.axes))), tuple(tracker.events), tuple(tracker.taken),
                       tuple(tracker.learned), tracker.power_cycle + 1, self.temperature_recorded,
-                      tuple(tracker.power_ons))
+                      tuple(tracker.power_ons), tracker.time_s)
 
 
 def replay(time_s: np.ndarray, rates_dps: np.ndarray, config: TrackerConfig, *,

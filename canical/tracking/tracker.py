@@ -118,11 +118,11 @@ class BiasTracker:
         self.events: list[StandstillEvent] = []  # the owner may drain these (the daemon logs them)
         self.taken: list[TakenWindow] = []
         self.power_cycle = 0
-        self.power_ons: list[PowerOnEvent] = [self._power_on_event()]  # drained like events
         self._sums = WindowSums(len(self.axes))
         self._before: WindowStats | None = None
         self._run: _Run | None = None
         self._last_t = math.nan
+        self.power_ons: list[PowerOnEvent] = [self._power_on_event()]  # drained like events
         self._temp = config.reference_c
         self._window_s = config.window_s
         self._slew_rate = config.slew_dps_per_s
@@ -353,7 +353,8 @@ class BiasTracker:
     def _power_on_event(self) -> PowerOnEvent:
         reference = self.config.reference_c
         return PowerOnEvent(self.power_cycle, tuple(s.at(reference, reference) for s in self.learned),
-                            tuple(s.sigma_at(reference, reference) for s in self.learned))
+                            tuple(s.sigma_at(reference, reference) for s in self.learned),
+                            self._last_t)
 
     @property
     def time_s(self) -> float:
