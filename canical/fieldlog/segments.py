@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import re
 import zlib
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,6 +55,20 @@ def encode(number: int, records: Iterable[FieldRecord]) -> bytes:
     body = ("\n".join(lines) + "\n").encode()
     footer = {"records": len(lines) - 1, "crc32": f"0x{zlib.crc32(body) & 0xFFFFFFFF:08x}"}
     return body + (json.dumps(footer, separators=(",", ":")) + "\n").encode()
+
+
+def pack(records: Sequence[FieldRecord], first_number: int = 0,
+         segment_bytes: int = SEGMENT_BYTES) -> list[bytes]:
+    """Records as whole segments, each closed once it holds ``segment_bytes`` (as the writer closes
+    them): for a writer that has all its records at once (a simulated fleet)."""
+    out: list[bytes] = []
+    start, size = 0, 0
+    for i, record in enumerate(records):
+        size += len(json.dumps(record.to_json(), separators=(",", ":"))) + 1
+        if size >= segment_bytes or i == len(records) - 1:
+            out.append(encode(first_number + len(out), records[start:i + 1]))
+            start, size = i + 1, 0
+    return out
 
 
 def decode(data: bytes) -> tuple[int, tuple[FieldRecord, ...]]:
