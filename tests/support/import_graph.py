@@ -23,7 +23,7 @@ RINGS: tuple[tuple[str, ...], ...] = (
     ("closed_loop", "sim"),
     ("calibration",),
     ("report",),
-    ("device",),
+    ("device", "fleet"),
     ("bus",),
     ("commands",),
     ("__main__",),
