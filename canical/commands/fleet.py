@@ -24,6 +24,15 @@ def register(sub) -> None:
     ingest.add_argument("-o", "--output", required=True, metavar="DATASET",
                         help="the dataset folder (made if missing; records already in it are kept once)")
     ingest.set_defaults(run=run_ingest)
+    analyse = actions.add_parser("analyse",
+                                 help="judge each sensor from a dataset: sensors.csv, report.md, plots")
+    analyse.add_argument("dataset", metavar="DATASET", help="a dataset fleet ingest wrote")
+    analyse.add_argument("--report-dir", required=True, metavar="R",
+                         help="where sensors.csv, report.md and the plots go")
+    analyse.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                         help="a Dask distributed scheduler to run on (default: in this process, no "
+                              "cluster); its workers must see DATASET at the same path")
+    analyse.set_defaults(run=run_analyse)
 
 
 def run_ingest(args: argparse.Namespace) -> int:
@@ -38,4 +47,23 @@ def run_ingest(args: argparse.Namespace) -> int:
     print(f"fleet ingest: {done.segments} segments read ({done.skipped} damaged, skipped), {done.rows} rows: "
           f"{done.added} added to {target} in {done.partitions} partitions, "
           f"{done.rows - done.added} already there")
+    return 0
+
+
+def run_analyse(args: argparse.Namespace) -> int:
+    from canical.files.output_plan import output_plan
+    from canical.fleet import engine, report
+    from canical.fleet.analysis import DRIFTING, OUT_OF_SPEC, judge
+
+    source = Path(args.dataset)
+    if not source.is_dir():
+        raise CanicalError(f"{source}: no such dataset folder")
+    if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://")):
+        raise CanicalError(f"--scheduler {args.scheduler}: give the scheduler's address, tcp://HOST:PORT")
+    with output_plan(dirs=[args.report_dir]):
+        verdicts = judge(engine.run(source, args.scheduler, print))
+        report.write(Path(args.report_dir), verdicts, str(source))
+    flagged = {k: sum(v.verdict == k for v in verdicts) for k in (DRIFTING, OUT_OF_SPEC)}
+    print(f"fleet analyse: {len(verdicts)} sensor axes: {flagged[OUT_OF_SPEC]} out of spec, "
+          f"{flagged[DRIFTING]} drifting -> {Path(args.report_dir) / 'sensors.csv'}, report.md")
     return 0

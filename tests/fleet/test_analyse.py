@@ -1,0 +1,83 @@
+"""``canical fleet analyse``: on a small simulated fleet the planted aging and failing sensors are
+found and the good ones not flagged, the field slopes lie within their standard errors of the
+truth; a real Dask cluster (a scheduler and two worker processes on the loopback) gives the same
+``sensors.csv`` as the embedded engine, byte for byte."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from canical.commands.cli import main
+
+VEHICLES, DAYS, SEED = 40, 20, 1  # seed 1: three aging and two failing sensors among 40
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The simulated fleet's folder (with truth.csv) and its ingested dataset."""
+    root = tmp_path_factory.mktemp("fleet")
+    assert main(["simulate", "fleet", "--vehicles", str(VEHICLES), "--days", str(DAYS), "--seed", str(SEED),
+                 "-o", str(root / "logs")]) == 0
+    assert main(["fleet", "ingest", str(root / "logs"), "-o", str(root / "dataset")]) == 0
+    return root / "logs", root / "dataset"
+
+
+def rows(path: Path) -> dict[str, dict[str, str]]:
+    return {r["sensor_id"]: r for r in csv.DictReader(path.open())}
+
+
+def test_planted_sensors_are_found_and_good_ones_are_not_flagged(fleet: tuple[Path, Path], tmp_path: Path,
+                                                                capsys: pytest.CaptureFixture[str]) -> None:
+    logs, data = fleet
+    assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "r")]) == 0
+    assert "2 out of spec, 3 drifting" in capsys.readouterr().out
+    truth, got = rows(logs / "truth.csv"), rows(tmp_path / "r" / "sensors.csv")
+    assert sorted(got) == sorted(truth)
+    assert {s: got[s]["verdict"] for s in got} == {s: truth[s]["verdict"] for s in truth}
+    z = [abs(float(got[s]["slope_dps_per_c"]) - float(truth[s]["slope_dps_per_c"]))
+         / float(got[s]["slope_se"]) for s in truth]
+    # 95 % within 2 SE is judged on 1,000 vehicles (docs/fleet.md); 40 leave room for chance (35 here)
+    assert sum(x <= 2 for x in z) >= 0.8 * len(z) and max(z) < 3.5
+    # a spread from 35-45 power-ons is known to about 12 % (1σ): the worst of 40 is 35 % off here
+    error = [abs(float(got[s]["spread_dps"]) / float(truth[s]["turn_on_spread_dps"]) - 1) for s in truth]
+    assert max(error) < 0.45 and sorted(error)[len(error) // 2] < 0.12
+    report = (tmp_path / "r" / "report.md").read_text()
+    assert "## Listed for maintenance" in report and all(
+        s in report for s in truth if truth[s]["verdict"] != "in spec")
+    plots = ("spread.png", "slope.png", "drift.png")
+    assert all((tmp_path / "r" / name).stat().st_size > 1000 for name in plots)
+
+
+def test_a_cluster_of_two_worker_processes_gives_the_same_sensors_csv(fleet: tuple[Path, Path],
+                                                                      tmp_path: Path) -> None:
+    distributed = pytest.importorskip("distributed")
+    _, data = fleet
+    assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "embedded")]) == 0
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as cluster:
+        assert cluster.scheduler_address.startswith("tcp://127.0.0.1:")
+        assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "cluster"),
+                     "--scheduler", cluster.scheduler_address]) == 0
+    embedded = (tmp_path / "embedded" / "sensors.csv").read_bytes()
+    assert (tmp_path / "cluster" / "sensors.csv").read_bytes() == embedded
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--scheduler", "localhost:8786"], "give the scheduler's address, tcp://HOST:PORT"),
+    (["--scheduler", "tcp://127.0.0.1:9"], "cannot connect"),
+])
+def test_a_bad_scheduler_is_one_line(fleet: tuple[Path, Path], tmp_path: Path,
+                                     capsys: pytest.CaptureFixture[str],
+                                     argv: list[str],
+                                     message: str) -> None:
+    assert main(["fleet", "analyse", str(fleet[1]), "--report-dir", str(tmp_path / "r"), *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and not (tmp_path / "r").exists()
+
+
+def test_a_folder_that_is_no_dataset_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["fleet", "analyse", str(tmp_path), "--report-dir", str(tmp_path / "r")]) == 2
+    assert "not a dataset fleet ingest wrote" in capsys.readouterr().err
