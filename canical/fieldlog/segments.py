@@ -136,6 +136,8 @@ class SegmentWriter:
         self.max_bytes = max_bytes
         self.segment_bytes = segment_bytes
         make_dirs(self.directory)
+        for stale in self.directory.glob(".field-*.jsonl.*.tmp"):  # a write a power cut cut short
+            stale.unlink(missing_ok=True)
         existing = segment_paths(self.directory)
         self.number = int(_NAME.match(existing[-1].name).group(1)) + 1 if existing else 0  # type: ignore[union-attr]
         self.open: list[FieldRecord] = []  # the open segment's records already on disk
