@@ -86,12 +86,13 @@ def summarise(table: pa.Table) -> PowerOnSums:
             ("vehicle_id", "sensor_id", "axis", "power_on", "since_power_on_s", "temp_c", "bias_dps",
              "decision", "record_id")}
     hours = _hours_before(cols["vehicle_id"], cols["power_on"], cols["since_power_on_s"])
-    keep = (cols["decision"] == "adopted") & np.isfinite(cols["temp_c"].astype(float))
+    keep = _kept(cols)
     order = np.lexsort((cols["record_id"][keep].astype(str), cols["axis"][keep].astype(str),
                         cols["power_on"][keep], cols["sensor_id"][keep].astype(str),
                         cols["vehicle_id"][keep].astype(str)))
     pick = {k: v[keep][order] for k, v in cols.items()}
-    t = pick["temp_c"].astype(float) - REFERENCE_C
+    temp = pick["temp_c"].astype(float)
+    t = np.where(np.isfinite(temp), temp - REFERENCE_C, 0.0)  # none recorded: no slope, the rest holds
     h = pick["since_power_on_s"].astype(float) / 3600.0
     b = pick["bias_dps"].astype(float)
     terms = np.column_stack([np.ones_like(t), t, h, b, t * t, t * h, h * h, t * b, h * b, b * b])
@@ -104,6 +105,18 @@ def summarise(table: pa.Table) -> PowerOnSums:
                        np.array([k[2] for k in first], dtype=object),
                        np.array([k[3] for k in first], dtype=np.int64),
                        np.array([hours[(k[2], int(k[3]))] for k in first]), sums)
+
+
+def _kept(cols: dict[str, np.ndarray]) -> np.ndarray:
+    """The adopted standstills to learn from: those with a temperature, or, for a sensor axis that
+    never recorded one (no temperature input), all of them."""
+    adopted = cols["decision"] == "adopted"
+    measured = np.isfinite(cols["temp_c"].astype(float))
+    pairs = list(zip(cols["sensor_id"].tolist(), cols["axis"].tolist(), strict=True))
+    with_temp = {p for p, m, a in zip(pairs, measured.tolist(), adopted.tolist(), strict=True) if m and a}
+    never = np.array([p not in with_temp for p in pairs], dtype=bool)
+    kept: np.ndarray = adopted & (measured | never)
+    return kept
 
 
 def _hours_before(vehicle: np.ndarray, power_on: np.ndarray,

@@ -81,3 +81,21 @@ def test_a_bad_scheduler_is_one_line(fleet: tuple[Path, Path], tmp_path: Path,
 def test_a_folder_that_is_no_dataset_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["fleet", "analyse", str(tmp_path), "--report-dir", str(tmp_path / "r")]) == 2
     assert "not a dataset fleet ingest wrote" in capsys.readouterr().err
+
+
+def test_a_sensor_without_temperature_gets_a_spread_and_no_slope(tmp_path: Path) -> None:
+    """A vehicle whose daemon had no temperature input: the spread and drift are judged, the slope is
+    not (empty in sensors.csv), never a crash."""
+    import dataclasses
+
+    from canical.fieldlog import segments
+    from canical.sim.fleet import simulate_vehicle
+
+    records = [dataclasses.replace(r, temp_c=None) for r in simulate_vehicle(5, 10, seed=2)[1]]
+    (tmp_path / "logs").mkdir()
+    for number, data in enumerate(segments.pack(records)):
+        (tmp_path / "logs" / segments.segment_name(number)).write_bytes(data)
+    assert main(["fleet", "ingest", str(tmp_path / "logs"), "-o", str(tmp_path / "ds")]) == 0
+    assert main(["fleet", "analyse", str(tmp_path / "ds"), "--report-dir", str(tmp_path / "r")]) == 0
+    (row,) = rows(tmp_path / "r" / "sensors.csv").values()
+    assert row["slope_dps_per_c"] == "" and float(row["spread_dps"]) > 0 and int(row["records"]) > 10
