@@ -32,6 +32,9 @@ def register(sub) -> None:
     analyse.add_argument("--scheduler", metavar="tcp://HOST:PORT",
                          help="a Dask distributed scheduler to run on (default: in this process, no "
                               "cluster); its workers must see DATASET at the same path")
+    analyse.add_argument("--lots", metavar="CSV",
+                         help="a sensor table (columns sensor_id, lot) naming each sensor's lot (default: "
+                              "the sensor id's prefix before its dash)")
     analyse.set_defaults(run=run_analyse)
 
 
@@ -60,9 +63,10 @@ def run_analyse(args: argparse.Namespace) -> int:
         raise CanicalError(f"{source}: no such dataset folder")
     if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://")):
         raise CanicalError(f"--scheduler {args.scheduler}: give the scheduler's address, tcp://HOST:PORT")
+    lots = report.read_lots(Path(args.lots)) if args.lots else report.Lots()
     with output_plan(dirs=[args.report_dir]):
         verdicts = judge(engine.run(source, args.scheduler, print))
-        report.write(Path(args.report_dir), verdicts, str(source))
+        report.write(Path(args.report_dir), verdicts, str(source), lots)
     flagged = {k: sum(v.verdict == k for v in verdicts) for k in (DRIFTING, OUT_OF_SPEC)}
     print(f"fleet analyse: {len(verdicts)} sensor axes: {flagged[OUT_OF_SPEC]} out of spec, "
           f"{flagged[DRIFTING]} drifting -> {Path(args.report_dir) / 'sensors.csv'}, report.md")

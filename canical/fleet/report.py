@@ -1,8 +1,9 @@
 """The fleet analysis's outputs: ``sensors.csv`` (one row per sensor axis), ``report.md`` a fleet
 engineer reads at a glance (verdicts, the sensors listed for maintenance, per lot), and plots.
 
-Why a lot is the sensor id's prefix: a lot's sensors share their part's behaviour, and a
-sensor id such as ``B25-00042`` names its lot before the dash; an id without one is its own lot.
+Why per lot: a lot's sensors share their part's behaviour. A lot is what a sensor table says
+(``--lots CSV``), else the sensor id's prefix: ``B25-00042`` names its lot before the dash; an id
+without one is its own lot.
 """
 
 from __future__ import annotations
@@ -11,12 +12,14 @@ import csv
 import dataclasses
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from canical.errors import CanicalError
 from canical.files.atomic_file import make_dirs, write_bytes_atomic, write_text_atomic
 from canical.fleet.analysis import (
     DRIFT_LIMIT,
@@ -32,11 +35,31 @@ from canical.fleet.analysis import (
 VERDICTS = (IN_SPEC, DRIFTING, OUT_OF_SPEC, TOO_LITTLE)
 
 
-def lot_of(sensor_id: str) -> str:
-    return sensor_id.partition("-")[0] if "-" in sensor_id else sensor_id
+@dataclass(frozen=True)
+class Lots:
+    """Which lot each sensor is from: a sensor table's (``--lots``), else its id's prefix."""
+
+    table: Mapping[str, str] = field(default_factory=dict)
+
+    def of(self, sensor_id: str) -> str:
+        if sensor_id in self.table:
+            return self.table[sensor_id]
+        return sensor_id.partition("-")[0] if "-" in sensor_id else sensor_id
 
 
-def sensors_csv(verdicts: Sequence[SensorVerdict]) -> str:
+def read_lots(path: Path) -> Lots:
+    """A sensor table: a CSV with ``sensor_id`` and ``lot`` columns (others ignored)."""
+    try:
+        with path.open(newline="", encoding="utf-8") as handle:
+            table = list(csv.DictReader(handle))
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise CanicalError(f"--lots {path}: cannot read ({exc})") from None
+    if not table or not {"sensor_id", "lot"} <= set(table[0]):
+        raise CanicalError(f"--lots {path}: a CSV with sensor_id and lot columns")
+    return Lots({row["sensor_id"]: row["lot"] for row in table})
+
+
+def sensors_csv(verdicts: Sequence[SensorVerdict], lots: Lots) -> str:
     """One row per sensor axis, numbers written with repr's precision (the same run, the same bytes)."""
     text = io.StringIO()
     fields = [f.name for f in dataclasses.fields(SensorVerdict)]
@@ -44,7 +67,7 @@ def sensors_csv(verdicts: Sequence[SensorVerdict]) -> str:
     writer.writerow(["sensor_id", "axis", "lot", *fields[2:]])
     for v in verdicts:
         values = [getattr(v, f) for f in fields]
-        writer.writerow([v.sensor_id, v.axis, lot_of(v.sensor_id), *(_cell(x) for x in values[2:])])
+        writer.writerow([v.sensor_id, v.axis, lots.of(v.sensor_id), *(_cell(x) for x in values[2:])])
     return text.getvalue()
 
 
@@ -54,7 +77,7 @@ def _cell(value: object) -> str:
     return str(value)
 
 
-def report_md(verdicts: Sequence[SensorVerdict], source: str) -> str:
+def report_md(verdicts: Sequence[SensorVerdict], source: str, lots: Lots) -> str:
     """The report: counts per verdict, the sensors for maintenance, per lot, the plots."""
     counts = {name: sum(v.verdict == name for v in verdicts) for name in VERDICTS}
     lines = [f"# Fleet analysis of {source}", "",
@@ -75,8 +98,8 @@ def report_md(verdicts: Sequence[SensorVerdict], source: str) -> str:
         lines.append("| none | | | | | |")
     lines += ["", "## Per lot", "", "| lot | sensors | in spec | drifting | out of spec "
               "| median spread deg/s | median slope deg/s/°C |", "|---|---|---|---|---|---|---|"]
-    lines += [_lot_row(lot, [v for v in verdicts if lot_of(v.sensor_id) == lot])
-              for lot in sorted({lot_of(v.sensor_id) for v in verdicts})]
+    lines += [_lot_row(lot, [v for v in verdicts if lots.of(v.sensor_id) == lot])
+              for lot in sorted({lots.of(v.sensor_id) for v in verdicts})]
     lines += ["", "![turn-on spread](spread.png)", "", "![temperature slope](slope.png)", "",
               "![drift](drift.png)", ""]
     return "\n".join(lines)
@@ -93,16 +116,16 @@ def _median(values: Sequence[float]) -> float:
     return float(np.median(finite)) if finite else math.nan
 
 
-def write(report_dir: Path, verdicts: Sequence[SensorVerdict], source: str) -> None:
+def write(report_dir: Path, verdicts: Sequence[SensorVerdict], source: str, lots: Lots) -> None:
     """``sensors.csv``, ``report.md`` and the three plots into ``report_dir``."""
     make_dirs(report_dir)
-    write_text_atomic(report_dir / "sensors.csv", sensors_csv(verdicts))
-    write_text_atomic(report_dir / "report.md", report_md(verdicts, source))
-    for name, png in plots(verdicts).items():
+    write_text_atomic(report_dir / "sensors.csv", sensors_csv(verdicts, lots))
+    write_text_atomic(report_dir / "report.md", report_md(verdicts, source, lots))
+    for name, png in plots(verdicts, lots).items():
         write_bytes_atomic(report_dir / name, png)
 
 
-def plots(verdicts: Sequence[SensorVerdict]) -> dict[str, bytes]:
+def plots(verdicts: Sequence[SensorVerdict], lots: Lots) -> dict[str, bytes]:
     """Spread per lot, slope against its standard error, drift per sensor: each as PNG bytes."""
     import matplotlib
 
@@ -111,11 +134,11 @@ def plots(verdicts: Sequence[SensorVerdict]) -> dict[str, bytes]:
 
     colour = {IN_SPEC: "tab:green", DRIFTING: "tab:orange", OUT_OF_SPEC: "tab:red", TOO_LITTLE: "tab:grey"}
     out = {}
-    lots = sorted({lot_of(v.sensor_id) for v in verdicts})
+    names = sorted({lots.of(v.sensor_id) for v in verdicts})
     fig, ax = plt.subplots(figsize=(7, 4))
-    data = [[v.spread_dps for v in verdicts if lot_of(v.sensor_id) == lot and math.isfinite(v.spread_dps)]
-            for lot in lots]
-    ax.hist(data, bins=40, stacked=True, label=lots)
+    data = [[v.spread_dps for v in verdicts if lots.of(v.sensor_id) == lot and math.isfinite(v.spread_dps)]
+            for lot in names]
+    ax.hist(data, bins=40, stacked=True, label=names)
     ax.axvline(SPREAD_LIMIT, color="tab:red", linestyle="--", label="spec")
     ax.set(xlabel="turn-on bias spread, 1σ (deg/s)", ylabel="sensors", title="Turn-on bias spread per lot")
     ax.legend()

@@ -99,3 +99,18 @@ def test_a_sensor_without_temperature_gets_a_spread_and_no_slope(tmp_path: Path)
     assert main(["fleet", "analyse", str(tmp_path / "ds"), "--report-dir", str(tmp_path / "r")]) == 0
     (row,) = rows(tmp_path / "r" / "sensors.csv").values()
     assert row["slope_dps_per_c"] == "" and float(row["spread_dps"]) > 0 and int(row["records"]) > 10
+
+
+def test_a_sensor_table_names_the_lots(fleet: tuple[Path, Path], tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    logs, data = fleet
+    table = tmp_path / "lots.csv"
+    sensors = rows(logs / "truth.csv")
+    table.write_text("sensor_id,lot\n" + "".join(f"{s},L{i % 2}\n" for i, s in enumerate(sensors)))
+    analyse = ["fleet", "analyse", str(data), "--lots", str(table), "--report-dir"]
+    assert main([*analyse, str(tmp_path / "r")]) == 0
+    assert {r["lot"] for r in rows(tmp_path / "r" / "sensors.csv").values()} == {"L0", "L1"}
+    assert "| L0 | 20 |" in (tmp_path / "r" / "report.md").read_text()
+    table.write_text("sensor,batch\nx,y\n")
+    assert main([*analyse, str(tmp_path / "s")]) == 2
+    assert "a CSV with sensor_id and lot columns" in capsys.readouterr().err
