@@ -35,7 +35,7 @@ class DaemonFieldLog:
         except OSError as exc:
             raise CanicalError(f"field_log.dir: cannot use {config.directory} "
                                f"({exc.strerror or exc})") from None
-        last = last_power_on(config.directory)
+        last = last_power_on(config.directory, log.warning)
         #: The power-on count of the latest power-on: a restart of the daemon is a new one.
         self.power_on = -1 if last is None else last
         self.origin: Origin | None = None

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -89,7 +90,7 @@ def write_field_log(args: argparse.Namespace, out, axes: tuple[str, ...], source
     else:  # the file was written when the drive ended
         ended = datetime.fromtimestamp(Path(args.input).stat().st_mtime, UTC)
         start = ended - timedelta(seconds=from_tracker.drive_seconds(out.power_ons, out.end_s))
-    last = last_power_on(Path(args.field_log))
+    last = last_power_on(Path(args.field_log), lambda line: print(f"apply: {line}", file=sys.stderr))
     origin = from_tracker.Origin(args.vehicle_id, source[0], source[1], 0 if last is None else last + 1)
     writer = SegmentWriter(Path(args.field_log), max_bytes=2**62)  # offline: nothing rotated away
     made = from_tracker.records(out.events, out.power_ons, origin, axes,

@@ -172,12 +172,14 @@ class SegmentWriter:
             total -= size
 
 
-def last_power_on(directory: Path) -> int | None:
-    """The highest power-on count in the directory's newest usable segment (None: no record)."""
+def last_power_on(directory: Path, warn: Callable[[str], None]) -> int | None:
+    """The highest power-on count in the directory's newest usable segment (None: no record); a
+    damaged segment on the way is skipped with one line to ``warn``."""
     for path in reversed(segment_paths(Path(directory))):
         try:
             records = read_segment(path).records
-        except SegmentError:
+        except SegmentError as exc:
+            warn(f"field log: skipped {path}: {exc}")
             continue
         if records:
             return max(r.power_on for r in records)

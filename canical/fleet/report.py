@@ -127,43 +127,58 @@ def write(report_dir: Path, verdicts: Sequence[SensorVerdict], source: str, lots
 
 def plots(verdicts: Sequence[SensorVerdict], lots: Lots) -> dict[str, bytes]:
     """Spread per lot, slope against its standard error, drift per sensor: each as PNG bytes."""
+    return {"spread.png": _spread_plot(verdicts, lots), "slope.png": _slope_plot(verdicts),
+            "drift.png": _drift_plot(verdicts)}
+
+
+COLOURS = {IN_SPEC: "tab:green", DRIFTING: "tab:orange", OUT_OF_SPEC: "tab:red", TOO_LITTLE: "tab:grey"}
+
+
+def _axes() -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colour = {IN_SPEC: "tab:green", DRIFTING: "tab:orange", OUT_OF_SPEC: "tab:red", TOO_LITTLE: "tab:grey"}
-    out = {}
+    return plt.subplots(figsize=(7, 4))
+
+
+def _spread_plot(verdicts: Sequence[SensorVerdict], lots: Lots) -> bytes:
     names = sorted({lots.of(v.sensor_id) for v in verdicts})
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = _axes()
     data = [[v.spread_dps for v in verdicts if lots.of(v.sensor_id) == lot and math.isfinite(v.spread_dps)]
             for lot in names]
     ax.hist(data, bins=40, stacked=True, label=names)
     ax.axvline(SPREAD_LIMIT, color="tab:red", linestyle="--", label="spec")
     ax.set(xlabel="turn-on bias spread, 1σ (deg/s)", ylabel="sensors", title="Turn-on bias spread per lot")
     ax.legend()
-    out["spread.png"] = _png(fig)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    return _png(fig)
+
+
+def _slope_plot(verdicts: Sequence[SensorVerdict]) -> bytes:
+    fig, ax = _axes()
     for name in VERDICTS:
         mine = [v for v in verdicts if v.verdict == name and math.isfinite(v.slope_dps_per_c)]
         ax.plot([v.slope_dps_per_c for v in mine], [v.slope_se for v in mine], "o", ms=3,
-                color=colour[name], label=name)
+                color=COLOURS[name], label=name)
     for limit in (-SLOPE_LIMIT, SLOPE_LIMIT):
         ax.axvline(limit, color="tab:red", linestyle="--")
     ax.set(xlabel="temperature slope left by the set (deg/s/°C)", ylabel="its standard error (deg/s/°C)",
            title="Field temperature slope per sensor")
     ax.legend()
-    out["slope.png"] = _png(fig)
-    fig, ax = plt.subplots(figsize=(7, 4))
+    return _png(fig)
+
+
+def _drift_plot(verdicts: Sequence[SensorVerdict]) -> bytes:
+    fig, ax = _axes()
     for name in VERDICTS:
         mine = [v for v in verdicts if v.verdict == name and math.isfinite(v.drift_dps_per_h)]
-        ax.plot([v.hours for v in mine], [v.drift_dps_per_h for v in mine], "o", ms=3, color=colour[name],
+        ax.plot([v.hours for v in mine], [v.drift_dps_per_h for v in mine], "o", ms=3, color=COLOURS[name],
                 label=name)
     ax.set(xlabel="operating hours observed (h)", ylabel="bias drift (deg/s per h)",
            title="Bias drift with operating hours")
     ax.legend()
-    out["drift.png"] = _png(fig)
-    return out
+    return _png(fig)
 
 
 def _png(fig: Any) -> bytes:

@@ -116,13 +116,17 @@ def test_a_new_writer_continues_the_numbering_and_the_power_on_count(tmp_path: P
     first = SegmentWriter(tmp_path, max_bytes=10**6)
     first.add(record(0, power_on=7))
     first.flush()
-    assert segments.last_power_on(tmp_path) == 7
+    assert segments.last_power_on(tmp_path, print) == 7
     second = SegmentWriter(tmp_path, max_bytes=10**6)
     second.add(record(1, power_on=8))
     second.flush()
     names = [p.name for p in segments.segment_paths(tmp_path)]
     assert names == ["field-00000000.jsonl", "field-00000001.jsonl"]
-    assert segments.last_power_on(tmp_path / "none") is None
+    assert segments.last_power_on(tmp_path / "none", print) is None
+    lines: list[str] = []
+    segments.segment_paths(tmp_path)[1].write_bytes(b"cut")
+    assert segments.last_power_on(tmp_path, lines.append) == 7  # the newest is damaged: the one before
+    assert len(lines) == 1 and "field-00000001.jsonl" in lines[0]
 
 
 def test_segments_get_the_users_umask(tmp_path: Path) -> None:
