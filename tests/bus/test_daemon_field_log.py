@@ -134,3 +134,14 @@ def test_apply_with_the_daemon_configuration_writes_the_daemons_records(tmp_path
 
     daemon_z = [essence(r) for r in read(tmp_path / "field") if r.axes == ("z",)]
     assert [essence(r) for r in read(offline)] == daemon_z and len(daemon_z) == 3
+
+
+def test_serve_check_says_where_the_field_log_goes(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    from canical.commands.cli import main
+
+    write_sets(tmp_path)
+    config = write_config(tmp_path, "trk", bias_tracking=SETTINGS, field_log=FIELD_LOG)
+    assert main(["serve", "--config", str(config), "--check"]) == 0
+    assert f"field log: {tmp_path / 'field'} for vehicle veh-0001, at most 1 MB" in capsys.readouterr().out
+    assert not (tmp_path / "field").exists()  # checked, not made
