@@ -21,6 +21,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from canical.bus.daemon_config import BiasTracking
+from canical.bus.field_log import DaemonFieldLog
 from canical.bus.status import AXIS_CODES
 from canical.tracking import state_file
 from canical.tracking.fast_step import FastStep, FastStep3, fast_step, fast_step3
@@ -33,9 +34,11 @@ NAN = math.nan
 class DaemonTracking:
     """The daemon's trackers for one generation of sets, and what it does with them between frames."""
 
-    def __init__(self, config: BiasTracking, values: dict[str, float]) -> None:
+    def __init__(self, config: BiasTracking, values: dict[str, float],
+                 field_log: DaemonFieldLog | None = None) -> None:
         self.config = config
         self.values = values
+        self.field_log = field_log
         self.set_id: int | None = None
         self.axes: tuple[str, ...] = ()
         self.trackers: list[BiasTracker | None] = [None, None, None]
@@ -50,7 +53,8 @@ class DaemonTracking:
         self._joint: FastStep3 | None = None  # an IMU set's one tracker over three axes
 
     def for_sets(self, combined_id: int, axes: tuple[str, ...],
-                 fits: tuple[Mapping[str, Any] | None, ...], *, joint: bool = False) -> None:
+                 fits: tuple[Mapping[str, Any] | None, ...], *, joint: bool = False,
+                 sensor: str = "") -> None:
         """New sets: save what was learned for the old ones, load (or start) the new ones' state.
 
         ``fits`` holds each axis's set's ``fit`` section (None: the axis is not calibrated); each
@@ -59,7 +63,10 @@ class DaemonTracking:
         axes, telling a standstill by the noisiest axis's, as ``apply`` does."""
         if combined_id == self.set_id:
             return
+        self.log_events()  # the old trackers' last records, before they go
         self.save()
+        if self.field_log is not None:
+            self.field_log.for_sets(sensor, combined_id)
         self.set_id, self.axes = combined_id, axes
         learned = None
         if self.config.state_file is not None:
@@ -168,15 +175,32 @@ class DaemonTracking:
         return sum(s.updates for t in self.trackers if t is not None for s in t.learned)
 
     def log_events(self) -> None:
+        """Log each standstill decision, and hand it and each power-on to the field log."""
         measured = self.config.temperature_input is not None  # else the reference's, not a reading
+        self._sync()
         for tracker in self.trackers:
             if tracker is None:
                 continue
             for event in tracker.events:
                 report = log.info if event.decision == "adopted" else log.warning
                 report("bias %s", event.line(tracker.axes, temperature=measured))
+            if self.field_log is not None:
+                self.field_log.take(tracker, temperature=measured)
             tracker.events.clear()
             tracker.taken.clear()
+            tracker.power_ons.clear()
+
+    def finish(self) -> None:
+        """The daemon stops: a standstill under way ends here (as at the end of a replayed drive)."""
+        self._sync()
+        for tracker in self.trackers:
+            if tracker is not None:
+                tracker.finish()
+
+    def flush(self) -> None:
+        """The field log's records since the last status period, written as a closed segment."""
+        if self.field_log is not None:
+            self.field_log.flush()
 
     def status_text(self) -> str:
         self._sync()

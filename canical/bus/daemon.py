@@ -42,6 +42,7 @@ from canical.bus import active_sets
 from canical.bus.active_sets import ActiveSets, SetsNote
 from canical.bus.bias_tracking import DaemonTracking
 from canical.bus.daemon_config import DaemonConfig
+from canical.bus.field_log import DaemonFieldLog
 from canical.bus.frame_handler import frame_layout
 from canical.bus.frame_state import FrameState
 from canical.bus.link import LinkOpener, Sender, opener
@@ -102,8 +103,9 @@ class Daemon:
         self.frames = FrameState(self.stats)
         self.sender = Sender(self.stats)
         #: The bias learned at standstills, when the configuration enables it.
+        field_log = None if config.field_log is None else DaemonFieldLog(config.field_log)
         self.tracking = (None if config.bias_tracking is None
-                         else DaemonTracking(config.bias_tracking, self.frames.values))
+                         else DaemonTracking(config.bias_tracking, self.frames.values, field_log))
         max_age = {name: s.max_age_s for name, s in config.inputs.items()}
         self.raw_path = RawPath(layout, self, self.frames, self.sender, self.tracking, max_age,
                                 compiled=compiled)
@@ -266,6 +268,7 @@ class Daemon:
                 self.outages.ended(now)
             if self.tracking is not None:
                 self.tracking.log_events()
+                self.tracking.flush()
                 self.tracking.save()
             self.notifier.status(self.status_line())
         deadlines = [self._next_status, self._next_watch]
@@ -371,6 +374,8 @@ class Daemon:
                 self._send_status()
         self.sender.close()
         if self.tracking is not None:
+            self.tracking.finish()
             self.tracking.log_events()
+            self.tracking.flush()
             self.tracking.save()
         log.info("stopped: %s", self.status_line())

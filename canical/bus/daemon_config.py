@@ -36,7 +36,8 @@ FRAME_SIGNALS = ("Stale", "CounterGap", "SetTag", "Counter")
 STATUS_SIGNALS = ("Page", "State", "FramesIn", "SetId", "Reloads")
 
 _TOP_KEYS = {"bus", "dbc", "sensor", "frames", "axes", "counter", "inputs", "status_period_s", "device",
-             "watch_period_s", "own_layout", "bias_tracking", "j1939", "imu_set", "trust"}
+             "watch_period_s", "own_layout", "bias_tracking", "j1939", "imu_set", "trust",
+             "field_log"}
 
 
 @dataclass(frozen=True)
@@ -109,6 +110,21 @@ class BiasTracking:
 
 
 @dataclass(frozen=True)
+class FieldLogConfig:
+    """``field_log:``: where the tracker's decisions are kept as segments for the fleet, the bound on
+    their size, and the vehicle they are from (:mod:`canical.fieldlog`)."""
+
+    directory: Path
+    max_bytes: int
+    vehicle_id: str
+
+
+#: ``field_log.max_mb``'s default: a year of a vehicle's standstills is a few megabytes.
+FIELD_LOG_MAX_MB = 64.0
+_VEHICLE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
+
+
+@dataclass(frozen=True)
 class Trust:
     """``trust:``: the public keys a set must be signed by (the calibration lab's).
 
@@ -142,6 +158,7 @@ class DaemonConfig:
     j1939_source: J1939Source = None  # J1939 messages matched by PGN and this source (None: the DBC's)
     imu_set: Path | None = None  # one IMU set for the three axes and their coupling (not per-axis files)
     trust: Trust | None = None  # None: sets are not authenticated (one warning at start)
+    field_log: FieldLogConfig | None = None  # None: no field log
 
 
 def load_config(path: str | os.PathLike[str], *, channel: str | None = None) -> DaemonConfig:
@@ -250,7 +267,29 @@ def parse_config(content: Any, cfg_path: Path, *, channel: str | None = None) ->
         j1939_source=j1939,
         imu_set=imu_set,
         trust=_trust(content, base, fail),
+        field_log=_field_log(content, tracking, base, fail),
     )
+
+
+def _field_log(content: Json, tracking: BiasTracking | None, base: Path, fail: Fail) -> FieldLogConfig | None:
+    """``field_log``: a folder, a size bound in MB and the vehicle's id; only with bias tracking on
+    (its records are the tracker's decisions)."""
+    section = _optional_section(content, "field_log", {"dir", "max_mb", "vehicle_id"},
+                                "{dir: FOLDER, max_mb: 64, vehicle_id: ID}", fail)
+    if section is None:
+        return None
+    directory = _path(section.get("dir"), base, "field_log.dir", fail)
+    max_mb = section.get("max_mb", FIELD_LOG_MAX_MB)
+    if isinstance(max_mb, bool) or not isinstance(max_mb, int | float) or not 0.1 <= max_mb <= 1e6:
+        raise fail("field_log.max_mb", f"must be a number of megabytes from 0.1 to 1000000, got {max_mb!r}")
+    vehicle = section.get("vehicle_id")
+    if not isinstance(vehicle, str) or not _VEHICLE_ID.match(vehicle):
+        raise fail("field_log.vehicle_id", "must be the vehicle's id: 1-64 letters, digits, '.', '_' or '-', "
+                   f"got {one_line(repr(vehicle), 80)}")
+    if tracking is None:
+        raise fail("field_log", "needs bias_tracking: {enabled: true} "
+                   "(its records are the tracker's decisions)")
+    return FieldLogConfig(directory, round(max_mb * 1_000_000), vehicle)
 
 
 def _trust(content: Json, base: Path, fail: Fail) -> Trust | None:

@@ -66,7 +66,9 @@ class Plans:
             self.tracking.for_sets(sets.combined_id, tuple(ax.axis for ax in sets.axes),
                                    tuple(None if ax.corrector is None else ax.corrector.cset.fit
                                          for ax in sets.axes),
-                                   joint=sets.coupling is not None and sets.complete)
+                                   joint=sets.coupling is not None and sets.complete,
+                                   sensor=next((ax.corrector.cset.sensor_id for ax in sets.axes
+                                                if ax.corrector is not None), ""))
         return plan
 
     def forget(self) -> None:

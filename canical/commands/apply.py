@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import re
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -28,6 +29,9 @@ if TYPE_CHECKING:  # the rest is imported where used: `--help` needs none of it
     from canical.sets.corrector import Corrector
 
 CHUNK_ROWS = 100_000
+#: ``--vehicle-id``'s default, and the ids it takes (the daemon's field_log.vehicle_id's rule).
+DEFAULT_VEHICLE = "offline"
+VEHICLE_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
 def register(sub) -> None:
@@ -59,14 +63,27 @@ def register(sub) -> None:
     track.add_argument("--report-dir", metavar="DIR",
                        help="write a drive report there: heading with and without tracking, learned "
                             "bias against temperature, each standstill used or refused and why")
+    track.add_argument("--field-log", metavar="DIR",
+                       help="write each standstill decision and power-on there as the daemon's field_log "
+                            "does: one new segment, the power-on count continuing the folder's")
+    track.add_argument("--vehicle-id", default=DEFAULT_VEHICLE, metavar="ID",
+                       help=f"the vehicle id in the field records (default {DEFAULT_VEHICLE})")
+    track.add_argument("--drive-start", metavar="UTC",
+                       help="when the drive began, ISO 8601 (default: the input's modification time "
+                            "less the drive's length): the records' UTC times")
     p.set_defaults(run=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    if (args.standstill_column or args.report_dir or args.arw is not None) and not args.track_bias:
-        raise CanicalError("--standstill-column, --report-dir and --arw need --track-bias")
+    if (args.standstill_column or args.report_dir or args.arw is not None or args.field_log) \
+            and not args.track_bias:
+        raise CanicalError("--standstill-column, --report-dir, --arw and --field-log need --track-bias")
+    if (args.vehicle_id != DEFAULT_VEHICLE or args.drive_start) and not args.field_log:
+        raise CanicalError("--vehicle-id and --drive-start need --field-log")
+    if not VEHICLE_ID.match(args.vehicle_id):
+        raise CanicalError(f"--vehicle-id {args.vehicle_id!r}: 1-64 letters, digits, '.', '_' or '-'")
     check_trusted("apply", args.coefficients, args.trust)
-    with output_plan(args.output, dirs=[args.report_dir]):
+    with output_plan(args.output, dirs=[args.report_dir, args.field_log]):
         return apply_set(args)
 
 
@@ -140,7 +157,7 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
     columns = [args.raw_column, *corrector.required_inputs]
     replayer = None
     if args.track_bias:
-        from canical.commands.track_bias import print_events, replayer_for, tracking_inputs
+        from canical.commands.track_bias import print_events, replayer_for, tracking_inputs, write_field_log
 
         columns = list(dict.fromkeys([*columns, *tracking_columns(args.input, args)]))
         replayer = replayer_for(args, [cset.fit], (cset.axis,))
@@ -187,7 +204,9 @@ def apply_stream(args: argparse.Namespace, corrector: Corrector, head: CsvHead) 
         if pending is not None:
             pending.result()
         if replayer is not None:  # before the output is kept: the summary of what was learned
-            print_events(replayer.finish(), (cset.axis,), last_bias)
+            finished = replayer.finish()
+            print_events(finished, (cset.axis,), last_bias)
+            write_field_log(args, finished, (cset.axis,), field_source(cset))
     print_applied(args, corrector, n_rows, n_out)
     return 0
 
@@ -275,8 +294,16 @@ def track_bias(args: argparse.Namespace, cset, columns: dict[str, np.ndarray],
     """The drive replayed through the tracker for the set's axis (:mod:`.track_bias`)."""
     from canical.commands.track_bias import tracked_bias
 
-    bias: np.ndarray = tracked_bias(args, [cset.fit], (cset.axis,), columns, rate)[:, 0]
+    bias: np.ndarray = tracked_bias(args, [cset.fit], (cset.axis,), columns, rate, field_source(cset))[:, 0]
     return bias
+
+
+def field_source(cset) -> tuple[str, int]:
+    """The sensor and set a drive's field records name: the set's sensor id and CRC (what the
+    daemon names with this set alone)."""
+    from canical.sets.coefficient_file import set_crc
+
+    return cset.sensor_id, set_crc(cset)
 
 
 def use_daemon_tracking(args: argparse.Namespace) -> None:

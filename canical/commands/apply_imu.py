@@ -56,13 +56,20 @@ def apply_imu_set(args: argparse.Namespace) -> int:
     if args.track_bias:
         from canical.commands.track_bias import tracked_bias
 
-        bias = tracked_bias(args, [c.fit for c in imu.axes], AXES, table.columns, rates)
+        bias = tracked_bias(args, [c.fit for c in imu.axes], AXES, table.columns, rates, imu_source(imu))
     write_rows(args.output, table, rates, flags, bias)
     n_out = int(np.count_nonzero(flags.any(axis=1)))
     note = f", {n_out} with an axis outside its calibrated span (flagged)" if n_out else ""
     print(f"apply: {len(table.rows)} rows corrected with IMU set 0x{corrector.set_id:08x}{note} "
           f"-> {args.output}")
     return 0
+
+
+def imu_source(imu) -> tuple[str, int]:
+    """The sensor and set an IMU set's field records name: its sensor id and its own CRC."""
+    from canical.sets.imu_set import imu_set_crc
+
+    return imu.sensor_id, imu_set_crc(imu)
 
 
 def write_rows(path: str, table, rates, flags, bias=None) -> None:
@@ -131,7 +138,7 @@ def apply_imu_canlog(args: argparse.Namespace, corrector) -> int:
         from canical.commands.track_bias import tracked_bias
 
         bias = tracked_bias(args, [c.fit for c in imu.axes], AXES, {**session.aux, "time_s": session.time_s},
-                            rates)
+                            rates, imu_source(imu))
     names = ["time_s", *RAW_NAMES, *session.aux, *RATE_COLUMNS, *FLAG_COLUMNS,
              *(BIAS_COLUMNS if bias is not None else ())]
     table = np.column_stack([session.time_s, raw, *session.aux.values(), rates, flags.astype(float),

@@ -150,6 +150,10 @@ def run(args: argparse.Namespace) -> int:
         print(served_axes(config))
         if config.trust is None:
             print("note: sets are not authenticated (no trust: in the configuration)")
+        if config.field_log is not None:
+            log = config.field_log
+            print(f"field log: {log.directory} for vehicle {log.vehicle_id}, "
+                  f"at most {log.max_bytes / 1e6:g} MB")
         print(f"{config.path}: configuration OK ({config.interface} {config.channel})")
         if missing is not None:  # the configuration may be for the vehicle, not this machine
             print(f"note: serve would not start on this machine: {missing}: {NO_SOCKETCAN_HINT}")

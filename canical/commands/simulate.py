@@ -6,7 +6,8 @@ bias that follows it, for the closed loop to find), ``drive`` a drive with stops
 power cycles and a warming cabin (for ``apply --track-bias``), ``triad`` one session per axis of
 a three-axis IMU with cross-axis coupling (for ``calibrate x.csv y.csv z.csv``). The same
 ``--seed`` is the same sensor: a set calibrated from ``simulate session`` corrects
-``simulate drive``. A CSV is written in the format ``calibrate`` and ``apply`` read; a CAN log
+``simulate drive``; ``fleet`` writes the field logs of many vehicles
+(:mod:`.simulate_fleet`). A CSV is written in the format ``calibrate`` and ``apply`` read; a CAN log
 (``-o`` ending in a log suffix, with ``--config``) holds the frames the configuration's IMU would
 send: the raw message with the axis's signal, each mapped channel in its message, and for a
 session canical's ``TABLE_REF`` (the rate table on the bus). With ``--table-file`` the table is
@@ -33,7 +34,7 @@ if TYPE_CHECKING:
     from canical.sim.bus_log import LogPlan, SignalTrack
     from canical.sim.gyro import GyroModel
 
-KINDS = ("session", "drive", "triad")
+KINDS = ("session", "drive", "triad", "fleet")
 #: The column names a simulated drive or session writes, as the docs name them.
 TEMP, TIME, SPEED = "temp_c", "time_s", "speed_mps"
 #: A drive's clock since it began (power-off gaps included): its log's timestamps, not a column
@@ -46,12 +47,16 @@ def register(sub) -> None:
     p.add_argument("kind", choices=KINDS, help="what to simulate")
     p.add_argument("-o", "--output", required=True,
                    help="CSV (a session or drive), a CAN log (.log, .asc, .blf; with --config), or for "
-                        "a triad a folder (x.csv, y.csv, z.csv)")
+                        "a triad a folder (x.csv, y.csv, z.csv); for a fleet a new or empty folder")
     p.add_argument("--config", help="daemon configuration: a log in its DBC's layout (raw message, "
                                     "inputs); its first calibrated axis is the one simulated")
     p.add_argument("--seed", type=int, default=0, help="the sensor and its noise [0]")
     p.add_argument("--temp-slope", type=float, default=0.01, metavar="DPS_PER_C",
                    help="the sensor's bias per °C, which no declared model has [0.01]")
+    p.add_argument("--vehicles", type=int, metavar="N",
+                   help="fleet: how many vehicles (each one sensor; -o is a folder: one folder of field-log "
+                        "segments per vehicle and truth.csv)")
+    p.add_argument("--days", type=int, metavar="D", help="fleet: how many days of driving")
     p.add_argument("--table-file", action="store_true",
                    help="the table logs its rate to its own file, on its own clock (5000.25 s off, "
                         "75 ppm slow), not on the bus: each log (with --config) gets no TABLE_REF, and "
@@ -63,6 +68,14 @@ def run(args: argparse.Namespace) -> int:
     from canical.sessions.canlog_format import is_canlog
 
     out = Path(args.output)
+    if args.kind == "fleet":
+        from canical.commands.simulate_fleet import run_fleet
+
+        if args.config or args.table_file:
+            raise CanicalError("simulate fleet: --config and --table-file are for a session, drive or triad")
+        return run_fleet(args)
+    if args.vehicles is not None or args.days is not None:
+        raise CanicalError("--vehicles and --days are for simulate fleet")
     check_table_file(args)
     if args.kind == "triad":
         from canical.commands.simulate_triad import run_triad

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import Any
@@ -37,8 +38,9 @@ def tracker_config(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]]):
 
 
 def tracked_bias(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]], axes: tuple[str, ...],
-                 columns: Mapping[str, np.ndarray], rates: np.ndarray) -> np.ndarray:
-    """The bias per row and axis, (rows, axes); the events printed, the report written if asked.
+                 columns: Mapping[str, np.ndarray], rates: np.ndarray, source: tuple[str, int]) -> np.ndarray:
+    """The bias per row and axis, (rows, axes); the events printed, the report and the field log
+    written if asked. ``source`` is the sensor's id and the set's.
 
     ``columns`` holds time_s (since power-on), and the cue and temperature when there are.
     """
@@ -47,6 +49,7 @@ def tracked_bias(args: argparse.Namespace, fits: Sequence[Mapping[str, Any]], ax
     bias = replayer.feed(time_s, rates, temp, cue)
     out = replayer.finish()
     print_events(out, axes, bias[-1] if len(bias) else np.full(len(axes), np.nan))
+    write_field_log(args, out, axes, source)
     if args.report_dir:
         from canical.report.drive import write_drive_report
 
@@ -69,6 +72,48 @@ def tracking_inputs(args: argparse.Namespace, columns: Mapping[str, np.ndarray]
         raise CanicalError(f"{args.input}: time_s has empty or non-numeric values")
     cue = columns[args.standstill_column] if args.standstill_column else None
     return time_s, columns.get(args.temp_column), cue
+
+
+def write_field_log(args: argparse.Namespace, out, axes: tuple[str, ...], source: tuple[str, int]) -> None:
+    """With ``--field-log DIR``: the drive's standstill decisions and power-ons as the daemon's
+    records, in a new segment (the power-on count continuing the folder's)."""
+    if not getattr(args, "field_log", None):
+        return
+    from datetime import UTC, datetime, timedelta
+    from pathlib import Path
+
+    from canical.fieldlog import from_tracker
+    from canical.fieldlog.segments import SegmentWriter, last_power_on
+
+    if args.drive_start:
+        start = _utc(args.drive_start)
+    else:  # the file was written when the drive ended
+        ended = datetime.fromtimestamp(Path(args.input).stat().st_mtime, UTC)
+        start = ended - timedelta(seconds=from_tracker.drive_seconds(out.power_ons, out.end_s))
+    last = last_power_on(Path(args.field_log), lambda line: print(f"apply: {line}", file=sys.stderr))
+    origin = from_tracker.Origin(args.vehicle_id, source[0], source[1], 0 if last is None else last + 1)
+    writer = SegmentWriter(Path(args.field_log), max_bytes=2**62)  # offline: nothing rotated away
+    made = from_tracker.records(out.events, out.power_ons, origin, axes,
+                                from_tracker.drive_clock(out.power_ons, start),
+                                temperature=out.temperature_recorded)
+    for record in made:
+        writer.add(record)
+    writer.flush()
+    stops = sum(r.decision != "power-on" for r in made)
+    first = origin.first_power_on
+    print(f"apply: field log: {len(made)} records ({stops} standstills, power-ons {first}.."
+          f"{first + out.power_cycles - 1}) into {args.field_log}")
+
+
+def _utc(text: str):
+    """``--drive-start``: an ISO 8601 time, UTC unless it says otherwise."""
+    from datetime import UTC, datetime
+
+    try:
+        when = datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise CanicalError(f"--drive-start {text!r}: not an ISO 8601 time (2026-11-27T08:00:00Z)") from None
+    return when if when.tzinfo is not None else when.replace(tzinfo=UTC)
 
 
 def print_events(out, axes: tuple[str, ...], last: np.ndarray) -> None:

@@ -18,7 +18,9 @@ the ground floor; the grid trials that run calibration on it are :mod:`support.t
   drifts drawn at random from a seed, with what a right answer is;
 * :mod:`canical.sim.compression` — sensors whose output compresses near its rail, drawn at random,
   and a model's error against their truth;
-* :mod:`canical.sim.triad` — a gyro triad with coupling between its axes, single- and multi-axis tables.
+* :mod:`canical.sim.triad` — a gyro triad with coupling between its axes, single- and multi-axis tables;
+* :mod:`canical.sim.fleet` — a fleet's field logs drawn from sensor lots, climates and planted aging
+  and failing sensors, with the truth (imports :mod:`canical.fieldlog` too).
 """
 
 # The package's public face: the submodules (and names) other rings and the tests import;
@@ -30,6 +32,7 @@ __all__ = [
     "drive",
     "effects",
     "environment",
+    "fleet",
     "gyro",
     "imu_stream",
     "rate_table",

@@ -39,6 +39,17 @@ class StandstillEvent:
 
 
 @dataclass(frozen=True)
+class PowerOnEvent:
+    """A power-on the tracker saw (its start, or time since power-on going back): the turn-on bias
+    is new, so the offset starts from what was learned with the turn-on spread as its 1σ."""
+
+    power_cycle: int
+    bias_dps: tuple[float, ...]  # per axis, the learned bias at the reference temperature
+    sigma_dps: tuple[float, ...]  # its 1σ: the turn-on spread (and the slope's at the reference)
+    previous_end_s: float = float("nan")  # the last time since power-on of the power-on before
+
+
+@dataclass(frozen=True)
 class TakenWindow:
     """One still window the bias was learned from, and what it changed (per axis, at its temperature)."""
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from canical.tracking.config import TrackerConfig
 from canical.tracking.estimate import AxisBias
-from canical.tracking.events import StandstillEvent, TakenWindow
+from canical.tracking.events import PowerOnEvent, StandstillEvent, TakenWindow
 from canical.tracking.fast_step import fast_step, fast_step3
 from canical.tracking.tracker import BiasTracker
 
@@ -32,6 +32,8 @@ class Replay:
     #: A temperature reading came: without one the tracker states the bias at its reference
     #: temperature, which nobody measured, so the report must not show it as a temperature.
     temperature_recorded: bool = True
+    power_ons: tuple[PowerOnEvent, ...] = ()  # the start's, then one per power-on seen
+    end_s: float = math.nan  # time since power-on of the last row
 
 
 class Replayer:
@@ -81,7 +83,8 @@ class Replayer:
         tracker = self.tracker
         tracker.finish()
         return Replay(np.empty((0, len(tracker.axes))), tuple(tracker.events), tuple(tracker.taken),
-                      tuple(tracker.learned), tracker.power_cycle + 1, self.temperature_recorded)
+                      tuple(tracker.learned), tracker.power_cycle + 1, self.temperature_recorded,
+                      tuple(tracker.power_ons), tracker.time_s)
 
 
 def replay(time_s: np.ndarray, rates_dps: np.ndarray, config: TrackerConfig, *,

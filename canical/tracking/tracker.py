@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 from canical.tracking.config import TrackerConfig
 from canical.tracking.estimate import AxisBias
-from canical.tracking.events import ADOPTED, REFUSED, StandstillEvent, TakenWindow
+from canical.tracking.events import ADOPTED, REFUSED, PowerOnEvent, StandstillEvent, TakenWindow
 from canical.tracking.standstill import (
     BEYOND_BOUND,
     CUE_MOVING,
@@ -122,6 +122,7 @@ class BiasTracker:
         self._before: WindowStats | None = None
         self._run: _Run | None = None
         self._last_t = math.nan
+        self.power_ons: list[PowerOnEvent] = [self._power_on_event()]  # drained like events
         self._temp = config.reference_c
         self._window_s = config.window_s
         self._slew_rate = config.slew_dps_per_s
@@ -346,7 +347,19 @@ class BiasTracker:
         self.power_cycle += 1
         for state in self.learned:
             state.power_on(self.config.turn_on_sigma_dps)
+        self.power_ons.append(self._power_on_event())
         self._retarget()
+
+    def _power_on_event(self) -> PowerOnEvent:
+        reference = self.config.reference_c
+        return PowerOnEvent(self.power_cycle, tuple(s.at(reference, reference) for s in self.learned),
+                            tuple(s.sigma_at(reference, reference) for s in self.learned),
+                            self._last_t)
+
+    @property
+    def time_s(self) -> float:
+        """Time since power-on of the latest sample (NaN before the first)."""
+        return self._last_t
 
     # -- at the end, and for a status page -----------------------------------------------------
     def finish(self) -> None:

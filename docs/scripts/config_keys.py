@@ -239,6 +239,13 @@ KEYS: tuple[Key, ...] = (
         *(Key(f"bias_tracking.{k.key}", k.default if k.default in ("required", "none") else f"`{k.default}`",
               k.check, k.meaning) for k in _tracking_keys()),
     ),
+    Key("field_log", "`null` (none)", "a mapping, with `bias_tracking` enabled",
+        "keep each standstill decision and power-on as a record for the fleet (see Fleet)"),
+    Key("field_log.dir", "required", "folder path", "where the segments are written (created if missing)"),
+    Key("field_log.max_mb", "`64`", "number of megabytes, 0.1 to 1000000",
+        "the segments' size bound: the oldest are removed beyond it"),
+    Key("field_log.vehicle_id", "required", "1-64 letters, digits, `.`, `_` or `-`",
+        "the vehicle's id, in every record"),
 )
 
 
@@ -267,8 +274,9 @@ def base_content() -> dict[str, Any]:
     content["device"] = {"node": 0x10, "timeout_s": 1.0}
     content["own_layout"] = {"id": 0x298}
     content["j1939"] = {"source_address": "any"}
-    # off, so the example's inputs need not hold a cue; its sub-sections are probed all the same
-    content["bias_tracking"] = {"enabled": False, "cue": {"input": "supply_v", "below": 0.1}}
+    # on, with the example's supply_v input standing in for a cue, so field_log (which needs it) is probed too
+    content["bias_tracking"] = {"enabled": True, "cue": {"input": "supply_v", "below": 0.1}}
+    content["field_log"] = {"dir": tempfile.gettempdir(), "max_mb": 1, "vehicle_id": "probe"}
     content["trust"] = {"keys": [str(_probe_public_key())], "require": True}
     return content
 

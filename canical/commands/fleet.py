@@ -1,0 +1,73 @@
+"""``canical fleet ingest|analyse``: the field logs of a fleet, collected and analysed.
+
+``ingest DIR... -o DATASET`` adds the segments' records to a Parquet dataset (a folder per
+vehicle and day; a record already there is not added again); ``analyse DATASET --report-dir R``
+judges each sensor from its records (see :mod:`canical.fleet`), in process or on a Dask cluster.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from canical.commands import COMMANDS
+from canical.errors import CanicalError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("fleet", help=COMMANDS["fleet"], description=__doc__.split("\n\n")[0])
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    ingest = actions.add_parser("ingest", help="add field-log segments to a Parquet dataset")
+    ingest.add_argument("sources", nargs="+", metavar="DIR",
+                        help="field-log folders (searched recursively for field-*.jsonl) or segment files")
+    ingest.add_argument("-o", "--output", required=True, metavar="DATASET",
+                        help="the dataset folder (made if missing; records already in it are kept once)")
+    ingest.set_defaults(run=run_ingest)
+    analyse = actions.add_parser("analyse",
+                                 help="judge each sensor from a dataset: sensors.csv, report.md, plots")
+    analyse.add_argument("dataset", metavar="DATASET", help="a dataset fleet ingest wrote")
+    analyse.add_argument("--report-dir", required=True, metavar="R",
+                         help="where sensors.csv, report.md and the plots go")
+    analyse.add_argument("--scheduler", metavar="tcp://HOST:PORT",
+                         help="a Dask distributed scheduler to run on (default: in this process, no "
+                              "cluster); its workers must see DATASET at the same path")
+    analyse.add_argument("--lots", metavar="CSV",
+                         help="a sensor table (columns sensor_id, lot) naming each sensor's lot (default: "
+                              "the sensor id's prefix before its dash)")
+    analyse.set_defaults(run=run_analyse)
+
+
+def run_ingest(args: argparse.Namespace) -> int:
+    from canical.files.output_plan import output_plan
+    from canical.fleet.ingest import ingest
+
+    target = Path(args.output)
+    if target.exists() and not target.is_dir():
+        raise CanicalError(f"{target}: not a folder (a dataset is a folder)")
+    with output_plan(dirs=[target]):
+        done = ingest([Path(s) for s in args.sources], target, lambda line: print(line, file=sys.stderr))
+    print(f"fleet ingest: {done.segments} segments read ({done.skipped} damaged, skipped), {done.rows} rows: "
+          f"{done.added} added to {target} in {done.partitions} partitions, "
+          f"{done.rows - done.added} already there")
+    return 0
+
+
+def run_analyse(args: argparse.Namespace) -> int:
+    from canical.files.output_plan import output_plan
+    from canical.fleet import engine, report
+    from canical.fleet.analysis import DRIFTING, OUT_OF_SPEC, judge
+
+    source = Path(args.dataset)
+    if not source.is_dir():
+        raise CanicalError(f"{source}: no such dataset folder")
+    if args.scheduler is not None and not args.scheduler.startswith(("tcp://", "tls://", "inproc://")):
+        raise CanicalError(f"--scheduler {args.scheduler}: give the scheduler's address, tcp://HOST:PORT")
+    lots = report.read_lots(Path(args.lots)) if args.lots else report.Lots()
+    with output_plan(dirs=[args.report_dir]):
+        verdicts = judge(engine.run(source, args.scheduler, print))
+        report.write(Path(args.report_dir), verdicts, str(source), lots)
+    flagged = {k: sum(v.verdict == k for v in verdicts) for k in (DRIFTING, OUT_OF_SPEC)}
+    print(f"fleet analyse: {len(verdicts)} sensor axes: {flagged[OUT_OF_SPEC]} out of spec, "
+          f"{flagged[DRIFTING]} drifting -> {Path(args.report_dir) / 'sensors.csv'}, report.md")
+    return 0

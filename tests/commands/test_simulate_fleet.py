@@ -1,0 +1,55 @@
+"""``canical simulate fleet``: field-log segments per vehicle that every reader reads, the truth
+beside them, vehicle k the same whatever the fleet's size; misuse is one line."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import pytest
+
+from canical.commands.cli import main
+from canical.fieldlog import segments
+from canical.fieldlog.record import ADOPTED, POWER_ON, REFUSED
+from canical.sim.fleet import DRIFTING, OUT_OF_SPEC, simulate_vehicle
+
+
+def test_a_fleet_is_a_folder_of_segments_per_vehicle_and_its_truth(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "fleet"
+    assert main(["simulate", "fleet", "--vehicles", "6", "--days", "4", "-o", str(out), "--seed", "3"]) == 0
+    assert "fleet of 6 vehicles over 4 days" in capsys.readouterr().out
+    truth = list(csv.DictReader((out / "truth.csv").open()))
+    assert [t["vehicle_id"] for t in truth] == [f"veh-{k:05d}" for k in range(6)]
+    for row in truth:
+        skipped: list[str] = []
+        paths = segments.segment_paths(out / row["vehicle_id"])
+        got = [r for s in segments.read_segments(paths, skipped.append) for r in s.records]
+        assert skipped == [] and {r.sensor_id for r in got} == {row["sensor_id"]}
+        assert got == simulate_vehicle(int(row["vehicle_id"][4:]), 4, 3)[1]
+        assert {r.decision for r in got} <= {ADOPTED, REFUSED, POWER_ON} and got[0].decision == POWER_ON
+
+
+def test_vehicle_k_is_the_same_whatever_the_fleets_size_and_plants_are_rare() -> None:
+    assert simulate_vehicle(7, 3, 0) == simulate_vehicle(7, 3, 0)
+    verdicts = [simulate_vehicle(k, 1, 0)[0].verdict for k in range(400)]
+    assert 0 < verdicts.count(DRIFTING) < 30 and 0 < verdicts.count(OUT_OF_SPEC) < 20
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--vehicles", "3"], "give --vehicles N and --days D"),
+    (["--vehicles", "0", "--days", "1"], "--vehicles is 1..100000"),
+])
+def test_misuse_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str],
+                            message: str) -> None:
+    assert main(["simulate", "fleet", "-o", str(tmp_path / "f"), *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+
+
+def test_a_folder_with_something_in_it_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "keep.txt").write_text("mine")
+    assert main(["simulate", "fleet", "--vehicles", "1", "--days", "1", "-o", str(tmp_path)]) == 2
+    assert "not an empty folder" in capsys.readouterr().err
+    assert main(["simulate", "drive", "--days", "1", "-o", str(tmp_path / "d.csv")]) == 2
+    assert "--vehicles and --days are for simulate fleet" in capsys.readouterr().err
