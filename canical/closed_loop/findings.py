@@ -110,6 +110,9 @@ class Confound:
     # With drift_of_session: the share of the error of stretches of the session it was not fitted
     # on that the channel's form removed (a real effect removes most of it).
     stretch_gain: float | None = None
+    # With drift_of_session: the share of the held-out error the drift leaves that the channel's
+    # form removed on top of it (a real effect of a drifting sensor removes much of it).
+    beyond_drift_gain: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -240,6 +240,11 @@ STRETCHES = 4
 #: the blind generator's development seeds, where forms fitted to a drift's wander and the weakest
 #: real effects (another error large beside them) both come close to it; bench_blind scores it.
 STRETCH_MIN_GAIN = 1.0 / 3.0
+#: The share of the held-out error an equally flexible drift leaves that a channel's form must remove
+#: on top of it to be blamed whatever its stretches say (:func:`_drift_beats`): a real effect of a
+#: sensor that drifts too is still there once the drift is fitted; a form fitted to the drift's
+#: wander has little left to take. The same third as :data:`STRETCH_MIN_GAIN`.
+BEYOND_DRIFT_MIN_GAIN = 1.0 / 3.0
 
 
 def stretch_folds(blocks: Blocks, k: int = STRETCHES) -> list[np.ndarray]:
@@ -644,17 +649,21 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     """The record of a channel's candidate that the session's own drift explains as well; None
     when the channel is the better explanation (or the candidate is not a channel's).
 
-    A channel is blamed only when two things hold. It predicts the held-out plateaus better than
-    an equally flexible drift of the session (:func:`drift_competitor`): a spline of a slowly
-    varying channel fits a slow drift about as well as the channel's real effect would. And, if it
-    has a bias of the channel alone (a form that depends only on the rate too is no bias drift's
-    double), it predicts stretches of the session it was not fitted on (:func:`stretch_gain`): the sensor
-    follows its channel the same way all session long, while a drift does not repeat, so a term
-    fitted to a drift's wander has nothing to say about another stretch of time.
+    A channel is blamed in either of two ways. (1) It predicts the held-out plateaus better than
+    an equally flexible drift of the session (:func:`drift_competitor`), and, if it has a bias of
+    the channel alone (a form that depends on the rate too is no bias drift's double), it predicts
+    stretches of the session it was not fitted on (:func:`stretch_gain`): the sensor follows its
+    channel the same way all session long, while a drift does not repeat. (2) Added on top of that
+    drift, it still removes a large share of the held-out error, significantly
+    (:data:`BEYOND_DRIFT_MIN_GAIN`, paired at :data:`CONFOUND_ALPHA`): the effect of a sensor that
+    also drifts, whose stretches the drift keeps from being predicted, or whose form extrapolates
+    badly into a stretch whose channel goes beyond the others'. A spline of a slowly varying
+    channel fits a slow drift about as well as the channel's real effect would; once the drift
+    is fitted, such a form has little left to take.
 
-    The drift is not added either: a smooth function of this session's clock is a property of the
-    session, not of the sensor, and on the vehicle it would add this session's wander at the same
-    times after power-on. What is left is reported (unexplained, if it is large).
+    The drift is not added either way: a smooth function of this session's clock is a property of
+    the session, not of the sensor, and on the vehicle it would add this session's wander at the
+    same times after power-on. What is left is reported (unexplained, if it is large).
     """
     if best.kind != CHANNEL:
         return None
@@ -663,11 +672,16 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         return None
     with_channel = replace(s, terms=s.terms + best.terms)
     with_drift = replace(s, terms=s.terms + drift.terms)
+    with_both = replace(s, terms=s.terms + drift.terms + best.terms)
     r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
-    p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
+    beyond = 1.0 - scorer.held_rms(with_both) / r_drift
+    p_beyond = better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift))
+    if beyond >= BEYOND_DRIFT_MIN_GAIN and p_beyond < CONFOUND_ALPHA:
+        return None
     gain = stretch_gain(scorer.blocks, s, best.terms, scorer.duration_s) if _has_bias(best) else None
     if r_channel < r_drift and (gain is None or gain >= STRETCH_MIN_GAIN):
         return None
+    p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
     ch = best.channel or ""
     return Confound(
         candidates=(best.name, DRIFT_SPLINE_NAME), weaker_alternatives=(),
@@ -677,7 +691,7 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         recommendation=(f"record a session in which {ch} changes in steps in random order, so that it "
                         "no longer follows the sensor's slow drift"),
         adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
-        stretch_gain=gain,
+        stretch_gain=gain, beyond_drift_gain=beyond,
     )
 
 

@@ -158,8 +158,11 @@ def _drift_reason(c: Confound) -> str:
         f", and fitted on the rest of the session it predicts {c.stretch_gain:.0%} of the residual of "
         "a stretch it did not see (a sensor's own effect repeats all session long and predicts most "
         "of it; a drift does not repeat)")
+    beyond = "" if c.beyond_drift_gain is None else (
+        f"; added on top of that drift it removes {max(c.beyond_drift_gain, 0.0):.0%} of what the drift "
+        "leaves (a real effect of a sensor that also drifts is still there once the drift is fitted)")
     return (f"{name} predicts the held-out plateaus to {rms[name]:.4f} deg/s against {rms[drift]:.4f} "
-            f"for a drift of the session as flexible{stretches}. No term of either is in the set: a "
+            f"for a drift of the session as flexible{stretches}{beyond}. No term of either is in the set: a "
             "smooth function of this session's clock is a property of the session, not of the sensor.")
 
 
