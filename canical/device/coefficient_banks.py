@@ -119,6 +119,12 @@ class Trust:
                 "counter": self.counter}
 
 
+#: The trust of a device whose stored trust could not be read: no key and provisioning closed (a
+#: state no provisioning reaches, since closing needs a key): every activation is refused until the
+#: device is provisioned again at the factory (its state removed), never reopened by the damage.
+DAMAGED_TRUST = Trust(b"", provisioning_open=False, counter=0)
+
+
 def trust_from_dict(entry: dict[str, object]) -> Trust:
     """A state file's trust section; any defect is a ValueError (the state is then unreadable)."""
     key = base64.b64decode(str(entry["key"]), validate=True)
@@ -502,6 +508,10 @@ class BankStore:
         """With a trust key: the signed version of every bank an activation newly selects (an IMU
         set's, on its coupling bank, covers its axes), else a refusal naming the first bad one.
         Without a key: none (no signature needed)."""
+        if self.trust == DAMAGED_TRUST:
+            raise self._refuse(ABORT_DEVICE_STATE, "activation refused: the device's stored trust is "
+                                                   "damaged; it takes no set until provisioned again at the "
+                                                   "factory")
         if not self.trust.key:
             return []
         sensor = sensor_id_for_serial(self.limits.serial)
@@ -637,13 +647,22 @@ class BankStore:
 
 def _surviving_trust(path: Path) -> Trust:
     """The trust section of a state file whose banks cannot be read: a damaged bank must not
-    reopen provisioning or reset the counter. Only a damaged trust section itself gives a device
-    never provisioned (logged)."""
+    reopen provisioning or reset the counter. A file from before trust existed (readable, with
+    no trust section) is a device never provisioned; a trust section that cannot be read, or a
+    file that cannot be read at all, fails closed (:data:`DAMAGED_TRUST`): reopening provisioning
+    would let anyone who can damage the file install their own key."""
     try:
-        return trust_from_dict(json.loads(path.read_text(encoding="utf-8"))["trust"])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
-        log.error("stored state %s: trust unreadable (%s): no trust key, provisioning open", path, exc)
+        content = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        log.error("stored state %s unreadable (%s): trust damaged, no set is activated", path, exc)
+        return DAMAGED_TRUST
+    if not isinstance(content, dict) or "trust" not in content:
         return Trust()
+    try:
+        return trust_from_dict(content["trust"])
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        log.error("stored state %s: trust unreadable (%s): no set is activated", path, exc)
+        return DAMAGED_TRUST
 
 
 def _describe(active: dict[str, str | None], store: BankStore | None = None) -> str:

@@ -177,6 +177,30 @@ def test_damaged_banks_in_the_state_file_keep_the_trust(tmp_path: Path) -> None:
     assert (trust.key, trust.provisioning_open, trust.counter) == (LAB_PUBLIC, False, COUNTER)
 
 
+@pytest.mark.parametrize("damage", ["trust section", "whole file"])
+def test_a_damaged_trust_fails_closed(tmp_path: Path, damage: str) -> None:
+    """Damage to the stored trust must not reopen provisioning (anyone able to damage the file could
+    then install their own key): the device boots refusing every activation and every key."""
+    state = tmp_path / "imu.json"
+    store = provisioned(state)
+    store.close_provisioning(PROVISION_CLOSE_SIGNATURE)
+    store.store(True)
+    if damage == "trust section":
+        content = json.loads(state.read_text())
+        content["trust"]["key"] = "not base64 !"
+        state.write_text(json.dumps(content))
+    else:
+        state.write_text(state.read_text()[:40])
+    again = BankStore.boot(LIMITS, 16384, state)
+    assert not again.trust.provisioning_open and again.trust.key == b""
+    with pytest.raises(BankRefusal, match="provisioning is closed"):
+        again.write_trust_key(public_of(bytes(32)))
+    content, crc_ = encode_set(imu_set("z"))
+    write_axis(again, "z", "B", content, crc_, bank_signature(LAB_SEED, content, COUNTER + 1))
+    with pytest.raises(BankRefusal, match="stored trust is damaged"):
+        again.activate(pack_active({"z": "B"}))
+
+
 def test_an_old_state_file_without_trust_loads_unprovisioned(tmp_path: Path) -> None:
     state = tmp_path / "imu.json"
     store = BankStore(LIMITS, 16384, state)
