@@ -105,3 +105,28 @@ def test_a_cluster_with_a_worker_killed_gives_the_embedded_result(replayed: Path
     embedded = (replayed / "replay.csv").read_bytes()
     assert (tmp_path / "calm.csv").read_bytes() == embedded
     assert (tmp_path / "killed.csv").read_bytes() == embedded
+
+
+def test_a_parquet_drive_replays_as_its_csv(replayed: Path, tmp_path: Path) -> None:
+    """The same drive as Parquet (columns as the CSV's, the sensor in its metadata) gives the
+    same figures, though read in other blocks."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from canical.fleet.replay import blocks
+
+    drive = replayed / "drives" / "veh-00000" / "drive-000.csv"
+    cols: dict[str, list[float]] = {}
+    for block in blocks(drive):
+        for name, values in block.items():
+            cols.setdefault(name, []).extend(values.tolist())
+    (tmp_path / "pq" / "veh-00000").mkdir(parents=True)
+    (tmp_path / "csv" / "veh-00000").mkdir(parents=True)
+    table = pa.table(cols).replace_schema_metadata({"sensor": WRONG})
+    pq.write_table(table, tmp_path / "pq" / "veh-00000" / "drive-000.parquet")
+    (tmp_path / "csv" / "veh-00000" / "drive-000.csv").write_bytes(drive.read_bytes())
+    for kind in ("pq", "csv"):
+        assert main(["fleet", "replay", str(tmp_path / kind), "--sets", str(replayed / "new"),
+                     "--baseline", str(replayed / "sets"), "-o", str(tmp_path / f"{kind}.csv")]) == 0
+    assert rows(tmp_path / "pq.csv") == rows(tmp_path / "csv.csv")
+    assert rows(tmp_path / "pq.csv")[WRONG] == rows(replayed / "replay.csv")[WRONG]
