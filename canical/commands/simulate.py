@@ -57,6 +57,13 @@ def register(sub) -> None:
                    help="fleet: how many vehicles (each one sensor; -o is a folder: one folder of field-log "
                         "segments per vehicle and truth.csv)")
     p.add_argument("--days", type=int, metavar="D", help="fleet: how many days of driving")
+    p.add_argument("--drives", type=int, metavar="K",
+                   help="fleet: also K raw drives per vehicle (drives/VEHICLE/drive-NNN.csv, its sensor's "
+                        "truth) and each sensor's baseline set (sets/SENSOR.yaml), for fleet replay; "
+                        "needs --drive-set")
+    p.add_argument("--drive-set", metavar="SET",
+                   help="fleet --drives: the set (segmented, no effect terms) every sensor's baseline "
+                        "set copies under its id; the raw drives are its rate model inverted")
     p.add_argument("--table-file", action="store_true",
                    help="the table logs its rate to its own file, on its own clock (5000.25 s off, "
                         "75 ppm slow), not on the bus: each log (with --config) gets no TABLE_REF, and "
@@ -74,8 +81,8 @@ def run(args: argparse.Namespace) -> int:
         if args.config or args.table_file:
             raise CanicalError("simulate fleet: --config and --table-file are for a session, drive or triad")
         return run_fleet(args)
-    if args.vehicles is not None or args.days is not None:
-        raise CanicalError("--vehicles and --days are for simulate fleet")
+    if args.vehicles is not None or args.days is not None or args.drives is not None:
+        raise CanicalError("--vehicles, --days and --drives are for simulate fleet")
     check_table_file(args)
     if args.kind == "triad":
         from canical.commands.simulate_triad import run_triad

@@ -10,4 +10,5 @@ ground; pyarrow, and distributed only for a cluster.
 """
 
 # The package's public face (tests/test_rings.py keeps it equal to what other rings import).
-__all__ = ["analysis", "dataset", "engine", "ingest", "report"]
+__all__ = ["analysis", "dataset", "engine", "ingest", "proposal", "proposal_files", "replay", "replay_plan",
+           "report"]

@@ -16,6 +16,7 @@ the residuals' spread the turn-on spread.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Sequence
@@ -48,6 +49,7 @@ class PowerOnSums:
     power_on: np.ndarray
     hours_before: np.ndarray
     sums: np.ndarray  # (rows, len(_SUMS)), in _SUMS's order
+    set_id: np.ndarray  # the set id of the power-on's last standstill (its calibration generation)
 
     @staticmethod
     def concat(parts: Sequence[PowerOnSums]) -> PowerOnSums:
@@ -55,9 +57,9 @@ class PowerOnSums:
         if not parts:
             empty = np.array([], dtype=object)
             return PowerOnSums(empty, empty, empty, np.array([], dtype=np.int64), np.array([]),
-                               np.zeros((0, len(_SUMS))))
+                               np.zeros((0, len(_SUMS))), np.array([], dtype=np.int64))
         joined = [np.concatenate([getattr(p, f) for p in parts]) for f in
-                  ("sensor_id", "axis", "vehicle_id", "power_on", "hours_before", "sums")]
+                  ("sensor_id", "axis", "vehicle_id", "power_on", "hours_before", "sums", "set_id")]
         order = np.lexsort((joined[3], joined[2].astype(str), joined[1].astype(str), joined[0].astype(str)))
         return PowerOnSums(*(c[order] for c in joined))
 
@@ -78,13 +80,14 @@ class SensorVerdict:
     power_ons: int
     vehicles: int
     hours: float  # operating hours spanned
+    set_id: int  # the set id of its last power-on: the calibration generation it runs now
 
 
 def summarise(table: pa.Table) -> PowerOnSums:
     """One vehicle's (or several vehicles') rows as sums per power-on (rows in any order)."""
     cols = {name: table.column(name).to_numpy(zero_copy_only=False) for name in
             ("vehicle_id", "sensor_id", "axis", "power_on", "since_power_on_s", "temp_c", "bias_dps",
-             "decision", "record_id")}
+             "decision", "record_id", "set_id")}
     hours = _hours_before(cols["vehicle_id"], cols["power_on"], cols["since_power_on_s"])
     keep = _kept(cols)
     order = np.lexsort((cols["record_id"][keep].astype(str), cols["axis"][keep].astype(str),
@@ -100,11 +103,13 @@ def summarise(table: pa.Table) -> PowerOnSums:
     starts = [i for i in range(len(keys)) if i == 0 or keys[i] != keys[i - 1]]
     sums = np.add.reduceat(terms, starts, axis=0) if starts else np.zeros((0, len(_SUMS)))
     first = [keys[i] for i in starts]
+    last_rows = [*(i - 1 for i in starts[1:]), len(keys) - 1] if starts else []
     return PowerOnSums(np.array([k[0] for k in first], dtype=object),
                        np.array([k[1] for k in first], dtype=object),
                        np.array([k[2] for k in first], dtype=object),
                        np.array([k[3] for k in first], dtype=np.int64),
-                       np.array([hours[(k[2], int(k[3]))] for k in first]), sums)
+                       np.array([hours[(k[2], int(k[3]))] for k in first]), sums,
+                       np.asarray(pick["set_id"][last_rows], dtype=np.int64))
 
 
 def _kept(cols: dict[str, np.ndarray]) -> np.ndarray:
@@ -138,7 +143,8 @@ def judge(sums: PowerOnSums) -> list[SensorVerdict]:
     """Every sensor axis's verdict from its power-ons' sums (``sums`` ordered as :meth:`concat` orders)."""
     keys = list(zip(sums.sensor_id.tolist(), sums.axis.tolist(), strict=True))
     starts = [i for i in range(len(keys)) if i == 0 or keys[i] != keys[i - 1]] + [len(keys)]
-    return [_judge_one(keys[a], sums.sums[a:b], sums.hours_before[a:b], sums.vehicle_id[a:b])
+    return [dataclasses.replace(_judge_one(keys[a], sums.sums[a:b], sums.hours_before[a:b],
+                                           sums.vehicle_id[a:b]), set_id=int(sums.set_id[b - 1]))
             for a, b in itertools.pairwise(starts)]
 
 
@@ -162,7 +168,7 @@ def _judge_one(key: tuple[str, str], s: np.ndarray, hours_before: np.ndarray,
     drift, drift_se, spread = _drift_and_spread(offsets, hours)
     verdict = _verdict(records, groups, slope, slope_se, drift, drift_se, spread)
     return SensorVerdict(key[0], key[1], verdict, slope, slope_se, spread, drift, drift_se, records, groups,
-                         len(set(vehicles.tolist())), float(hours.max() - hours.min()) if groups else 0.0)
+                         len(set(vehicles.tolist())), float(hours.max() - hours.min()) if groups else 0.0, 0)
 
 
 def _drift_and_spread(offsets: np.ndarray, hours: np.ndarray) -> tuple[float, float, float]:

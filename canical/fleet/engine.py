@@ -12,12 +12,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import TypeVar
 
 from canical.errors import CanicalError
 from canical.fleet import dataset
 from canical.fleet.analysis import PowerOnSums, summarise
 from canical.progress import Progress
 
+T = TypeVar("T")
+R = TypeVar("R")
 #: Vehicles per task: enough to amortise a task's overhead, few enough to spread over workers.
 BATCH = 16
 
@@ -37,20 +40,29 @@ def run(target: Path, scheduler: str | None, note: Callable[[str], None]) -> Pow
     work = batches(target)
     if not work:
         raise CanicalError(f"{target}: no vehicle folders (vehicle=...): not a dataset fleet ingest wrote")
+    return PowerOnSums.concat(run_tasks(summarise_folders, work, scheduler, note, "fleet analyse", "batches"))
+
+
+def run_tasks(fn: Callable[[T], R], work: Sequence[T], scheduler: str | None, note: Callable[[str], None],
+              label: str, unit: str) -> list[R]:
+    """``fn`` of each item, in the items' order: here one after the other (``scheduler`` None), or
+    as tasks on a Dask distributed cluster (a lost worker's tasks run again elsewhere); a
+    progress line as they finish either way."""
+    progress = Progress(label, len(work), unit=unit)
     if scheduler is None:
-        progress = Progress("fleet analyse", len(work), unit="batches")
         parts = []
-        for done, batch in enumerate(work, 1):
-            parts.append(summarise_folders(batch))
+        for done, item in enumerate(work, 1):
+            parts.append(fn(item))
             progress.update(done)
-        return PowerOnSums.concat(parts)
-    return PowerOnSums.concat(_on_cluster(scheduler, work, note))
+        return parts
+    return _on_cluster(fn, scheduler, work, note, label, progress)
 
 
-def _on_cluster(scheduler: str, work: list[list[str]], note: Callable[[str], None]) -> list[PowerOnSums]:
-    """The batches as tasks on a Dask distributed cluster; results in the batches' order."""
+def _on_cluster(fn: Callable[[T], R], scheduler: str, work: Sequence[T], note: Callable[[str], None],
+                label: str, progress: Progress) -> list[R]:
+    """The items as tasks on a Dask distributed cluster; results in the items' order."""
     try:
-        from distributed import Client
+        from distributed import Client, as_completed
     except ImportError:
         raise CanicalError("--scheduler needs dask's distributed package (pip install 'dask[distributed]')") \
             from None
@@ -60,6 +72,8 @@ def _on_cluster(scheduler: str, work: list[list[str]], note: Callable[[str], Non
         raise CanicalError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
     with client:
         workers = len(client.scheduler_info().get("workers", {}))
-        note(f"fleet analyse: {len(work)} batches on {scheduler} ({workers} workers)")
-        futures = client.map(summarise_folders, work, pure=False)
+        note(f"{label}: {len(work)} tasks on {scheduler} ({workers} workers)")
+        futures = client.map(fn, list(work), pure=False)
+        for done, _ in enumerate(as_completed(futures), 1):  # type: ignore[no-untyped-call]
+            progress.update(done)
         return list(client.gather(futures))  # type: ignore[no-untyped-call]

@@ -96,24 +96,52 @@ def report_md(verdicts: Sequence[SensorVerdict], source: str, lots: Lots) -> str
               f"± {v.slope_se:.4f} | {v.drift_dps_per_h:+.4f} ± {v.drift_se:.4f} |" for v in flagged]
     if not flagged:
         lines.append("| none | | | | | |")
-    lines += ["", "## Per lot", "", "| lot | sensors | in spec | drifting | out of spec "
-              "| median spread deg/s | median slope deg/s/°C |", "|---|---|---|---|---|---|---|"]
+    lines += ["", "## Per lot", "", *_GROUP_HEAD.replace("GROUP", "lot").splitlines()]
     lines += [_lot_row(lot, [v for v in verdicts if lots.of(v.sensor_id) == lot])
               for lot in sorted({lots.of(v.sensor_id) for v in verdicts})]
+    lines += ["", "## Per set id", "", *per_set_id(verdicts)]
     lines += ["", "![turn-on spread](spread.png)", "", "![temperature slope](slope.png)", "",
               "![drift](drift.png)", ""]
     return "\n".join(lines)
 
 
+_GROUP_HEAD = ("| GROUP | sensors | in spec | drifting | out of spec | spread deg/s: median (10–90 %) "
+               "| slope deg/s/°C: median (10–90 %) |\n|---|---|---|---|---|---|---|")
+
+
 def _lot_row(lot: str, mine: Sequence[SensorVerdict]) -> str:
     counts = " | ".join(str(sum(v.verdict == k for v in mine)) for k in (IN_SPEC, DRIFTING, OUT_OF_SPEC))
-    spread, slope = _median([v.spread_dps for v in mine]), _median([v.slope_dps_per_c for v in mine])
-    return f"| {lot} | {len(mine)} | {counts} | {spread:.3f} | {slope:+.4f} |"
+    spread = _spread_of([v.spread_dps for v in mine], "{:.3f}")
+    slope = _spread_of([v.slope_dps_per_c for v in mine], "{:+.4f}")
+    return f"| {lot} | {len(mine)} | {counts} | {spread} | {slope} |"
 
 
-def _median(values: Sequence[float]) -> float:
+def _spread_of(values: Sequence[float], fmt: str) -> str:
+    """A distribution in a cell: the median and the 10th and 90th percentiles."""
     finite = [x for x in values if math.isfinite(x)]
-    return float(np.median(finite)) if finite else math.nan
+    if not finite:
+        return "–"
+    p10, p50, p90 = (float(x) for x in np.percentile(finite, [10, 50, 90]))
+    return f"{fmt.format(p50)} ({fmt.format(p10)} to {fmt.format(p90)})"
+
+
+def per_set_id(verdicts: Sequence[SensorVerdict]) -> list[str]:
+    """Per set id shared by several sensors (one calibration generation): the distributions.
+
+    Why only shared ones: a set is usually one sensor's calibration, so a set id names one sensor
+    and its distribution is that sensor's row; a set id several sensors carry (the same set pushed
+    to a batch, or an IMU's combined id) is where a generation's behaviour shows."""
+    groups: dict[int, list[SensorVerdict]] = {}
+    for v in verdicts:
+        groups.setdefault(v.set_id, []).append(v)
+    shared = {k: g for k, g in sorted(groups.items()) if len(g) > 1}
+    if not shared:
+        return [f"Every set id here is one sensor's ({len(groups)} set ids, {len(verdicts)} sensor axes): "
+                "no generation is shared, so there is no distribution per set id."]
+    rows = [_lot_row(f"0x{k:08x}", g) for k, g in shared.items()]
+    alone = len(groups) - len(shared)
+    return [*_GROUP_HEAD.replace("GROUP", "set id").splitlines(), *rows, "",
+            f"{alone} further set ids are one sensor's each."]
 
 
 def write(report_dir: Path, verdicts: Sequence[SensorVerdict], source: str, lots: Lots) -> None:

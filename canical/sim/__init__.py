@@ -33,6 +33,7 @@ __all__ = [
     "effects",
     "environment",
     "fleet",
+    "fleet_drives",
     "gyro",
     "imu_stream",
     "rate_table",

@@ -67,7 +67,8 @@ def test_daemon_unit_is_notify_with_watchdog_unprivileged() -> None:
     text = (UNITS / "canical@.service").read_text()
     for line in ("Type=notify", "WatchdogSec=", "DynamicUser=yes", "CapabilityBoundingSet=\n",
                  "RestrictAddressFamilies=AF_CAN AF_UNIX", "NoNewPrivileges=yes", "ProtectSystem=strict",
-                 "ExecReload=/bin/kill -HUP $MAINPID", "--channel %i"):
+                 "ExecReload=/bin/kill -HUP $MAINPID", "--channel %i",
+                 "StateDirectory=canical\n"):  # /var/lib/canical: field_log and state_file go there
         assert line in text, line
 
 

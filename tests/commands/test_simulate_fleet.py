@@ -52,4 +52,29 @@ def test_a_folder_with_something_in_it_is_refused(tmp_path: Path, capsys: pytest
     assert main(["simulate", "fleet", "--vehicles", "1", "--days", "1", "-o", str(tmp_path)]) == 2
     assert "not an empty folder" in capsys.readouterr().err
     assert main(["simulate", "drive", "--days", "1", "-o", str(tmp_path / "d.csv")]) == 2
-    assert "--vehicles and --days are for simulate fleet" in capsys.readouterr().err
+    assert "--vehicles, --days and --drives are for simulate fleet" in capsys.readouterr().err
+
+
+def test_drives_come_with_their_baseline_sets(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--drives K: per vehicle K raw drives naming their sensor, and the sensor's baseline set
+    (--drive-set under its id); the raw values give the drive's rate back through that set."""
+    from canical.fleet.replay import blocks
+    from canical.sets import coefficient_file
+    from canical.sets.corrector import Corrector
+
+    template = Path(__file__).parents[1] / "data" / "sets" / "daemon-z.yaml"
+    assert main(["simulate", "fleet", "--vehicles", "2", "--days", "1", "--drives", "2", "--drive-set",
+                 str(template), "-o", str(tmp_path / "f")]) == 0
+    drives = sorted((tmp_path / "f" / "drives").rglob("*.csv"))
+    assert [p.relative_to(tmp_path / "f" / "drives").as_posix() for p in drives] == [
+        "veh-00000/drive-000.csv", "veh-00000/drive-001.csv", "veh-00001/drive-000.csv",
+        "veh-00001/drive-001.csv"]
+    sensor = drives[0].read_text().splitlines()[0].removeprefix("# sensor: ")
+    cset = coefficient_file.load(tmp_path / "f" / "sets" / f"{sensor}.yaml")
+    cols = next(blocks(drives[0]))
+    rate, _ = Corrector(cset).correct(cols["raw"])
+    stopped = cols["speed_mps"] == 0
+    assert abs(float((rate - cols["true_rate_dps"])[stopped].mean())) < 1.5  # the sensor's bias, no more
+    assert main(["simulate", "fleet", "--vehicles", "1", "--days", "1", "--drives", "1",
+                 "-o", str(tmp_path / "g")]) == 2
+    assert "--drives K (1..100) and --drive-set SET go together" in capsys.readouterr().err

@@ -164,3 +164,26 @@ def test_a_worker_killed_in_the_middle_changes_nothing(fleet: tuple[Path, Path],
     assert killed and killed[0] < VEHICLES  # killed while tasks were left
     embedded = (tmp_path / "embedded" / "sensors.csv").read_bytes()
     assert (tmp_path / "cluster" / "sensors.csv").read_bytes() == embedded
+
+
+def test_per_set_id_distributions_show_shared_generations(fleet: tuple[Path, Path], tmp_path: Path) -> None:
+    """sensors.csv names each sensor's set id; report.md gives per shared set id (a calibration
+    generation several sensors carry) the verdicts and the spread and slope distributions, and
+    says so when every set id is one sensor's (the simulated fleet: a set per sensor)."""
+    import dataclasses
+
+    from canical.fleet.analysis import IN_SPEC, SensorVerdict
+    from canical.fleet.report import per_set_id
+
+    _, data = fleet
+    assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "r")]) == 0
+    got = rows(tmp_path / "r" / "sensors.csv")
+    assert len({r["set_id"] for r in got.values()}) == VEHICLES
+    report = (tmp_path / "r" / "report.md").read_text()
+    assert f"Every set id here is one sensor's ({VEHICLES} set ids" in report
+    assert "| lot | sensors | in spec | drifting | out of spec | spread deg/s: median (10–90 %)" in report
+    base = SensorVerdict("A-1", "z", IN_SPEC, 0.001, 1e-4, 0.1, 0.0, 1e-3, 50, 10, 1, 20.0, 0xAB)
+    shared = [dataclasses.replace(base, sensor_id=f"A-{i}", spread_dps=0.1 * i) for i in range(1, 6)]
+    lines = per_set_id([*shared, dataclasses.replace(base, sensor_id="B-1", set_id=7)])
+    assert "| 0x000000ab | 5 | 5 | 0 | 0 | 0.300 (0.140 to 0.460) | +0.0010 (+0.0010 to +0.0010) |" in lines
+    assert lines[-1] == "1 further set ids are one sensor's each."
