@@ -371,3 +371,49 @@ def test_bus_loss_under_systemd(installed) -> None:
     print("journal:\n" + "\n".join(lines))
     outage = [line for line in lines if "vcan0" in line and ("lost" in line or "back after" in line)]
     assert len(outage) == 2 and "lost" in outage[0] and "back after" in outage[1], lines
+
+
+def test_trust_under_the_sandbox(installed, tmp_path: Path) -> None:
+    """``trust: require`` in the hardened unit: the service's dynamic user reads the lab's public
+    key and the signed sets from /etc/canical; an unsigned set offered by ``systemctl reload`` is
+    refused in one journal line and the running sets stay (STATUS, same PID); a newer signed set
+    is adopted by the next reload."""
+    from support.signed_sets import make_lab, signed_copy
+
+    lab = make_lab(tmp_path / "keys")
+    config = ETC / "vcan0.yaml"
+    original = config.read_text()
+    signed = {a: signed_copy(Path(p), tmp_path / f"v1-{a}.yaml", lab.key, 1)
+              for a, p in installed["sets"].items()}
+    newer_x = signed_copy(Path(installed["variant"]["x"]), tmp_path / "v2-x.yaml", lab.key, 2)
+
+    def place(path: Path, source: Path) -> None:
+        path.write_bytes(source.read_bytes())
+        path.chmod(0o644)
+
+    try:
+        place(ETC / "lab.pub", lab.pub)
+        for axis, path in signed.items():
+            place(ETC / f"imu-{axis}.yaml", path)
+        config.write_text(original + f"trust: {{keys: [{ETC}/lab.pub], require: true}}\n")
+        systemctl("start", DAEMON)
+        pid = show(DAEMON, "MainPID")["MainPID"]
+        running = Corrector(coefficient_file.load(signed["x"])).set_id
+        wait_until("STATUS with the signed sets", lambda: f"x={running:08x}" in _status_text(), timeout=30)
+        place(ETC / "imu-x.yaml", Path(installed["variant"]["x"]))  # not signed
+        systemctl("reload", DAEMON)
+        refused = wait_until("the refusal in the journal", lambda: [
+            line for line in _since_last_start(journal(DAEMON)) if "not signed" in line] or None, timeout=30)
+        assert len(refused) == 1 and "keeping set" in refused[0], refused
+        assert f"x={running:08x}" in _status_text() and show(DAEMON, "MainPID")["MainPID"] == pid
+        place(ETC / "imu-x.yaml", newer_x)
+        systemctl("reload", DAEMON)
+        adopted = Corrector(coefficient_file.load(newer_x)).set_id
+        wait_until("the newer signed set in STATUS", lambda: f"x={adopted:08x}" in _status_text(), timeout=30)
+        assert show(DAEMON, "ActiveState", "MainPID") == {"ActiveState": "active", "MainPID": pid}
+        print("journal:\n" + "\n".join(_since_last_start(journal(DAEMON))))
+    finally:
+        systemctl("stop", DAEMON, check=False)
+        config.write_text(original)
+        (ETC / "lab.pub").unlink(missing_ok=True)
+        run(*installed["cmd"])  # the original sets back
