@@ -2,8 +2,8 @@
 # Install what the tests need on a fresh machine, then lint, type-check (mypy, configured in pyproject.toml),
 # build the documentation site (warnings are errors) and run the whole suite.
 # Debian packages (user-mode Linux for the vcan tests; systemd and dbus for the unit checks
-# and the systemd guest tier; python3-venv for its install test) are installed with apt-get
-# when running as root and missing.
+# and the systemd guest tier; python3-venv for its install test; libsodium for the firmware's
+# signature check) are installed with apt-get when running as root and missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -15,6 +15,8 @@ command -v systemd-analyze >/dev/null 2>&1 && [ -x /lib/systemd/systemd ] || nee
 command -v dbus-daemon >/dev/null 2>&1 || need+=(dbus)
 /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || need+=(python3-venv)
 command -v cc >/dev/null 2>&1 || need+=(gcc libc6-dev)
+# the firmware's signature check is built against the distribution's libsodium in the tests
+ldconfig -p 2>/dev/null | grep -q 'libsodium\.so\.23' || need+=(libsodium23)
 if [ "${#need[@]}" -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     echo "installing Debian packages: ${need[*]}"
