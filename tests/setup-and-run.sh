@@ -16,7 +16,7 @@ command -v dbus-daemon >/dev/null 2>&1 || need+=(dbus)
 /usr/bin/python3 -c 'import ensurepip, venv' >/dev/null 2>&1 || need+=(python3-venv)
 command -v cc >/dev/null 2>&1 || need+=(gcc libc6-dev)
 # the firmware's signature check is built against the distribution's libsodium in the tests
-ldconfig -p 2>/dev/null | grep -q 'libsodium\.so\.23' || need+=(libsodium23)
+[ -e /usr/lib/x86_64-linux-gnu/libsodium.so.23 ] || need+=(libsodium23)  # the path the test links
 if [ "${#need[@]}" -gt 0 ]; then
   if [ "$(id -u)" = 0 ]; then
     echo "installing Debian packages: ${need[*]}"
