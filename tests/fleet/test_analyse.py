@@ -120,47 +120,19 @@ def test_a_worker_killed_in_the_middle_changes_nothing(fleet: tuple[Path, Path],
                                                        monkeypatch: pytest.MonkeyPatch) -> None:
     """One of two worker processes is killed (SIGKILL) once some of the tasks are done: the cluster
     runs the lost ones again elsewhere and sensors.csv is the undisturbed run's, byte for byte."""
-    import os
-    import signal
-    import threading
-    import time
-
     distributed = pytest.importorskip("distributed")
+    from support.worker_kill import worker_killed_after
+
     from canical.fleet import engine
 
     monkeypatch.setattr(engine, "BATCH", 1)  # a task per vehicle: 40 tasks, the kill lands among them
     _, data = fleet
     assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "embedded")]) == 0
-    killed: list[int] = []
-
-    def done(dask_scheduler) -> int:  # type: ignore[no-untyped-def]
-        return sum(ts.state == "memory" for ts in dask_scheduler.tasks.values())
-
-    watching, finished_run = threading.Event(), threading.Event()
-
-    def kill_one(address: str) -> None:
-        with distributed.Client(address) as watcher:
-            pid = next(iter(watcher.run(os.getpid).values()))
-            watching.set()
-            while not finished_run.is_set():
-                finished = watcher.run_on_scheduler(done)
-                if finished >= 3:
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(finished)
-                    return
-                time.sleep(0.002)
-
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as cluster:
-        thread = threading.Thread(target=kill_one, args=(cluster.scheduler_address,))
-        thread.start()
-        assert watching.wait(30)
-        try:
-            assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "cluster"),
-                         "--scheduler", cluster.scheduler_address]) == 0
-        finally:
-            finished_run.set()
-            thread.join()
+                                  dashboard_address=None) as cluster, \
+            worker_killed_after(cluster.scheduler_address, 3) as killed:
+        assert main(["fleet", "analyse", str(data), "--report-dir", str(tmp_path / "cluster"),
+                     "--scheduler", cluster.scheduler_address]) == 0
     assert killed and killed[0] < VEHICLES  # killed while tasks were left
     embedded = (tmp_path / "embedded" / "sensors.csv").read_bytes()
     assert (tmp_path / "cluster" / "sensors.csv").read_bytes() == embedded

@@ -8,10 +8,6 @@ the loopback), with or without one of them killed mid-run, gives the embedded en
 from __future__ import annotations
 
 import csv
-import os
-import signal
-import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -68,39 +64,16 @@ def test_a_cluster_with_a_worker_killed_gives_the_embedded_result(replayed: Path
     """Two worker processes; one run undisturbed, one with a worker killed (SIGKILL) once two
     drives are done: both replay.csv files are the embedded engine's, byte for byte."""
     distributed = pytest.importorskip("distributed")
+    from support.worker_kill import worker_killed_after
+
     argv = ["fleet", "replay", str(replayed / "drives"), "--sets", str(replayed / "new"),
             "--baseline", str(replayed / "sets")]
-    killed: list[int] = []
-
-    def done(dask_scheduler) -> int:  # type: ignore[no-untyped-def,unused-ignore]
-        return sum(ts.state == "memory" for ts in dask_scheduler.tasks.values())
-
-    watching, finished_run = threading.Event(), threading.Event()
-
-    def kill_one(address: str) -> None:
-        with distributed.Client(address) as watcher:
-            pid = next(iter(watcher.run(os.getpid).values()))
-            watching.set()
-            while not finished_run.is_set():
-                finished = watcher.run_on_scheduler(done)
-                if finished >= 2:
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(finished)
-                    return
-                time.sleep(0.002)
-
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
         address = cluster.scheduler_address
         assert main([*argv, "--scheduler", address, "-o", str(tmp_path / "calm.csv")]) == 0
-        thread = threading.Thread(target=kill_one, args=(address,))
-        thread.start()
-        assert watching.wait(30)
-        try:
+        with worker_killed_after(address, 2) as killed:
             assert main([*argv, "--scheduler", address, "-o", str(tmp_path / "killed.csv")]) == 0
-        finally:
-            finished_run.set()
-            thread.join()
     assert killed and killed[0] < VEHICLES  # killed while drives were left
     embedded = (replayed / "replay.csv").read_bytes()
     assert (tmp_path / "calm.csv").read_bytes() == embedded
