@@ -83,6 +83,25 @@ def with_matrix(imu, matrix) -> CouplingPayload:
 # --------------------------------------------------------------------------------------------
 
 
+def cut_off(c: ImuClient, *, at_download: tuple[int, int] | None = None, at_selector: bool = False) -> None:
+    """Make the device fall silent (:class:`DeviceSilent`) at one SDO download of ``c``'s, or at its
+    selector write: a tool that dies mid-push."""
+    real_download, real_write = c.download, c.write_uint
+    selector = imu_objects().active_banks
+
+    def download(key, data, what):  # type: ignore[no-untyped-def]
+        if key == at_download:
+            raise DeviceSilent("gone")
+        real_download(key, data, what)
+
+    def write_uint(key, value, size, what):  # type: ignore[no-untyped-def]
+        if at_selector and key == selector:
+            raise DeviceSilent("gone")
+        real_write(key, value, size, what)
+
+    c.download, c.write_uint = download, write_uint  # type: ignore[method-assign]
+
+
 def test_coupling_objects_are_in_the_eds_apart_from_every_other() -> None:
     from canopen.objectdictionary import DOMAIN, UNSIGNED32
 
@@ -342,20 +361,9 @@ def test_an_interrupted_push_leaves_the_old_state(tmp_path: Path, stop_at: str) 
         before = (dev.store.active_value(), {a: dev.store.active_id(a) for a in AXES},
                   dev.store.active_imu_set_id(), dev.store.activation_count)
         with client(channel) as c:
-            real_download, real_write = c.download, c.write_uint
             coupling_content = (o.coupling_bank("B").index, o.coupling_bank("B").content)
-
-            def download(key, data, what):
-                if stop_at == "coupling" and key == coupling_content:
-                    raise DeviceSilent("gone")
-                real_download(key, data, what)
-
-            def write_uint(key, value, size, what):
-                if stop_at == "selector" and key == o.active_banks:
-                    raise DeviceSilent("gone")
-                real_write(key, value, size, what)
-
-            c.download, c.write_uint = download, write_uint  # type: ignore[method-assign]
+            cut_off(c, at_download=coupling_content if stop_at == "coupling" else None,
+                    at_selector=stop_at == "selector")
             with pytest.raises(DeviceSilent):
                 push_sets(c, {}, imu=("new.yaml", new))
         after = (dev.store.active_value(), {a: dev.store.active_id(a) for a in AXES},

@@ -20,7 +20,7 @@ from support.signed_banks import (
     crc,
     imu_cases,
 )
-from test_imu_set_device import bus, client, emulated, one_line
+from test_imu_set_device import bus, client, cut_off, emulated, one_line
 
 from canical.commands.cli import main
 from canical.device.bank_payload import encode_set
@@ -153,18 +153,8 @@ def test_a_push_interrupted_between_payload_and_activation_keeps_the_old_set(tmp
         before = previous_z(c)
         real_download, real_write = c.download, c.write_uint
         signature_at = (o.bank("z", "B").index, o.bank("z", "B").signature)
-
-        def download(key, data, what):
-            if stop_at == "signature" and key == signature_at:
-                raise DeviceSilent("gone")
-            real_download(key, data, what)
-
-        def write_uint(key, value, size, what):
-            if stop_at == "selector" and key == o.active_banks:
-                raise DeviceSilent("gone")
-            real_write(key, value, size, what)
-
-        c.download, c.write_uint = download, write_uint  # type: ignore[method-assign]
+        cut_off(c, at_download=signature_at if stop_at == "signature" else None,
+                at_selector=stop_at == "selector")
         with pytest.raises(DeviceSilent):
             push_sets(c, {"z": (str(path), imu_set("z"))}, signatures=_signatures(path))
         assert dev.store.active_id("z") == before and dev.store.trust.counter == COUNTER
