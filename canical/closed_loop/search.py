@@ -661,6 +661,10 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     channel fits a slow drift about as well as the channel's real effect would; once the drift
     is fitted, such a form has little left to take.
 
+    The three models compared are each on the base size they deserve (:class:`_Footing`): on a base
+    too small for the sensor, the rate model's misfit dominates every held-out error and ties the
+    channel with the drift (a temperature effect that hid the curvature the first size choice needed).
+
     The drift is not added either way: a smooth function of this session's clock is a property of
     the session, not of the sensor, and on the vehicle it would add this session's wander at the
     same times after power-on. What is left is reported (unexplained, if it is large).
@@ -670,9 +674,9 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     drift = drift_competitor(best, scorer.blocks)
     if drift is None:
         return None
-    with_channel = replace(s, terms=s.terms + best.terms)
-    with_drift = replace(s, terms=s.terms + drift.terms)
-    with_both = replace(s, terms=s.terms + drift.terms + best.terms)
+    footing = _Footing(scorer, s, [best, drift])
+    with_channel, with_drift = footing.of(best.terms, footing.own[best.name]), footing.of(drift.terms)
+    with_both = footing.of(drift.terms + best.terms)
     r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
     beyond = 1.0 - scorer.held_rms(with_both) / r_drift
     p_beyond = better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift))
