@@ -155,8 +155,9 @@ def run_replay(args: argparse.Namespace) -> int:
     vehicles = replay.per_vehicle(results)
     text = replay.vehicles_csv(vehicles)
     for v in vehicles:
-        print(f"{v.vehicle_id} {v.sensor_id}: zero-rate error {v.before.zero_rate_rms_dps:.5f} -> "
-              f"{v.after.zero_rate_rms_dps:.5f} deg/s at {v.after.stops} standstills; heading drift "
+        print(f"{v.vehicle_id} {v.sensor_id}: zero-rate error carried into {v.after.stops} standstills "
+              f"{v.before.carried_rms_dps:.5f} -> {v.after.carried_rms_dps:.5f} deg/s (with the tracked bias "
+              f"{v.before.zero_rate_rms_dps:.5f} -> {v.after.zero_rate_rms_dps:.5f}); heading drift "
               f"{v.before.heading_rms_deg:.3f} -> {v.after.heading_rms_deg:.3f} deg")
     if args.output:
         write_text_atomic(args.output, text)
