@@ -37,6 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.fleet.drive_log import LogLayout, log_blocks
+from canical.sessions.canlog_format import is_canlog
 from canical.sessions.csv_chunks import read_chunks, read_head
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
@@ -61,6 +63,7 @@ class DriveTask:
     sensor_id: str
     baseline: str
     new: str
+    layout: LogLayout | None = None  # how to read it, when it is a CAN log
 
 
 @dataclass(frozen=True)
@@ -187,17 +190,23 @@ def replay_drive(task: DriveTask) -> DriveResult:
     before = _Pipeline(coefficient_file.load(task.baseline))
     after = _Pipeline(coefficient_file.load(task.new))
     rows = 0
-    for cols in blocks(Path(task.drive)):
+    for cols in blocks(Path(task.drive), task.layout, before.corrector.cset.axis):
         rows += len(cols["time_s"])
         before.block(cols)
         after.block(cols)
     return DriveResult(task.vehicle_id, task.sensor_id, rows, before.tally.result(), after.tally.result())
 
 
-def blocks(path: Path) -> Iterator[dict[str, np.ndarray]]:
-    """A drive's columns a block at a time: a CSV (the reader ``apply`` uses) or Parquet."""
+def blocks(path: Path, layout: LogLayout | None = None, axis: str = "z") -> Iterator[dict[str, np.ndarray]]:
+    """A drive's columns a block at a time: a CSV (the reader ``apply`` uses), Parquet, or a CAN
+    log read with ``layout`` (the raw signal of ``axis``)."""
     if path.suffix == ".parquet":
         yield from _parquet_blocks(path)
+        return
+    if is_canlog(path):
+        if layout is None:
+            raise CanicalError(f"{path}: reading a CAN log needs --dbc or --config")
+        yield from log_blocks(path, layout, axis, (*NEEDED, TEMP, TRUTH), NEEDED)
         return
     head = read_head(path)
     if head is None:
@@ -226,8 +235,11 @@ def _parquet_blocks(path: Path) -> Iterator[dict[str, np.ndarray]]:
         yield {c: batch.column(c).to_numpy(zero_copy_only=False).astype(float) for c in wanted}
 
 
-def drive_sensor(path: Path) -> str | None:
-    """The sensor a drive names: a CSV's ``# sensor:`` line, a Parquet file's ``sensor`` metadata."""
+def drive_sensor(path: Path, layout: LogLayout | None = None) -> str | None:
+    """The sensor a drive names: a CSV's ``# sensor:`` line, a Parquet file's ``sensor`` metadata,
+    a CAN log's ``--sensor`` (or its configuration's)."""
+    if is_canlog(path):
+        return layout.sensor if layout is not None else None
     if path.suffix == ".parquet":
         import pyarrow.parquet as pq
 
