@@ -151,7 +151,8 @@ def write_drive_log(path: Path, cols: dict[str, list[float]], dbc: Path) -> None
 @pytest.mark.parametrize("suffix", [".log", ".asc"])
 def test_a_can_log_drive_replays_as_its_csv(replayed: Path, tmp_path: Path, suffix: str) -> None:
     """The same drive (its first power-on) as a CSV and as a CAN log (candump or Vector ASC,
-    written by python-can) decoded with a DBC and --input: the same figures."""
+    written by python-can) decoded with a DBC and --input: the same figures; on a worker process
+    too."""
     drive = replayed / "drives" / "veh-00000" / "drive-000.csv"
     head, *lines = drive.read_text().splitlines()[2:40_003]
     names = head.split(",")
@@ -172,6 +173,13 @@ def test_a_can_log_drive_replays_as_its_csv(replayed: Path, tmp_path: Path, suff
     want = rows(tmp_path / "csv.csv")[WRONG]
     assert int(want["standstills"]) >= 3
     assert rows(tmp_path / "log.csv")[WRONG] == want  # the same values, decoded exactly: the same figures
+    if suffix == ".log":  # the log's layout travels to a worker process with its task
+        distributed = pytest.importorskip("distributed")
+        with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                      dashboard_address=None) as cluster:
+            assert main([*argv, str(tmp_path / "log"), "-o", str(tmp_path / "worker.csv"), *layout,
+                         "--scheduler", cluster.scheduler_address]) == 0
+        assert (tmp_path / "worker.csv").read_bytes() == (tmp_path / "log.csv").read_bytes()
 
 
 @pytest.mark.parametrize(("extra", "message"), [
