@@ -16,6 +16,7 @@ __all__ = [
     "emulate",
     "serve",
     "sign",
+    "simulate_fleet",
 ]
 
 # name -> one-line help, in the order ``canical --help`` lists them

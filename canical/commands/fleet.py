@@ -13,10 +13,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
+from canical.commands.canlog_args import add_canlog_arguments
 from canical.errors import CanicalError
 
 if TYPE_CHECKING:
     from canical.fleet.analysis import PowerOnSums, SensorVerdict
+    from canical.fleet.drive_log import LogLayout
     from canical.fleet.proposal import SetSource
 
 SetTable = dict[tuple[str, str], "SetSource"]
@@ -53,8 +55,9 @@ def register(sub) -> None:
     replay = actions.add_parser("replay", help="replay raw drives with the baseline and the new sets: "
                                                "zero-rate error at standstills and heading drift")
     replay.add_argument("drives", metavar="DRIVES",
-                        help="a folder of recorded raw drives (searched for *.csv and *.parquet; a drive's "
-                             "vehicle is its folder's name, its sensor its '# sensor:' line) or one drive")
+                        help="a folder of recorded raw drives (searched for *.csv, *.parquet and CAN logs; "
+                             "a drive's vehicle is its folder's name, its sensor its '# sensor:' line, a "
+                             "CAN log's --sensor) or one drive")
     replay.add_argument("--sets", required=True, metavar="NEW",
                         help="the new sets (a folder, as --propose-sets wrote it); a sensor without one "
                              "keeps its baseline")
@@ -64,6 +67,9 @@ def register(sub) -> None:
                              "workers must see the drives and sets at the same paths")
     replay.add_argument("-o", "--output", metavar="CSV",
                         help="write the per-vehicle figures there too (replay.csv)")
+    replay.add_argument("--sensor",
+                        help="the sensor id of the CAN logs (default: the configuration's sensor)")
+    add_canlog_arguments(replay)
     replay.set_defaults(run=run_replay)
 
 
@@ -144,19 +150,33 @@ def check_scheduler(scheduler: str | None) -> None:
         raise CanicalError(f"--scheduler {scheduler}: give the scheduler's address, tcp://HOST:PORT")
 
 
+def log_layout(args: argparse.Namespace) -> LogLayout | None:
+    """How CAN logs among the drives are read (``--dbc``/``--config``/``--input``, as ``apply``
+    reads a log); None when neither a DBC nor a configuration is given."""
+    from canical.commands.canlog_args import canlog_source
+    from canical.fleet.drive_log import LogLayout
+
+    if not (args.dbc or args.config):
+        return None
+    source = canlog_source(args, args.drives)
+    return LogLayout(source.dbc, tuple(source.inputs.items()), source.raw_message,
+                     tuple(source.raw_signals.items()), source.j1939_source, args.sensor or source.sensor)
+
+
 def run_replay(args: argparse.Namespace) -> int:
     from canical.files.atomic_file import write_text_atomic
     from canical.fleet import engine, replay, replay_plan
 
     check_scheduler(args.scheduler)
     tasks = replay_plan.plan(Path(args.drives), Path(args.sets), Path(args.baseline),
-                             lambda line: print(line, file=sys.stderr))
+                             lambda line: print(line, file=sys.stderr), log_layout(args))
     results = engine.run_tasks(replay.replay_drive, tasks, args.scheduler, print, "fleet replay", "drives")
     vehicles = replay.per_vehicle(results)
     text = replay.vehicles_csv(vehicles)
     for v in vehicles:
-        print(f"{v.vehicle_id} {v.sensor_id}: zero-rate error {v.before.zero_rate_rms_dps:.5f} -> "
-              f"{v.after.zero_rate_rms_dps:.5f} deg/s at {v.after.stops} standstills; heading drift "
+        print(f"{v.vehicle_id} {v.sensor_id}: zero-rate error carried into {v.after.stops} standstills "
+              f"{v.before.carried_rms_dps:.5f} -> {v.after.carried_rms_dps:.5f} deg/s (with the tracked bias "
+              f"{v.before.zero_rate_rms_dps:.5f} -> {v.after.zero_rate_rms_dps:.5f}); heading drift "
               f"{v.before.heading_rms_deg:.3f} -> {v.after.heading_rms_deg:.3f} deg")
     if args.output:
         write_text_atomic(args.output, text)

@@ -7,12 +7,21 @@ uses, Parquet a row group batch at a time), each block corrected by each generat
 that generation's tracker (:class:`~canical.tracking.replay.Replayer` carries its state), so a
 worker holds one block, not a drive, and any cut into blocks gives the same numbers.
 
-Why these figures: at a standstill the true rate is zero, so the output less the tracked bias is
-the error. A standstill's error is its mean over its rows (the noise averages out; what stays is
-the bias the tracker has not caught up with: the temperature slope the set leaves over, times
-the warming since the last standstill). Standstills shorter than :data:`MIN_STOP_S` are left
-out (a speed that touches zero for a row), and so is the first standstill of each power-on is left out: there
-the error is the new turn-on bias, which no set knows and the tracker learns at that very stop.
+Why these figures: at a standstill the true rate is zero, so the output is the error. Two
+figures per standstill, each a mean over its rows (the noise averages out):
+
+- *carried into it*: the output less the bias the tracker applied at its first row. That is the
+  error the vehicle carried into the stop, what the tracker had not caught up with, before it
+  re-learns the bias there: the temperature slope the set leaves over times the warming since the
+  last stop, less what the tracker's own slope predicted. This is the error a set is responsible
+  for;
+- *with the tracked bias*: the output less the bias tracked row by row. Within the stop the
+  tracker learns the bias again (after three still windows, then slewing to it), so this mixes
+  the carried error with the tracker's re-learning and its own noise floor; kept as it was.
+
+Standstills shorter than :data:`MIN_STOP_S` are left out (a speed that touches zero for a row),
+and so is the first standstill of each power-on: there the error is the new turn-on bias, which
+no set knows and the tracker learns at that very stop.
 The heading drift is the output less the true rate (a ``true_rate_dps`` column, as a simulated
 drive has), else less zero at the standstills only, integrated over the drive, in degrees.
 """
@@ -28,6 +37,8 @@ from pathlib import Path
 import numpy as np
 
 from canical.errors import CanicalError
+from canical.fleet.drive_log import LogLayout, log_blocks
+from canical.sessions.canlog_format import is_canlog
 from canical.sessions.csv_chunks import read_chunks, read_head
 from canical.sets import coefficient_file
 from canical.sets.coefficients import CoefficientSet
@@ -52,6 +63,7 @@ class DriveTask:
     sensor_id: str
     baseline: str
     new: str
+    layout: LogLayout | None = None  # how to read it, when it is a CAN log
 
 
 @dataclass(frozen=True)
@@ -62,10 +74,15 @@ class Generation:
     error_sq: float  # sum over them of the squared mean error, (deg/s)²
     heading_sq: float  # sum over drives of the squared heading drift, deg²
     drives: int
+    carried_sq: float = 0.0  # sum over them of the squared error carried in (the bias as they began)
 
     @property
     def zero_rate_rms_dps(self) -> float:
         return math.sqrt(self.error_sq / self.stops) if self.stops else math.nan
+
+    @property
+    def carried_rms_dps(self) -> float:
+        return math.sqrt(self.carried_sq / self.stops) if self.stops else math.nan
 
     @property
     def heading_rms_deg(self) -> float:
@@ -73,7 +90,8 @@ class Generation:
 
     def plus(self, other: Generation) -> Generation:
         return Generation(self.stops + other.stops, self.error_sq + other.error_sq,
-                          self.heading_sq + other.heading_sq, self.drives + other.drives)
+                          self.heading_sq + other.heading_sq, self.drives + other.drives,
+                          self.carried_sq + other.carried_sq)
 
 
 @dataclass(frozen=True)
@@ -89,27 +107,30 @@ class DriveResult:
 
 class _Tally:
     """One generation's running sums over a drive's blocks: standstills (a run of stopped rows
-    within a power-on), their error sums, and the heading integral."""
+    within a power-on), their error sums (with the tracked bias, and with the bias as the run
+    began), and the heading integral."""
 
     def __init__(self) -> None:
         self.last_time = math.inf  # the first row starts a power-on
         self.stopped = False
         self.first_of_power_on = True
         self.run_sum = self.run_n = self.run_start = self.run_end = 0.0
+        self.run_bias_sum = self.run_first_bias = 0.0
         self.run_counts = False
-        self.stops, self.error_sq, self.heading = 0, 0.0, 0.0
+        self.stops, self.error_sq, self.carried_sq, self.heading = 0, 0.0, 0.0, 0.0
 
-    def block(self, time_s: np.ndarray, stop: np.ndarray, err: np.ndarray, truth: np.ndarray | None) -> None:
+    def block(self, time_s: np.ndarray, stop: np.ndarray, err: np.ndarray, truth: np.ndarray | None,
+              bias: np.ndarray) -> None:
         prev = np.concatenate([[self.last_time], time_s[:-1]])
         new_power_on = time_s < prev
         dt = np.where(new_power_on, 0.0, time_s - prev)
         drift = err if truth is not None else np.where(stop, err, 0.0)
         self.heading += float(drift @ dt)
-        self._segments(time_s, new_power_on, stop, err)
+        self._segments(time_s, new_power_on, stop, err, bias)
         self.last_time = float(time_s[-1])
 
     def _segments(self, time_s: np.ndarray, new_power_on: np.ndarray, stop: np.ndarray,
-                  err: np.ndarray) -> None:
+                  err: np.ndarray, bias: np.ndarray) -> None:
         """Walk the block's runs (cut at each power-on and each change of stopped)."""
         was = np.concatenate([[self.stopped], stop[:-1]])
         cuts = np.flatnonzero(new_power_on | (stop != was))
@@ -124,9 +145,10 @@ class _Tally:
                 self.stopped = bool(stop[a])
                 if self.stopped:
                     self.run_counts, self.first_of_power_on = not self.first_of_power_on, False
-                    self.run_start = float(time_s[a])
+                    self.run_start, self.run_first_bias = float(time_s[a]), float(bias[a])
             if self.stopped:
                 self.run_sum += float(err[a:b].sum())
+                self.run_bias_sum += float(bias[a:b].sum())
                 self.run_n += b - a
                 self.run_end = float(time_s[b - 1])
 
@@ -134,13 +156,14 @@ class _Tally:
         if self.stopped and self.run_counts and self.run_end - self.run_start >= MIN_STOP_S:
             self.stops += 1
             self.error_sq += (self.run_sum / self.run_n) ** 2
-        self.run_sum = self.run_n = 0.0
+            self.carried_sq += ((self.run_sum + self.run_bias_sum) / self.run_n - self.run_first_bias) ** 2
+        self.run_sum = self.run_n = self.run_bias_sum = 0.0
         self.run_counts = False
 
     def result(self) -> Generation:
         self._close()
         self.stopped = False
-        return Generation(self.stops, self.error_sq, self.heading ** 2, 1)
+        return Generation(self.stops, self.error_sq, self.heading ** 2, 1, self.carried_sq)
 
 
 class _Pipeline:
@@ -159,7 +182,7 @@ class _Pipeline:
         bias = self.replayer.feed(cols["time_s"], rate, temp, cols[CUE])[:, 0]
         truth = cols.get(TRUTH)
         err = rate - bias - (truth if truth is not None else 0.0)
-        self.tally.block(cols["time_s"], cols[CUE] < CUE_BELOW, err, truth)
+        self.tally.block(cols["time_s"], cols[CUE] < CUE_BELOW, err, truth, bias)
 
 
 def replay_drive(task: DriveTask) -> DriveResult:
@@ -167,17 +190,23 @@ def replay_drive(task: DriveTask) -> DriveResult:
     before = _Pipeline(coefficient_file.load(task.baseline))
     after = _Pipeline(coefficient_file.load(task.new))
     rows = 0
-    for cols in blocks(Path(task.drive)):
+    for cols in blocks(Path(task.drive), task.layout, before.corrector.cset.axis):
         rows += len(cols["time_s"])
         before.block(cols)
         after.block(cols)
     return DriveResult(task.vehicle_id, task.sensor_id, rows, before.tally.result(), after.tally.result())
 
 
-def blocks(path: Path) -> Iterator[dict[str, np.ndarray]]:
-    """A drive's columns a block at a time: a CSV (the reader ``apply`` uses) or Parquet."""
+def blocks(path: Path, layout: LogLayout | None = None, axis: str = "z") -> Iterator[dict[str, np.ndarray]]:
+    """A drive's columns a block at a time: a CSV (the reader ``apply`` uses), Parquet, or a CAN
+    log read with ``layout`` (the raw signal of ``axis``)."""
     if path.suffix == ".parquet":
         yield from _parquet_blocks(path)
+        return
+    if is_canlog(path):
+        if layout is None:
+            raise CanicalError(f"{path}: reading a CAN log needs --dbc or --config")
+        yield from log_blocks(path, layout, axis, (*NEEDED, TEMP, TRUTH), NEEDED)
         return
     head = read_head(path)
     if head is None:
@@ -206,8 +235,11 @@ def _parquet_blocks(path: Path) -> Iterator[dict[str, np.ndarray]]:
         yield {c: batch.column(c).to_numpy(zero_copy_only=False).astype(float) for c in wanted}
 
 
-def drive_sensor(path: Path) -> str | None:
-    """The sensor a drive names: a CSV's ``# sensor:`` line, a Parquet file's ``sensor`` metadata."""
+def drive_sensor(path: Path, layout: LogLayout | None = None) -> str | None:
+    """The sensor a drive names: a CSV's ``# sensor:`` line, a Parquet file's ``sensor`` metadata,
+    a CAN log's ``--sensor`` (or its configuration's)."""
+    if is_canlog(path):
+        return layout.sensor if layout is not None else None
     if path.suffix == ".parquet":
         import pyarrow.parquet as pq
 
@@ -244,10 +276,11 @@ def per_vehicle(results: list[DriveResult]) -> list[VehicleResult]:
 
 def vehicles_csv(vehicles: list[VehicleResult]) -> str:
     """One row per vehicle: its figures before and after (``%.6g``: the same on any engine)."""
-    lines = ["vehicle_id,sensor_id,drives,rows,standstills,zero_rate_before_dps,zero_rate_after_dps,"
-             "heading_before_deg,heading_after_deg"]
+    lines = ["vehicle_id,sensor_id,drives,rows,standstills,carried_before_dps,carried_after_dps,"
+             "zero_rate_before_dps,zero_rate_after_dps,heading_before_deg,heading_after_deg"]
     for v in vehicles:
         lines.append(f"{v.vehicle_id},{v.sensor_id},{v.before.drives},{v.rows},{v.before.stops},"
+                     f"{v.before.carried_rms_dps:.6g},{v.after.carried_rms_dps:.6g},"
                      f"{v.before.zero_rate_rms_dps:.6g},{v.after.zero_rate_rms_dps:.6g},"
                      f"{v.before.heading_rms_deg:.6g},{v.after.heading_rms_deg:.6g}")
     return "\n".join(lines) + "\n"

@@ -35,6 +35,9 @@ class DriveModel:
     cabin_start_c: float = 20.0
     cabin_end_c: float = 45.0
     cabin_tau_s: float = 400.0
+    #: Where the temperature slope's bias is zero: None, the cabin's start (a drive judged on
+    #: its own); a fleet's drive gives the 25 °C its field log and proposed sets state it at.
+    slope_reference_c: float | None = None
     white_dps: float = 0.05  # per sample
     idle_vibration_dps: float = 0.15  # amplitude of the engine's firing vibration at idle
     road_vibration_dps: float = 0.2  # rms while moving
@@ -159,7 +162,8 @@ def simulate_drive(seed: int, model: DriveModel | None = None) -> Drive:
     temp = (model.cabin_end_c - (model.cabin_end_c - model.cabin_start_c)
             * np.exp(-cat["clock"] / model.cabin_tau_s))
     temp_read = np.round(temp + 0.05 * rng.standard_normal(temp.size), 2)
-    bias = cat["on"] + model.temp_slope_dps_per_c * (temp - model.cabin_start_c)
+    reference = model.cabin_start_c if model.slope_reference_c is None else model.slope_reference_c
+    bias = cat["on"] + model.temp_slope_dps_per_c * (temp - reference)
     rate = cat["true"] + bias + cat["vib"] + model.white_dps * rng.standard_normal(temp.size)
     return Drive(time_s=cat["time"], clock_s=cat["clock"], rate_dps=rate, true_rate_dps=cat["true"],
                  bias_dps=bias, temp_c=temp_read, speed_mps=cat["speed"], segment=cat["seg"],

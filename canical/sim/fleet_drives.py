@@ -15,7 +15,7 @@ import numpy as np
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.coefficients import CoefficientSet
 from canical.sim.drive import Drive, DriveModel, simulate_drive
-from canical.sim.fleet import CLIMATES, SensorTruth
+from canical.sim.fleet import CLIMATES, REFERENCE_C, SensorTruth
 
 #: The columns a simulated raw drive's CSV has, in order.
 COLUMNS = ("time_s", "raw", "temp_c", "speed_mps", "true_rate_dps")
@@ -25,7 +25,8 @@ def drive_for(truth: SensorTruth, index: int, number: int, seed: int = 0) -> Dri
     """Vehicle ``index``'s drive ``number``: its sensor's slope, turn-on bias and climate."""
     model = DriveModel(first_turn_on_dps=truth.turn_on_mean_dps, turn_on_spread_dps=truth.turn_on_spread_dps,
                        temp_slope_dps_per_c=truth.slope_dps_per_c,
-                       cabin_start_c=CLIMATES[truth.climate][0], cabin_end_c=45.0, cabin_tau_s=400.0)
+                       cabin_start_c=CLIMATES[truth.climate][0], cabin_end_c=45.0, cabin_tau_s=400.0,
+                       slope_reference_c=REFERENCE_C)
     rng = np.random.default_rng([seed, index, number, 7])
     return simulate_drive(int(rng.integers(2**31)), model)
 

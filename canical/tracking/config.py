@@ -12,6 +12,8 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 SQRT_HOUR = 60.0  # √(3600 s): deg/√h → deg/s/√Hz
+#: A field-measured slope leaves at most this many of its standard errors: the tracker's prior.
+FIELD_SLOPE_SES = 3.0
 
 
 @dataclass(frozen=True)
@@ -59,16 +61,35 @@ class TrackerConfig:
 
     def for_set(self, fit: Mapping[str, Any], *, arw_given: bool) -> TrackerConfig:
         """These settings for one axis's set: its angle random walk (``fit.arw_deg_rt_h``, what
-        calibrate measured) unless the user gave one; a set without it keeps the default."""
+        calibrate measured) unless the user gave one; a set without it keeps the default. A set
+        whose slope the fleet measured gets the slope prior :meth:`with_field_slope` gives."""
+        return self._with_arw(fit, arw_given).with_field_slope([fit])
+
+    def for_sets(self, fits: Sequence[Mapping[str, Any]], *, arw_given: bool) -> TrackerConfig:
+        """These settings for one tracker over several axes' sets (an IMU set: a standstill is
+        the vehicle's): the noisiest axis's angle random walk tells a standstill."""
+        return self._with_arw(max(fits, key=_arw), arw_given).with_field_slope(fits)
+
+    def _with_arw(self, fit: Mapping[str, Any], arw_given: bool) -> TrackerConfig:
         arw = fit.get("arw_deg_rt_h")
         if arw_given or not isinstance(arw, int | float) or not (math.isfinite(arw) and arw > 0):
             return self
         return replace(self, arw_deg_rt_h=float(arw))
 
-    def for_sets(self, fits: Sequence[Mapping[str, Any]], *, arw_given: bool) -> TrackerConfig:
-        """These settings for one tracker over several axes' sets (an IMU set: a standstill is
-        the vehicle's): the noisiest axis's angle random walk tells a standstill."""
-        return self.for_set(max(fits, key=_arw), arw_given=arw_given)
+    def with_field_slope(self, fits: Sequence[Mapping[str, Any]]) -> TrackerConfig:
+        """The slope prior for sets whose temperature slope the fleet measured.
+
+        Why: ``fleet analyse --propose-sets`` writes a set whose temperature term is the field
+        slope, known to its standard error (``fit.field_evidence.slope_se``); what it leaves is
+        within :data:`FIELD_SLOPE_SES` of those, not the table's ``temp_slope_sigma``. With the
+        wide prior the tracker learns a slope from one standstill's few degrees and extrapolates
+        it to the next (the error ``fleet replay`` measured after a proposed set). Every axis must
+        carry evidence (else the default stays); the widest axis's prior is taken.
+        """
+        ses = [_field_slope_se(fit) for fit in fits]
+        if not ses or any(se is None for se in ses):
+            return self
+        return replace(self, temp_slope_sigma=FIELD_SLOPE_SES * max(se for se in ses if se is not None))
 
     @property
     def white_dps_rt_hz(self) -> float:
@@ -79,3 +100,12 @@ class TrackerConfig:
 def _arw(fit: Mapping[str, Any]) -> float:
     value = fit.get("arw_deg_rt_h")
     return float(value) if isinstance(value, int | float) and math.isfinite(value) else 0.0
+
+
+def _field_slope_se(fit: Mapping[str, Any]) -> float | None:
+    """The field slope's standard error a set's ``fit.field_evidence`` gives; None without one."""
+    evidence = fit.get("field_evidence")
+    se = evidence.get("slope_se") if isinstance(evidence, Mapping) else None
+    if not isinstance(se, int | float) or isinstance(se, bool) or not (math.isfinite(se) and se > 0):
+        return None
+    return float(se)

@@ -78,3 +78,17 @@ def test_drives_come_with_their_baseline_sets(tmp_path: Path, capsys: pytest.Cap
     assert main(["simulate", "fleet", "--vehicles", "1", "--days", "1", "--drives", "1",
                  "-o", str(tmp_path / "g")]) == 2
     assert "--drives K (1..100) and --drive-set SET go together" in capsys.readouterr().err
+
+
+def test_a_drives_temperature_slope_is_stated_at_the_field_logs_reference() -> None:
+    """The drive's sensor is the field log's: its bias is the turn-on bias plus the slope times
+    (temperature - 25 °C), the reference the field log and a proposed set's term use (a cold
+    vehicle's drive starting at -5 °C starts 30 °C from it)."""
+    from canical.sim.fleet import REFERENCE_C
+    from canical.sim.fleet_drives import drive_for
+
+    truth, _ = simulate_vehicle(0, 1, 15)
+    drive = drive_for(truth, 0, 0, 15)
+    first = drive.cycle == 0
+    no_temp = drive.bias_dps[first] - truth.slope_dps_per_c * (drive.temp_c[first] - REFERENCE_C)
+    assert abs(float(no_temp.mean()) - truth.turn_on_mean_dps) < 0.01

@@ -74,3 +74,18 @@ def test_the_sets_angle_random_walk_is_used_unless_given() -> None:
     given = parse_bias_tracking({"enabled": True, "arw_deg_rt_h": 0.4}, fail)
     assert given.arw_given
     assert given.tracker.for_set({"arw_deg_rt_h": 0.21}, arw_given=True).arw_deg_rt_h == 0.4
+
+
+def test_a_set_whose_slope_the_fleet_measured_narrows_the_slope_prior() -> None:
+    """A proposed set (fit.field_evidence) leaves its slope within three standard errors: that is
+    the tracker's slope prior; without evidence (or with a bad one) the configured prior stays."""
+    base = parse_bias_tracking({"enabled": True}, fail).tracker
+    fit = {"arw_deg_rt_h": 0.21, "field_evidence": {"slope_dps_per_c": 0.034, "slope_se": 1e-4}}
+    tight = base.for_set(fit, arw_given=False)
+    assert tight.temp_slope_sigma == pytest.approx(3e-4) and tight.arw_deg_rt_h == 0.21
+    assert base.for_set({"field_evidence": {"slope_se": -1.0}}, arw_given=False) is base
+    assert base.for_set({"field_evidence": "no"}, arw_given=False) is base
+    mixed = base.for_sets([fit, {"arw_deg_rt_h": 0.3}], arw_given=False)
+    assert mixed.temp_slope_sigma == base.temp_slope_sigma
+    wide = {"field_evidence": {"slope_se": 2e-4}}
+    assert base.for_sets([fit, wide], arw_given=False).temp_slope_sigma == pytest.approx(6e-4)
