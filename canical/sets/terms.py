@@ -258,7 +258,7 @@ def _spline_fields(d: Mapping[str, Any], where: str
 
 def spline_group(t: Term) -> tuple[Any, ...]:
     """What the basis functions of one learned spline share: all but their pieces and coefficient."""
-    return (t.kind, t.feature, t.channel, t.form, t.reference, t.tau_s, t.knots)
+    return (t.spec, t.channel, t.form, t.reference, t.tau_s, t.knots)
 
 
 def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
