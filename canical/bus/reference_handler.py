@@ -31,6 +31,19 @@ class SetsHolder(Protocol):
 
 Rates = tuple[float, float, float]
 Flags = tuple[bool, bool, bool]
+#: The rate frame's fields but its tag and counter: rates, over span, uncalibrated, stale, gap.
+RateFields = tuple[float, float, float, bool, bool, bool, bool, bool, bool, bool, bool]
+
+
+def _correct_axis(axis: AxisPlan, raw: float | None, missing: tuple[str, ...],
+                 values: dict[str, float]) -> tuple[float, bool, bool]:
+    """One axis's (rate, over its span, uncalibrated): uncalibrated (rate 0) without a set or
+    an input its set needs."""
+    correct = axis.correct
+    if correct is None or raw is None or (missing and any(n in missing for n in axis.needs)):
+        return 0.0, False, True
+    rate, over = correct(raw, values)
+    return rate, over, False
 
 
 class ReferenceHandler:
@@ -56,7 +69,9 @@ class ReferenceHandler:
             times[name] = stamp
         gap = self._gap(signals)
         sets = self.holder.sets  # read once: this frame uses exactly this combination
-        plan = self.plans.plan(sets)
+        plan = self.plans.current
+        if plan.sets is not sets:
+            plan = self.plans.plan(sets)
         missing: tuple[str, ...] = ()
         stale = False
         for name, max_age in plan.ages:
@@ -70,10 +85,9 @@ class ReferenceHandler:
         raws = (signals[px.at] if px.at >= 0 else values.get(px.held) if px.held else None,
                 signals[py.at] if py.at >= 0 else values.get(py.held) if py.held else None,
                 signals[pz.at] if pz.at >= 0 else values.get(pz.held) if pz.held else None)
-        correct = self._correct
-        rx, ox, ux = correct(px, raws[0], missing)
-        ry, oy, uy = correct(py, raws[1], missing)
-        rz, oz, uz = correct(pz, raws[2], missing)
+        rx, ox, ux = _correct_axis(px, raws[0], missing, values)
+        ry, oy, uy = _correct_axis(py, raws[1], missing, values)
+        rz, oz, uz = _correct_axis(pz, raws[2], missing, values)
         if sets.coupling is not None:  # an IMU set: its axes' rates are coupled, all three or none
             if ux or uy or uz:
                 rx, ry, rz, ux, uy, uz = 0.0, 0.0, 0.0, True, True, True
@@ -83,12 +97,11 @@ class ReferenceHandler:
             rx, ry, rz = self.tracking(stamp, rx, ry, rz, ux, uy, uz)
         if stale:
             stats.stale_frames += 1
-        rates = (rx if isfinite(rx) else 0.0, ry if isfinite(ry) else 0.0, rz if isfinite(rz) else 0.0)
-        flags = (ux, uy, uz)
+        rx, ry, rz = rx if isfinite(rx) else 0.0, ry if isfinite(ry) else 0.0, rz if isfinite(rz) else 0.0
         if layout.own is not None:
-            self._send_own(data, raws, rates, flags)
+            self._send_own(data, raws, (rx, ry, rz), (ux, uy, uz))
         if layout.rate is not None:
-            self._send_rate(sets, rates, (ox, oy, oz), flags, stale, gap)
+            self._send_rate(sets, (rx, ry, rz, ox, oy, oz, ux, uy, uz, stale, gap))
         stats.frames_out += 1
 
     def _gap(self, signals: tuple[Any, ...]) -> bool:
@@ -104,29 +117,24 @@ class ReferenceHandler:
             return True
         return False
 
-    def _correct(self, axis: AxisPlan, raw: float | None,
-                 missing: tuple[str, ...]) -> tuple[float, bool, bool]:
-        """One axis's (rate, over its span, uncalibrated): uncalibrated (rate 0) without a set or
-        an input its set needs."""
-        if axis.correct is None or raw is None or (missing and any(n in missing for n in axis.needs)):
-            return 0.0, False, True
-        rate, over = axis.correct(raw, self.state.values)
-        return rate, over, False
-
-    def _send_rate(self, sets: ActiveSets, rates: Rates, over: Flags, flags: Flags, stale: bool,
-                   gap: bool) -> None:
-        """The rate frame: each rate saturated to its signal's range, the flags, tag and counter."""
+    def _send_rate(self, sets: ActiveSets, fields: RateFields) -> None:
+        """The rate frame: each rate saturated to its signal's range, the flags, tag and counter.
+        (``fields`` one tuple, not one per kind of field: on the reference path, building and
+        unpacking those cost more than the send.)"""
         layout = self.layout
         rate = layout.rate
         assert rate is not None
         counters = self.state.counters
         counter = counters.tx
         if rate.encode_in_order is None:
-            payload = rate.encode_xyz(*rates, *over, *flags, stale, gap, sets.tag, counter)
+            payload = rate.encode_xyz(*fields, sets.tag, counter)
         else:
-            saturated = tuple(lo if r < lo else hi if r > hi else r
-                              for r, (lo, hi) in zip(rates, rate.limits, strict=True))
-            payload = rate.encode_in_order((*saturated, *over, *flags, stale, gap, sets.tag, counter))
+            rx, ry, rz = fields[0], fields[1], fields[2]
+            (lx, hx), (ly, hy), (lz, hz) = rate.limits
+            payload = rate.encode_in_order((lx if rx < lx else hx if rx > hx else rx,
+                                            ly if ry < ly else hy if ry > hy else ry,
+                                            lz if rz < lz else hz if rz > hz else rz,
+                                            *fields[3:], sets.tag, counter))
         counters.tx = (counter + 1) & layout.tx_counter_mask
         self.sender.send(layout.rate_head + payload + layout.rate_pad)
 

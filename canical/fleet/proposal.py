@@ -31,7 +31,7 @@ from canical.fleet.analysis import REFERENCE_C, TOO_LITTLE, PowerOnSums, SensorV
 from canical.models.piecewise import PiecewisePoly
 from canical.sets import signed_file
 from canical.sets.coefficients import CoefficientSet
-from canical.sets.term_kinds import CHANNEL
+from canical.sets.term_kinds import CHANNEL, CHANNEL_OFFSET
 from canical.sets.terms import Term
 
 #: A field slope this many standard errors from zero is evidence enough to change a set.
@@ -198,7 +198,7 @@ def with_field_term(cset: CoefficientSet, evidence: Evidence, dataset: str) -> t
             term, merged = dataclasses.replace(term, coefficient=term.coefficient + added), True
         terms.append(term)
     if not merged:
-        terms.append(Term(CHANNEL, "offset", "bias", added, channel=TEMP_CHANNEL, reference=REFERENCE_C))
+        terms.append(Term(CHANNEL_OFFSET, "bias", added, channel=TEMP_CHANNEL, reference=REFERENCE_C))
     fit = {**cset.fit, "field_evidence": _fit_record(evidence, added, dataset)}
     stamp = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     return dataclasses.replace(cset, terms=tuple(terms), fit=fit, created=stamp), added

@@ -27,7 +27,7 @@ from typing import Any
 
 from canical.models.piecewise import PiecewisePoly
 from canical.sets.corrector import Corrector
-from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, KeptCode, TermCode, lookup
+from canical.sets.term_kinds import ALL, TIME_INPUT, CodeNames, KeptCode, TermCode
 from canical.sets.terms import Term
 
 #: ``(raw, inputs) -> (rate, out_of_span)``, as ``Corrector.correct_one``.
@@ -40,8 +40,8 @@ COMPILED_TERMS = {k.key for k in ALL}
 def why_not(corrector: Corrector) -> str | None:
     """Why this corrector is not compiled (None: it is)."""
     for term, tracker in zip(corrector.terms, corrector.trackers, strict=True):
-        spec = lookup(term.kind, term.feature)
-        if spec is None or spec.key not in COMPILED_TERMS:
+        spec = term.spec
+        if spec.key not in COMPILED_TERMS:
             return f"term {term.kind}/{term.feature} not compiled"
         expected = spec.tracker_type or type(None)
         if type(tracker) is not expected:

@@ -175,6 +175,11 @@ class TermKind(ABC):
     def __repr__(self) -> str:
         return f"<term kind {self.kind}/{self.feature}>"
 
+    def __reduce__(self) -> tuple[Any, tuple[str, str]]:
+        """Pickled and copied as the registry's own object (a term held across processes, or
+        deep-copied, still holds the one instance its kind is compared by)."""
+        return (registered, self.key)
+
     def input_names(self, term: Term) -> tuple[str, ...]:
         """Every run-time input the term reads, the first its own (:meth:`input_name`)."""
         return ()
@@ -781,6 +786,11 @@ def host_only(terms: tuple[Term, ...]) -> str | None:
         if spec.c_name is None:
             return f"terms[{i}] ({spec.kind}/{spec.feature})"
     return None
+
+
+def registered(kind: str, feature: str) -> TermKind:
+    """The registry's object for a kind it holds (KeyError: none; an unpickled term names one)."""
+    return _BY_KEY[(kind, feature)]
 
 
 def lookup(kind: object, feature: object) -> TermKind | None:

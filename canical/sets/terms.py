@@ -98,10 +98,10 @@ TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference",
 
 @dataclass(frozen=True)
 class Term:
-    """One validated term."""
+    """One validated term, holding its kind object (``spec``): what the term is, reads and
+    computes is asked of that object, never looked up again by the file's strings."""
 
-    kind: str
-    feature: str
+    spec: TermKind
     form: str
     coefficient: float
     channel: str | None = None
@@ -121,15 +121,17 @@ class Term:
     @classmethod
     def of(cls, spec: TermKind, form: str, coefficient: float, **fields: Any) -> Term:
         """A term of the registry's kind ``spec``."""
-        return cls(spec.kind, spec.feature, form, coefficient, **fields)
+        return cls(spec, form, coefficient, **fields)
 
     @property
-    def spec(self) -> TermKind:
-        """This term's kind in the registry."""
-        spec = lookup(self.kind, self.feature)
-        if spec is None:
-            raise ValueError(f"term kind {self.kind}/{self.feature} not supported by this canical version")
-        return spec
+    def kind(self) -> str:
+        """The kind's name in the set file (``channel``, ``time``, ``direction``)."""
+        return self.spec.kind
+
+    @property
+    def feature(self) -> str:
+        """The feature's name in the set file (``offset``, ``lag``, ``warmup``, …)."""
+        return self.spec.feature
 
     @property
     def input_name(self) -> str | None:
@@ -207,8 +209,7 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     assert coefficient is not None  # required: number() raised otherwise
     reference = number("reference")
     term = Term(
-        kind=spec.kind,
-        feature=spec.feature,
+        spec,
         form=form,
         coefficient=coefficient,
         channel=channel if spec.needs_channel else None,
@@ -257,7 +258,7 @@ def _spline_fields(d: Mapping[str, Any], where: str
 
 def spline_group(t: Term) -> tuple[Any, ...]:
     """What the basis functions of one learned spline share: all but their pieces and coefficient."""
-    return (t.kind, t.feature, t.channel, t.form, t.reference, t.tau_s, t.knots)
+    return (t.spec, t.channel, t.form, t.reference, t.tau_s, t.knots)
 
 
 def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:

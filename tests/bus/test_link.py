@@ -126,3 +126,10 @@ def test_socketcan_options_keep_python_cans_bus(tmp_path, monkeypatch: pytest.Mo
     with_options = load_config(write_config(tmp_path, "can8", bus=options))
     assert isinstance(link.opener(with_options, compiled=True)("can8", []), link.BusLink)
     assert sockets == ["can7"] and buses[-1]["receive_own_messages"] is True
+
+
+def test_more_than_eight_bytes_is_an_fd_frame_whatever_the_message_says() -> None:
+    msg = can.Message(arbitration_id=0x10, data=bytes(range(12)), is_extended_id=False, is_fd=False,
+                      check=False)
+    frame, _, _, _ = BusLink(OneBus(msg)).recvmsg(72, 32)  # type: ignore[arg-type]
+    assert len(frame) == 72 and frame[4] == 12 and frame[8:20] == bytes(range(12)) and not any(frame[20:])

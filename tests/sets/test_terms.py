@@ -156,6 +156,20 @@ def test_new_term_kinds_round_trip_a_file_and_need_time():
     assert names == ["lag(temp_c, τ=140 s)", "d/dt temp_c", "d/dt temp_c", "sign d/dt supply_v"]
 
 
+def test_a_term_holds_its_kind_object_through_pickle_and_copy():
+    """A term holds the registry's kind object; pickled (to a worker) or deep-copied, it holds the
+    same one, so terms compare equal and ``spec is`` checks hold on the far side."""
+    import copy
+    import pickle
+
+    from canical.sets.term_kinds import ALL
+
+    for term in extended_set().terms:
+        assert term.spec in ALL and (term.kind, term.feature) == term.spec.key
+        for back in (pickle.loads(pickle.dumps(term)), copy.deepcopy(term)):
+            assert back.spec is term.spec and back == term and back.to_dict() == term.to_dict()
+
+
 def test_missing_input_is_named():
     from canical.errors import CanicalError
 
