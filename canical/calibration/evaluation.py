@@ -154,9 +154,8 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     told = _oracle_terms(scenario, loop.blocks)
     # Told the effect, with the base size the loop ended with, or one chosen again for it.
     same_size = Structure(loop.structure.spec, loop.structure.knots, model.scale, model.span, told)
-    resized = reselect_size(
-        scorer, Structure(result.base.fitted.spec, model.knots, model.scale, model.span, told), duration
-    )
+    base_size = Structure(result.base.fitted.spec, model.knots, model.scale, model.span, told)
+    resized = reselect_size(scorer, base_size)
     rms_oracle = min(scorer.held_rms(same_size), scorer.held_rms(resized))
     in_groups = {name.lstrip("~") for g in groups for name in g}
     correct = (

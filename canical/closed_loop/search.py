@@ -124,20 +124,23 @@ GAUSS_NEWTON_STEPS = 4
 
 
 def _solve(
-    blocks: Blocks, s: Structure, terms: tuple[Term, ...], steps: int = GAUSS_NEWTON_STEPS
+    blocks: Blocks, s: Structure, terms: tuple[Term, ...], steps: int = GAUSS_NEWTON_STEPS,
+    sensitivity: float | None = None,
 ) -> tuple[PiecewisePoly, np.ndarray, float]:
     """Fit ω = f(ΔV − Σ c·column) jointly for the base model f and the coefficients c.
 
     The model is nonlinear in c (the effect shifts ΔV inside f), so it is solved by
     Gauss-Newton: at each step f is refitted on the shifted ΔV and c is corrected
     through the local slope of f. Effects are small next to the full scale, so a
-    few steps converge.
+    few steps converge. ``sensitivity``: the blocks' :func:`_mean_sensitivity`, when a
+    search solves on the same blocks many times.
     """
     p = blocks.points
     cols = shift_columns(terms, blocks)
     coef = np.zeros(cols.shape[1])
-    slope = np.full(len(p), 1.0 / _mean_sensitivity(p))
-    for _ in range(steps if terms else 1):
+    slope = np.full(len(p), 1.0 / (sensitivity or _mean_sensitivity(p)))
+    steps = steps if terms else 1
+    for step in range(steps):
         dv = p.dv - cols @ coef
         fit = fit_segmented_inverse(
             dv,
@@ -151,9 +154,9 @@ def _solve(
             extra=-cols * slope[:, None],
         )
         coef = coef + fit.extra
-        slope = fit.poly.slope(p.dv - cols @ coef)
-        if not terms or np.max(np.abs(fit.extra * np.max(np.abs(cols), axis=0))) < 1e-6 * s.scale:
+        if step == steps - 1 or np.max(np.abs(fit.extra * np.max(np.abs(cols), axis=0))) < 1e-6 * s.scale:
             break
+        slope = fit.poly.slope(p.dv - cols @ coef)
     resid = p.rate - fit.poly.evaluate(p.dv - cols @ coef)[0]
     return fit.poly, coef, float(np.sum(p.weight * resid**2))
 
@@ -192,8 +195,10 @@ def _best_tau(
     # are small next to full scale, and there may be one lag per channel to search.
     steps = GAUSS_NEWTON_STEPS if warmup else 1
 
+    sensitivity = _mean_sensitivity(blocks.points)
+
     def rss(log_tau: float) -> float:
-        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau)), group), steps)[2]
+        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau)), group), steps, sensitivity)[2]
 
     i = int(np.argmin([rss(np.log(t)) for t in grid]))
     lo, hi = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, grid.size - 1)])
@@ -321,13 +326,23 @@ class Scorer:
     duration_s: float
     cache: dict[Any, Score] = field(default_factory=dict)
     losses: dict[Any, np.ndarray] = field(default_factory=dict)
+    fits: dict[Any, Fit] = field(default_factory=dict)
+
+    def fit(self, s: Structure) -> Fit:
+        """The structure fitted to every block, once: the search asks for the same fit from
+        several places (a size chosen again, its score, the round's record), each τ search a
+        tenth of a second on a long session."""
+        key = (s.spec, tuple(s.knots), s.terms)
+        if key not in self.fits:
+            self.fits[key] = fit_structure(self.blocks, s, self.duration_s)
+        return self.fits[key]
 
     def score(self, s: Structure) -> Score:
         """Held-out rms, training RSS of plateau-mean residuals, number of coefficients."""
         key = (s.spec, tuple(s.knots), s.terms)
         if key not in self.cache:
             err = held_out_errors(self.blocks, s, self.folds, self.duration_s)
-            fit = fit_structure(self.blocks, s, self.duration_s)
+            fit = self.fit(s)
             resid = self.blocks.points.rate - predict(fit, self.blocks)
             n_par = (len(s.knots) + 1) * (s.spec.order + 1) + len(s.terms)
             self.cache[key] = Score(rms(err), plateau_rss(self.blocks, resid), n_par)
@@ -472,14 +487,14 @@ def corrected_points(blocks: Blocks, fit: Fit) -> FitPoints:
     return FitPoints(p.rate, p.dv - shift, p.weight, p.dv_sem)
 
 
-def reselect_size(scorer: Scorer, s: Structure, duration_s: float) -> Structure:
+def reselect_size(scorer: Scorer, s: Structure) -> Structure:
     """Once an effect is in, choose the base size again: the effect may have hidden what it needs."""
-    corrected = corrected_points(scorer.blocks, fit_structure(scorer.blocks, s, duration_s))
+    corrected = corrected_points(scorer.blocks, scorer.fit(s))
     try:
         spec, _ = select_model(corrected, s.spec, orders=loop_orders(s.spec), high_orders=())
     except CanicalError:
         return s
-    resized = _with_spec(scorer.blocks, s, spec, duration_s)
+    resized = _with_spec(scorer, s, spec)
     if resized is None or scorer.held_rms(resized) >= scorer.held_rms(s):
         return s
     return resized
@@ -495,7 +510,7 @@ def loop_orders(spec: ModelSpec) -> tuple[int, ...]:
     return tuple(sorted({*ORDER_CHOICES, spec.order}))
 
 
-def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float) -> Structure | None:
+def _with_spec(scorer: Scorer, s: Structure, spec: ModelSpec) -> Structure | None:
     """Re-choose segment points for a new base size, on blocks corrected by the terms.
 
     The terms' coefficients were fitted with the old size: when that was too small
@@ -505,7 +520,7 @@ def _with_spec(blocks: Blocks, s: Structure, spec: ModelSpec, duration_s: float)
     """
     current = s
     for _ in range(KNOT_PASSES if s.terms else 1):
-        corrected = corrected_points(blocks, fit_structure(blocks, current, duration_s))
+        corrected = corrected_points(scorer.blocks, scorer.fit(current))
         try:
             fitted = fit_model(corrected, spec)
         except (CanicalError, np.linalg.LinAlgError):  # a size the data cannot support: no candidate
@@ -549,7 +564,7 @@ def _score_round(
         (cand.name, replace(s, terms=s.terms + cand.terms), cand) for cand in pool
     ]
     for cap in _capacity_options(s):
-        bigger = _with_spec(scorer.blocks, s, cap, scorer.duration_s)
+        bigger = _with_spec(scorer, s, cap)
         if bigger is not None:
             options.append((f"capacity:{cap.describe()}", bigger, bigger))
     table = [_judge(scorer, current, st, name, bar) for name, st, _ in options]
@@ -836,13 +851,13 @@ def run_loop(
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)
         f, p = f_test(current, after, scorer.n_plateaus)
-        fit_now = fit_structure(blocks, s_new, duration_s)
+        fit_now = scorer.fit(s_new)
         effects.append(replace(_effect(best, current, after, f, p, bar, fit_now.terms[len(s.terms) :]),
                                ambiguous_with=twins))
         progress(f"accepted {best.name}: held-out rms {current.held_out_rms_dps:.4f} -> "
                  f"{after.held_out_rms_dps:.4f} deg/s")
         steps.append(_step(scorer, s_new, f"added {best.name}"))
-        s = reselect_size(scorer, s_new, duration_s)
+        s = reselect_size(scorer, s_new)
         if s is not s_new:
             steps.append(_step(scorer, s, "base size chosen again with the effect in"))
         pool = [c for c in pool if c is not best]
@@ -850,13 +865,13 @@ def run_loop(
     if len(pruned_all.terms) != len(s.terms):
         steps.append(_step(scorer, pruned_all, "terms that no longer pay removed"))
     s = pruned_all
-    final_fit = fit_structure(blocks, s, duration_s)
+    final_fit = scorer.fit(s)
     base_s = Structure(spec, np.asarray(knots, dtype=float), scale, span)
     return LoopResult(
         fit=final_fit,
         structure=s,
         blocks=blocks,
-        base_fit=fit_structure(blocks, base_s, duration_s),
+        base_fit=scorer.fit(base_s),
         effects=_final_effects(effects, final_fit),
         confounded=confounded,
         rounds=rounds,
@@ -881,7 +896,7 @@ class _Footing:
 
     def __init__(self, scorer: Scorer, s: Structure, hopeful: list[Candidate]) -> None:
         self.scorer, self.s = scorer, s
-        self.own = {c.name: reselect_size(scorer, self.with_terms(c.terms), scorer.duration_s)
+        self.own = {c.name: reselect_size(scorer, self.with_terms(c.terms))
                     for c in hopeful}
         self.sizes = list(dict.fromkeys(st.spec for st in self.own.values()))
 
@@ -890,11 +905,10 @@ class _Footing:
 
     def of(self, terms: tuple[Term, ...], first: Structure | None = None) -> Structure:
         """The terms on the best of their own size and every size a hopeful candidate needed."""
-        duration = self.scorer.duration_s
-        options = [first or reselect_size(self.scorer, self.with_terms(terms), duration)]
+        options = [first or reselect_size(self.scorer, self.with_terms(terms))]
         for spec in self.sizes:
             if spec != options[0].spec:
-                other = _with_spec(self.scorer.blocks, self.with_terms(terms), spec, duration)
+                other = _with_spec(self.scorer, self.with_terms(terms), spec)
                 options += [other] if other is not None else []
         return min(options, key=self.scorer.held_rms)
 
@@ -1075,13 +1089,13 @@ def _pruned(scorer: Scorer, s: Structure, cand: Candidate) -> Candidate:
     only pays once the base fits is dropped for good (a knee's scale terms), while a column that
     pays only on the larger base may leave the next size choice worse off."""
     here = _prune(scorer, s, cand)
-    sized = reselect_size(scorer, replace(s, terms=s.terms + cand.terms), scorer.duration_s)
+    sized = reselect_size(scorer, replace(s, terms=s.terms + cand.terms))
     there = _prune(scorer, replace(sized, terms=s.terms), cand)
     if there.terms == here.terms:
         return here
 
     def resized(c: Candidate) -> float:
-        return scorer.held_rms(reselect_size(scorer, replace(s, terms=s.terms + c.terms), scorer.duration_s))
+        return scorer.held_rms(reselect_size(scorer, replace(s, terms=s.terms + c.terms)))
 
     return min((here, there), key=resized)
 

@@ -32,13 +32,17 @@ class SegmentedFit:
 
 def design(dv: np.ndarray, knots: np.ndarray, order: int, scale: float) -> np.ndarray:
     """Block design matrix: the powers of u fill the columns of each point's segment."""
-    n_seg = len(knots) + 1
+    n_seg, width = len(knots) + 1, order + 1
     seg = np.searchsorted(knots, dv, side="right")
-    powers = np.vander(dv / scale, order + 1, increasing=True)
-    a = np.zeros((len(dv), n_seg * (order + 1)))
-    cols = seg[:, None] * (order + 1) + np.arange(order + 1)
-    np.put_along_axis(a, cols, powers, axis=1)
-    return a
+    a = np.zeros((len(dv), n_seg, width))
+    rows = np.arange(len(dv))
+    # u**k as numpy.vander makes it (each power the last times u), written straight into its segment
+    u = dv / scale
+    power = np.ones_like(u)
+    for k in range(width):
+        a[rows, seg, k] = power
+        power = power * u
+    return a.reshape(len(dv), n_seg * width)
 
 
 def join_constraints(knots: np.ndarray, order: int, scale: float, smoothness: int) -> np.ndarray:
