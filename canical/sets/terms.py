@@ -136,6 +136,8 @@ class Term(Generic[P_co]):
     unread: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
     def __post_init__(self) -> None:
+        """Why: mypy ties a term's record to its kind where the kind is known (:meth:`of`); this
+        holds it where it is not (a kind looked up from a file, a record replaced)."""
         if type(self.params) is not self.spec.record:
             raise TypeError(f"a {self.spec!r} term holds a {self.spec.record.__name__}, "
                             f"not a {type(self.params).__name__}")
