@@ -177,7 +177,7 @@ def _oracle_terms(scenario, blocks):
         if t.kind == CHANNEL and t.spec is not CHANNEL_GATED:
             t = replace(t, reference=float(np.mean(blocks.aux[t.channel])))
         # A gated level is told where it vanishes: a wrong reference would leave a hinge of the rate.
-        if t.spec is DIRECTION_SIGN:
-            t = replace(t, threshold_raw=blocks.direction_threshold_raw)
+        if DIRECTION_SIGN.owns(t):
+            t = replace(t, params=replace(t.params, threshold_raw=blocks.direction_threshold_raw))
         terms.append(t)
     return tuple(terms)

@@ -46,16 +46,17 @@ from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.plateaus import Plateaus, plateau_means
 from canical.sessions.session import Session
 from canical.sets.term_kinds import (
+    CHANNEL_DERIVATIVE_SPLINE,
     CHANNEL_DIRECTION,
     CHANNEL_GATED,
     CHANNEL_LAG,
     CHANNEL_LAG_SPLINE,
     CHANNEL_RATE_SPLINE,
-    ChannelTransformSpline,
     spline_horner,
     spline_segments,
     spline_values,
 )
+from canical.sets.term_params import Lag, LagSpline, Spline
 from canical.sets.terms import Term, lag_filter, rate_gate
 from canical.sets.trackers import direction_steps, slope_filter
 
@@ -119,21 +120,22 @@ class ChannelSamples:
             self.cache[key] = self.means(lag_filter(self.values[channel], self.time_s, tau_s))
         return self.cache[key]
 
-    def derivative_spline_means(self, term: Term) -> np.ndarray:
+    def derivative_spline_means(self, term: Term[LagSpline]) -> np.ndarray:
         """Block means of S((v − y)/τ) sample by sample (all blocks): the derivative's τ is not
         searched, so each sample's segment is found once per basis and kept; S of a block's mean
         rate would miss a transient S bends over within the block."""
-        tau = float(term.tau_s or 1.0)
-        key = ("derivative_spline", term.channel, tau, term.knots, term.pieces)
+        p = term.params
+        tau = float(p.tau_s)
+        key = ("derivative_spline", p.channel, tau, p.knots, p.pieces)
         if key not in self.cache:
-            segments = ("derivative_segments", term.channel, tau, term.knots)
+            segments = ("derivative_segments", p.channel, tau, p.knots)
             if segments not in self.cache:
-                values = self.values[term.channel or ""]
+                values = self.values[p.channel]
                 rate = (values - lag_filter(values, self.time_s, tau)) / tau
-                i, u = spline_segments(term.knots or (), rate)
+                i, u = spline_segments(p.knots, rate)
                 self.cache[segments] = np.vstack([i.astype(float), u])
             seg = self.cache[segments]
-            self.cache[key] = self.means(spline_horner(term.pieces or (), seg[0].astype(int), seg[1]))
+            self.cache[key] = self.means(spline_horner(p.pieces, seg[0].astype(int), seg[1]))
         return self.cache[key]
 
     def coarse_lag_means(self, channel: str, tau_s: float) -> np.ndarray:
@@ -172,16 +174,17 @@ class ChannelSamples:
             self.cache[key] = values[:n].reshape(-1, per).mean(axis=1) if n else values[-1:]
         return self.cache[key]
 
-    def spline_at(self, term: Term, x: np.ndarray) -> np.ndarray:
+    def spline_at(self, term: Term[LagSpline], x: np.ndarray) -> np.ndarray:
         """S of a transform spline's variable ``x`` at all blocks; each value's segment kept per
         (channel, kind, τ, knots), which a basis's terms share."""
-        key = ("segments", term.channel, term.feature, float(term.tau_s or 0.0), term.knots)
+        p = term.params
+        key = ("segments", p.channel, term.feature, float(p.tau_s), p.knots)
         if key not in self.cache:
             self._make_room()
-            i, u = spline_segments(term.knots or (), x)
+            i, u = spline_segments(p.knots, x)
             self.cache[key] = np.vstack([i.astype(float), u])
         seg = self.cache[key]
-        return spline_horner(term.pieces or (), seg[0].astype(int), seg[1])
+        return spline_horner(p.pieces, seg[0].astype(int), seg[1])
 
     def gated_means(self, channel: str, reference: float, knee_raw: float) -> np.ndarray:
         """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks)."""
@@ -193,15 +196,16 @@ class ChannelSamples:
             self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
         return self.cache[key]
 
-    def rate_spline_means(self, term: Term) -> np.ndarray:
+    def rate_spline_means(self, term: Term[Spline]) -> np.ndarray:
         """Block means of (v − reference)·R(ΔV), a channel's coefficient smooth in rate (all blocks)."""
         if self.dv is None:
             raise ValueError("these samples were kept without their raw output")
-        key = (CHANNEL_RATE_SPLINE, term.channel, float(term.reference), term.knots, term.pieces)
+        p = term.params
+        key = (CHANNEL_RATE_SPLINE, p.channel, float(term.reference), p.knots, p.pieces)
         if key not in self.cache:
             self._make_room()
-            offset = self.values[term.channel or ""] - term.reference
-            self.cache[key] = self.means(offset * spline_values(term.knots or (), term.pieces or (), self.dv))
+            offset = self.values[p.channel] - term.reference
+            self.cache[key] = self.means(offset * spline_values(p.knots, p.pieces, self.dv))
         return self.cache[key]
 
     def abs_dv_means(self) -> np.ndarray:
@@ -255,23 +259,25 @@ class Blocks:
         if self.samples is None:
             raise ValueError("these blocks were built without their samples")
         rows = slice(None) if self.rows is None else self.rows
-        ch = term.channel or ""
-        spec = term.spec
-        if spec is CHANNEL_GATED:
-            return self.samples.gated_means(ch, term.reference, term.threshold_raw or 1.0)[rows]
-        if spec is CHANNEL_RATE_SPLINE:
+        if CHANNEL_GATED.owns(term):
+            p = term.params
+            return self.samples.gated_means(p.channel, term.reference, p.threshold_raw)[rows]
+        if CHANNEL_RATE_SPLINE.owns(term):
             return self.samples.rate_spline_means(term)[rows]
-        if spec is CHANNEL_DIRECTION:
-            return self.samples.direction_means(ch, term.threshold_raw or 1.0)[rows]
-        if isinstance(spec, ChannelTransformSpline):  # of the lag (τ searched: the coarse lag) or rate
-            tau = term.tau_s or 1.0
-            if spec.derivative:
-                return self.samples.derivative_spline_means(term)[rows]
-            return self.samples.spline_at(term, self.samples.coarse_lag_means(ch, tau))[rows]
-        y = self.samples.lag_means(ch, term.tau_s or 1.0)[rows]
-        if spec is CHANNEL_LAG:
+        if CHANNEL_DIRECTION.owns(term):
+            return self.samples.direction_means(term.params.channel, term.params.threshold_raw)[rows]
+        if CHANNEL_DERIVATIVE_SPLINE.owns(term):
+            return self.samples.derivative_spline_means(term)[rows]
+        if CHANNEL_LAG_SPLINE.owns(term):  # of the lag, τ searched: the coarse lag
+            lag = self.samples.coarse_lag_means(term.params.channel, term.params.tau_s)
+            return self.samples.spline_at(term, lag)[rows]
+        if not isinstance(term.params, Lag):
+            raise TypeError(f"{term.describe()} is not a channel transform computed on samples")
+        ch, tau = term.params.channel, term.params.tau_s
+        y = self.samples.lag_means(ch, tau)[rows]
+        if term.spec is CHANNEL_LAG:
             return y - term.reference
-        return (self.aux[ch] - y) / (term.tau_s or 1.0)
+        return (self.aux[ch] - y) / tau
 
 
 def channel_samples(time_s: np.ndarray, aux: dict[str, np.ndarray], starts: np.ndarray,

@@ -73,6 +73,7 @@ from canical.sets.term_kinds import (
     TermKind,
     spline_values,
 )
+from canical.sets.term_params import Spline, Tau, Threshold
 from canical.sets.terms import Term
 
 TAU_GRID_POINTS = 24
@@ -142,8 +143,14 @@ def _square(term: Term, blocks: Blocks) -> np.ndarray:
 
 
 def _warmup(term: Term, blocks: Blocks) -> np.ndarray:
-    x: np.ndarray = 1.0 - np.exp(-blocks.time_s / term.tau_s)
+    assert isinstance(term.params, Tau)  # BLOCK_FEATURES dispatches on the kind
+    x: np.ndarray = 1.0 - np.exp(-blocks.time_s / term.params.tau_s)
     return x
+
+
+def _spline(term: Term, blocks: Blocks) -> np.ndarray:
+    assert isinstance(term.params, Spline)  # BLOCK_FEATURES dispatches on the kind
+    return spline_values(term.params.knots, term.params.pieces, blocks.aux[term.params.channel])
 
 
 #: Each term kind's feature at block level; a test checks that every kind of the registry is here.
@@ -157,8 +164,7 @@ BLOCK_FEATURES: dict[TermKind, Callable[[Term, Blocks], np.ndarray]] = {
     CHANNEL_RATE_SPLINE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_LAG_SPLINE: lambda term, blocks: blocks.channel_feature(term),
     CHANNEL_DERIVATIVE_SPLINE: lambda term, blocks: blocks.channel_feature(term),
-    CHANNEL_SPLINE: lambda term, blocks: spline_values(term.knots or (), term.pieces or (),
-                                                       blocks.aux[term.channel or ""]),
+    CHANNEL_SPLINE: _spline,
     TIME_WARMUP: _warmup,
     TIME_LINEAR: lambda term, blocks: blocks.time_s,
     DIRECTION_SIGN: lambda term, blocks: blocks.direction,
@@ -495,7 +501,14 @@ def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] 
              ) -> tuple[Term, ...]:
     """The group's parameter set to ``tau``: a time constant, or a gated group's knee (raw units)."""
     gated = group[0] == CHANNEL_GATED.feature
-    return tuple(
-        (replace(t, threshold_raw=tau) if gated else replace(t, tau_s=tau)) if in_group(t, group) else t
-        for t in terms
-    )
+    return tuple(retimed(t, tau, gated) if in_group(t, group) else t for t in terms)
+
+
+def retimed(t: Term, tau: float, gated: bool = False) -> Term:
+    """``t`` with its knee (a gated term) or its time constant set to ``tau``."""
+    p = t.params
+    if gated and isinstance(p, Threshold):
+        return replace(t, params=replace(p, threshold_raw=tau))
+    if not gated and isinstance(p, Tau):
+        return replace(t, params=replace(p, tau_s=tau))
+    raise TypeError(f"{t.describe()} has no {'knee' if gated else 'time constant'}")

@@ -87,6 +87,7 @@ from canical.sets.term_kinds import (
     TIME,
     TIME_WARMUP,
 )
+from canical.sets.term_params import Curve
 from canical.sets.terms import Term, gated_name, spline_group
 
 MIN_GAIN = 0.10
@@ -640,7 +641,7 @@ def drift_competitor(cand: Candidate, blocks: Blocks) -> Candidate | None:
     first = cand.terms[0]
     # A spline's time constant searched (a smoothed lag's τ) is one more parameter: one more knot.
     searched = len(tau_groups(cand.terms))
-    interior = max(1, len(first.knots or ()) - 2 + searched) if first.spec.needs_spline else 1
+    interior = max(1, len(first.params.knots) - 2 + searched) if isinstance(first.params, Curve) else 1
     basis = bspline_basis(np.linspace(float(t.min()), float(t.max()), 64), interior, even=True)
     if basis is None:
         return None
@@ -759,7 +760,8 @@ def _effect(cand: Candidate, before: Score, after: Score, f: float, p: float, ba
 
 def _key(t: Term) -> tuple[Any, ...]:
     """What tells a fitted term from the others (a spline's basis functions share all but their pieces)."""
-    return (t.kind, t.channel, t.feature, t.form, t.reference, t.pieces)
+    pieces = t.params.pieces if isinstance(t.params, Curve) else None
+    return (t.kind, t.channel, t.feature, t.form, t.reference, pieces)
 
 
 def _final_effects(effects: list[Effect], final_fit: Fit) -> list[Effect]:
@@ -780,11 +782,11 @@ def _describe_effect(eff: Effect, final_fit: Fit) -> str:
     """A readable name with the final time constant: lag(temp_c, τ=140 s), temp_c × (|rate| > 30 dps)."""
     lagged = [t for t in final_fit.terms if t.channel == eff.channel
               and t.spec is (CHANNEL_LAG_SPLINE if eff.name.startswith("smooth(lag(") else CHANNEL_LAG)]
-    gated = [t for t in final_fit.terms if t.channel == eff.channel and t.spec is CHANNEL_GATED]
+    gated = [t for t in final_fit.terms if t.channel == eff.channel and CHANNEL_GATED.owns(t)]
     is_lag = lagged and eff.name.startswith(("lag(", "smooth(lag("))
     description = lagged[0].describe() if is_lag else eff.name
     if gated and eff.name == gated_name(eff.channel or ""):
-        description = gated_name(eff.channel or "", knee_dps(final_fit.poly, gated[0].threshold_raw))
+        description = gated_name(eff.channel or "", knee_dps(final_fit.poly, gated[0].params.threshold_raw))
     return description
 
 

@@ -34,6 +34,7 @@ from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import Candidate, feature
 from canical.models.robust_stats import mad_sigma
 from canical.sets.term_kinds import CHANNEL_DERIVATIVE, CHANNEL_LAG, ChannelTransformSpline
+from canical.sets.term_params import Lag
 from canical.sets.terms import Term
 
 # Clean simulated sensors (white noise, or with bias instability and rate random
@@ -70,10 +71,10 @@ def candidate_variables(candidates: list[Candidate], blocks: Blocks) -> dict[str
     out = {"time since power-on": blocks.time_s}
     for cand in candidates:
         first = cand.terms[0]
-        if isinstance(first.spec, ChannelTransformSpline):
+        if isinstance(first.spec, ChannelTransformSpline) and isinstance(first.params, Lag):
             lagged = CHANNEL_DERIVATIVE if first.spec.derivative else CHANNEL_LAG
-            out[cand.name] = feature(Term.of(lagged, "bias", 0.0, channel=first.channel, tau_s=first.tau_s),
-                                     blocks)
+            out[cand.name] = feature(Term.of(lagged, "bias", 0.0, channel=first.params.channel,
+                                             tau_s=first.params.tau_s), blocks)
         elif first.spec.needs_spline and cand.channel is not None:
             out[cand.name] = blocks.aux[cand.channel]
         else:

@@ -198,7 +198,7 @@ def with_field_term(cset: CoefficientSet, evidence: Evidence, dataset: str) -> t
             term, merged = dataclasses.replace(term, coefficient=term.coefficient + added), True
         terms.append(term)
     if not merged:
-        terms.append(Term(CHANNEL_OFFSET, "bias", added, channel=TEMP_CHANNEL, reference=REFERENCE_C))
+        terms.append(Term.of(CHANNEL_OFFSET, "bias", added, channel=TEMP_CHANNEL, reference=REFERENCE_C))
     fit = {**cset.fit, "field_evidence": _fit_record(evidence, added, dataset)}
     stamp = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
     return dataclasses.replace(cset, terms=tuple(terms), fit=fit, created=stamp), added

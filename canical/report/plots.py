@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import io
 import re
-from dataclasses import replace
 from pathlib import Path
 
 import matplotlib
@@ -26,12 +25,13 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from canical.closed_loop.blocks import Blocks
-from canical.closed_loop.candidates import DIRECTION_NAME, SLOPE_NAME, WARMUP_NAME
+from canical.closed_loop.candidates import DIRECTION_NAME, SLOPE_NAME, WARMUP_NAME, retimed
 from canical.closed_loop.findings import Confound, Effect
 from canical.closed_loop.search import LoopResult, effect_contribution, predict
 from canical.closed_loop.unexplained import account, candidate_variables, correlations
 from canical.files.atomic_file import make_dirs, write_bytes_atomic
 from canical.sets.term_kinds import CHANNEL_LAG, CHANNEL_OFFSET, CHANNEL_RATE_SPLINE, TIME
+from canical.sets.term_params import Tau
 
 
 def _save(fig, path: Path) -> None:
@@ -97,10 +97,10 @@ def variable_of(name: str, blocks: Blocks, loop: LoopResult | None = None) -> tu
     cand = next((c for c in (loop.candidates if loop else []) if c.name == name), None)
     if cand is not None and not name.startswith((LEVEL_PREFIX, TIME, DIRECTION_NAME, SLOPE_NAME)):
         # a smooth form of a lag is drawn against the lag with the τ the fit found, not the start's
-        fitted = next((t for t in (loop.fit.terms if loop else ()) if t.spec is cand.terms[0].spec
-                       and t.channel == cand.channel and t.spec.needs_tau), None)
+        fitted = next((t.params for t in (loop.fit.terms if loop else ()) if t.spec is cand.terms[0].spec
+                       and t.channel == cand.channel and isinstance(t.params, Tau)), None)
         if fitted is not None:
-            cand = cand.with_terms(tuple(replace(t, tau_s=fitted.tau_s) for t in cand.terms))
+            cand = cand.with_terms(tuple(retimed(t, fitted.tau_s) for t in cand.terms))
         return candidate_variables([cand], blocks)[name], variable_label(name)
     if name.startswith(LEVEL_PREFIX):
         return blocks.aux[name.removeprefix(LEVEL_PREFIX)], variable_label(name)

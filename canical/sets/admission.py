@@ -34,6 +34,7 @@ import numpy as np
 from canical.frames.imu_dictionary import sensor_id_for_serial
 from canical.sets.coefficient_file import canonical_bytes
 from canical.sets.coefficients import CoefficientSet
+from canical.sets.term_params import Curve
 
 #: Effect terms the device's evaluator holds in one set (``CE_MAX_TERMS`` of canical_eval.h).
 MAX_TERMS = 16
@@ -81,14 +82,13 @@ def evaluator_problem(cset: CoefficientSet) -> str | None:
     download; ``canical push`` says so before writing anything."""
     if len(cset.terms) > MAX_TERMS:
         return f"{len(cset.terms)} terms, the device's evaluator holds {MAX_TERMS} per set (CE_MAX_TERMS)"
-    splines = [i for i, t in enumerate(cset.terms) if t.spec.needs_spline]
+    splines = [(i, t.params) for i, t in enumerate(cset.terms) if isinstance(t.params, Curve)]
     if len(splines) > MAX_SPLINE_TERMS:
         return (f"{len(splines)} spline terms, the device's evaluator holds {MAX_SPLINE_TERMS} per set "
                 f"(CE_MAX_SPLINES)")
-    for i in splines:
-        t = cset.terms[i]
-        knots = [float(k) for k in t.knots or ()]
-        pieces = [float(a) for row in t.pieces or () for a in row]
+    for i, curve in splines:
+        knots = [float(k) for k in curve.knots]
+        pieces = [float(a) for row in curve.pieces for a in row]
         values = [*knots, *(b - a for a, b in pairwise(knots)), *pieces]
         if values and max(abs(v) for v in values) > FLOAT32_MAX:
             return (f"terms[{i}]: a spline knot, knot spacing or piece beyond float32 range, "

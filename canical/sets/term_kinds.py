@@ -8,8 +8,11 @@ one object that knows
 * its names in the set file (``kind``, ``feature``) and its C form's identifier (``c_name``,
   a ``CE_TERM_*`` code of ``firmware/canical_eval.c``'s ``TERM_SPECS``, which a test compares
   with :data:`ALL`);
-* the fields it requires (``needs_tau``, ``needs_threshold``; every ``channel`` kind names a
-  channel) and the run-time inputs it reads (:meth:`TermKind.input_names`);
+* its parameter record (``record``, :mod:`canical.sets.term_params`: exactly the fields it
+  reads, so ``needs_tau`` and the like are read off it) and the run-time inputs it reads
+  (:meth:`TermKind.input_names`). ``TermKind`` is generic over its record: each kind's methods
+  take a ``Term`` of its own record, and mypy checks they read only its fields; a reader that
+  dispatched on the kind narrows a term with :meth:`TermKind.owns`;
 * its state tracker (:meth:`TermKind.tracker`) and its feature x, for a block of samples
   (:meth:`TermKind.values`) and for one sample (:meth:`TermKind.one`), the same operations
   in the same order;
@@ -45,10 +48,22 @@ from abc import ABC, abstractmethod
 from bisect import bisect_right
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Generic, Protocol, TypeGuard, TypeVar, runtime_checkable
 
 import numpy as np
 
+from canical.sets.term_params import (
+    Curve,
+    Gated,
+    Lag,
+    LagSpline,
+    NoParams,
+    OnChannel,
+    Spline,
+    Tau,
+    TermParams,
+    Threshold,
+)
 from canical.sets.trackers import (
     ChannelTracker,
     DirectionTracker,
@@ -73,6 +88,10 @@ Tracker = ChannelTracker | DirectionTracker | SlopeTracker
 #: Inputs for a block of samples, and for one sample.
 Block = Mapping[str, np.ndarray]
 Sample = Mapping[str, float]
+#: A kind's parameter record; a channel kind's, a lagged channel kind's.
+P = TypeVar("P", bound=TermParams)
+C = TypeVar("C", bound=OnChannel)
+L = TypeVar("L", bound=Lag)
 
 
 @dataclass(frozen=True)
@@ -86,16 +105,14 @@ class CodeNames:
     track: str
 
 
-def _column(inputs: Block, name: str | None) -> np.ndarray:
-    """An input as floats; every term that reads one names it (validation checks)."""
-    if name is None:
-        raise ValueError("the term reads no input")
+def _column(inputs: Block, name: str) -> np.ndarray:
+    """An input as floats."""
     return np.asarray(inputs[name], dtype=float)
 
 
-def _offset_times(term: Term, inputs: Block, factor: np.ndarray) -> np.ndarray:
+def _offset_times(term: Term[OnChannel], inputs: Block, factor: np.ndarray) -> np.ndarray:
     """(v − ref)·factor for a block: a channel's level acting through a function of the output."""
-    out: np.ndarray = (_column(inputs, term.channel) - term.reference) * factor
+    out: np.ndarray = (_column(inputs, term.params.channel) - term.reference) * factor
     return out
 
 
@@ -140,7 +157,7 @@ class TermWording(Protocol):
     def describe(self, term: Term) -> str: ...
 
 
-class TermKind(ABC):
+class TermKind(ABC, Generic[P]):
     """One (kind, feature) of effect term: its names, the fields it needs, and the three parts a
     kind supplies (:class:`TermMaths`, :class:`TermCode`, :class:`TermWording`); each concrete
     kind implements every abstract method (instantiating one that does not fails at import)."""
@@ -150,10 +167,8 @@ class TermKind(ABC):
     #: The C evaluator's code; None: the C evaluator refuses a set with this kind
     #: (``CE_ERR_TERM_KIND``), and ``canical push`` refuses to send it.
     c_name: ClassVar[str | None]
-    needs_tau: ClassVar[bool] = False
-    needs_threshold: ClassVar[bool] = False
-    #: Whether the term carries a piecewise cubic (``knots``, ``pieces``).
-    needs_spline: ClassVar[bool] = False
+    #: The parameter record a term of this kind holds: exactly the fields the kind reads.
+    record: type[P]
     #: The tracker class this kind keeps its state in (None: stateless).
     tracker_type: ClassVar[type | None] = None
     #: Whether x is computed from the raw output itself (its tracker gets the raw value).
@@ -165,7 +180,20 @@ class TermKind(ABC):
 
     @property
     def needs_channel(self) -> bool:
-        return self.kind == CHANNEL
+        return issubclass(self.record, OnChannel)
+
+    @property
+    def needs_tau(self) -> bool:
+        return "tau_s" in self.record.field_names()
+
+    @property
+    def needs_threshold(self) -> bool:
+        return "threshold_raw" in self.record.field_names()
+
+    @property
+    def needs_spline(self) -> bool:
+        """Whether the term carries a piecewise cubic (``knots``, ``pieces``)."""
+        return issubclass(self.record, Curve)
 
     @property
     def kept(self) -> bool:
@@ -175,29 +203,33 @@ class TermKind(ABC):
     def __repr__(self) -> str:
         return f"<term kind {self.kind}/{self.feature}>"
 
+    def owns(self, term: Term) -> TypeGuard[Term[P]]:
+        """Whether ``term`` is of this kind; if so, mypy knows its record is this kind's."""
+        return term.spec is self
+
     def __reduce__(self) -> tuple[Any, tuple[str, str]]:
         """Pickled and copied as the registry's own object (a term held across processes, or
         deep-copied, still holds the one instance its kind is compared by)."""
         return (registered, self.key)
 
-    def input_names(self, term: Term) -> tuple[str, ...]:
+    def input_names(self, term: Term[P]) -> tuple[str, ...]:
         """Every run-time input the term reads, the first its own (:meth:`input_name`)."""
         return ()
 
-    def input_name(self, term: Term) -> str | None:
+    def input_name(self, term: Term[P]) -> str | None:
         """The run-time input this term reads first (None: derived from raw alone)."""
         names = self.input_names(term)
         return names[0] if names else None
 
-    def tracker(self, term: Term) -> Tracker | None:
+    def tracker(self, term: Term[P]) -> Tracker | None:
         """A fresh state for one stream of samples (None: the kind has none)."""
         return None
 
     @abstractmethod
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+    def values(self, term: Term[P], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         """x for a block of samples in time order, from a fresh state."""
 
-    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+    def values_from(self, term: Term[P], tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
         """x for the next block of the stream whose state ``tracker`` holds (left at the block's end).
 
@@ -207,218 +239,226 @@ class TermKind(ABC):
         return self.values(term, inputs, raw, dv)
 
     @abstractmethod
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+    def one(self, term: Term[P], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         """x for the next sample of the stream whose state ``tracker`` holds."""
 
     @abstractmethod
-    def code(self, term: Term, names: CodeNames) -> list[str]:
+    def code(self, term: Term[P], names: CodeNames) -> list[str]:
         """The compiled corrector's statements adding this term's share to ``shift``."""
 
     @abstractmethod
-    def describe(self, term: Term) -> str:
+    def describe(self, term: Term[P]) -> str:
         """A readable name for reports."""
 
-    def reach(self, term: Term, inputs: float) -> float:
+    def reach(self, term: Term[P], inputs: float) -> float:
         """The largest |x| while every input (and the raw output's rate of change) stays within
         ±``inputs``: what bounds the term's share (see :mod:`canical.sets.finite_outputs`)."""
         return 1.0  # a direction, a warm-up: within ±1 whatever the inputs
 
 
-class SharedCode(TermKind):
+class SharedCode(TermKind[P]):
     """A kind whose x is one expression (:meth:`code_x`): its code is the share c·x or c·x·ΔV."""
 
-    def code(self, term: Term, names: CodeNames) -> list[str]:
+    def code(self, term: Term[P], names: CodeNames) -> list[str]:
         return [share(term, self.code_x(term, names))]
 
     @abstractmethod
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[P], names: CodeNames) -> str:
         """x as one expression of the compiled corrector."""
 
 
-class ChannelKind(TermKind):
+class ChannelKind(TermKind[C]):
     """A transform of an auxiliary channel v (minus its reference value)."""
 
     kind = CHANNEL
 
-    def input_names(self, term: Term) -> tuple[str, ...]:
-        return (term.channel or "",)
+    def input_names(self, term: Term[C]) -> tuple[str, ...]:
+        return (term.params.channel,)
 
     @abstractmethod
     def label(self, channel: str, tau_s: float | None = None) -> str:
         """How a report or a candidate names this transform of ``channel``."""
 
-    def describe(self, term: Term) -> str:
-        return self.label(term.channel or "?", term.tau_s)
+    def describe(self, term: Term[C]) -> str:
+        return self.label(term.params.channel)
 
-    def reach(self, term: Term, inputs: float) -> float:
+    def reach(self, term: Term[C], inputs: float) -> float:
         return inputs + abs(term.reference)  # a level, a lag of it, a gated level: |v − ref|
 
 
-class ChannelOffset(ChannelKind, SharedCode):
+class ChannelOffset(ChannelKind[OnChannel], SharedCode[OnChannel]):
     """x = v − ref."""
 
     feature = "offset"
     c_name = "CE_TERM_CHANNEL_OFFSET"
+    record = OnChannel
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        out: np.ndarray = _column(inputs, term.channel) - term.reference
+    def values(self, term: Term[OnChannel], inputs: Block,
+               raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        out: np.ndarray = _column(inputs, term.params.channel) - term.reference
         return out
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return float(inputs[term.channel or ""]) - term.reference
+    def one(self, term: Term[OnChannel], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return float(inputs[term.params.channel]) - term.reference
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[OnChannel], names: CodeNames) -> str:
         return f"({names.value} - {term.reference!r})"
 
-    def kept_x(self, term: Term, value: str) -> str:
+    def kept_x(self, term: Term[OnChannel], value: str) -> str:
         return f"({value} - {term.reference!r})"
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"{CHANNEL}:{channel}"
 
 
-class ChannelSquare(ChannelKind):
+class ChannelSquare(ChannelKind[OnChannel]):
     """x = (v − ref)²."""
 
     feature = "square"
     c_name = "CE_TERM_CHANNEL_SQUARE"
+    record = OnChannel
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        x = _column(inputs, term.channel) - term.reference
+    def values(self, term: Term[OnChannel], inputs: Block,
+               raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        x = _column(inputs, term.params.channel) - term.reference
         out: np.ndarray = x * x
         return out
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        x = float(inputs[term.channel or ""]) - term.reference
+    def one(self, term: Term[OnChannel], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x = float(inputs[term.params.channel]) - term.reference
         return x * x
 
-    def code(self, term: Term, names: CodeNames) -> list[str]:
+    def code(self, term: Term[OnChannel], names: CodeNames) -> list[str]:
         return [f"    x = ({names.value} - {term.reference!r})", f"    shift += {term.coefficient!r} * "
                 + ("(x * x * dv)" if term.form == "scale" else "(x * x)")]
 
-    def kept_x(self, term: Term, value: str) -> str:
+    def kept_x(self, term: Term[OnChannel], value: str) -> str:
         x = f"({value} - {term.reference!r})"
         return f"({x} * {x})"  # the reference's x * x, x computed twice the same way
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"({channel})²"
 
-    def reach(self, term: Term, inputs: float) -> float:
+    def reach(self, term: Term[OnChannel], inputs: float) -> float:
         x = inputs + abs(term.reference)
         return x * x  # a float product overflows to inf (refused as not finite); ** would raise
 
 
-class ChannelLagged(ChannelKind, SharedCode):
+class ChannelLagged(ChannelKind[L], SharedCode[L]):
     """The channel seen through a first-order lag y (:class:`ChannelTracker`); reads time too."""
 
-    needs_tau = True
     tracker_type = ChannelTracker
     derivative: ClassVar[bool] = False
 
-    def input_names(self, term: Term) -> tuple[str, ...]:
-        return (term.channel or "", TIME_INPUT)
+    def input_names(self, term: Term[L]) -> tuple[str, ...]:
+        return (term.params.channel, TIME_INPUT)
 
-    def tracker(self, term: Term) -> ChannelTracker:
-        return ChannelTracker(term.tau_s or 1.0, term.reference, self.derivative)
+    def tracker(self, term: Term[L]) -> ChannelTracker:
+        return ChannelTracker(term.params.tau_s, term.reference, self.derivative)
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+    def values(self, term: Term[L], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         return self.values_from(term, self.tracker(term), inputs, raw, dv)
 
-    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+    def values_from(self, term: Term[L], tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
-        values = _column(inputs, term.channel)
+        values = _column(inputs, term.params.channel)
         time_s = np.asarray(inputs[TIME_INPUT], dtype=float)
         return np.array([tracker.update(v, t) for v, t in zip(values.tolist(), time_s.tolist(), strict=True)],
                         dtype=float)
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        x: float = tracker.update(float(inputs[term.channel or ""]), float(inputs[TIME_INPUT]))
+    def one(self, term: Term[L], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x: float = tracker.update(float(inputs[term.params.channel]), float(inputs[TIME_INPUT]))
         return x
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[L], names: CodeNames) -> str:
         return f"{names.track}(float({names.value}), float({names.time}))"
 
+    def describe(self, term: Term[L]) -> str:
+        return self.label(term.params.channel, term.params.tau_s)
 
-class ChannelLag(ChannelLagged):
+
+class ChannelLag(ChannelLagged[Lag]):
     """x = y − ref: the die feels the channel late."""
 
     feature = "lag"
     c_name = "CE_TERM_CHANNEL_LAG"
+    record = Lag
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"lag({channel}, τ={tau_s:.0f} s)" if tau_s else f"lag({channel})"
 
 
-class ChannelDerivative(ChannelLagged):
+class ChannelDerivative(ChannelLagged[Lag]):
     """x = (v − y)/τ: the channel's rate of change smoothed with τ (a thermal transient)."""
 
     feature = "derivative"
     c_name = "CE_TERM_CHANNEL_DERIVATIVE"
+    record = Lag
     derivative = True
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"d/dt {channel}"
 
-    def reach(self, term: Term, inputs: float) -> float:
-        return 2.0 * inputs / (term.tau_s or 1.0)  # |v − y| / τ, y a mean of past v
+    def reach(self, term: Term[Lag], inputs: float) -> float:
+        return 2.0 * inputs / term.params.tau_s  # |v − y| / τ, y a mean of past v
 
 
-class ChannelDirection(ChannelKind, SharedCode):
+class ChannelDirection(ChannelKind[Gated], SharedCode[Gated]):
     """x = ±1: the sign of the channel's last change larger than ``threshold_raw`` (its units)."""
 
     feature = "direction"
     c_name = "CE_TERM_CHANNEL_DIRECTION"
-    needs_threshold = True
+    record = Gated
     tracker_type = DirectionTracker
 
-    def tracker(self, term: Term) -> DirectionTracker:
-        return DirectionTracker(term.threshold_raw or 1.0)
+    def tracker(self, term: Term[Gated]) -> DirectionTracker:
+        return DirectionTracker(term.params.threshold_raw)
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        return direction_state(_column(inputs, term.channel), term.threshold_raw or 1.0)
+    def values(self, term: Term[Gated], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return direction_state(_column(inputs, term.params.channel), term.params.threshold_raw)
 
-    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+    def values_from(self, term: Term[Gated], tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
-        return direction_state(_column(inputs, term.channel), term.threshold_raw or 1.0, tracker)
+        return direction_state(_column(inputs, term.params.channel), term.params.threshold_raw, tracker)
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        x: float = tracker.update(float(inputs[term.channel or ""]))
+    def one(self, term: Term[Gated], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        x: float = tracker.update(float(inputs[term.params.channel]))
         return x
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[Gated], names: CodeNames) -> str:
         return f"{names.track}(float({names.value}))"
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"sign d/dt {channel}"
 
-    def reach(self, term: Term, inputs: float) -> float:
+    def reach(self, term: Term[Gated], inputs: float) -> float:
         return 1.0
 
 
-class ChannelGated(ChannelKind):
+class ChannelGated(ChannelKind[Gated]):
     """x = (v − ref)·g(ΔV) with the knee k = ``threshold_raw`` (raw units): an effect beyond a rate."""
 
     feature = "gated"
     c_name = "CE_TERM_CHANNEL_GATED"
-    needs_threshold = True
+    record = Gated
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+    def values(self, term: Term[Gated], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         if dv is None:
             raise ValueError("a gated term needs ΔV = raw − V0")
-        return _offset_times(term, inputs, rate_gate(dv, term.threshold_raw or 1.0))
+        return _offset_times(term, inputs, rate_gate(dv, term.params.threshold_raw))
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return (float(inputs[term.channel or ""]) - term.reference) * gate_one(dv, term.threshold_raw or 1.0)
+    def one(self, term: Term[Gated], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return (float(inputs[term.params.channel]) - term.reference) * gate_one(dv, term.params.threshold_raw)
 
-    def code(self, term: Term, names: CodeNames) -> list[str]:
+    def code(self, term: Term[Gated], names: CodeNames) -> list[str]:
         """:func:`~canical.sets.trackers.gate_one` written out: ``max(a, b)`` is ``b if b > a else a``."""
-        k = term.threshold_raw
+        k = term.params.threshold_raw
         return ["    a = abs(dv)", f"    g = a - {k!r}", "    g = 0.0 if 0.0 > g else g",
                 f"    x = ({names.value} - {term.reference!r}) * (g / ({k!r} if {k!r} > a else a))",
                 f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
 
-    def describe(self, term: Term) -> str:
-        return f"{term.channel} × (|ΔV| > {term.threshold_raw:.0f} counts)"
+    def describe(self, term: Term[Gated]) -> str:
+        return f"{term.params.channel} × (|ΔV| > {term.params.threshold_raw:.0f} counts)"
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return gated_name(channel)
@@ -462,7 +502,7 @@ def spline_horner(pieces: tuple[tuple[float, ...], ...], i: np.ndarray, u: np.nd
     return out
 
 
-class ChannelSpline(ChannelKind):
+class ChannelSpline(ChannelKind[Spline]):
     """x = S(v): a piecewise cubic of the channel learned from the data (a smooth effect whose
     form is on no list), flat beyond its end knots so a channel outside the calibrated range
     extrapolates nothing. ``knots`` b₀ < … < b_m, ``pieces`` m rows (a₀, a₁, a₂, a₃): on
@@ -473,29 +513,29 @@ class ChannelSpline(ChannelKind):
 
     feature = "spline"
     c_name = "CE_TERM_CHANNEL_SPLINE"
-    needs_spline = True
+    record = Spline
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        return spline_values(term.knots or (), term.pieces or (), _column(inputs, term.channel))
+    def values(self, term: Term[Spline], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return spline_values(term.params.knots, term.params.pieces, _column(inputs, term.params.channel))
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return spline_one(term.knots or (), term.pieces or (), float(inputs[term.channel or ""]))
+    def one(self, term: Term[Spline], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return spline_one(term.params.knots, term.params.pieces, float(inputs[term.params.channel]))
 
-    def code(self, term: Term, names: CodeNames) -> list[str]:
-        return [*spline_code(term, f"float({names.value})"),
+    def code(self, term: Term[Spline], names: CodeNames) -> list[str]:
+        return [*spline_code(term.params, f"float({names.value})"),
                 f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"smooth({channel})"
 
-    def reach(self, term: Term, inputs: float) -> float:
-        return spline_reach(term)
+    def reach(self, term: Term[Spline], inputs: float) -> float:
+        return spline_reach(term.params)
 
 
-def spline_code(term: Term, variable: str) -> list[str]:
+def spline_code(curve: Curve, variable: str) -> list[str]:
     """:func:`spline_one` of the expression ``variable`` written out as statements leaving S in
     ``x``, the term's knots and pieces as constants."""
-    knots, pieces, last = term.knots or (), term.pieces or (), len(term.pieces or ()) - 1
+    knots, pieces, last = curve.knots, curve.pieces, len(curve.pieces) - 1
     lo, hi = knots[0], knots[-1]
     return [f"    w = {variable}",
             f"    w = {lo!r} if w < {lo!r} else {hi!r} if w > {hi!r} else w",
@@ -506,9 +546,9 @@ def spline_code(term: Term, variable: str) -> list[str]:
             "    x = ((a3 * u + a2) * u + a1) * u + a0"]
 
 
-def spline_reach(term: Term) -> float:
+def spline_reach(curve: Curve) -> float:
     """The largest |S|: Σ|a_j|·h^j of the largest segment (S is flat beyond the knots)."""
-    knots, pieces = term.knots or (0.0, 0.0), term.pieces or ()
+    knots, pieces = curve.knots, curve.pieces
     return max((_poly_bound(row, b - k) for k, b, row in zip(knots[:-1], knots[1:], pieces, strict=True)),
                default=0.0)
 
@@ -522,7 +562,7 @@ def _poly_bound(row: tuple[float, ...], h: float) -> float:
     return total
 
 
-class ChannelRateSpline(ChannelKind):
+class ChannelRateSpline(ChannelKind[Spline]):
     """x = (v − ref)·R(ΔV): a channel's coefficient that changes smoothly with rate (a scale-factor
     temperature coefficient that depends on rate: the nonlinearity's shape changes with the
     channel). R is a piecewise cubic of ΔV = raw − V0 in raw units with the same ``knots`` and
@@ -535,33 +575,33 @@ class ChannelRateSpline(ChannelKind):
 
     feature = "rate_spline"
     c_name = "CE_TERM_CHANNEL_RATE_SPLINE"
-    needs_spline = True
+    record = Spline
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+    def values(self, term: Term[Spline], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         if dv is None:
             raise ValueError("a rate_spline term needs ΔV = raw − V0")
-        return _offset_times(term, inputs, spline_values(term.knots or (), term.pieces or (),
+        return _offset_times(term, inputs, spline_values(term.params.knots, term.params.pieces,
                                                          np.asarray(dv, dtype=float)))
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        offset = float(inputs[term.channel or ""]) - term.reference
-        return offset * spline_one(term.knots or (), term.pieces or (), dv)
+    def one(self, term: Term[Spline], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        offset = float(inputs[term.params.channel]) - term.reference
+        return offset * spline_one(term.params.knots, term.params.pieces, dv)
 
-    def code(self, term: Term, names: CodeNames) -> list[str]:
-        return [*spline_code(term, "dv"), f"    x = ({names.value} - {term.reference!r}) * x",
+    def code(self, term: Term[Spline], names: CodeNames) -> list[str]:
+        return [*spline_code(term.params, "dv"), f"    x = ({names.value} - {term.reference!r}) * x",
                 f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
 
-    def describe(self, term: Term) -> str:
-        return self.label(term.channel or "?")
+    def describe(self, term: Term[Spline]) -> str:
+        return self.label(term.params.channel)
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"smooth({channel} × rate)"
 
-    def reach(self, term: Term, inputs: float) -> float:
-        return (inputs + abs(term.reference)) * spline_reach(term)
+    def reach(self, term: Term[Spline], inputs: float) -> float:
+        return (inputs + abs(term.reference)) * spline_reach(term.params)
 
 
-class ChannelTransformSpline(ChannelLagged):
+class ChannelTransformSpline(ChannelLagged[LagSpline]):
     """x = S(y): a piecewise cubic (as :class:`ChannelSpline`: ``knots``, ``pieces``, flat beyond
     the end knots) of one of the channel's lagged transforms, y its lagged level (``lag_spline``)
     or its rate of change smoothed over τ (``derivative_spline``): a smooth effect of what the die
@@ -572,28 +612,24 @@ class ChannelTransformSpline(ChannelLagged):
     the lag's steps, then ``spline_at`` of y.
     """
 
-    needs_spline = True
 
-    def tracker(self, term: Term) -> ChannelTracker:
-        return ChannelTracker(term.tau_s or 1.0, 0.0, self.derivative)
+    def tracker(self, term: Term[LagSpline]) -> ChannelTracker:
+        return ChannelTracker(term.params.tau_s, 0.0, self.derivative)
 
-    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+    def values_from(self, term: Term[LagSpline], tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
         y = super().values_from(term, tracker, inputs, raw, dv)
-        return spline_values(term.knots or (), term.pieces or (), y)
+        return spline_values(term.params.knots, term.params.pieces, y)
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return spline_one(term.knots or (), term.pieces or (), super().one(term, tracker, raw, dv, inputs))
+    def one(self, term: Term[LagSpline], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return spline_one(term.params.knots, term.params.pieces, super().one(term, tracker, raw, dv, inputs))
 
-    def code(self, term: Term, names: CodeNames) -> list[str]:
-        return [*spline_code(term, super().code_x(term, names)),
+    def code(self, term: Term[LagSpline], names: CodeNames) -> list[str]:
+        return [*spline_code(term.params, super().code_x(term, names)),
                 f"    shift += {term.coefficient!r} * " + ("(x * dv)" if term.form == "scale" else "x")]
 
-    def reach(self, term: Term, inputs: float) -> float:
-        return spline_reach(term)
-
-    def describe(self, term: Term) -> str:
-        return self.label(term.channel or "?", term.tau_s)
+    def reach(self, term: Term[LagSpline], inputs: float) -> float:
+        return spline_reach(term.params)
 
 
 class ChannelLagSpline(ChannelTransformSpline):
@@ -601,6 +637,7 @@ class ChannelLagSpline(ChannelTransformSpline):
 
     feature = "lag_spline"
     c_name = "CE_TERM_CHANNEL_LAG_SPLINE"
+    record = LagSpline
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
         return f"smooth({CHANNEL_LAG.label(channel, tau_s)})"
@@ -611,6 +648,7 @@ class ChannelDerivativeSpline(ChannelTransformSpline):
 
     feature = "derivative_spline"
     c_name = "CE_TERM_CHANNEL_DERIVATIVE_SPLINE"
+    record = LagSpline
     derivative = True
 
     def label(self, channel: str, tau_s: float | None = None) -> str:
@@ -623,129 +661,132 @@ def gated_name(channel: str, knee_dps: float | None = None) -> str:
     return f"{channel} × (|rate| > {knee})"
 
 
-class TimeKind(SharedCode):
+class TimeKind(SharedCode[P]):
     """A function of time since power-on t (input ``time_s``); every one is kept between frames."""
 
     kind = TIME
 
-    def input_names(self, term: Term) -> tuple[str, ...]:
+    def input_names(self, term: Term[P]) -> tuple[str, ...]:
         return (TIME_INPUT,)
 
 
-class TimeWarmup(TimeKind):
+class TimeWarmup(TimeKind[Tau]):
     """x = 1 − exp(−t/τ)."""
 
     feature = "warmup"
     c_name = "CE_TERM_TIME_WARMUP"
-    needs_tau = True
+    record = Tau
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        warm: np.ndarray = 1.0 - np.exp(-_column(inputs, TIME_INPUT) / term.tau_s)
+    def values(self, term: Term[Tau], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        warm: np.ndarray = 1.0 - np.exp(-_column(inputs, TIME_INPUT) / term.params.tau_s)
         return warm
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
-        return 1.0 - math.exp(-float(inputs[TIME_INPUT]) / (term.tau_s or 1.0))
+    def one(self, term: Term[Tau], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+        return 1.0 - math.exp(-float(inputs[TIME_INPUT]) / (term.params.tau_s))
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[Tau], names: CodeNames) -> str:
         return self.kept_x(term, names.value)
 
-    def kept_x(self, term: Term, value: str) -> str:
-        return f"(1.0 - exp(-{value} / {term.tau_s!r}))"
+    def kept_x(self, term: Term[Tau], value: str) -> str:
+        return f"(1.0 - exp(-{value} / {term.params.tau_s!r}))"
 
-    def describe(self, term: Term) -> str:
-        return f"warm-up (τ={term.tau_s:.0f} s)"
+    def describe(self, term: Term[Tau]) -> str:
+        return f"warm-up (τ={term.params.tau_s:.0f} s)"
 
 
-class TimeLinear(TimeKind):
+class TimeLinear(TimeKind[NoParams]):
     """x = t: a linear drift."""
 
     feature = "linear"
     c_name = "CE_TERM_TIME_LINEAR"
+    record = NoParams
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+    def values(self, term: Term[NoParams], inputs: Block,
+               raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
         return _column(inputs, TIME_INPUT)
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+    def one(self, term: Term[NoParams], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         return float(inputs[TIME_INPUT])
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[NoParams], names: CodeNames) -> str:
         return names.value
 
-    def kept_x(self, term: Term, value: str) -> str:
+    def kept_x(self, term: Term[NoParams], value: str) -> str:
         return value
 
-    def describe(self, term: Term) -> str:
+    def describe(self, term: Term[NoParams]) -> str:
         return "linear drift"
 
-    def reach(self, term: Term, inputs: float) -> float:
+    def reach(self, term: Term[NoParams], inputs: float) -> float:
         return inputs
 
 
-class DirectionSign(SharedCode):
+class DirectionSign(SharedCode[Threshold]):
     """x = ±1 (0 before either): the direction of the raw output's last significant change."""
 
     kind = DIRECTION
     feature = "sign"
     c_name = "CE_TERM_DIRECTION_SIGN"
+    record = Threshold
     reads_raw = True
-    needs_threshold = True
     tracker_type = DirectionTracker
 
-    def tracker(self, term: Term) -> DirectionTracker:
-        return DirectionTracker(term.threshold_raw or 1.0)
+    def tracker(self, term: Term[Threshold]) -> DirectionTracker:
+        return DirectionTracker(term.params.threshold_raw)
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        return direction_state(raw, term.threshold_raw or 1.0)
+    def values(self, term: Term[Threshold], inputs: Block,
+               raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return direction_state(raw, term.params.threshold_raw)
 
-    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+    def values_from(self, term: Term[Threshold], tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
-        return direction_state(raw, term.threshold_raw or 1.0, tracker)
+        return direction_state(raw, term.params.threshold_raw, tracker)
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+    def one(self, term: Term[Threshold], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         x: float = tracker.update(raw)
         return x
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[Threshold], names: CodeNames) -> str:
         return f"{names.track}({names.raw})"
 
-    def describe(self, term: Term) -> str:
+    def describe(self, term: Term[Threshold]) -> str:
         return "direction of approach"
 
 
-class DirectionSlope(SharedCode):
+class DirectionSlope(SharedCode[Tau]):
     """x = d(raw)/dt smoothed with τ (raw units per second; input ``time_s``)."""
 
     kind = DIRECTION
     feature = "slope"
     c_name = "CE_TERM_DIRECTION_SLOPE"
+    record = Tau
     reads_raw = True
-    needs_tau = True
     tracker_type = SlopeTracker
 
-    def input_names(self, term: Term) -> tuple[str, ...]:
+    def input_names(self, term: Term[Tau]) -> tuple[str, ...]:
         return (TIME_INPUT,)
 
-    def tracker(self, term: Term) -> SlopeTracker:
-        return SlopeTracker(term.tau_s or 1.0)
+    def tracker(self, term: Term[Tau]) -> SlopeTracker:
+        return SlopeTracker(term.params.tau_s)
 
-    def values(self, term: Term, inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
-        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0)
+    def values(self, term: Term[Tau], inputs: Block, raw: np.ndarray, dv: np.ndarray | None) -> np.ndarray:
+        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.params.tau_s)
 
-    def values_from(self, term: Term, tracker: Any, inputs: Block, raw: np.ndarray,
+    def values_from(self, term: Term[Tau], tracker: Any, inputs: Block, raw: np.ndarray,
                     dv: np.ndarray | None) -> np.ndarray:
-        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.tau_s or 1.0, tracker)
+        return slope_state(raw, np.asarray(inputs[TIME_INPUT], dtype=float), term.params.tau_s, tracker)
 
-    def one(self, term: Term, tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
+    def one(self, term: Term[Tau], tracker: Any, raw: float, dv: float, inputs: Sample) -> float:
         x: float = tracker.update(raw, float(inputs[TIME_INPUT]))
         return x
 
-    def code_x(self, term: Term, names: CodeNames) -> str:
+    def code_x(self, term: Term[Tau], names: CodeNames) -> str:
         return f"{names.track}({names.raw}, float({names.time}))"
 
-    def describe(self, term: Term) -> str:
+    def describe(self, term: Term[Tau]) -> str:
         return "rate of change of raw"
 
-    def reach(self, term: Term, inputs: float) -> float:
+    def reach(self, term: Term[Tau], inputs: float) -> float:
         return inputs
 
 
@@ -765,11 +806,11 @@ DIRECTION_SIGN = DirectionSign()
 DIRECTION_SLOPE = DirectionSlope()
 
 #: Every kind this canical version reads, in the order error messages list them.
-ALL: tuple[TermKind, ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNEL_DERIVATIVE,
+ALL: tuple[TermKind[Any], ...] = (CHANNEL_OFFSET, CHANNEL_SQUARE, CHANNEL_LAG, CHANNEL_DERIVATIVE,
                              CHANNEL_DIRECTION, CHANNEL_GATED, CHANNEL_SPLINE, CHANNEL_RATE_SPLINE,
                              CHANNEL_LAG_SPLINE, CHANNEL_DERIVATIVE_SPLINE, TIME_WARMUP, TIME_LINEAR,
                              DIRECTION_SIGN, DIRECTION_SLOPE)
-_BY_KEY: dict[tuple[object, object], TermKind] = {k.key: k for k in ALL}
+_BY_KEY: dict[tuple[object, object], TermKind[Any]] = {k.key: k for k in ALL}
 #: The features of each kind, as the set file names them.
 FEATURES: dict[str, tuple[str, ...]] = {}
 for _k in ALL:
@@ -788,11 +829,11 @@ def host_only(terms: tuple[Term, ...]) -> str | None:
     return None
 
 
-def registered(kind: str, feature: str) -> TermKind:
+def registered(kind: str, feature: str) -> TermKind[Any]:
     """The registry's object for a kind it holds (KeyError: none; an unpickled term names one)."""
     return _BY_KEY[(kind, feature)]
 
 
-def lookup(kind: object, feature: object) -> TermKind | None:
+def lookup(kind: object, feature: object) -> TermKind[Any] | None:
     """The kind a set file's ``kind``/``feature`` pair names (None: not one this version reads)."""
     return _BY_KEY.get((kind, feature))

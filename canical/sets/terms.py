@@ -51,7 +51,7 @@ import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from itertools import pairwise
-from typing import Any, TypeGuard
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeGuard, TypeVar
 
 import numpy as np
 
@@ -66,6 +66,7 @@ from canical.sets.term_kinds import (
     gated_name,
     lookup,
 )
+from canical.sets.term_params import Curve, OnChannel, TermParams
 from canical.sets.trackers import (
     ChannelTracker,
     DirectionTracker,
@@ -96,21 +97,37 @@ TERM_FIELDS = ("kind", "channel", "feature", "form", "coefficient", "reference",
                "knots", "pieces")
 
 
-@dataclass(frozen=True)
-class Term:
-    """One validated term, holding its kind object (``spec``): what the term is, reads and
-    computes is asked of that object, never looked up again by the file's strings."""
+if TYPE_CHECKING:  # with a default (PEP 696, typing_extensions on 3.11): a bare ``Term`` is of any kind
+    import typing_extensions
 
-    spec: TermKind
+    P_co = typing_extensions.TypeVar("P_co", bound=TermParams, covariant=True, default=TermParams)
+else:
+    P_co = TypeVar("P_co", bound=TermParams, covariant=True)
+P = TypeVar("P", bound=TermParams)
+R_co = TypeVar("R_co", bound=TermParams, covariant=True)
+
+
+class Recorded(Protocol[R_co]):
+    """A kind as :meth:`Term.of` reads it: the record its terms hold. Why a protocol: read-only,
+    it is covariant, so mypy infers a lag's record for ``Term.of(CHANNEL_LAG, …)`` even where the
+    call stands as an argument taking any term (:class:`TermKind` itself is invariant)."""
+
+    @property
+    def record(self) -> type[R_co]: ...
+
+
+@dataclass(frozen=True)
+class Term(Generic[P_co]):
+    """One validated term: the common core (kind object, form, coefficient, reference) and its
+    kind's parameter record (``params``, exactly the fields the kind reads). What the term is,
+    reads and computes is asked of the kind object (``spec``), never looked up again by the
+    file's strings; a reader that does not know the kind narrows ``params`` with ``isinstance``."""
+
+    spec: TermKind[Any]
     form: str
     coefficient: float
-    channel: str | None = None
+    params: P_co
     reference: float = 0.0
-    tau_s: float | None = None
-    threshold_raw: float | None = None
-    #: A spline term's piecewise cubic (see :class:`~canical.sets.term_kinds.ChannelSpline`).
-    knots: tuple[float, ...] | None = None
-    pieces: tuple[tuple[float, ...], ...] | None = None
     #: The keys a set file gave the term, in its order (None: all of them, in :data:`TERM_FIELDS`
     #: order), and the values of those this kind does not read (a key of a newer version, a
     #: channel on a time term), as read. Why: a file that leaves a key out, or carries one this
@@ -118,10 +135,21 @@ class Term:
     keys: tuple[str, ...] | None = field(default=None, compare=False)
     unread: tuple[tuple[str, Any], ...] = field(default=(), compare=False)
 
+    def __post_init__(self) -> None:
+        """Why: mypy ties a term's record to its kind where the kind is known (:meth:`of`); this
+        holds it where it is not (a kind looked up from a file, a record replaced)."""
+        if type(self.params) is not self.spec.record:
+            raise TypeError(f"a {self.spec!r} term holds a {self.spec.record.__name__}, "
+                            f"not a {type(self.params).__name__}")
+
     @classmethod
-    def of(cls, spec: TermKind, form: str, coefficient: float, **fields: Any) -> Term:
-        """A term of the registry's kind ``spec``."""
-        return cls(spec, form, coefficient, **fields)
+    def of(cls, spec: Recorded[P], form: str, coefficient: float, reference: float = 0.0,
+           **fields: Any) -> Term[P]:
+        """A term of the registry's kind ``spec``, its record built from ``fields`` (a field the
+        kind does not read is a TypeError)."""
+        if not isinstance(spec, TermKind):
+            raise TypeError(f"{spec!r} is not a term kind")
+        return Term(spec, form, coefficient, spec.record(**fields), reference)
 
     @property
     def kind(self) -> str:
@@ -132,6 +160,11 @@ class Term:
     def feature(self) -> str:
         """The feature's name in the set file (``offset``, ``lag``, ``warmup``, …)."""
         return self.spec.feature
+
+    @property
+    def channel(self) -> str | None:
+        """The auxiliary channel the term transforms (None: a time or direction term)."""
+        return self.params.channel if isinstance(self.params, OnChannel) else None
 
     @property
     def input_name(self) -> str | None:
@@ -150,20 +183,21 @@ class Term:
 
     def to_dict(self) -> dict[str, Any]:
         """The set file's term; ``knots`` and ``pieces`` only for a spline (other terms' bytes,
-        and so their sets' CRCs, stay what they were)."""
+        and so their sets' CRCs, stay what they were); a field the kind does not read is null."""
+        params = self.params.fields()
         out: dict[str, Any] = {
             "kind": self.kind,
-            "channel": self.channel,
+            "channel": params.get("channel"),
             "feature": self.feature,
             "form": self.form,
             "coefficient": self.coefficient,
             "reference": self.reference,
-            "tau_s": self.tau_s,
-            "threshold_raw": self.threshold_raw,
+            "tau_s": params.get("tau_s"),
+            "threshold_raw": params.get("threshold_raw"),
         }
-        if self.knots is not None:
-            out["knots"] = list(self.knots)
-            out["pieces"] = [list(row) for row in self.pieces or ()]
+        if isinstance(self.params, Curve):
+            out["knots"] = list(self.params.knots)
+            out["pieces"] = [list(row) for row in self.params.pieces]
         if self.keys is None:
             return out
         unread = dict(self.unread)
@@ -208,18 +242,9 @@ def term_from_dict(d: Mapping[str, Any], where: str = "term") -> Term:
     coefficient = number("coefficient", required=True)
     assert coefficient is not None  # required: number() raised otherwise
     reference = number("reference")
-    term = Term(
-        spec,
-        form=form,
-        coefficient=coefficient,
-        channel=channel if spec.needs_channel else None,
-        reference=0.0 if reference is None else reference,
-        tau_s=tau,
-        threshold_raw=threshold,
-        knots=knots,
-        pieces=pieces,
-    )
-    return term
+    read = {"channel": channel, "tau_s": tau, "threshold_raw": threshold, "knots": knots, "pieces": pieces}
+    params = spec.record(**{key: read[key] for key in spec.record.field_names()})
+    return Term(spec, form, coefficient, params, 0.0 if reference is None else reference)
 
 
 def term_from_file(d: Mapping[str, Any], where: str) -> Term:
@@ -258,7 +283,8 @@ def _spline_fields(d: Mapping[str, Any], where: str
 
 def spline_group(t: Term) -> tuple[Any, ...]:
     """What the basis functions of one learned spline share: all but their pieces and coefficient."""
-    return (t.spec, t.channel, t.form, t.reference, t.tau_s, t.knots)
+    shared = {k: v for k, v in t.params.fields().items() if k != "pieces"}
+    return (t.spec, t.form, t.reference, tuple(shared.items()))
 
 
 def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
@@ -272,22 +298,20 @@ def merge_splines(terms: tuple[Term, ...]) -> tuple[Term, ...]:
     stands where the group's first term stood.
     """
     groups: dict[Any, list[Term]] = {}
-    order: list[Any] = []
     for j, t in enumerate(terms):
-        key = spline_group(t) if t.spec.needs_spline else j
-        if key not in groups:
-            order.append(key)
-        groups.setdefault(key, []).append(t)
-    out = []
-    for key in order:
-        group = groups[key]
-        if len(group) == 1:
-            out.append(group[0])
-            continue
-        pieces = sum(t.coefficient * np.asarray(t.pieces, dtype=float) for t in group)
-        out.append(replace(group[0], coefficient=1.0,
-                           pieces=tuple(tuple(float(a) for a in row) for row in np.asarray(pieces))))
-    return tuple(out)
+        groups.setdefault(spline_group(t) if isinstance(t.params, Curve) else j, []).append(t)
+    return tuple(_merged(group) for group in groups.values())
+
+
+def _merged(group: list[Term]) -> Term:
+    """One group's terms as one (:func:`merge_splines`)."""
+    first = group[0]
+    if len(group) == 1 or not isinstance(first.params, Curve):
+        return first
+    rows = [t.coefficient * np.asarray(t.params.pieces, dtype=float)
+            for t in group if isinstance(t.params, Curve)]
+    pieces = tuple(tuple(float(a) for a in row) for row in np.asarray(sum(rows)))
+    return replace(first, coefficient=1.0, params=replace(first.params, pieces=pieces))
 
 
 def feature_values(

@@ -56,8 +56,8 @@ def test_drift_competitor_is_as_flexible_as_the_channel_form():
         assert rival is not None and all(t.channel == SESSION_CLOCK for t in rival.terms)
         first = cand.terms[0]
         searched = len(tau_groups(cand.terms))  # a smoothed lag's τ: one knot more
-        interior = max(1, len(first.knots or ()) - 2 + searched) if first.spec.needs_spline else 1
-        assert len(rival.terms[0].knots) - 2 == interior
+        interior = max(1, len(first.params.knots) - 2 + searched) if first.spec.needs_spline else 1
+        assert len(rival.terms[0].params.knots) - 2 == interior
 
 
 def test_a_channel_form_must_predict_stretches_it_was_not_fitted_on():

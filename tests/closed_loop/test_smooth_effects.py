@@ -48,7 +48,8 @@ def test_smooth_effect_within_twice_a_told_model(scenario, seed: int) -> None:
 def test_smooth_basis_sums_to_one_less_the_first_and_needs_enough_levels() -> None:
     levels = np.random.default_rng(0).uniform(0.0, 10.0, 60)
     terms = smooth_terms("load", levels)
-    assert len(terms) >= 4 and all(t.spec is CHANNEL_SPLINE and t.knots == terms[0].knots for t in terms)
+    assert len(terms) >= 4
+    assert all(t.spec is CHANNEL_SPLINE and t.params.knots == terms[0].params.knots for t in terms)
     v = np.linspace(levels.min(), levels.max(), 501)
     total = sum(t.spec.values(t, {"load": v}, v, None) for t in terms)
     assert total[0] == pytest.approx(0.0, abs=1e-12)  # the first basis function (1 at the start) left out
@@ -141,11 +142,11 @@ def assert_sample_by_sample_as_in_blocks(result, session, channel: str, n: int =
 def test_transform_basis_leaves_the_middle_out_with_even_knots() -> None:
     levels = np.random.default_rng(3).choice(np.linspace(-10.0, 50.0, 10), 60) + np.linspace(0.0, 0.5, 60)
     terms = transform_smooth_terms(CHANNEL_LAG_SPLINE, "temp_c", levels, 40.0, even=True)
-    assert terms and all(t.spec is CHANNEL_LAG_SPLINE and t.tau_s == 40.0 for t in terms)
-    knots = np.asarray(terms[0].knots)
+    assert terms and all(t.spec is CHANNEL_LAG_SPLINE and t.params.tau_s == 40.0 for t in terms)
+    knots = np.asarray(terms[0].params.knots)
     assert np.allclose(np.diff(knots), np.diff(knots)[0])  # evenly spaced over the levels' span
     v = np.linspace(knots[0], knots[-1], 401)
-    total = sum(spline_values(t.knots or (), t.pieces or (), v) for t in terms)
+    total = sum(spline_values(t.params.knots, t.params.pieces, v) for t in terms)
     # all basis functions but the middle one: one at both ends, less than one in the middle
     assert total[0] == pytest.approx(1.0) and total[-1] == pytest.approx(1.0)
     assert total[200] < 0.9
@@ -182,18 +183,18 @@ def test_lagged_saturation_written_as_one_term_corrects_sample_by_sample_and_is_
     assert result.loop.effects[0].description.startswith("smooth(lag(temp_c, τ=")
     written = [t for t in result.coefficients.terms if t.feature == "lag_spline"]
     assert len(written) == 1, "the learned shape of the lag is written as one term"
-    assert 60.0 < (written[0].tau_s or 0.0) < 130.0  # the die's τ is 90 s
+    assert 60.0 < written[0].params.tau_s < 130.0  # the die's τ is 90 s
     term = written[0]
     inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
-    lag = lag_filter(session.aux["temp_c"], session.time_s, term.tau_s or 0.0)
+    lag = lag_filter(session.aux["temp_c"], session.time_s, term.params.tau_s)
     # x is S of the lag, sample by sample: S through the lag a lag term computes
     np.testing.assert_allclose(term.spec.values(term, inputs, session.raw, None),
-                               spline_values(term.knots or (), term.pieces or (), lag), rtol=0, atol=1e-9)
+                               spline_values(term.params.knots, term.params.pieces, lag), rtol=0, atol=1e-9)
     x, label = variable_of("smooth(lag(temp_c))", result.loop.blocks, result.loop)
     assert label == "lag(temp_c) (°C)"
     # drawn against the lag with the τ the fit found
     assert result.loop.blocks.samples is not None
-    np.testing.assert_allclose(x, result.loop.blocks.samples.lag_means("temp_c", term.tau_s or 0.0))
+    np.testing.assert_allclose(x, result.loop.blocks.samples.lag_means("temp_c", term.params.tau_s))
     assert any("smooth_lag" in p.name and p.stat().st_size > 0 for p in write_plots(result.loop, tmp_path))
     assert_sample_by_sample_as_in_blocks(result, session, "temp_c")
 
@@ -208,7 +209,7 @@ def test_saturating_transient_written_as_one_derivative_spline_corrects_sample_b
     term = written[0]
     inputs = {"temp_c": session.aux["temp_c"], "time_s": session.time_s}
     values = session.aux["temp_c"]
-    rate = (values - lag_filter(values, session.time_s, term.tau_s or 0.0)) / (term.tau_s or 1.0)
+    rate = (values - lag_filter(values, session.time_s, term.params.tau_s)) / term.params.tau_s
     np.testing.assert_allclose(term.spec.values(term, inputs, session.raw, None),
-                               spline_values(term.knots or (), term.pieces or (), rate), rtol=0, atol=1e-9)
+                               spline_values(term.params.knots, term.params.pieces, rate), rtol=0, atol=1e-9)
     assert_sample_by_sample_as_in_blocks(result, session, "temp_c")

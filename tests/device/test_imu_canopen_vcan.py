@@ -175,8 +175,9 @@ def test_spline_sets_go_over_sdo_and_run_on_the_device_in_c(vcan_channel: str, t
         pushed_ids[axis] = set_crc(with_spline)
     big = folder / "big.yaml"
     rng = random.Random(3)
-    wide = [replace(splines[0], knots=tuple(sorted(rng.uniform(0.0, 50.0) for _ in range(64))),
-                    pieces=tuple(tuple(rng.gauss(0.0, 1e-3) for _ in range(4)) for _ in range(63)))
+    wide = [replace(splines[0], params=replace(
+                splines[0].params, knots=tuple(sorted(rng.uniform(0.0, 50.0) for _ in range(64))),
+                pieces=tuple(tuple(rng.gauss(0.0, 1e-3) for _ in range(4)) for _ in range(63))))
             for _ in range(4)]
     coefficient_file.save(big, replace(imu_set("z"), terms=tuple(wide)))
     with device(vcan_channel, tmp_path, "--rate", "50", "--correct") as dev:
@@ -188,7 +189,7 @@ def test_spline_sets_go_over_sdo_and_run_on_the_device_in_c(vcan_channel: str, t
         assert pulled.returncode == 0, pulled.stderr
         for axis in AXES:
             back = coefficient_file.load(tmp_path / f"pulled-{axis}.yaml")
-            assert set_crc(back) == pushed_ids[axis] and back.terms[0].knots == splines[0].knots
+            assert set_crc(back) == pushed_ids[axis] and back.terms[0].params.knots == splines[0].params.knots
         with client(vcan_channel) as c:
             status = c.status()
         assert status.active_ids == pushed_ids and status.activations == 1  # the big set wrote nothing

@@ -229,7 +229,7 @@ def test_a_term_kind_it_does_not_know_is_left_to_the_reference() -> None:
     class LaterKind(ChannelLag):  # a kind of a later version: not in this version's registry
         feature = "sample"
 
-    corrector.terms = (Term(LaterKind(), "bias", 1.0, channel="temp_c"),)
+    corrector.terms = (Term.of(LaterKind(), "bias", 1.0, channel="temp_c", tau_s=1.0),)
     corrector._trackers = [None]
     assert why_not(corrector) == "term channel/sample not compiled"
     assert compile_corrector(corrector) is None

@@ -72,7 +72,7 @@ def test_spline_is_the_cubic_it_says_and_flat_beyond_its_knots() -> None:
 def test_reach_bounds_every_value(seed: int) -> None:
     rng = np.random.default_rng(seed)
     term = term_from_dict(spline_dict(rng, "bias", 4))
-    v = np.concatenate([rng.uniform(-100.0, 100.0, 5000), np.asarray(term.knots)])
+    v = np.concatenate([rng.uniform(-100.0, 100.0, 5000), np.asarray(term.params.knots)])
     x = CHANNEL_SPLINE.values(term, {"vib_g": v}, v, None)
     assert np.max(np.abs(x)) <= CHANNEL_SPLINE.reach(term, 1e9)
 
@@ -91,7 +91,7 @@ def test_reach_bounds_every_value(seed: int) -> None:
 def test_bad_spline_fields_are_refused_at_load(change: dict[str, object], message: str) -> None:
     good = {"kind": "channel", "feature": "spline", "channel": "vib_g", "form": "bias", "coefficient": 1.0,
             "knots": [0.0, 1.0, 3.0], "pieces": [[0.0, 1.0, 0.0, 0.0], [1.0, 1.0, 0.0, 0.0]]}
-    assert term_from_dict(good).knots == (0.0, 1.0, 3.0)
+    assert term_from_dict(good).params.knots == (0.0, 1.0, 3.0)
     with pytest.raises(ValueError, match=message):
         term_from_dict({**good, **change})
 
