@@ -48,13 +48,11 @@ import pyarrow.parquet as pq
 
 from canical.commands.cli import main
 from canical.fleet.dataset import SCHEMA
-from canical.sets import coefficient_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from support import replay_fleets, worker_peak
 from support.replay_fleets import FleetSpec
 
-SET = Path(__file__).resolve().parents[1] / "data" / "sets" / "daemon-z.yaml"
 DRIVE_ROWS = 98_000  # about one simulated drive's rows
 DISTINCT = 16  # distinct drives simulated for the replay's cost; the others link to them
 #: Fleets looked at while the replay's figure and the tracker's prior were developed.
@@ -201,10 +199,10 @@ def replay_drives(root: Path, drives: int) -> int:
     """About ``drives`` simulated raw drives as Parquet files, a folder per vehicle and two drives
     each: :data:`DISTINCT` distinct drives simulated, the others links to them (the replay's cost is
     the rows it steps through; 100 M rows of distinct drives would not fit the disk). The rows."""
-    from canical.sim.fleet import simulate_vehicle
-    from canical.sim.fleet_drives import COLUMNS, drive_for, raw_of
+    # here, not above: a LocalCluster's workers run this script's imports (spawn imports it as
+    # __mp_main__), and the simulator brings scipy.signal, 60 MB more in each worker's figure
+    from support import parquet_drives
 
-    template = coefficient_file.load(SET)
     (root / "sets").mkdir(parents=True)
     made: list[tuple[Path, int]] = []
     for k in range(drives):
@@ -213,15 +211,7 @@ def replay_drives(root: Path, drives: int) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"drive-{number:03d}.parquet"
         if k < DISTINCT:
-            truth, _ = simulate_vehicle(vehicle, 1)
-            sensor = dataclasses.replace(template, sensor_id=truth.sensor_id)
-            coefficient_file.save(root / "sets" / f"{truth.sensor_id}.yaml", sensor)
-            drive = drive_for(truth, vehicle, number)
-            values = [drive.time_s, raw_of(sensor, drive.rate_dps), drive.temp_c, drive.speed_mps,
-                      drive.true_rate_dps]
-            table = pa.table(dict(zip(COLUMNS, values, strict=True)))
-            pq.write_table(table.replace_schema_metadata({"sensor": truth.sensor_id}), path)
-            made.append((path, table.num_rows))
+            made.append((path, parquet_drives.write_drive(path, root / "sets", vehicle, number).rows))
         else:
             source, _ = made[k % DISTINCT]
             path.symlink_to(source)
