@@ -21,7 +21,8 @@ layout ingest writes: a folder and file per vehicle and day, 30,000 for 1,000 ve
 the replay's cost is the tracker's row-by-row step, so it is measured on simulated raw drives
 (as ``simulate fleet --drives`` makes them, written as Parquet; 16 distinct, the others links to
 them) with a LocalCluster of one, then two worker processes, each worker's peak memory from the
-worker itself.
+worker itself, after each drive it replayed: its own (``VmHWM``), not ``ru_maxrss``, which on Linux
+starts at the size of the process that started the worker, this one (``support/worker_peak.py``).
 """
 
 from __future__ import annotations
@@ -47,13 +48,11 @@ import pyarrow.parquet as pq
 
 from canical.commands.cli import main
 from canical.fleet.dataset import SCHEMA
-from canical.sets import coefficient_file
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from support import replay_fleets
+from support import replay_fleets, worker_peak
 from support.replay_fleets import FleetSpec
 
-SET = Path(__file__).resolve().parents[1] / "data" / "sets" / "daemon-z.yaml"
 DRIVE_ROWS = 98_000  # about one simulated drive's rows
 DISTINCT = 16  # distinct drives simulated for the replay's cost; the others link to them
 #: Fleets looked at while the replay's figure and the tracker's prior were developed.
@@ -200,10 +199,10 @@ def replay_drives(root: Path, drives: int) -> int:
     """About ``drives`` simulated raw drives as Parquet files, a folder per vehicle and two drives
     each: :data:`DISTINCT` distinct drives simulated, the others links to them (the replay's cost is
     the rows it steps through; 100 M rows of distinct drives would not fit the disk). The rows."""
-    from canical.sim.fleet import simulate_vehicle
-    from canical.sim.fleet_drives import COLUMNS, drive_for, raw_of
+    # here, not above: a LocalCluster's workers run this script's imports (spawn imports it as
+    # __mp_main__), and the simulator brings scipy.signal, 60 MB more in each worker's figure
+    from support import parquet_drives
 
-    template = coefficient_file.load(SET)
     (root / "sets").mkdir(parents=True)
     made: list[tuple[Path, int]] = []
     for k in range(drives):
@@ -212,15 +211,7 @@ def replay_drives(root: Path, drives: int) -> int:
         folder.mkdir(parents=True, exist_ok=True)
         path = folder / f"drive-{number:03d}.parquet"
         if k < DISTINCT:
-            truth, _ = simulate_vehicle(vehicle, 1)
-            sensor = dataclasses.replace(template, sensor_id=truth.sensor_id)
-            coefficient_file.save(root / "sets" / f"{truth.sensor_id}.yaml", sensor)
-            drive = drive_for(truth, vehicle, number)
-            values = [drive.time_s, raw_of(sensor, drive.rate_dps), drive.temp_c, drive.speed_mps,
-                      drive.true_rate_dps]
-            table = pa.table(dict(zip(COLUMNS, values, strict=True)))
-            pq.write_table(table.replace_schema_metadata({"sensor": truth.sensor_id}), path)
-            made.append((path, table.num_rows))
+            made.append((path, parquet_drives.write_drive(path, root / "sets", vehicle, number).rows))
         else:
             source, _ = made[k % DISTINCT]
             path.symlink_to(source)
@@ -238,16 +229,19 @@ def replay_cost(root: Path, replay_rows: int, engines: list[str]) -> None:
             "--baseline", str(root / "r" / "sets")]
     print(f"## fleet replay of {total:,} raw rows ({drives} Parquet drives, {min(drives, DISTINCT)} "
           f"distinct; each row through two sets and two trackers; written in {made:.0f} s)\n")
-    print("| engine | wall time | rows/s | peak memory per worker process |")
+    print("| engine | wall time | rows/s | peak memory per worker process (its own) |")
     print("|---|---|---|---|")
-    timings = {}
+    timings: dict[str, float] = {}
+    runs: dict[str, ClusterRun] = {}
     for engine in engines:
         start = time.perf_counter()
         peaks = "-"
         if engine == "embedded":
             quiet([*argv, "-o", str(root / "embedded.csv")])
         else:
-            timings[engine], peaks = _on_cluster(argv, int(engine), root / f"w{engine}.csv")
+            runs[engine] = _on_cluster(argv, int(engine), root / f"w{engine}.csv")
+            timings[engine] = runs[engine].took
+            peaks = ", ".join(f"{w[-1].own_mb:.0f} MB" for w in runs[engine].per_worker)
         timings.setdefault(engine, time.perf_counter() - start)
         name = engine if engine == "embedded" else f"{engine} worker process{'es' if engine != '1' else ''}"
         print(f"| {name} | {timings[engine]:.1f} s | {total / timings[engine]:,.0f} | {peaks} |")
@@ -255,25 +249,49 @@ def replay_cost(root: Path, replay_rows: int, engines: list[str]) -> None:
     speedup = f"{timings['1'] / timings['2']:.2f}x" if {"1", "2"} <= set(timings) else "not run"
     print(f"\nTwo workers against one: {speedup} faster (issue's bar: >= 1.6x on 100 M rows). "
           f"replay.csv the same on every engine: {'yes' if len(outputs) == 1 else 'NO'}.")
+    for engine, run in runs.items():
+        _peaks_by_drives(engine, run)
 
 
-def _on_cluster(argv: list[str], workers: int, out: Path) -> tuple[float, str]:
-    """The replay on a LocalCluster of ``workers`` processes: its wall time, and each worker's
-    peak resident set (``getrusage`` in the worker: the most it held at once, start-up included)."""
+@dataclasses.dataclass(frozen=True)
+class ClusterRun:
+    """A replay on a LocalCluster: its wall time, this process's peak when the workers were
+    started, and each worker's peaks after each drive it replayed."""
+
+    took: float
+    starter_mb: float
+    per_worker: list[list[worker_peak.Sample]]
+
+
+def _on_cluster(argv: list[str], workers: int, out: Path) -> ClusterRun:
+    """The replay on a LocalCluster of ``workers`` processes, each sampled by
+    :class:`support.worker_peak.PeakSampler` (its own peak, and ``ru_maxrss``)."""
     import distributed
 
+    starter_mb = worker_peak.own_peak_mb()
     with distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                  host="127.0.0.1", dashboard_address=None) as cluster:
+                                  host="127.0.0.1", dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        client.register_plugin(worker_peak.PeakSampler(), name=worker_peak.NAME)
         start = time.perf_counter()
         quiet([*argv, "--scheduler", cluster.scheduler_address, "-o", str(out)])
         took = time.perf_counter() - start
-        with distributed.Client(cluster) as client:
-            peaks = client.run(_peak_mb)
-    return took, ", ".join(f"{mb:.0f} MB" for mb in sorted(peaks.values()))
+        per_worker = client.run(worker_peak.samples)
+    return ClusterRun(took, starter_mb, [per_worker[w] for w in sorted(per_worker)])
 
 
-def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+def _peaks_by_drives(engine: str, run: ClusterRun) -> None:
+    """Each worker's peak against the drives it had replayed: its own (``VmHWM``), and
+    ``ru_maxrss``, the figure this script printed before, which starts at this process's size."""
+    print(f"\n{engine} worker process{'es' if engine != '1' else ''}: a worker's peak resident memory "
+          f"against the drives it had replayed (this process's peak when it started them: "
+          f"{run.starter_mb:.0f} MB)\n")
+    print("| worker | drives replayed | own peak (VmHWM) | ru_maxrss (printed before) |")
+    print("|---|---|---|---|")
+    for w, samples in enumerate(run.per_worker):
+        for i in sorted({0, len(samples) // 8, len(samples) // 4, len(samples) // 2, len(samples) - 1}):
+            s = samples[i]
+            print(f"| {w} | {s.tasks} | {s.own_mb:.0f} MB | {s.rusage_mb:.0f} MB |")
 
 
 def main_args() -> argparse.Namespace:
