@@ -661,16 +661,7 @@ def _has_bias(cand: Candidate) -> bool:
     return any(t.form == "bias" and t.spec not in RATE_SHAPED for t in cand.terms)
 
 
-def other_levels(pool: list[Candidate], s: Structure, best: Candidate) -> tuple[Term, ...]:
-    """The level forms of the channels other than ``best``'s still in the pool and not yet in
-    ``s``: what :func:`_drift_beats` sets beside the drift."""
-    taken = {t.channel for t in s.terms}
-    return tuple(t for c in pool if c.kind == CHANNEL and c.channel not in (best.channel, *taken)
-                 and c.name == CHANNEL_OFFSET.label(c.channel or "") for t in c.terms)
-
-
-def _drift_beats(scorer: Scorer, s: Structure, best: Candidate,
-                 others: tuple[Term, ...] = ()) -> Confound | None:
+def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | None:
     """The record of a channel's candidate that the session's own drift explains as well; None
     when the channel is the better explanation (or the candidate is not a channel's).
 
@@ -689,10 +680,6 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate,
     The three models compared are each on the base size they deserve (:class:`_Footing`): on a base
     too small for the sensor, the rate model's misfit dominates every held-out error and ties the
     channel with the drift (a temperature effect that hid the curvature the first size choice needed).
-    Each also carries ``others``, the other channels' levels (:func:`other_levels`): a flexible
-    form of a wandering channel can take a share of another channel's effect not yet in the model
-    and of a drift the smooth spline cannot follow (a step) together, which neither takes alone;
-    with the others' levels beside the drift, it is blamed only for what is its own.
 
     The drift is not added either way: a smooth function of this session's clock is a property of
     the session, not of the sensor, and on the vehicle it would add this session's wander at the
@@ -704,9 +691,8 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate,
     if drift is None:
         return None
     footing = _Footing(scorer, s, [best, drift])
-    with_channel = footing.of(others + best.terms, None if others else footing.own[best.name])
-    with_drift = footing.of(others + drift.terms)
-    with_both = footing.of(others + drift.terms + best.terms)
+    with_channel, with_drift = footing.of(best.terms, footing.own[best.name]), footing.of(drift.terms)
+    with_both = footing.of(drift.terms + best.terms)
     r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
     beyond = 1.0 - scorer.held_rms(with_both) / r_drift
     p_beyond = better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift))
@@ -857,7 +843,7 @@ def run_loop(
             twins = tuple(c.name for c in group if c is not chosen)
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen
-        drift = None if best.name in prefer else _drift_beats(scorer, s, best, other_levels(pool, s, best))
+        drift = None if best.name in prefer else _drift_beats(scorer, s, best)
         if drift is not None:
             confounded.append(drift)
             progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
