@@ -86,3 +86,19 @@ def test_scalar_and_vector_paths_agree():
     for x, r, f in zip(dv, vec, vflags, strict=True):
         one, flag = model.evaluate_one(float(x))
         assert one == pytest.approx(r, abs=1e-9) and flag == f
+
+
+@pytest.mark.parametrize("order", [0, 1, 3, 5])
+def test_design_matrix_is_numpys_vandermonde_in_each_segment_bit_for_bit(order):
+    """The design writes u**k into the point's segment, multiplied as numpy.vander does, so every
+    fit (and every set's CRC) is what the vander-based construction gave."""
+    from canical.models.segmented_inverse import design
+
+    rng = np.random.default_rng(order)
+    dv, knots, scale = rng.normal(0.0, 3e4, 500), np.sort(rng.normal(0.0, 2e4, 4)), 4.1e4
+    width = order + 1
+    expected = np.zeros((dv.size, (knots.size + 1) * width))
+    seg = np.searchsorted(knots, dv, side="right")
+    cols = seg[:, None] * width + np.arange(width)
+    np.put_along_axis(expected, cols, np.vander(dv / scale, width, increasing=True), axis=1)
+    assert np.array_equal(design(dv, knots, order, scale), expected)
