@@ -114,6 +114,12 @@ class Structure:
     span: tuple[float, float]
     terms: tuple[Term, ...] = ()
 
+    @property
+    def key(self) -> tuple[Any, ...]:
+        """What tells structures apart for the :class:`Scorer`'s caches (the knots as a tuple:
+        an array does not hash)."""
+        return (self.spec, tuple(self.knots), self.terms)
+
 
 @dataclass(frozen=True)
 class Fit:
@@ -333,14 +339,14 @@ class Scorer:
         """The structure fitted to every block, once: the search asks for the same fit from
         several places (a size chosen again, its score, the round's record), each τ search a
         tenth of a second on a long session."""
-        key = (s.spec, tuple(s.knots), s.terms)
+        key = s.key
         if key not in self.fits:
             self.fits[key] = fit_structure(self.blocks, s, self.duration_s)
         return self.fits[key]
 
     def score(self, s: Structure) -> Score:
         """Held-out rms, training RSS of plateau-mean residuals, number of coefficients."""
-        key = (s.spec, tuple(s.knots), s.terms)
+        key = s.key
         if key not in self.cache:
             err = held_out_errors(self.blocks, s, self.folds, self.duration_s)
             fit = self.fit(s)
@@ -357,7 +363,7 @@ class Scorer:
     def plateau_loss(self, s: Structure) -> np.ndarray:
         """Sum of squared held-out block errors of each held-out plateau, in time order."""
         self.score(s)
-        return self.losses[(s.spec, tuple(s.knots), s.terms)]
+        return self.losses[s.key]
 
     @property
     def n_plateaus(self) -> int:
