@@ -24,8 +24,9 @@ from __future__ import annotations
 import logging
 import math
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from operator import itemgetter
 from typing import Any, Protocol
 
 from cantools.database.can import Message
@@ -57,19 +58,31 @@ class NotCompilable(ValueError):
 class CantoolsCodec:
     """The reference: cantools' own encode/decode behind the same interface."""
 
-    __slots__ = ("_decode", "_encode", "names")
+    __slots__ = ("_decode", "_encode", "_in_order", "names")
 
     def __init__(self, message: Message) -> None:
         self.names = tuple(s.name for s in message.signals)
         self._decode = message.decode
         self._encode = message.encode
+        self._in_order = _in_order(self.names)
 
     def decode(self, data: bytes | bytearray) -> tuple[Any, ...]:
         values = self._decode(data, decode_choices=False)  # type: ignore[arg-type]  # cantools takes a bytearray too
-        return tuple(values[n] for n in self.names)  # type: ignore[call-overload]  # plain message: a mapping
+        return self._in_order(values)
 
     def encode(self, values: Sequence[Any]) -> bytes:
         return self._encode(dict(zip(self.names, values, strict=True)), strict=False)
+
+
+def _in_order(names: tuple[str, ...]) -> Callable[[Any], tuple[Any, ...]]:
+    """Decoded values in signal order in one C call (a quarter of a µs less per frame than a
+    generator); ``itemgetter`` of one name gives the value itself, of none is an error."""
+    if len(names) > 1:
+        return itemgetter(*names)
+    if names:
+        pick = itemgetter(names[0])
+        return lambda values: (pick(values),)
+    return lambda values: ()
 
 
 class CompiledCodec:

@@ -257,3 +257,16 @@ def test_float_signal_is_not_compiled(caplog) -> None:
         codec = codec_for(message_of(text))
     assert isinstance(codec, CantoolsCodec)
     assert "signal F is a float" in caplog.text
+
+
+@pytest.mark.parametrize("signals", [0, 1, 3])
+def test_the_cantools_codec_decodes_in_signal_order_whatever_the_count(signals: int) -> None:
+    """The reference codec's values in signal order are a tuple for none, one or several signals
+    (a message without signals is the reference's to handle: the compiler refuses it)."""
+    lines = "".join(f' SG_ S{i} : {8 * i}|8@1- (0.5,{i}) [0|0] "" Vector__XXX\n' for i in range(signals))
+    message = message_of(f'VERSION ""\n\nNS_ :\n\nBS_:\n\nBU_: A\n\nBO_ 100 M: 8 A\n{lines}\n')
+    codec = codec_for(message) if signals == 0 else CantoolsCodec(message)
+    payload = bytes([0xFE, 0x04, 0x80, 0, 0, 0, 0, 0])
+    want = message.decode(payload, decode_choices=False)
+    assert codec.decode(payload) == tuple(want[f"S{i}"] for i in range(signals))
+    assert type(codec.decode(payload)) is tuple
