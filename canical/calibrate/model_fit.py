@@ -9,7 +9,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from canical.calibrate.fit_points import FitPoints
-from canical.calibrate.segment_points import Extremum, choose_knots
+from canical.calibrate.segment_points import EVEN_SOURCE, Extremum, choose_knots
 from canical.errors import CanicalError
 from canical.models.forward_poly import ForwardPoly, fit_forward_poly
 from canical.models.kinds import FORWARD_POLY, SEGMENTED_INVERSE, SEGMENTED_LINEAR, ModelKind
@@ -27,11 +27,15 @@ class ModelSpec:
     order: int = 2
     smoothness: int | None = 0  # None: independent segments (the paper); 0: C0; 1: C1
     breakpoints_dps: tuple[float, ...] = DEFAULT_BREAKPOINTS_DPS  # segmented-linear only
+    #: Segment points evenly spaced in ΔV instead of at residual extrema (a continuous sweep's:
+    #: see :func:`even_knots`).
+    even_points: bool = False
 
     def describe(self) -> str:
         if self.kind is SEGMENTED_INVERSE:
             join = {None: "free", 0: "C0", 1: "C1"}[self.smoothness]
-            return f"{self.kind} segments={self.n_segments} order={self.order} joins={join}"
+            even = " points=even" if self.even_points else ""
+            return f"{self.kind} segments={self.n_segments} order={self.order} joins={join}{even}"
         if self.kind is SEGMENTED_LINEAR:
             return f"{self.kind} points={list(self.breakpoints_dps)} deg/s"
         return f"{self.kind} order={self.order}"
@@ -112,9 +116,31 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
         residual: np.ndarray = merged.rate - fit.poly.evaluate(merged.dv)[0]
         return residual
 
-    knots, extrema = choose_knots(
-        points, spec.n_segments, min_points=spec.order + 1, refit_residual=refit_residual
-    )
+    if spec.even_points:
+        knots, extrema = even_knots(merged, spec.n_segments, span)
+    else:
+        knots, extrema = choose_knots(
+            points, spec.n_segments, min_points=spec.order + 1, refit_residual=refit_residual
+        )
     fit = fit_with(knots)
     actual = replace(spec, n_segments=len(knots) + 1)
     return FittedModel(fit.poly, actual, extrema)
+
+
+def even_knots(merged: FitPoints, n_segments: int,
+               span: tuple[float, float]) -> tuple[np.ndarray, list[Extremum]]:
+    """``n_segments − 1`` segment points evenly spaced over the ΔV span, each named by its rate.
+
+    Why not at extrema: a sweep's windows are short, so each is noisy (several times a
+    plateau's noise), and a residual extremum must stand that many standard errors above its
+    neighbours to count: the sensor's bends go unseen and the segments run out. The windows cover
+    every rate, so evenly spaced points always have data on both sides, and their number is
+    chosen by held-out error like any size.
+    """
+    knots = np.linspace(span[0], span[1], n_segments + 1)[1:-1]
+    counts = np.bincount(np.searchsorted(knots, merged.dv), minlength=n_segments)
+    if np.any(counts < 2):
+        raise CanicalError(f"{n_segments} evenly spaced segments: a segment with fewer than 2 rates")
+    by_dv = np.argsort(merged.dv)
+    rates = np.interp(knots, merged.dv[by_dv], merged.rate[by_dv])
+    return knots, [Extremum(float(r), float(k), 0.0, EVEN_SOURCE) for r, k in zip(rates, knots, strict=True)]

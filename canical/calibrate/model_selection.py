@@ -24,6 +24,14 @@ from canical.errors import CanicalError
 from canical.models import RateModel
 
 SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
+#: A continuous sweep's segment counts, its segment points evenly spaced
+#: (:func:`~canical.calibrate.model_fit.even_knots`). Why more: segment points at residual
+#: extrema ran out at 3-4 on a sweep's noisy windows, and its held-out error was then up to 3.5x
+#: a step session's of the same sensor; with the same segment points as the step session's,
+#: the sweep's windows fit as well as its plateaus, and a ripple or a knee wants more than six
+#: evenly spaced ones. Up to 12: twice a step session's; with a cap of 8 or 16 instead,
+#: ``tests/benchmarks/bench_sweep.py --seeds`` 70000-70059 gives the same verdicts (60/60 within the bar).
+SWEEP_SEGMENT_CHOICES = tuple(range(1, 13))
 ORDER_CHOICES = (1, 2, 3)
 #: Orders tried in a second round, offered to every session with free orders
 #: (:func:`canical.calibration.pipeline.fit_base`) and taken only when clearly better.

@@ -25,6 +25,7 @@ import numpy as np
 from canical.calibrate.fit_points import FitPoints
 
 PROMINENCE_SIGMA = 5.0
+EVEN_SOURCE = "evenly spaced"  # an Extremum's source where segment points are spaced evenly, not found
 
 
 @dataclass(frozen=True)
@@ -34,7 +35,7 @@ class Extremum:
     rate_dps: float
     dv: float
     prominence_dps: float
-    source: str  # "global-quadratic" or "segmented-residual"
+    source: str  # "global-quadratic", "segmented-residual" or EVEN_SOURCE
 
 
 def residual_extrema(

@@ -8,7 +8,9 @@ rate, up to its curvature: for a response ``f``, the mean of ``f`` over rates sp
 ``a·W`` differs from ``f`` at the mean rate by ``f''·(a·W)²/24``. So the session is cut into
 consecutive windows, each a :class:`~canical.calibrate.plateaus.Plateaus` entry, and everything
 downstream (fit points, rails, model selection, cross-validation by rate groups, the closed loop,
-the reports) runs unchanged.
+the reports) runs unchanged, but for the segment points: evenly spaced on a sweep, whose noisy
+windows hide the residual extrema steps place them at
+(:data:`~canical.calibrate.model_selection.SWEEP_SEGMENT_CHOICES`).
 
 **The window's length.** Its rate spread ``a·W`` is kept within ``MAX_SPREAD_DPS`` (0.5 deg/s):
 the sharpest bend a MEMS scale factor shows is the knee of its positive/negative asymmetry, a

@@ -18,7 +18,14 @@ from canical.calibrate.allan import NoiseAnalysis, NoiseSkipped
 from canical.calibrate.cross_validation import cross_validate, prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
-from canical.calibrate.model_selection import HIGH_ORDERS, ORDER_CHOICES, Candidate, select_model
+from canical.calibrate.model_selection import (
+    HIGH_ORDERS,
+    ORDER_CHOICES,
+    SEGMENT_CHOICES,
+    SWEEP_SEGMENT_CHOICES,
+    Candidate,
+    select_model,
+)
 from canical.calibrate.noise_records import name_a_rise, noise_analysis, sample_interval, zero_rate_records
 from canical.calibrate.plateaus import Plateaus, detect_plateaus, explain_too_few
 from canical.calibrate.rails import RailCheck, RailLimits, rail_plateaus
@@ -142,7 +149,7 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
             plateaus, min_duration_s=options.min_duration_s,
             what=f"only {n_rates} distinct plateau rates (at least 4 are needed)"))
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
-    spec, candidates = _choose_spec(points, options)
+    spec, candidates = _choose_spec(points, options, sweep=plateaus.sweep_window_s > 0)
     fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
     return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates, left_out)
@@ -196,9 +203,11 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
     )
 
 
-def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
+def _choose_spec(points: FitPoints, o: CalibrateOptions, *,
+                 sweep: bool = False) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
     """The model size: given, or chosen by held-out error; orders above 3 a second round, taken
-    only when clearly better (see :data:`HIGH_ORDERS`)."""
+    only when clearly better (see :data:`HIGH_ORDERS`). A sweep's segment points are evenly
+    spaced, and more of them are offered (see :data:`SWEEP_SEGMENT_CHOICES`)."""
     base = ModelSpec(o.kind, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
     if o.kind is SEGMENTED_LINEAR:
         return replace(base, order=1), ()
@@ -209,7 +218,10 @@ def _choose_spec(points: FitPoints, o: CalibrateOptions) -> tuple[ModelSpec, tup
         return spec, tuple(_size_candidate(c) for c in cands)
     if o.segments is not None and o.order is not None:
         return base, ()
-    segments = (o.segments,) if o.segments is not None else (1, 2, 3, 4, 5, 6)
+    if sweep:
+        base = replace(base, even_points=True)
+    choices = SWEEP_SEGMENT_CHOICES if sweep else SEGMENT_CHOICES
+    segments = (o.segments,) if o.segments is not None else choices
     orders = (o.order,) if o.order is not None else ORDER_CHOICES
     high = HIGH_ORDERS if o.order is None else ()
     spec, cands = select_model(points, base, segments=segments, orders=orders, high_orders=high)

@@ -75,13 +75,7 @@ def render(report: CalibrationReport, plots: list[str]) -> str:
         f"{report.held_out.max_dps:.4f} |",
         "",
     ]
-    if report.segment_points:
-        lines += ["Segment points (from residual extrema):", ""]
-        lines += [
-            f"- {p.rate_dps:g} deg/s (raw {p.raw:.1f}), prominence {p.prominence_dps:.4f} deg/s, {p.source}"
-            for p in report.segment_points
-        ]
-        lines.append("")
+    lines += _segment_points(report)
     if report.closed_loop is not None:
         lines += _closed_loop(report)
     elif report.loop_skipped is not None:
@@ -97,6 +91,21 @@ def render(report: CalibrationReport, plots: list[str]) -> str:
     if plots:
         lines += ["## Plots", ""] + [f"![{p}]({p})" for p in plots] + [""]
     return "\n".join(lines)
+
+
+def _segment_points(report: CalibrationReport) -> list[str]:
+    """Where the segments join: at residual extrema (with their prominence), or evenly spaced."""
+    from canical.calibrate.segment_points import EVEN_SOURCE  # numpy: imported when rendering only
+
+    points = report.segment_points
+    if not points:
+        return []
+    if all(p.source == EVEN_SOURCE for p in points):
+        head = "Segment points (evenly spaced in ΔV: a continuous sweep's windows):"
+        return [head, "", *(f"- {p.rate_dps:g} deg/s (raw {p.raw:.1f})" for p in points), ""]
+    return ["Segment points (from residual extrema):", "",
+            *(f"- {p.rate_dps:g} deg/s (raw {p.raw:.1f}), prominence {p.prominence_dps:.4f} deg/s, {p.source}"
+              for p in points), ""]
 
 
 def _closed_loop(report: CalibrationReport) -> list[str]:

@@ -20,6 +20,7 @@ from canical.calibration.pipeline import (
 )
 from canical.commands.cli import main
 from canical.sessions.session import Session
+from canical.sets.coefficient_file import load
 from canical.sim.gyro import GyroModel
 from canical.sim.sessions import between_rates_session, paper_session
 from canical.sim.sweeps import SweepProgramme, sweep_recording
@@ -27,6 +28,15 @@ from canical.sim.sweeps import SweepProgramme, sweep_recording
 #: A sensor other than the default: a sharper knee, other curvature, more noise, a slower filter.
 OTHER = GyroModel(sensitivity=250.0, bias_counts=-80.0, asymmetry=0.04, asymmetry_width_dps=4.0,
                   quadratic=-0.02, cubic=0.03, noise_dps=0.12, bandwidth_hz=25.0)
+#: A ripple of 0.11 deg/s every 25 deg/s, and a wide gentle knee with little noise: with segment
+#: points at residual extrema the sweep got 5 and 3 segments (order 5) and 2.7x and 2.6x the step
+#: session's error (sensors drawn by ``bench_sweep.py``, seeds 70017 and 70034, rounded).
+RIPPLED = GyroModel(sensitivity=275.0, bias_counts=-88.0, asymmetry=0.0085, asymmetry_width_dps=6.2,
+                    quadratic=-0.007, cubic=0.0475, ripple=0.0019, ripple_period_dps=25.0, noise_dps=0.066,
+                    bandwidth_hz=71.0)
+GENTLE = GyroModel(sensitivity=109.0, bias_counts=-85.0, asymmetry=0.0073, asymmetry_width_dps=9.6,
+                   quadratic=0.02, cubic=0.043, ripple=0.0008, ripple_period_dps=33.0, noise_dps=0.052,
+                   bandwidth_hz=92.5)
 
 
 def _judged(session: Session, judge: Session) -> float:
@@ -34,7 +44,8 @@ def _judged(session: Session, judge: Session) -> float:
     return float(np.sqrt(np.mean(held_out_set_errors(result.coefficients, judge) ** 2)))
 
 
-@pytest.mark.parametrize(("gyro", "seed"), [(GyroModel(), 11), (GyroModel(), 12), (OTHER, 13)])
+@pytest.mark.parametrize(("gyro", "seed"), [(GyroModel(), 11), (GyroModel(), 12), (OTHER, 13), (RIPPLED, 15),
+                                            (GENTLE, 15)])
 def test_a_sweep_calibrates_within_the_bar_of_a_step_session(gyro: GyroModel, seed: int) -> None:
     """The same sensor, a step session and a sweep of the same length (encoder rate at 100 Hz,
     late by 10 ms), both sets judged on a third step session at the rates midway: the sweep's
@@ -112,3 +123,27 @@ def test_the_criterion_from_its_figures() -> None:
     noisy = SweepCheck(window_s=1.0, moved_per_update_dps=0.01, reference_error_dps=0.02,
                        sensor_noise_dps=0.01)
     assert "too noisy for it: 0.02 deg/s on a window (the sensor's noise: 0.01)" in noisy.refusal()
+
+
+def test_a_sweep_joins_its_segments_at_evenly_spaced_points(tmp_path) -> None:
+    """A sweep's segment points are evenly spaced in ΔV and more than six may be chosen (the
+    ripple wants them); the written set, read back, corrects as the set calibrate returned."""
+    step = paper_session(RIPPLED, seed=16)
+    sweep = sweep_recording(RIPPLED, SweepProgramme(duration_s=float(step.time_s[-1]), encoder_lsb_dps=0.02,
+                                                    ref_latency_s=0.01), seed=116)
+    result = calibrate(sweep, CalibrateOptions(), sensor_id="SIM", axis="z")
+    spec = result.report.spec
+    assert spec.endswith("points=even") and int(spec.split("segments=")[1].split()[0]) > 6, spec
+    knots = fit_base(sweep, CalibrateOptions(extend=False)).fitted.model.knots
+    assert np.allclose(np.diff(knots), np.diff(knots)[0])
+    path = write_session(tmp_path / "sweep.csv", sweep)
+    assert main(["calibrate", str(path), "-o", str(tmp_path / "set.yaml")]) == 0
+    judge = between_rates_session(RIPPLED, seed=216)
+    np.testing.assert_allclose(held_out_set_errors(load(tmp_path / "set.yaml"), judge),
+                               held_out_set_errors(result.coefficients, judge), atol=1e-9)
+
+
+def test_a_step_session_keeps_its_extrema() -> None:
+    """A step session's segment points are still its residual's extrema (sizes up to six)."""
+    spec = fit_base(paper_session(RIPPLED, seed=17), CalibrateOptions(extend=False)).fitted.spec
+    assert not spec.even_points and spec.n_segments <= 6
