@@ -6,7 +6,6 @@ Run: python tests/benchmarks/bench_fleet.py [--vehicles N] [--days D] [--records
               [--replay-engines embedded,1,2] [--parts analyse,verdicts,sets,replay]
      the issue's replay: --parts replay --replay-rows 100000000 --replay-engines 1,2
      python tests/benchmarks/bench_fleet.py --quick        (small sizes, figures meaningless)
-     the sets part on fleets that were never blind: --parts sets --sets-fleets explored,drawn
 
 Why the sets' part: the issue's bar (the zero-rate error at least 5x smaller on sensors whose
 table slope was wrong, nothing measurable changed on the others) judged on one fleet moves with
@@ -63,15 +62,7 @@ EXPLORED = [FleetSpec(15, 8, 1), FleetSpec(15, 8, 2), FleetSpec(1, 90, 1), Fleet
 #: Fleets never looked at until the end: their figure is the one to believe.
 BLIND = [FleetSpec(39, 40, 3), FleetSpec(40, 80, 1), FleetSpec(42, 100, 2), FleetSpec(46, 85, 3),
          FleetSpec(49, 72, 2), FleetSpec(54, 56, 1)]
-#: Fleets drawn for issue 35's per-sensor bar (the first 20 seeds from 1000 holding a wrong-slope
-#: sensor, 20-100 vehicles, 1-3 drives): beside the explored ones, so nothing is tuned to a few seeds.
-DRAWN = [FleetSpec(1001, 93, 2), FleetSpec(1002, 68, 2), FleetSpec(1003, 44, 1), FleetSpec(1005, 54, 1),
-         FleetSpec(1008, 48, 1), FleetSpec(1010, 76, 1), FleetSpec(1011, 43, 1), FleetSpec(1012, 80, 1),
-         FleetSpec(1013, 31, 3), FleetSpec(1014, 68, 2), FleetSpec(1016, 71, 1), FleetSpec(1017, 99, 3),
-         FleetSpec(1019, 47, 1), FleetSpec(1020, 89, 2), FleetSpec(1025, 79, 3), FleetSpec(1026, 70, 1),
-         FleetSpec(1030, 49, 1), FleetSpec(1031, 92, 3), FleetSpec(1033, 68, 3), FleetSpec(1036, 50, 1)]
 QUICK_FLEETS = [FleetSpec(15, 8, 1, others=1)]
-SET_GROUPS = {"explored": EXPLORED, "drawn": DRAWN, "blind": BLIND}
 
 
 def quiet(argv: list[str]) -> None:
@@ -163,7 +154,7 @@ def analyse_cost(root: Path, records: int, days: int) -> None:
     print(f"| peak memory (the process's maximum resident set) | {peak_mb:.0f} MB | <= 2 GB |\n")
 
 
-def sets_effect(root: Path, groups_run: dict[str, list[FleetSpec]]) -> None:
+def sets_effect(root: Path, explored: list[FleetSpec], blind: list[FleetSpec]) -> None:
     """The proposed sets' effect on the zero-rate error carried into standstills, per fleet and
     pooled: on the sensors whose table slope was wrong, and on the others."""
     print("## Proposed sets: the zero-rate error carried into standstills, before -> after\n")
@@ -174,8 +165,8 @@ def sets_effect(root: Path, groups_run: dict[str, list[FleetSpec]]) -> None:
           "per sensor: smallest, >= 5x | others | after/before (largest per sensor) | "
           "same figures without a new set |")
     print("|---|---|---|---|---|---|---|---|")
-    groups: dict[str, list[replay_fleets.FleetRatio]] = {name: [] for name in groups_run}
-    for name, specs in groups_run.items():
+    groups: dict[str, list[replay_fleets.FleetRatio]] = {"explored": [], "blind": []}
+    for name, specs in (("explored", explored), ("blind", blind)):
         for spec in specs:
             folder = root / f"sets-{spec.seed}-{spec.vehicles}-{spec.drives}"
             replay_fleets.build(folder, spec)
@@ -313,16 +304,11 @@ def main_args() -> argparse.Namespace:
     p.add_argument("--replay-engines", default="embedded,1,2",
                    help="the replay's engines: embedded and numbers of worker processes")
     p.add_argument("--parts", default=",".join(PARTS), help=f"which parts to run (of {','.join(PARTS)})")
-    p.add_argument("--sets-fleets", default="explored,blind",
-                   help=f"the sets part's fleets (of {','.join(SET_GROUPS)}; recorded: explored,blind)")
     p.add_argument("--quick", action="store_true", help="small sizes (the figures mean nothing)")
     args = p.parse_args()
     args.parts = args.parts.split(",")
     if set(args.parts) - set(PARTS):
         p.error(f"--parts: some of {','.join(PARTS)}")
-    args.sets_fleets = args.sets_fleets.split(",")
-    if set(args.sets_fleets) - set(SET_GROUPS):
-        p.error(f"--sets-fleets: some of {','.join(SET_GROUPS)}")
     if args.quick:
         args.vehicles, args.days, args.records, args.replay_rows = 12, 4, 20_000, 150_000
     return args
@@ -340,7 +326,6 @@ if __name__ == "__main__":
         if "verdicts" in args.parts:
             verdicts(Path(tmp), args.vehicles, args.days)
         if "sets" in args.parts:
-            sets_effect(Path(tmp), {"quick": QUICK_FLEETS} if args.quick else
-                        {name: SET_GROUPS[name] for name in args.sets_fleets})
+            sets_effect(Path(tmp), QUICK_FLEETS if args.quick else EXPLORED, [] if args.quick else BLIND)
         if "replay" in args.parts:
             replay_cost(Path(tmp), args.replay_rows, args.replay_engines.split(","))
