@@ -8,6 +8,14 @@ new set needs nothing new on the vehicle. The term acts on the raw output before
 so its coefficient is *s* divided by the model's slope at zero rate (raw units per °C); a set that
 already has such a term on ``temp_c`` at 25 °C gets its coefficient changed, not a second term.
 
+Why anchored where the evidence is: the field measured a line in deg/s, *b = b̄ + s·(T − T̄)*,
+at the standstills' own raw level, and the rate model is curved there (the daemon's table set's
+gain moves 1 % per deg/s near rest). A single coefficient *s* over the slope at zero rate
+reproduces that line only at zero rate: a cold vehicle's standstill at −5 °C, 0.5 deg/s of
+bias away, was left 0.005 deg/s that the line had removed. So the term is the raw shift that
+maps the field's line back onto the model, fitted over the temperatures the evidence spans
+(:class:`Level`): ``offset`` and, where the curve is worth it, ``square`` on ``temp_c``.
+
 Why only significant evidence: a sensor whose field slope lies within :data:`SIGNIFICANCE`
 standard errors of zero (or that has too little evidence) keeps its set untouched, so a proposal
 never moves a good sensor by the noise of its estimate. The evidence and the before/after (the
@@ -31,13 +39,18 @@ from canical.fleet.analysis import REFERENCE_C, TOO_LITTLE, PowerOnSums, SensorV
 from canical.models.piecewise import PiecewisePoly
 from canical.sets import signed_file
 from canical.sets.coefficients import CoefficientSet
-from canical.sets.term_kinds import CHANNEL, CHANNEL_OFFSET
+from canical.sets.term_kinds import CHANNEL, CHANNEL_OFFSET, CHANNEL_SQUARE, ChannelKind
+from canical.sets.term_params import OnChannel
 from canical.sets.terms import Term
 
 #: A field slope this many standard errors from zero is evidence enough to change a set.
 SIGNIFICANCE = 3.0
 TEMP_CHANNEL = "temp_c"
 UNCHANGED, PROPOSED = "unchanged", "proposed"
+#: The field term is fitted over the evidence's mean temperature ± this many 1σ (and 25 °C).
+SPAN_SDS = 2.0
+#: A curvature whose largest effect over that span is below this (deg/s) is left out: the line alone.
+CURVE_MIN_DPS = 1e-4
 
 
 @dataclass(frozen=True)
@@ -61,6 +74,22 @@ class Evidence:
     vehicles: int
     before_dps: float
     after_dps: float
+    level: Level | None = None
+
+
+@dataclass(frozen=True)
+class Level:
+    """Where one sensor axis's field evidence lies: its adopted standstills' mean temperature and
+    its 1σ, and their mean bias (what the set gave there, deg/s)."""
+
+    temp_c: float
+    temp_sd_c: float
+    bias_dps: float
+
+    def span_c(self) -> tuple[float, float]:
+        """The temperatures the field term is fitted over: the evidence's, and 25 °C."""
+        half = SPAN_SDS * self.temp_sd_c
+        return min(self.temp_c - half, REFERENCE_C), max(self.temp_c + half, REFERENCE_C)
 
 
 @dataclass(frozen=True)
@@ -139,11 +168,26 @@ def within_sums(sums: PowerOnSums) -> dict[tuple[str, str], Within]:
     return out
 
 
-def evidence_of(verdict: SensorVerdict, within: Within) -> Evidence:
+def levels(sums: PowerOnSums) -> dict[tuple[str, str], Level]:
+    """Per sensor axis, where its evidence lies (:class:`Level`), from the per-power-on sums."""
+    n, st, _, sb, stt = sums.sums.T[:5]
+    keys = list(zip(sums.sensor_id.tolist(), sums.axis.tolist(), strict=True))
+    totals: dict[tuple[str, str], np.ndarray] = {}
+    for i, key in enumerate(keys):
+        totals[key] = totals.get(key, np.zeros(4)) + np.array([n[i], st[i], stt[i], sb[i]])
+    out = {}
+    for key, row in totals.items():
+        count, t, tt, b = (float(v) for v in row)
+        mean_t = t / count
+        out[key] = Level(REFERENCE_C + mean_t, math.sqrt(max(tt / count - mean_t * mean_t, 0.0)), b / count)
+    return out
+
+
+def evidence_of(verdict: SensorVerdict, within: Within, level: Level | None = None) -> Evidence:
     """The verdict's slope with the 1σ of the standstills within power-ons before and after it."""
     s = verdict.slope_dps_per_c
     return Evidence(s, verdict.slope_se, verdict.records, verdict.power_ons, verdict.vehicles,
-                    within.sigma(0.0), within.sigma(s if math.isfinite(s) else 0.0))
+                    within.sigma(0.0), within.sigma(s if math.isfinite(s) else 0.0), level)
 
 
 def significant(verdict: SensorVerdict) -> bool:
@@ -155,8 +199,9 @@ def significant(verdict: SensorVerdict) -> bool:
 def propose(verdicts: Sequence[SensorVerdict], sums: PowerOnSums,
             sets: Mapping[tuple[str, str], SetSource], dataset: str) -> list[Proposal]:
     """Every sensor axis of the analysis, and every set given: a new set or unchanged, and why."""
-    within = within_sums(sums)
-    out = [_one(v, sets.get((v.sensor_id, v.axis)), within.get((v.sensor_id, v.axis)), dataset)
+    within, level = within_sums(sums), levels(sums)
+    out = [_one(v, sets.get((v.sensor_id, v.axis)), within.get((v.sensor_id, v.axis)),
+                level.get((v.sensor_id, v.axis)), dataset)
            for v in verdicts]
     seen = {(v.sensor_id, v.axis) for v in verdicts}
     out += [Proposal(k[0], k[1], UNCHANGED, "no field records", src, None)
@@ -165,8 +210,8 @@ def propose(verdicts: Sequence[SensorVerdict], sums: PowerOnSums,
 
 
 def _one(verdict: SensorVerdict, source: SetSource | None,
-         within: Within | None, dataset: str) -> Proposal:
-    evidence = evidence_of(verdict, within) if within is not None else None
+         within: Within | None, level: Level | None, dataset: str) -> Proposal:
+    evidence = evidence_of(verdict, within, level) if within is not None else None
     key = (verdict.sensor_id, verdict.axis)
     if not significant(verdict):
         why = (TOO_LITTLE if verdict.verdict == TOO_LITTLE else
@@ -184,34 +229,77 @@ def _one(verdict: SensorVerdict, source: SetSource | None,
 
 def with_field_term(cset: CoefficientSet, evidence: Evidence, dataset: str) -> tuple[CoefficientSet, float]:
     """The set plus the field-learned temperature term, with its evidence in ``fit``; and the
-    coefficient added (raw units per °C)."""
+    ``offset`` coefficient added (raw units per °C)."""
     model = cset.rate_model()
     if not isinstance(model, PiecewisePoly):
         raise CanicalError(f"sensor {cset.sensor_id}: a forward model takes no effect terms")
     gain = float(model.slope(np.array([0.0]))[0])  # deg/s per raw unit at rest
     if not math.isfinite(gain) or gain == 0.0:
         raise CanicalError(f"sensor {cset.sensor_id}: the set's model has no slope at rest")
-    added = evidence.slope_dps_per_c / gain
-    terms, merged = [], False
-    for term in cset.terms:
-        if not merged and _is_field_term(term):
-            term, merged = dataclasses.replace(term, coefficient=term.coefficient + added), True
-        terms.append(term)
-    if not merged:
-        terms.append(Term.of(CHANNEL_OFFSET, "bias", added, channel=TEMP_CHANNEL, reference=REFERENCE_C))
-    fit = {**cset.fit, "field_evidence": _fit_record(evidence, added, dataset)}
+    line, curve = field_shift(model, evidence, gain)
+    terms = _merged(cset.terms, CHANNEL_OFFSET, line)
+    if curve != 0.0:
+        terms = _merged(terms, CHANNEL_SQUARE, curve)
+    fit = {**cset.fit, "field_evidence": _fit_record(evidence, line, curve, dataset)}
     stamp = datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-    return dataclasses.replace(cset, terms=tuple(terms), fit=fit, created=stamp), added
+    return dataclasses.replace(cset, terms=terms, fit=fit, created=stamp), line
 
 
-def _is_field_term(term: Term) -> bool:
+def field_shift(model: PiecewisePoly, evidence: Evidence, gain: float) -> tuple[float, float]:
+    """The raw shift c₁·x + c₂·x² (x = T − 25 °C) that takes the field's line of standstill biases,
+    b̄ + s·(T − T̄), back to its value at 25 °C through the model: least squares over the span
+    the evidence covers. Without a level (or a span), the slope over the gain at rest alone."""
+    slope, level = evidence.slope_dps_per_c, evidence.level
+    lo, hi = level.span_c() if level is not None else (REFERENCE_C, REFERENCE_C)
+    if level is None or hi - lo < 1.0:
+        return slope / gain, 0.0
+    temps = np.linspace(lo, hi, 41)
+    rates = level.bias_dps + slope * (temps - level.temp_c)
+    at_ref = level.bias_dps + slope * (REFERENCE_C - level.temp_c)
+    shift = _inverse(model, rates, gain) - _inverse(model, np.array([at_ref]), gain)
+    x = temps - REFERENCE_C
+    (line, curve), *_ = np.linalg.lstsq(np.column_stack([x, x * x]), shift, rcond=None)
+    if abs(curve) * float(np.max(x * x)) * abs(gain) < CURVE_MIN_DPS:
+        (line,), *_ = np.linalg.lstsq(x[:, None], shift, rcond=None)
+        return float(line), 0.0
+    return float(line), float(curve)
+
+
+def _inverse(model: PiecewisePoly, rates: np.ndarray, gain: float) -> np.ndarray:
+    """ΔV where the model gives ``rates`` (Newton from the gain at rest; the model rises)."""
+    dv = rates / gain
+    for _ in range(20):
+        got, _ = model.evaluate(dv)
+        dv = dv - (got - rates) / model.slope(dv)
+    return dv
+
+
+def _merged(terms: tuple[Term, ...], kind: ChannelKind[OnChannel], added: float) -> tuple[Term, ...]:
+    """``terms`` with ``added`` on the field's term of ``kind`` (on ``temp_c`` at 25 °C, bias form):
+    its coefficient changed if the set has one, else the term appended."""
+    out, merged = [], False
+    for term in terms:
+        if not merged and _is_field_term(term, kind.feature):
+            term, merged = dataclasses.replace(term, coefficient=term.coefficient + added), True
+        out.append(term)
+    if not merged:
+        out.append(Term.of(kind, "bias", added, channel=TEMP_CHANNEL, reference=REFERENCE_C))
+    return tuple(out)
+
+
+def _is_field_term(term: Term, feature: str) -> bool:
     return (term.kind, term.feature, term.form, term.channel, float(term.reference)) == \
-        (CHANNEL, "offset", "bias", TEMP_CHANNEL, REFERENCE_C)
+        (CHANNEL, feature, "bias", TEMP_CHANNEL, REFERENCE_C)
 
 
-def _fit_record(evidence: Evidence, added: float, dataset: str) -> dict[str, object]:
-    return {"dataset": dataset, "slope_dps_per_c": evidence.slope_dps_per_c, "slope_se": evidence.slope_se,
-            "records": evidence.records, "power_ons": evidence.power_ons, "vehicles": evidence.vehicles,
-            "coefficient_added": added, "within_sigma_before_dps": evidence.before_dps,
-            "within_sigma_after_dps": evidence.after_dps}
+def _fit_record(evidence: Evidence, added: float, curve: float, dataset: str) -> dict[str, object]:
+    record: dict[str, object] = {
+        "dataset": dataset, "slope_dps_per_c": evidence.slope_dps_per_c, "slope_se": evidence.slope_se,
+        "records": evidence.records, "power_ons": evidence.power_ons, "vehicles": evidence.vehicles,
+        "coefficient_added": added, "within_sigma_before_dps": evidence.before_dps,
+        "within_sigma_after_dps": evidence.after_dps}
+    if evidence.level is not None:
+        record |= {"square_coefficient_added": curve, "mean_temp_c": evidence.level.temp_c,
+                   "temp_sd_c": evidence.level.temp_sd_c, "mean_bias_dps": evidence.level.bias_dps}
+    return record
 

@@ -22,6 +22,8 @@ from scipy.signal import lfilter
 from canical.tracking.events import TakenWindow
 
 STOP, DRIVE, TURN, CREEP = "stop", "drive", "turn", "creep"
+#: The slowest a car drives between its ramps (m/s); creep and stops are their own segments.
+MIN_DRIVE_MPS = 2.0
 
 
 @dataclass(frozen=True)
@@ -127,7 +129,10 @@ def _segment(kind: str, seconds: float, model: DriveModel, rng: np.random.Genera
         speed = (0.6 + 0.5 * np.abs(_smooth(rng, n, fs, 0.1, 1.0))) * env + 0.3 * (env > 0)
         return _smooth(rng, n, fs, 0.1, 0.4) * env, speed, vib
     env = _envelope(n, fs, 3.0)
-    speed = (12.0 + 4.0 * _smooth(rng, n, fs, 0.02, 1.0)) * env + 0.3 * (env > 0)
+    # the wander is floored: a car driving never shows a speed below MIN_DRIVE_MPS (a wander of
+    # -3σ once gave seconds of negative speed, read as a standstill while the car was turning)
+    cruise = np.maximum(12.0 + 4.0 * _smooth(rng, n, fs, 0.02, 1.0), MIN_DRIVE_MPS)
+    speed = cruise * env + 0.3 * (env > 0)
     return _smooth(rng, n, fs, 0.3, 5.0) * env, speed, vib
 
 

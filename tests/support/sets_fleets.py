@@ -1,0 +1,67 @@
+"""bench_fleet's sets part on chosen groups of fleets: the explored ones and those drawn from seeds
+from 1000 (:data:`support.replay_fleets.DRAWN`), never the blind ones.
+
+Run: python tests/support/sets_fleets.py [--groups explored,drawn] [--keep DIR]
+
+Why apart from ``bench_fleet.py``: its figures are recorded with a digest of its source, so the
+lead re-records them all, blind fleets included; this prints the same table (its rows from
+``bench_fleet``) for the fleets a change may be developed on. ``--keep`` leaves the fleets built
+in DIR (the cleanup of thirty fleets' datasets takes minutes).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from bench_fleet import EXPLORED, _sets_row
+
+from support import replay_fleets
+
+GROUPS = {"explored": EXPLORED, "drawn": replay_fleets.DRAWN}
+
+
+def run(root: Path, groups: list[str]) -> None:
+    results: dict[str, list[replay_fleets.FleetRatio]] = {}
+    for name in groups:
+        results[name] = []
+        for spec in GROUPS[name]:
+            folder = root / f"sets-{spec.seed}-{spec.vehicles}-{spec.drives}"
+            if not (folder / "replay.csv").is_file():
+                replay_fleets.build(folder, spec)
+            result = replay_fleets.judge(folder, spec)
+            results[name].append(result)
+            print(_sets_row(f"{name}: {spec.seed}, {spec.vehicles}, {spec.drives}", result.wrong,
+                            result.others, result.unchanged_same), flush=True)
+    for name, got in results.items():
+        print(_sets_row(f"**all {name} ({len(got)} fleets)**", replay_fleets.combined([r.wrong for r in got]),
+                        replay_fleets.combined([r.others for r in got]), all(r.unchanged_same for r in got)))
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--groups", default="explored,drawn", help=f"of {','.join(GROUPS)}")
+    p.add_argument("--keep", type=Path, help="build the fleets here and leave them")
+    args = p.parse_args()
+    groups = args.groups.split(",")
+    if set(groups) - set(GROUPS):
+        p.error(f"--groups: some of {','.join(GROUPS)}")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    print("| fleet (seed, vehicles, drives each) | wrong-slope sensors | before -> after (deg/s) | ratio | "
+          "per sensor: smallest, >= 5x | others | after/before (largest per sensor) | "
+          "same figures without a new set |")
+    print("|---|---|---|---|---|---|---|---|")
+    if args.keep:
+        run(args.keep, groups)
+        return
+    with tempfile.TemporaryDirectory(prefix="sets-fleets-") as tmp:
+        run(Path(tmp), groups)
+
+
+if __name__ == "__main__":
+    main()
