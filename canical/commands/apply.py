@@ -52,10 +52,11 @@ def register(sub) -> None:
                             "--config whose bias_tracking: is on, tracks with its settings, as the daemon")
     track.add_argument("--standstill-column", metavar="NAME",
                        help="cue column (vehicle speed, or a moving flag; in a CAN log an input mapped "
-                            "with --input/--config): stopped while below --standstill-below; nothing is "
+                            "with --input/--config): stopped while within ± --standstill-below (a signed "
+                            "speed in reverse is moving); nothing is "
                             "learned while it says moving")
     track.add_argument("--standstill-below", type=float, default=0.1, metavar="X",
-                       help="cue value below which the vehicle stands (default 0.1)")
+                       help="cue magnitude below which the vehicle stands (default 0.1)")
     track.add_argument("--temp-column", default="temp_c", metavar="NAME",
                        help="temperature column the bias is learned against (default temp_c, if present)")
     track.add_argument("--arw", type=float, metavar="DEG_PER_RT_H",

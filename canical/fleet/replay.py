@@ -182,7 +182,7 @@ class _Pipeline:
         bias = self.replayer.feed(cols["time_s"], rate, temp, cols[CUE])[:, 0]
         truth = cols.get(TRUTH)
         err = rate - bias - (truth if truth is not None else 0.0)
-        self.tally.block(cols["time_s"], cols[CUE] < CUE_BELOW, err, truth, bias)
+        self.tally.block(cols["time_s"], np.abs(cols[CUE]) < CUE_BELOW, err, truth, bias)
 
 
 def replay_drive(task: DriveTask) -> DriveResult:

@@ -36,7 +36,7 @@ class TrackerConfig:
     bias_walk_dps_rt_s: float = 2e-4  # how fast the bias wanders between stops, (deg/s)/√s
     window_inflation: float = 2.0  # a window's mean is not independent of its neighbours'
     reference_c: float = 25.0  # temperature at which the learned offset is stated
-    cue_threshold: float | None = None  # cue below this means stopped; None: no cue
+    cue_threshold: float | None = None  # a cue within ± this: stopped (reverse moves); None: no cue
 
     def __post_init__(self) -> None:
         for name in ("arw_deg_rt_h", "window_s", "k_std", "k_steady", "bound_dps", "slew_dps_per_s",
@@ -56,8 +56,9 @@ class TrackerConfig:
                 raise ValueError(f"{name} must be a non-negative number, not {value!r}")
         if not math.isfinite(self.reference_c):
             raise ValueError("reference_c must be a finite number")
-        if self.cue_threshold is not None and not math.isfinite(self.cue_threshold):
-            raise ValueError("cue_threshold must be a finite number")
+        cue = self.cue_threshold
+        if cue is not None and not (math.isfinite(cue) and cue > 0):
+            raise ValueError(f"cue_threshold must be a positive number, not {self.cue_threshold!r}")
 
     def for_set(self, fit: Mapping[str, Any], *, arw_given: bool) -> TrackerConfig:
         """These settings for one axis's set: its angle random walk (``fit.arw_deg_rt_h``, what

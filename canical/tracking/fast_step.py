@@ -77,7 +77,7 @@ def fast_step(tracker: BiasTracker) -> FastStep:
         s2 += d * d
         n += 1
         temp_sum += temp
-        if below is not None and not (cue is not None and cue < below):
+        if below is not None and not (cue is not None and -below < cue < below):
             cue_moving = True
         if t_s - start >= window_s:
             push()
@@ -174,7 +174,7 @@ def fast_step3(tracker: BiasTracker) -> FastStep3:
         s22 += d * d
         n += 1
         temp_sum += temp
-        if below is not None and not (cue is not None and cue < below):
+        if below is not None and not (cue is not None and -below < cue < below):
             cue_moving = True
         if t_s - start >= window_s:
             push()

@@ -51,7 +51,8 @@ KEYS: tuple[Key, ...] = (
     Key("temperature", "temp_c", "an input's name", "the input the bias is learned against"),
     Key("cue", "none", "a mapping", "an input that says whether the vehicle moves (speed, a flag)"),
     Key("cue.input", "required", "an input's name", "e.g. `speed`, mapped in `inputs:` to a DBC signal"),
-    Key("cue.below", "0.1", "finite number", "the vehicle stands while the input is below this"),
+    Key("cue.below", "0.1", "positive number",
+        "the vehicle stands while the input is within ± this (a signed speed in reverse is moving)"),
     Key("state_file", "none", "file path", "where the learned bias is kept across restarts (atomically)"),
 )
 _NUMBERS = ("arw_deg_rt_h", "window_s", "vibration_dps", "bound_dps", "slew_dps_per_s", "turn_on_sigma_dps")
@@ -117,4 +118,7 @@ def _cue(cue: Any, fail: Fail) -> tuple[str | None, float | None]:
     name = cue.get("input")
     if not isinstance(name, str) or not name:
         raise fail(f"{PREFIX}cue.input", f"must name an input, got {name!r}")
-    return name, _number(cue.get("below", 0.1), f"{PREFIX}cue.below", fail)
+    below = _number(cue.get("below", 0.1), f"{PREFIX}cue.below", fail)
+    if below <= 0.0:  # the vehicle stands while the cue is within ± below: none would
+        raise fail(f"{PREFIX}cue.below", f"must be a positive number, got {below!r}")
+    return name, below

@@ -164,8 +164,8 @@ class BiasTracker:
         sums.n += 1
         sums.temp_sum += self._temp
         below = self._cue_below
-        if below is not None and not (cue is not None and cue < below):
-            sums.cue_moving = True  # a missing cue counts as moving
+        if below is not None and not (cue is not None and -below < cue < below):
+            sums.cue_moving = True  # a missing cue counts as moving; a signed speed's reverse too
         if t_s - sums.start_s >= self._window_s:
             self._close_window(t_s)
             self._retarget()

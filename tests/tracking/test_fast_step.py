@@ -36,7 +36,8 @@ def drive(seed: int, n: int = 10_000) -> tuple[list[float], list[float], list[fl
         times.append(t)
         rates.append(bias + (rng.normal(0, 20) if moving else 0.0) + rng.normal(0, 0.05))
         temps.append(math.nan if rng.random() < 0.05 else 20.0 + 0.002 * i)
-        cues.append(None if rng.random() < 0.0005 else (5.0 if moving else 0.0))
+        # moving: a signed speed, forward or in reverse
+        cues.append(None if rng.random() < 0.0005 else (rng.choice((5.0, -5.0)) if moving else 0.0))
     return times, rates, temps, cues
 
 

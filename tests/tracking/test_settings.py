@@ -40,6 +40,7 @@ def test_a_full_section() -> None:
     ({"cue": "speed"}, "bias_tracking.cue: must be a mapping"),
     ({"cue": {"input": 3}}, "bias_tracking.cue.input: must name an input"),
     ({"cue": {"input": "speed", "below": "low"}}, "bias_tracking.cue.below: must be a finite number"),
+    ({"cue": {"input": "speed", "below": -0.1}}, "bias_tracking.cue.below: must be a positive number"),
     ({"cue": {"input": "speed", "above": 1}}, "bias_tracking.cue.above: unknown key"),
     ({"temperature": ""}, "bias_tracking.temperature: must name an input"),
     ({"state_file": 3}, "bias_tracking.state_file: must be a file path"),

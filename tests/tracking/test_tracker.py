@@ -65,6 +65,17 @@ def test_with_a_cue_nothing_is_learned_while_it_says_moving() -> None:
     assert stopped.events[0].decision == ADOPTED
 
 
+def test_a_signed_speed_in_reverse_is_moving() -> None:
+    """A cue that goes negative (a vehicle speed signed by direction) says moving by its size."""
+    t, r = stream(20, 0.2)
+    cfg = TrackerConfig(arw_deg_rt_h=CONFIG.arw_deg_rt_h, cue_threshold=0.5)
+    reversing = replay(t, r, cfg, cue=np.full(t.size, -3.0))
+    assert reversing.taken == ()
+    assert "cue says moving" in reversing.events[0].reason
+    creeping_back = replay(t, r, cfg, cue=np.full(t.size, -0.2))  # within ± the threshold: stands
+    assert creeping_back.events[0].decision == ADOPTED
+
+
 def test_the_applied_bias_slews_without_a_step() -> None:
     t, r = stream(30, 0.6)
     out = replay(t, r, CONFIG)
@@ -118,7 +129,8 @@ def test_three_axes_share_one_standstill() -> None:
 
 
 @pytest.mark.parametrize("bad", [{"window_s": 0.0}, {"bound_dps": -1.0}, {"min_run_windows": 0},
-                                 {"cue_threshold": math.nan}, {"arw_deg_rt_h": math.inf}])
+                                 {"cue_threshold": math.nan}, {"cue_threshold": 0.0},
+                                 {"arw_deg_rt_h": math.inf}])
 def test_bad_settings_are_refused(bad: dict[str, float]) -> None:
     with pytest.raises(ValueError):
         TrackerConfig(**bad)
