@@ -33,17 +33,15 @@ SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
 #: ``tests/benchmarks/bench_sweep.py --seeds`` 70000-70059 gives the same verdicts (60/60 within the bar).
 SWEEP_SEGMENT_CHOICES = tuple(range(1, 13))
 ORDER_CHOICES = (1, 2, 3)
-#: Orders tried in a second round, offered to every session with free orders
-#: (:func:`canical.calibration.pipeline.fit_base`) and taken only when clearly better.
-#: Why offered: an output stage that saturates bends the scale factor sharply in the last rates
-#: before the rail, and orders up to 3 leave several times the noise there; a higher order
-#: removes most of it. The bend is there whether or not the output reached its rail inside the
-#: table's range (a knee whose asymptote lies just beyond the rail compresses the top rates and
-#: never clips), so no sign of clipping is asked for. Why clearly: on a step session of a sensor
-#: orders up to 3 describe, a higher order's held-out rms is as low only by chance, and choosing
-#: among more sizes by held-out rms alone then picks noise (a clean drifting sensor of
-#: ``tests/closed_loop/test_closed_loop.py`` ``test_clean_sensors_get_nothing_blamed_on_a_channel``
-#: got one), so the round's best must be clearly lower than the first round's best
+#: Orders tried in a second round, for a sensor that reached its rail inside the table's range,
+#: or a continuous sweep (the caller decides: :func:`canical.calibration.pipeline.fit_base`).
+#: Why: an output stage that saturates bends the scale factor sharply in the last rates before
+#: the rail, and orders up to 3 leave several times the noise there; a higher order removes most
+#: of it. On a step session of a sensor orders up to 3 describe, a higher order's held-out rms is
+#: as low only by chance, and choosing among more sizes by held-out rms then picks noise (offered
+#: to every session, it failed a clean drifting sensor of ``tests/closed_loop/test_closed_loop.py``
+#: ``test_clean_sensors_get_nothing_blamed_on_a_channel``), so the round is not offered there
+#: at all, and where it is, its best must be clearly lower than the first round's best
 #: (:func:`_clearly_better`).
 HIGH_ORDERS = (4, 5)
 #: Three standard errors: a sixth of the error gone on 200 held-out blocks, a third on 40. Where

@@ -149,7 +149,9 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
             plateaus, min_duration_s=options.min_duration_s,
             what=f"only {n_rates} distinct plateau rates (at least 4 are needed)"))
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
-    spec, candidates = _choose_spec(points, options, sweep=plateaus.sweep_window_s > 0)
+    second_round = bool(clipped.any()) or plateaus.sweep_window_s > 0
+    spec, candidates = _choose_spec(points, options, second_round=second_round,
+                                    sweep=plateaus.sweep_window_s > 0)
     fitted = fit_model(points, spec)
     sat_rates = tuple(float(r) for r in np.unique(plateaus.rate_dps[clipped]))
     return BaseFit(plateaus, v0, points, fitted, sat_rates, candidates, left_out)
@@ -203,11 +205,13 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
     )
 
 
-def _choose_spec(points: FitPoints, o: CalibrateOptions, *,
+def _choose_spec(points: FitPoints, o: CalibrateOptions, *, second_round: bool = False,
                  sweep: bool = False) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
-    """The model size: given, or chosen by held-out error; orders above 3 a second round, taken
-    only when clearly better (see :data:`HIGH_ORDERS`). A sweep's segment points are evenly
-    spaced, and more of them are offered (see :data:`SWEEP_SEGMENT_CHOICES`)."""
+    """The model size: given, or chosen by held-out error; orders above 3 (``second_round``) only
+    for a sensor that reached its rail inside the table's range, or a continuous sweep: its
+    hundreds of windows resolve a bend 41 plateaus cannot (see :data:`HIGH_ORDERS`). A sweep's
+    segment points are evenly spaced, and more of them are offered (see
+    :data:`SWEEP_SEGMENT_CHOICES`)."""
     base = ModelSpec(o.kind, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
     if o.kind is SEGMENTED_LINEAR:
         return replace(base, order=1), ()
@@ -223,7 +227,7 @@ def _choose_spec(points: FitPoints, o: CalibrateOptions, *,
     choices = SWEEP_SEGMENT_CHOICES if sweep else SEGMENT_CHOICES
     segments = (o.segments,) if o.segments is not None else choices
     orders = (o.order,) if o.order is not None else ORDER_CHOICES
-    high = HIGH_ORDERS if o.order is None else ()
+    high = HIGH_ORDERS if second_round and o.order is None else ()
     spec, cands = select_model(points, base, segments=segments, orders=orders, high_orders=high)
     return spec, tuple(_size_candidate(c) for c in cands)
 
