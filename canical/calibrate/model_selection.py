@@ -33,8 +33,9 @@ SEGMENT_CHOICES = (1, 2, 3, 4, 5, 6)
 #: ``tests/benchmarks/bench_sweep.py --seeds`` 70000-70059 gives the same verdicts (60/60 within the bar).
 SWEEP_SEGMENT_CHOICES = tuple(range(1, 13))
 ORDER_CHOICES = (1, 2, 3)
-#: Orders tried in a second round, for a sensor that reached its rail inside the table's range,
-#: or a continuous sweep (the caller decides: :func:`canical.calibration.pipeline.fit_base`).
+#: Orders tried in a second round, for a sensor that reached its rail inside the table's range or
+#: bends toward one (:func:`end_compression`), or a continuous sweep (the caller decides:
+#: :func:`canical.calibration.pipeline.fit_base`).
 #: Why: an output stage that saturates bends the scale factor sharply in the last rates before
 #: the rail, and orders up to 3 leave several times the noise there; a higher order removes most
 #: of it. On a step session of a sensor orders up to 3 describe, a higher order's held-out rms is
@@ -67,6 +68,32 @@ def is_monotone(model: RateModel, span: tuple[float, float], n: int = 2048) -> b
     rate = model.evaluate(np.linspace(span[0], span[1], n))[0]
     d = np.diff(rate)
     return bool(np.all(d > 0) or np.all(d < 0))
+
+
+#: A sign of an output bending toward its rail without reaching it: the sensitivity between the
+#: last two rates at one end at least this share below the middle half's (see :func:`end_compression`).
+END_COMPRESSION = 0.3
+
+
+def end_compression(points: FitPoints) -> float:
+    """How much less sensitive the sensor is between its last two rates at either end than over the
+    middle half of its rates: 0 where it is as sensitive, 0.5 where half, the larger of the two ends.
+
+    Why: an output stage bending toward a rail it never reaches compresses the top rates without
+    clipping any plateau, so no plateau is left out to say the sensor has a rail, yet orders up to 3
+    leave several times the noise there (:data:`HIGH_ORDERS`). A sensor those orders describe bends
+    far less at its ends (the paper's sensor: 0.16; hard knees that never clip: 0.55 and more, on
+    ``tests/benchmarks/bench_rail.py``'s development seeds). Plateau means are precise to a part in
+    10⁴ of the span, so neither noise nor a table's measured reference moves this figure.
+    """
+    merged = points.by_rate()
+    rate, dv = merged.rate, merged.dv
+    middle = np.abs(rate) <= 0.5 * np.max(np.abs(rate))
+    if rate.size < 4 or np.count_nonzero(middle) < 2:
+        return 0.0
+    slope = float(np.polyfit(rate[middle], dv[middle], 1)[0])
+    ends = np.array([(dv[1] - dv[0]) / (rate[1] - rate[0]), (dv[-1] - dv[-2]) / (rate[-1] - rate[-2])])
+    return float(1.0 - np.min(ends / slope)) if slope else 0.0
 
 
 def data_monotone(points: FitPoints) -> bool:

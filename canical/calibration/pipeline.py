@@ -19,11 +19,13 @@ from canical.calibrate.cross_validation import cross_validate, prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_model
 from canical.calibrate.model_selection import (
+    END_COMPRESSION,
     HIGH_ORDERS,
     ORDER_CHOICES,
     SEGMENT_CHOICES,
     SWEEP_SEGMENT_CHOICES,
     Candidate,
+    end_compression,
     select_model,
 )
 from canical.calibrate.noise_records import name_a_rise, noise_analysis, sample_interval, zero_rate_records
@@ -149,7 +151,8 @@ def fit_base(session: Session, options: CalibrateOptions, progress: ProgressFn =
             plateaus, min_duration_s=options.min_duration_s,
             what=f"only {n_rates} distinct plateau rates (at least 4 are needed)"))
     progress(f"{plateaus.count} plateaus at {n_rates} rates; fitting {options.model}")
-    second_round = bool(clipped.any()) or plateaus.sweep_window_s > 0
+    bends = end_compression(points) >= END_COMPRESSION
+    second_round = bool(clipped.any()) or bends or plateaus.sweep_window_s > 0
     spec, candidates = _choose_spec(points, options, second_round=second_round,
                                     sweep=plateaus.sweep_window_s > 0)
     fitted = fit_model(points, spec)
@@ -208,7 +211,8 @@ def find_plateaus(session: Session, options: CalibrateOptions) -> Plateaus:
 def _choose_spec(points: FitPoints, o: CalibrateOptions, *, second_round: bool = False,
                  sweep: bool = False) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
     """The model size: given, or chosen by held-out error; orders above 3 (``second_round``) only
-    for a sensor that reached its rail inside the table's range, or a continuous sweep: its
+    for a sensor that reached its rail inside the table's range or bends toward one, or a
+    continuous sweep: its
     hundreds of windows resolve a bend 41 plateaus cannot (see :data:`HIGH_ORDERS`). A sweep's
     segment points are evenly spaced, and more of them are offered (see
     :data:`SWEEP_SEGMENT_CHOICES`)."""

@@ -1,8 +1,9 @@
 """A sensor that compresses near its rail: the size chosen follows the bend (issue 32, the rail).
 
 Orders above 3 are a second round (:data:`canical.calibrate.model_selection.HIGH_ORDERS`),
-offered only for a sensor that reached its rail inside the table's range and taken only where
-they clearly lower the held-out error.
+offered only for a sensor that reached its rail inside the table's range or bends toward one
+(:func:`canical.calibrate.model_selection.end_compression`), and taken only where they clearly
+lower the held-out error.
 """
 
 from __future__ import annotations
@@ -13,13 +14,16 @@ import numpy as np
 import pytest
 from support.rail_truth import error_of, hindsight
 
+from canical.calibrate.fit_points import FitPoints
 from canical.calibrate.model_fit import ModelSpec
 from canical.calibrate.model_selection import (
+    END_COMPRESSION,
     HIGH_ORDERS,
     ORDER_CHOICES,
     SEGMENT_CHOICES,
     _candidates,
     _clearly_better,
+    end_compression,
     select_model,
 )
 from canical.calibration.pipeline import CalibrateOptions, fit_base
@@ -49,6 +53,42 @@ def test_a_sensor_that_never_reached_its_rail_is_offered_orders_up_to_3(seed):
     base = fit_base(paper_session(GyroModel(), seed=seed), CalibrateOptions(extend=False))
     assert not base.left_out
     assert base.candidates and max(c.order for c in base.candidates) == 3
+
+
+def test_a_sensor_bending_hard_before_a_rail_it_never_reaches_gets_the_higher_order():
+    """Hard knees whose output stays below the rail over the whole table (nothing left out): the
+    bend shows, and each ends within 1.2x of the hindsight polynomial, where orders up to 3 alone
+    miss at least one of them."""
+    unclipped = []
+    for seed in range(3000, 3030):
+        case = draw_compressing(seed, asymptote=(1.02, 1.3))
+        base = fit_base(case.session, CalibrateOptions(extend=False))
+        if base.left_out:
+            continue
+        assert end_compression(base.points) >= END_COMPRESSION, f"seed {seed}"
+        hind = hindsight(case, base)
+        unclipped.append(error_of(case, base, select_model(base.points, START)[0]) / hind)
+        assert error_of(case, base, base.fitted.spec) <= 1.2 * hind, f"seed {seed}"
+    assert len(unclipped) >= 5 and max(unclipped) > 1.2, unclipped
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_paper_sensor_shows_no_bend_toward_a_rail(seed):
+    """Its ends are less sensitive than its middle, but far less so than a knee's."""
+    points = fit_base(paper_session(GyroModel(), seed=seed), CalibrateOptions(extend=False)).points
+    assert 0.0 < end_compression(points) < 0.6 * END_COMPRESSION
+
+
+def test_the_bend_is_read_at_either_end_and_needs_a_middle():
+    rate = np.array([-60.0, -57.0, -30.0, 0.0, 30.0, 57.0, 60.0])
+    dv = 100.0 * rate
+    dv[-1] = dv[-2] + 100.0 * 3.0 * 0.5  # the last step half as sensitive
+    points = FitPoints(rate, dv, np.ones(7), np.ones(7))
+    assert end_compression(points) == pytest.approx(0.5)
+    flipped = FitPoints(-rate, dv, np.ones(7), np.ones(7))  # a sensor of negative sensitivity
+    assert end_compression(flipped) == pytest.approx(0.5)
+    few = FitPoints(rate[[0, 1, 5, 6]], dv[[0, 1, 5, 6]], np.ones(4), np.ones(4))
+    assert end_compression(few) == 0.0
 
 
 def test_a_sensor_at_its_rail_is_offered_the_second_round():
