@@ -1,0 +1,141 @@
+"""What the floor of the carried zero-rate error is made of, standstill by standstill, against the
+simulated truth: the standstill's own noise, the tracker's error from the stop before, the rest.
+
+Run: python tests/support/floor_parts.py DIR...   (fleets ``sets_fleets.py --keep`` built)
+
+Why: after a proposed set every fleet's carried error sits near 0.002 deg/s. Per standstill its
+squared mean is E[m²] = b² + var(m): b the bias the set and the tracker leave (the true bias less
+the one applied as the stop began), var(m) the noise of the mean of its rows. This splits the
+after figure into those, splits b into the tracker's error at the end of the stop before and what
+the set and the tracker's prediction leave between the stops, and compares three estimates of
+var(m) from the data alone with the truth's: the naive sample variance over n, the variance of
+one-second means over their count, and the same about a line (a stop's slow trend left out).
+"""
+
+from __future__ import annotations
+
+import csv
+import itertools
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from canical.fleet.replay import blocks
+from canical.sets import coefficient_file
+from canical.sim.fleet import simulate_vehicle
+from canical.sim.fleet_drives import drive_for
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from support.carried_truth import WRONG_SLOPE, _runs, _through
+
+SECOND = 100  # rows in a second of a simulated drive
+
+
+@dataclass(frozen=True)
+class Part:
+    """One judged standstill after the new set: its figure and its parts (deg/s, variances in
+    (deg/s)²)."""
+
+    m: float  # the carried figure: mean output less the bias applied as it began
+    b: float  # the truth's: mean true bias less the applied one
+    noise: float  # the mean of its noise (white and vibration), the truth's
+    prev_noise: float  # the stop before's noise of the mean (guard seconds left out): learned by the tracker
+    naive_var: float  # sample variance / n
+    second_var: float  # variance of one-second means / their count (scaled to n rows)
+    line_var: float  # the same, the one-second means taken about a line
+
+
+def _mean_var(x: np.ndarray, detrend: bool) -> float:
+    """The variance of x's mean from its one-second means (about a line if ``detrend``)."""
+    k = len(x) // SECOND
+    means = x[: k * SECOND].reshape(k, SECOND).mean(axis=1)
+    if detrend:
+        t = np.arange(k)
+        resid = means - np.polyval(np.polyfit(t, means, 1), t)
+        return float(resid @ resid / (k - 2) * SECOND / len(x))
+    return float(np.var(means, ddof=1) * SECOND / len(x))
+
+
+def _inner_noise(noise: np.ndarray, run: tuple[int, int]) -> float:
+    """The mean noise over a run less its first and last second (the tracker's guard windows)."""
+    a, b = run
+    inner = noise[a + SECOND: b - SECOND]
+    return float(inner.mean()) if len(inner) else 0.0
+
+
+def _all_runs(cols: dict[str, np.ndarray]) -> list[tuple[int, int]]:
+    """Every run of stopped rows, power-on by power-on (the first and short ones too)."""
+    t, stop = cols["time_s"], cols["speed_mps"] < 0.1
+    new = np.concatenate([[True], t[1:] < t[:-1]])
+    edges = [*np.flatnonzero(new | np.concatenate([[True], stop[1:] != stop[:-1]])).tolist(), len(t)]
+    return [(a, b) for a, b in itertools.pairwise(edges) if stop[a]]
+
+
+def parts(folder: Path, seed: int, index: int) -> list[Part]:
+    truth, _ = simulate_vehicle(index, 1, seed)
+    base = coefficient_file.load(folder / "fleet" / "sets" / f"{truth.sensor_id}.yaml")
+    proposed = folder / "new" / f"{truth.sensor_id}-z.yaml"
+    new = coefficient_file.load(proposed) if proposed.exists() else base
+    out = []
+    for path in sorted((folder / "fleet" / "drives" / truth.vehicle_id).glob("drive-*.csv")):
+        true_bias = drive_for(truth, index, int(path.stem.split("-")[1]), seed).bias_dps
+        got = list(blocks(path))
+        cols = {k: np.concatenate([p[k] for p in got]) for k in got[0]}
+        (rb, _), (ra, ba) = _through(base, cols), _through(new, cols)
+        target = true_bias + ra - rb  # the true bias after the new set
+        out_rate = ra - cols["true_rate_dps"]
+        every = _all_runs(cols)
+        for a, b in _runs(cols):
+            prev = max((r for r in every if r[1] <= a), key=lambda r: r[1])
+            x = out_rate[a:b]
+            out.append(Part(float(x.mean()) - ba[a], float(target[a:b].mean()) - ba[a],
+                            float((out_rate[a:b] - target[a:b]).mean()),
+                            _inner_noise(out_rate - target, prev),
+                            float(np.var(x, ddof=1) / len(x)), _mean_var(x, False), _mean_var(x, True)))
+    return out
+
+
+def _ms(values: list[float]) -> float:
+    return sum(v * v for v in values) / len(values)
+
+
+def row(name: str, got: list[Part]) -> str:
+    m2, b2, n2 = _ms([p.m for p in got]), _ms([p.b for p in got]), _ms([p.noise for p in got])
+    prev2, rest2 = _ms([p.prev_noise for p in got]), _ms([p.b + p.prev_noise for p in got])
+    est = {k: sum(getattr(p, k) for p in got) / len(got) for k in ("naive_var", "second_var", "line_var")}
+    less = max(m2 - est["line_var"], 0.0)
+    return (f"| {name} | {len(got)} | {math.sqrt(m2):.5f} | {math.sqrt(b2):.5f} | {math.sqrt(n2):.5f} | "
+            f"{math.sqrt(est['naive_var']):.5f} | {math.sqrt(est['second_var']):.5f} | "
+            f"{math.sqrt(est['line_var']):.5f} | {math.sqrt(less):.5f} | {math.sqrt(prev2):.5f} | "
+            f"{math.sqrt(rest2):.5f} |")
+
+
+def main(folders: list[Path]) -> None:
+    print("After the new set, RMS over the standstills (deg/s): the carried figure m; the truth's b (true "
+          "bias less the applied one) and the noise of the mean; var(m) estimated naive, from one-second "
+          "means, the same about a line; m less that; b split: the noise of the stop before's mean, "
+          "which the tracker learned as bias, and b less it (what the set and the tracker's prediction leave "
+          "between the stops).\n")
+    print("| fleet: sensor | stops | m | b | noise | naive | 1 s means | about a line | m less noise | "
+          "noise learned at the stop before | b less it |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    pooled: list[Part] = []
+    for folder in folders:
+        seed = int(folder.name.split("-")[1])
+        truth = {r["sensor_id"]: r for r in csv.DictReader((folder / "fleet" / "truth.csv").open())}
+        for vehicle in sorted((folder / "fleet" / "drives").iterdir()):
+            index = int(vehicle.name.split("-")[1])
+            sensor = simulate_vehicle(index, 1, seed)[0].sensor_id
+            if abs(float(truth[sensor]["slope_dps_per_c"])) <= WRONG_SLOPE:
+                continue
+            got = parts(folder, seed, index)
+            pooled += got
+            print(row(f"{folder.name}: {sensor}", got), flush=True)
+    print(row("**pooled**", pooled))
+
+
+if __name__ == "__main__":
+    main([Path(a) for a in sys.argv[1:]])
