@@ -1,5 +1,6 @@
 """bench_fleet's sets part on chosen groups of fleets: the explored ones and those drawn from seeds
-from 1000 (:data:`support.replay_fleets.DRAWN`), never the blind ones.
+from 1000 and from 2001 (:data:`support.replay_fleets.DRAWN`, :data:`~support.replay_fleets.FRESH`),
+never the blind ones.
 
 Run: python tests/support/sets_fleets.py [--groups explored,drawn] [--keep DIR]
 
@@ -23,7 +24,7 @@ from bench_fleet import EXPLORED, _sets_row
 
 from support import replay_fleets
 
-GROUPS = {"explored": EXPLORED, "drawn": replay_fleets.DRAWN}
+GROUPS = {"explored": EXPLORED, "drawn": replay_fleets.DRAWN, "fresh": replay_fleets.FRESH}
 
 
 def run(root: Path, groups: list[str]) -> None:
