@@ -105,12 +105,12 @@ def _ms(values: list[float]) -> float:
 def row(name: str, got: list[Part]) -> str:
     m2, b2, n2 = _ms([p.m for p in got]), _ms([p.b for p in got]), _ms([p.noise for p in got])
     prev2, rest2 = _ms([p.prev_noise for p in got]), _ms([p.b + p.prev_noise for p in got])
-    est = {k: sum(getattr(p, k) for p in got) / len(got) for k in ("naive_var", "second_var", "line_var")}
-    less = max(m2 - est["line_var"], 0.0)
+    naive, second, line = (sum(v) / len(got) for v in zip(*((p.naive_var, p.second_var, p.line_var)
+                                                             for p in got), strict=True))
+    less = max(m2 - line, 0.0)
     return (f"| {name} | {len(got)} | {math.sqrt(m2):.5f} | {math.sqrt(b2):.5f} | {math.sqrt(n2):.5f} | "
-            f"{math.sqrt(est['naive_var']):.5f} | {math.sqrt(est['second_var']):.5f} | "
-            f"{math.sqrt(est['line_var']):.5f} | {math.sqrt(less):.5f} | {math.sqrt(prev2):.5f} | "
-            f"{math.sqrt(rest2):.5f} |")
+            f"{math.sqrt(naive):.5f} | {math.sqrt(second):.5f} | {math.sqrt(line):.5f} | "
+            f"{math.sqrt(less):.5f} | {math.sqrt(prev2):.5f} | {math.sqrt(rest2):.5f} |")
 
 
 def main(folders: list[Path]) -> None:
