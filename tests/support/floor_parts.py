@@ -14,7 +14,6 @@ one-second means over their count, and the same about a line (a stop's slow tren
 
 from __future__ import annotations
 
-import csv
 import itertools
 import math
 import sys
@@ -23,13 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from canical.fleet.replay import blocks
-from canical.sets import coefficient_file
-from canical.sim.fleet import simulate_vehicle
-from canical.sim.fleet_drives import drive_for
-
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from support.carried_truth import WRONG_SLOPE, _runs, _through
+from support.carried_truth import _runs, replayed, wrong_slope
 
 SECOND = 100  # rows in a second of a simulated drive
 
@@ -75,17 +69,10 @@ def _all_runs(cols: dict[str, np.ndarray]) -> list[tuple[int, int]]:
 
 
 def parts(folder: Path, seed: int, index: int) -> list[Part]:
-    truth, _ = simulate_vehicle(index, 1, seed)
-    base = coefficient_file.load(folder / "fleet" / "sets" / f"{truth.sensor_id}.yaml")
-    proposed = folder / "new" / f"{truth.sensor_id}-z.yaml"
-    new = coefficient_file.load(proposed) if proposed.exists() else base
     out = []
-    for path in sorted((folder / "fleet" / "drives" / truth.vehicle_id).glob("drive-*.csv")):
-        true_bias = drive_for(truth, index, int(path.stem.split("-")[1]), seed).bias_dps
-        got = list(blocks(path))
-        cols = {k: np.concatenate([p[k] for p in got]) for k in got[0]}
-        (rb, _), (ra, ba) = _through(base, cols), _through(new, cols)
-        target = true_bias + ra - rb  # the true bias after the new set
+    for drive in replayed(folder, seed, index):
+        cols, (rb, _), (ra, ba) = drive.cols, drive.before, drive.after
+        target = drive.true_bias + ra - rb  # the true bias after the new set
         out_rate = ra - cols["true_rate_dps"]
         every = _all_runs(cols)
         for a, b in _runs(cols):
@@ -123,17 +110,10 @@ def main(folders: list[Path]) -> None:
           "noise learned at the stop before | b less it |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     pooled: list[Part] = []
-    for folder in folders:
-        seed = int(folder.name.split("-")[1])
-        truth = {r["sensor_id"]: r for r in csv.DictReader((folder / "fleet" / "truth.csv").open())}
-        for vehicle in sorted((folder / "fleet" / "drives").iterdir()):
-            index = int(vehicle.name.split("-")[1])
-            sensor = simulate_vehicle(index, 1, seed)[0].sensor_id
-            if abs(float(truth[sensor]["slope_dps_per_c"])) <= WRONG_SLOPE:
-                continue
-            got = parts(folder, seed, index)
-            pooled += got
-            print(row(f"{folder.name}: {sensor}", got), flush=True)
+    for folder, seed, index, sensor in wrong_slope(folders):
+        got = parts(folder, seed, index)
+        pooled += got
+        print(row(f"{folder.name}: {sensor}", got), flush=True)
     print(row("**pooled**", pooled))
 
 
