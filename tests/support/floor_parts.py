@@ -9,11 +9,13 @@ the one applied as the stop began), var(m) the noise of the mean of its rows. Th
 after figure into those, splits b into the tracker's error at the end of the stop before and what
 the set and the tracker's prediction leave between the stops, and compares three estimates of
 var(m) from the data alone with the truth's: the naive sample variance over n, the variance of
-one-second means over their count, and the same about a line (a stop's slow trend left out).
+one-second means over their count, and the same about a line (a stop's slow trend left out); and
+per sensor, how far ``fleet replay``'s figure less the noise lies from the truth, in its own 1σ.
 """
 
 from __future__ import annotations
 
+import csv
 import itertools
 import math
 import sys
@@ -89,15 +91,37 @@ def _ms(values: list[float]) -> float:
     return sum(v * v for v in values) / len(values)
 
 
-def row(name: str, got: list[Part]) -> str:
+@dataclass(frozen=True)
+class Reported:
+    """What ``fleet replay`` reported after the new set, from replay.csv: the sum over the
+    standstills of m² less their estimated noise, and its 1σ."""
+
+    less_noise_sq: float
+    sd: float
+
+    def z(self, b_sq: float) -> float:
+        """How many of its 1σ the reported sum lies from the truth's sum of b²."""
+        return (self.less_noise_sq - b_sq) / self.sd
+
+
+def reported(folder: Path, sensor: str) -> Reported:
+    r = next(r for r in csv.DictReader((folder / "replay.csv").open()) if r["sensor_id"] == sensor)
+    n = int(r["standstills"])
+    less_sq = n * (float(r["carried_after_dps"]) ** 2 - float(r["carried_noise_after_dps"]) ** 2)
+    bound = float(r["carried_less_noise_after_dps"]) + float(r["carried_less_noise_after_sd_dps"])
+    return Reported(less_sq, n * bound**2 - less_sq)  # the +1σ bound is √((sum + 1σ) / n)
+
+
+def row(name: str, got: list[Part], said: Reported | None) -> str:
     m2, b2, n2 = _ms([p.m for p in got]), _ms([p.b for p in got]), _ms([p.noise for p in got])
     prev2, rest2 = _ms([p.prev_noise for p in got]), _ms([p.b + p.prev_noise for p in got])
     naive, second, line = (sum(v) / len(got) for v in zip(*((p.naive_var, p.second_var, p.line_var)
                                                              for p in got), strict=True))
     less = max(m2 - line, 0.0)
+    z = f"{said.z(b2 * len(got)):+.2f}" if said else "-"
     return (f"| {name} | {len(got)} | {math.sqrt(m2):.5f} | {math.sqrt(b2):.5f} | {math.sqrt(n2):.5f} | "
             f"{math.sqrt(naive):.5f} | {math.sqrt(second):.5f} | {math.sqrt(line):.5f} | "
-            f"{math.sqrt(less):.5f} | {math.sqrt(prev2):.5f} | {math.sqrt(rest2):.5f} |")
+            f"{math.sqrt(less):.5f} | {math.sqrt(prev2):.5f} | {math.sqrt(rest2):.5f} | {z} |")
 
 
 def main(folders: list[Path]) -> None:
@@ -105,17 +129,22 @@ def main(folders: list[Path]) -> None:
           "bias less the applied one) and the noise of the mean; var(m) estimated naive, from one-second "
           "means, the same about a line; m less that; b split: the noise of the stop before's mean, "
           "which the tracker learned as bias, and b less it (what the set and the tracker's prediction leave "
-          "between the stops).\n")
+          "between the stops); z: fleet replay's sum of m² less the noise, less the truth's sum of b², "
+          "over its reported 1σ.\n")
     print("| fleet: sensor | stops | m | b | noise | naive | 1 s means | about a line | m less noise | "
-          "noise learned at the stop before | b less it |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "noise learned at the stop before | b less it | replay's figure: z |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     pooled: list[Part] = []
+    zs = []
     for folder, seed, index, sensor in wrong_slope(folders):
         got = parts(folder, seed, index)
         pooled += got
-        print(row(f"{folder.name}: {sensor}", got), flush=True)
-    print(row("**pooled**", pooled))
-
+        said = reported(folder, sensor)
+        zs.append(said.z(sum(p.b**2 for p in got)))
+        print(row(f"{folder.name}: {sensor}", got, said), flush=True)
+    print(row("**pooled**", pooled, None))
+    print(f"\nz over {len(zs)} sensors: mean {sum(zs) / len(zs):+.2f}, RMS "
+          f"{math.sqrt(sum(z * z for z in zs) / len(zs)):.2f}, beyond 2: {sum(abs(z) > 2 for z in zs)}")
 
 if __name__ == "__main__":
     main([Path(a) for a in sys.argv[1:]])
