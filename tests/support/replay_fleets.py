@@ -54,6 +54,7 @@ FRESH = [FleetSpec(2003, 49, 2), FleetSpec(2006, 87, 3), FleetSpec(2008, 78, 1),
          FleetSpec(2011, 33, 3), FleetSpec(2024, 87, 1), FleetSpec(2026, 100, 2), FleetSpec(2029, 46, 2),
          FleetSpec(2031, 98, 1), FleetSpec(2032, 95, 3)]
 
+
 @dataclass(frozen=True)
 class LessNoise:
     """The carried figure less the standstills' own noise over a group: its sums before and after
