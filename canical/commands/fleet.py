@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from canical.fleet.analysis import PowerOnSums, SensorVerdict
     from canical.fleet.drive_log import LogLayout
     from canical.fleet.proposal import SetSource
+    from canical.fleet.replay import Generation
 
 SetTable = dict[tuple[str, str], "SetSource"]
 
@@ -163,6 +164,11 @@ def log_layout(args: argparse.Namespace) -> LogLayout | None:
                      tuple(source.raw_signals.items()), source.j1939_source, args.sensor or source.sensor)
 
 
+def _less_noise(g: Generation) -> str:
+    """The carried error less the standstills' own noise, with its 1σ (+: its upper bound)."""
+    return f"{g.carried_less_noise_dps:.5f} (+{g.carried_less_noise_sd_dps:.5f})"
+
+
 def run_replay(args: argparse.Namespace) -> int:
     from canical.files.atomic_file import write_text_atomic
     from canical.fleet import engine, replay, replay_plan
@@ -175,7 +181,8 @@ def run_replay(args: argparse.Namespace) -> int:
     text = replay.vehicles_csv(vehicles)
     for v in vehicles:
         print(f"{v.vehicle_id} {v.sensor_id}: zero-rate error carried into {v.after.stops} standstills "
-              f"{v.before.carried_rms_dps:.5f} -> {v.after.carried_rms_dps:.5f} deg/s (with the tracked bias "
+              f"{v.before.carried_rms_dps:.5f} -> {v.after.carried_rms_dps:.5f} deg/s, less their own noise "
+              f"{_less_noise(v.before)} -> {_less_noise(v.after)} (with the tracked bias "
               f"{v.before.zero_rate_rms_dps:.5f} -> {v.after.zero_rate_rms_dps:.5f}); heading drift "
               f"{v.before.heading_rms_deg:.3f} -> {v.after.heading_rms_deg:.3f} deg")
     if args.output:

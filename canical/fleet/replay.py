@@ -19,6 +19,13 @@ figures per standstill, each a mean over its rows (the noise averages out):
   tracker learns the bias again (after three still windows, then slewing to it), so this mixes
   the carried error with the tracker's re-learning and its own noise floor; kept as it was.
 
+The carried figure is a mean over the stop's rows, so its square is, on average, the error
+squared plus the variance of that mean: the standstill's own noise (white noise and the engine's
+idle vibration), which no set removes. That variance is estimated from the stop itself
+(:mod:`canical.fleet.stop_noise`: its one-second means, about a line), so a third figure, the
+carried error less its own noise, needs no truth: what a fleet engineer reads to tell what a new
+set changed from what no set can.
+
 Standstills shorter than :data:`MIN_STOP_S` are left out (a speed that touches zero for a row),
 and so is the first standstill of each power-on: there the error is the new turn-on bias, which
 no set knows and the tracker learns at that very stop.
@@ -38,6 +45,7 @@ import numpy as np
 
 from canical.errors import CanicalError
 from canical.fleet.drive_log import LogLayout, log_blocks
+from canical.fleet.stop_noise import MeanNoise, StopSeconds
 from canical.sessions.canlog_format import is_canlog
 from canical.sessions.csv_chunks import read_chunks, read_head
 from canical.sets import coefficient_file
@@ -75,6 +83,10 @@ class Generation:
     heading_sq: float  # sum over drives of the squared heading drift, deg²
     drives: int
     carried_sq: float = 0.0  # sum over them of the squared error carried in (the bias as they began)
+    #: sum over them of their carried mean's own noise: its variance, estimated from the stop
+    carried_noise_sq: float = 0.0
+    #: the variance that noise leaves in ``carried_sq - carried_noise_sq`` (its uncertainty²)
+    less_noise_var: float = 0.0
 
     @property
     def zero_rate_rms_dps(self) -> float:
@@ -85,13 +97,36 @@ class Generation:
         return math.sqrt(self.carried_sq / self.stops) if self.stops else math.nan
 
     @property
+    def carried_noise_rms_dps(self) -> float:
+        """The standstills' own noise in the carried figure, RMS (the part no set removes)."""
+        return math.sqrt(self.carried_noise_sq / self.stops) if self.stops else math.nan
+
+    @property
+    def carried_less_noise_dps(self) -> float:
+        """The carried error less the standstills' own noise, RMS; 0 when the noise is all of it
+        (the sum is unbiased and may fall below 0: floored here, where it is reported)."""
+        return self._less_noise_rms(0.0)
+
+    @property
+    def carried_less_noise_sd_dps(self) -> float:
+        """Its 1σ as the noise leaves it: how far its +1σ bound lies above it (near 0 the figure
+        is only known to be below that bound)."""
+        return self._less_noise_rms(math.sqrt(self.less_noise_var)) - self._less_noise_rms(0.0)
+
+    def _less_noise_rms(self, plus: float) -> float:
+        if not self.stops:
+            return math.nan
+        return math.sqrt(max(self.carried_sq - self.carried_noise_sq + plus, 0.0) / self.stops)
+
+    @property
     def heading_rms_deg(self) -> float:
         return math.sqrt(self.heading_sq / self.drives) if self.drives else math.nan
 
     def plus(self, other: Generation) -> Generation:
         return Generation(self.stops + other.stops, self.error_sq + other.error_sq,
                           self.heading_sq + other.heading_sq, self.drives + other.drives,
-                          self.carried_sq + other.carried_sq)
+                          self.carried_sq + other.carried_sq, self.carried_noise_sq + other.carried_noise_sq,
+                          self.less_noise_var + other.less_noise_var)
 
 
 @dataclass(frozen=True)
@@ -108,7 +143,7 @@ class DriveResult:
 class _Tally:
     """One generation's running sums over a drive's blocks: standstills (a run of stopped rows
     within a power-on), their error sums (with the tracked bias, and with the bias as the run
-    began), and the heading integral."""
+    began, with that mean's own noise), and the heading integral."""
 
     def __init__(self) -> None:
         self.last_time = math.inf  # the first row starts a power-on
@@ -117,7 +152,9 @@ class _Tally:
         self.run_sum = self.run_n = self.run_start = self.run_end = 0.0
         self.run_bias_sum = self.run_first_bias = 0.0
         self.run_counts = False
+        self.seconds = StopSeconds()
         self.stops, self.error_sq, self.carried_sq, self.heading = 0, 0.0, 0.0, 0.0
+        self.noise = MeanNoise(0.0, 0.0)
 
     def block(self, time_s: np.ndarray, stop: np.ndarray, err: np.ndarray, truth: np.ndarray | None,
               bias: np.ndarray) -> None:
@@ -146,7 +183,10 @@ class _Tally:
                 if self.stopped:
                     self.run_counts, self.first_of_power_on = not self.first_of_power_on, False
                     self.run_start, self.run_first_bias = float(time_s[a]), float(bias[a])
+                    self.seconds = StopSeconds(self.run_start)
             if self.stopped:
+                if self.run_counts:
+                    self.seconds.add(time_s[a:b], err[a:b] + bias[a:b])
                 self.run_sum += float(err[a:b].sum())
                 self.run_bias_sum += float(bias[a:b].sum())
                 self.run_n += b - a
@@ -156,14 +196,17 @@ class _Tally:
         if self.stopped and self.run_counts and self.run_end - self.run_start >= MIN_STOP_S:
             self.stops += 1
             self.error_sq += (self.run_sum / self.run_n) ** 2
-            self.carried_sq += ((self.run_sum + self.run_bias_sum) / self.run_n - self.run_first_bias) ** 2
+            carried = (self.run_sum + self.run_bias_sum) / self.run_n - self.run_first_bias
+            self.carried_sq += carried ** 2
+            self.noise = self.noise.plus(self.seconds.noise(carried))
         self.run_sum = self.run_n = self.run_bias_sum = 0.0
         self.run_counts = False
 
     def result(self) -> Generation:
         self._close()
         self.stopped = False
-        return Generation(self.stops, self.error_sq, self.heading ** 2, 1, self.carried_sq)
+        return Generation(self.stops, self.error_sq, self.heading ** 2, 1, self.carried_sq,
+                          self.noise.variance, self.noise.less_noise_var)
 
 
 class _Pipeline:
@@ -277,10 +320,15 @@ def per_vehicle(results: list[DriveResult]) -> list[VehicleResult]:
 def vehicles_csv(vehicles: list[VehicleResult]) -> str:
     """One row per vehicle: its figures before and after (``%.6g``: the same on any engine)."""
     lines = ["vehicle_id,sensor_id,drives,rows,standstills,carried_before_dps,carried_after_dps,"
-             "zero_rate_before_dps,zero_rate_after_dps,heading_before_deg,heading_after_deg"]
+             "zero_rate_before_dps,zero_rate_after_dps,heading_before_deg,heading_after_deg,"
+             "carried_noise_before_dps,carried_noise_after_dps,carried_less_noise_before_dps,"
+             "carried_less_noise_after_dps,carried_less_noise_before_sd_dps,carried_less_noise_after_sd_dps"]
     for v in vehicles:
         lines.append(f"{v.vehicle_id},{v.sensor_id},{v.before.drives},{v.rows},{v.before.stops},"
                      f"{v.before.carried_rms_dps:.6g},{v.after.carried_rms_dps:.6g},"
                      f"{v.before.zero_rate_rms_dps:.6g},{v.after.zero_rate_rms_dps:.6g},"
-                     f"{v.before.heading_rms_deg:.6g},{v.after.heading_rms_deg:.6g}")
+                     f"{v.before.heading_rms_deg:.6g},{v.after.heading_rms_deg:.6g},"
+                     f"{v.before.carried_noise_rms_dps:.6g},{v.after.carried_noise_rms_dps:.6g},"
+                     f"{v.before.carried_less_noise_dps:.6g},{v.after.carried_less_noise_dps:.6g},"
+                     f"{v.before.carried_less_noise_sd_dps:.6g},{v.after.carried_less_noise_sd_dps:.6g}")
     return "\n".join(lines) + "\n"

@@ -11,7 +11,10 @@ Why the sets' part: the issue's bar (the zero-rate error at least 5x smaller on 
 table slope was wrong, nothing measurable changed on the others) judged on one fleet moves with
 a handful of standstills; so it is judged over fleets of several seeds, sizes and drives per
 vehicle (``tests/support/replay_fleets.py``), and over fleets whose seeds were kept blind while
-the replay was developed (:data:`BLIND`), printed apart.
+the replay was developed (:data:`BLIND`), printed apart. Beside the carried figure, the same less
+each standstill's own noise of the mean (what ``fleet replay`` reports from one-second means): after
+a new set the carried figure sits on that noise, about half of it, which no set removes, so a
+sensor whose error before is small shows a ratio the noise, not the set, decides.
 
 Why four parts: the verdicts are judged against the simulated truth (planted aging and failing
 sensors found, good ones not flagged, field slopes within two standard errors); the analysis's
@@ -161,10 +164,10 @@ def sets_effect(root: Path, explored: list[FleetSpec], blind: list[FleetSpec]) -
     print(f"Wrong slope: the sensor leaves more than {replay_fleets.WRONG_SLOPE} deg/s/°C over the table's "
           "set (the truth's). Ratio: RMS over the group's standstills, before / after; per sensor: the "
           "smallest and how many reach 5x. Others: after / before (below 1: better).\n")
-    print("| fleet (seed, vehicles, drives each) | wrong-slope sensors | before -> after (deg/s) | ratio | "
-          "per sensor: smallest, >= 5x | others | after/before (largest per sensor) | "
-          "same figures without a new set |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("Less own noise: the same figure less each standstill's own noise of the mean (estimated from "
+          "its one-second means, as fleet replay reports it); per sensor also with the after at its +1σ "
+          "bound.\n")
+    print(SETS_HEADER)
     groups: dict[str, list[replay_fleets.FleetRatio]] = {"explored": [], "blind": []}
     for name, specs in (("explored", explored), ("blind", blind)):
         for spec in specs:
@@ -185,6 +188,13 @@ def sets_effect(root: Path, explored: list[FleetSpec], blind: list[FleetSpec]) -
           "slope: not worse).\n")
 
 
+SETS_HEADER = ("| fleet (seed, vehicles, drives each) | wrong-slope sensors | before -> after (deg/s) | "
+               "ratio | per sensor: smallest, >= 5x | others | after/before (largest per sensor) | "
+               "same figures without a new set | less own noise: before -> after (deg/s) | ratio | "
+               "per sensor: smallest, >= 5x | after at +1σ: smallest, >= 5x |\n"
+               "|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
 def _sets_row(name: str, wrong: replay_fleets.Pooled, others: replay_fleets.Pooled, same: bool) -> str:
     before, after = wrong.rms()
     others_before, others_after = others.rms()
@@ -192,7 +202,23 @@ def _sets_row(name: str, wrong: replay_fleets.Pooled, others: replay_fleets.Pool
     met = sum(r >= 5 for r in wrong.per_sensor)
     return (f"| {name} | {wrong.sensors} | {before:.4f} -> {after:.4f} | {before / after:.1f}x | "
             f"{smallest:.1f}x, {met}/{wrong.sensors} | {others.sensors} | {others_after / others_before:.2f} "
-            f"({max(others.per_sensor, default=math.nan):.2f}) | {'yes' if same else 'NO'} |")
+            f"({max(others.per_sensor, default=math.nan):.2f}) | {'yes' if same else 'NO'} | "
+            f"{_less_noise_cells(wrong)} |")
+
+
+def _less_noise_cells(wrong: replay_fleets.Pooled) -> str:
+    """The wrong-slope sensors' figure less their standstills' own noise: pooled, per sensor, and
+    per sensor with the after at its +1σ bound."""
+    before, after = wrong.less_noise_rms()
+    cells = [f"{before:.4f} -> {after:.4f}", _times(before / after if after else math.inf)]
+    for per in (wrong.less_noise.per_sensor, wrong.less_noise.per_sensor_bound):
+        cells.append(f"{_times(min(per, default=math.nan))}, {sum(r >= 5 for r in per)}/{len(per)}")
+    return " | ".join(cells)
+
+
+def _times(ratio: float) -> str:
+    """A ratio; an after that is all noise (less noise: 0) has none."""
+    return "after all noise" if math.isinf(ratio) else f"{ratio:.1f}x"
 
 
 def replay_drives(root: Path, drives: int) -> int:

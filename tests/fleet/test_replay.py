@@ -8,6 +8,7 @@ the loopback), with or without one of them killed mid-run, gives the embedded en
 from __future__ import annotations
 
 import csv
+import math
 from pathlib import Path
 
 import pytest
@@ -52,6 +53,19 @@ def test_the_proposed_set_cuts_the_zero_rate_error_and_the_others_stay(replayed:
         assert got[sensor]["carried_before_dps"] == got[sensor]["carried_after_dps"]
         assert got[sensor]["zero_rate_before_dps"] == got[sensor]["zero_rate_after_dps"]
         assert got[sensor]["heading_before_deg"] == got[sensor]["heading_after_deg"]
+        assert got[sensor]["carried_less_noise_before_dps"] == got[sensor]["carried_less_noise_after_dps"]
+
+
+def test_the_carried_error_less_its_noise_is_below_the_carried_error(replayed: Path) -> None:
+    """Each vehicle's standstills' own noise (from their one-second means) is what the carried
+    figure holds beyond the error: in quadrature, carried² = less-noise² + noise² (floored at 0)."""
+    for r in rows(replayed / "replay.csv").values():
+        for when in ("before", "after"):
+            carried, noise = float(r[f"carried_{when}_dps"]), float(r[f"carried_noise_{when}_dps"])
+            less = float(r[f"carried_less_noise_{when}_dps"])
+            assert 0.0005 < noise < 0.003  # a 15 s stop's mean: 0.05 deg/s white, the idle tone averaged out
+            assert less == pytest.approx(math.sqrt(max(carried**2 - noise**2, 0.0)), rel=1e-4, abs=1e-9)
+            assert float(r[f"carried_less_noise_{when}_sd_dps"]) > 0
 
 
 def test_a_drive_folder_without_sets_is_one_line(replayed: Path, tmp_path: Path,

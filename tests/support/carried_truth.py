@@ -17,6 +17,7 @@ import csv
 import itertools
 import math
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -70,18 +71,48 @@ def _runs(cols: dict[str, np.ndarray]) -> list[tuple[int, int]]:
     return out
 
 
-def stops(folder: Path, seed: int, index: int) -> list[Stop]:
-    """Every judged standstill of vehicle ``index``'s drives in a built fleet."""
+@dataclass(frozen=True)
+class Replayed:
+    """One drive of a built fleet's vehicle: its columns, the true bias, and each generation's
+    rate and applied bias."""
+
+    cols: dict[str, np.ndarray]
+    true_bias: np.ndarray
+    before: tuple[np.ndarray, np.ndarray]
+    after: tuple[np.ndarray, np.ndarray]
+
+
+def replayed(folder: Path, seed: int, index: int) -> Iterator[Replayed]:
+    """Vehicle ``index``'s drives in a built fleet, through its baseline set and its new one."""
     truth, _ = simulate_vehicle(index, 1, seed)
     base = coefficient_file.load(folder / "fleet" / "sets" / f"{truth.sensor_id}.yaml")
     proposed = folder / "new" / f"{truth.sensor_id}-z.yaml"
     new = coefficient_file.load(proposed) if proposed.exists() else base
-    out = []
     for path in sorted((folder / "fleet" / "drives" / truth.vehicle_id).glob("drive-*.csv")):
         true_bias = drive_for(truth, index, int(path.stem.split("-")[1]), seed).bias_dps
         parts = list(blocks(path))
         cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-        (rb, bb), (ra, ba) = _through(base, cols), _through(new, cols)
+        yield Replayed(cols, true_bias, _through(base, cols), _through(new, cols))
+
+
+def wrong_slope(folders: list[Path]) -> Iterator[tuple[Path, int, int, str]]:
+    """The built fleets' replayed vehicles whose sensor's table slope is wrong: folder, seed,
+    vehicle index and sensor."""
+    for folder in folders:
+        seed = int(folder.name.split("-")[1])
+        truth = {r["sensor_id"]: r for r in csv.DictReader((folder / "fleet" / "truth.csv").open())}
+        for vehicle in sorted((folder / "fleet" / "drives").iterdir()):
+            index = int(vehicle.name.split("-")[1])
+            sensor = simulate_vehicle(index, 1, seed)[0].sensor_id
+            if abs(float(truth[sensor]["slope_dps_per_c"])) > WRONG_SLOPE:
+                yield folder, seed, index, sensor
+
+
+def stops(folder: Path, seed: int, index: int) -> list[Stop]:
+    """Every judged standstill of vehicle ``index``'s drives in a built fleet."""
+    out = []
+    for drive in replayed(folder, seed, index):
+        cols, true_bias, (rb, bb), (ra, ba) = drive.cols, drive.true_bias, drive.before, drive.after
         for a, b in _runs(cols):
             err = rb[a:b] - cols["true_rate_dps"][a:b]
             term = float((ra[a:b] - rb[a:b]).mean())
@@ -112,19 +143,12 @@ def main(folders: list[Path]) -> None:
     print("| fleet | sensor | carried before -> after, ratio | truth: ratio | standstill noise RMS | "
           "less own noise: ratio |")
     print("|---|---|---|---|---|---|")
-    for folder in folders:
-        seed = int(folder.name.split("-")[1])
-        truth = {r["sensor_id"]: r for r in csv.DictReader((folder / "fleet" / "truth.csv").open())}
-        for vehicle in sorted((folder / "fleet" / "drives").iterdir()):
-            index = int(vehicle.name.split("-")[1])
-            sensor = simulate_vehicle(index, 1, seed)[0].sensor_id
-            if abs(float(truth[sensor]["slope_dps_per_c"])) <= WRONG_SLOPE:
-                continue
-            got = stops(folder, seed, index)
-            before, after = _rms([s.before for s in got]), _rms([s.after for s in got])
-            print(f"| {folder.name} | {sensor} | {before:.4f} -> {after:.4f}, {before / after:.1f}x | "
-                  f"{_rms([s.truth_before for s in got]) / _rms([s.truth_after for s in got]):.1f}x | "
-                  f"{_rms([s.noise for s in got]):.4f} | {_noise_ratio(got)} |", flush=True)
+    for folder, seed, index, sensor in wrong_slope(folders):
+        got = stops(folder, seed, index)
+        before, after = _rms([s.before for s in got]), _rms([s.after for s in got])
+        print(f"| {folder.name} | {sensor} | {before:.4f} -> {after:.4f}, {before / after:.1f}x | "
+              f"{_rms([s.truth_before for s in got]) / _rms([s.truth_after for s in got]):.1f}x | "
+              f"{_rms([s.noise for s in got]):.4f} | {_noise_ratio(got)} |", flush=True)
 
 
 if __name__ == "__main__":
