@@ -82,9 +82,10 @@ def end_compression(points: FitPoints) -> float:
     Why: an output stage bending toward a rail it never reaches compresses the top rates without
     clipping any plateau, so no plateau is left out to say the sensor has a rail, yet orders up to 3
     leave several times the noise there (:data:`HIGH_ORDERS`). A sensor those orders describe bends
-    far less at its ends (the paper's sensor: 0.16; hard knees that never clip: 0.55 and more, on
-    ``tests/benchmarks/bench_rail.py``'s development seeds). Plateau means are precise to a part in
-    10⁴ of the span, so neither noise nor a table's measured reference moves this figure.
+    far less at its ends (the simulated paper sensor, ``GyroModel()``: 0.16; hard knees that never
+    clip: 0.55 and more, on ``tests/benchmarks/bench_rail.py``'s development seeds). Plateau means
+    are precise to a part in 10⁴ of the span, so neither noise nor a table's measured reference
+    moves this figure.
     """
     merged = points.by_rate()
     rate, dv = merged.rate, merged.dv

@@ -212,10 +212,9 @@ def _choose_spec(points: FitPoints, o: CalibrateOptions, *, second_round: bool =
                  sweep: bool = False) -> tuple[ModelSpec, tuple[SizeCandidate, ...]]:
     """The model size: given, or chosen by held-out error; orders above 3 (``second_round``) only
     for a sensor that reached its rail inside the table's range or bends toward one, or a
-    continuous sweep: its
-    hundreds of windows resolve a bend 41 plateaus cannot (see :data:`HIGH_ORDERS`). A sweep's
-    segment points are evenly spaced, and more of them are offered (see
-    :data:`SWEEP_SEGMENT_CHOICES`)."""
+    continuous sweep: its hundreds of windows resolve a bend 41 plateaus cannot (see
+    :data:`HIGH_ORDERS`). A sweep's segment points are evenly spaced, and more of them are
+    offered (see :data:`SWEEP_SEGMENT_CHOICES`)."""
     base = ModelSpec(o.kind, o.segments or 4, o.order or 2, o.smoothness, tuple(o.breakpoints_dps))
     if o.kind is SEGMENTED_LINEAR:
         return replace(base, order=1), ()
