@@ -17,6 +17,7 @@ __all__ = [
     "serve",
     "sign",
     "simulate_fleet",
+    "stop_signals",
 ]
 
 # name -> one-line help, in the order ``canical --help`` lists them

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 import threading
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from canical.commands import COMMANDS
+from canical.commands.stop_signals import event_on_signals
 from canical.device.can_network import (
     add_bus_arguments,
     bus_options,
@@ -181,16 +181,15 @@ def run(args: argparse.Namespace) -> int:
             reconnect_network(network, args.interface, args.channel, **options)
 
         device = EmulatedImu(config, network, reopen=reopen, bus_name=f"{args.interface} {args.channel}")
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            signal.signal(sig, lambda *_: device.stop_event.set())
-        if args.duration is not None:  # from now, whatever the bus does meanwhile (it may be down)
-            stopper = threading.Timer(args.duration, device.stop_event.set)
-            stopper.daemon = True
-            stopper.start()
-        device.boot_up()
-        print(f"ready node 0x{args.node:02x} serial {args.serial} on {args.interface} {args.channel}",
-              flush=True)
-        device.run()
+        with event_on_signals(device.stop_event):
+            if args.duration is not None:  # from now, whatever the bus does meanwhile (it may be down)
+                stopper = threading.Timer(args.duration, device.stop_event.set)
+                stopper.daemon = True
+                stopper.start()
+            device.boot_up()
+            print(f"ready node 0x{args.node:02x} serial {args.serial} on {args.interface} {args.channel}",
+                  flush=True)
+            device.run()
     finally:
         disconnect_quietly(network)
     return 0
