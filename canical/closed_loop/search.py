@@ -53,12 +53,14 @@ from canical.closed_loop.candidates import (
     build_candidates,
     knee_grid,
     lag_grid,
+    plateau_means,
     shift_columns,
     tau_grid,
     tau_groups,
     untestable,
     with_tau,
 )
+from canical.closed_loop.drift_steps import change_times, step_terms
 from canical.closed_loop.findings import (
     Comparison,
     Confound,
@@ -696,6 +698,8 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     drift = drift_competitor(best, scorer.blocks)
     if drift is None:
         return None
+    # The bias jumped where no channel did: channel and drift are judged with the jumps in both.
+    s = replace(s, terms=s.terms + _drift_steps(scorer, replace(s, terms=s.terms + drift.terms)))
     footing = _Footing(scorer, s, [best, drift])
     with_channel, with_drift = footing.of(best.terms, footing.own[best.name]), footing.of(drift.terms)
     with_both = footing.of(drift.terms + best.terms)
@@ -719,6 +723,26 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
         stretch_gain=gain, beyond_drift_gain=beyond,
     )
+
+
+def _judged_again(c: Confound, accepted: str, after: str) -> Confound:
+    """A group none of which was adopted, whose member ``accepted`` stood out once ``after`` was in."""
+    if c.adopted is not None or c.drift_of_session or accepted not in c.candidates:
+        return c
+    first = c.adoption_rule.removeprefix("none adopted: ")
+    return replace(c, adopted=accepted, adoption_rule=(
+        f"at first none ({first}); judged again once {after} was in, {accepted} stood out of what "
+        "was left"))
+
+
+def _drift_steps(scorer: Scorer, s: Structure) -> tuple[Term, ...]:
+    """Terms for the jumps of the bias in what ``s`` leaves, per plateau, where no channel jumps
+    (``s`` with the smooth drift: what is left of a slow drift or effect bends, a jump stays)."""
+    blocks = scorer.blocks
+    residual = predict(scorer.fit(s), blocks) - blocks.points.rate
+    channels = tuple(plateau_means(blocks, v) for name, v in blocks.aux.items() if name != SESSION_CLOCK)
+    times = change_times(plateau_means(blocks, blocks.time_s), plateau_means(blocks, residual), channels)
+    return step_terms(times, float(blocks.time_s.min()), float(blocks.time_s.max()), SESSION_CLOCK)
 
 
 def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None, rule: str) -> Confound:
@@ -815,6 +839,8 @@ def run_loop(
     rounds: list[list[RoundRow]] = []
     capacity_changes: list[str] = []
     steps = [_step(scorer, s, "rate model alone")]
+    shelved: list[Candidate] = []  # a confounded group none of which was adopted
+    restored: dict[str, str] = {}  # a shelved candidate: the effect whose acceptance restored it
     for _round in range(MAX_ROUNDS):
         current = scorer.score(s)
         progress(f"round {len(rounds) + 1}: held-out rms {current.held_out_rms_dps:.4f} deg/s, "
@@ -845,6 +871,7 @@ def run_loop(
             pool = [c for c in pool if c not in group and c not in check.shadows]
             if chosen is None:
                 progress(f"confounded {' / '.join(c.name for c in group)}: none adopted ({rule})")
+                shelved += [c for c in group if c.name not in restored]
                 continue
             twins = tuple(c.name for c in group if c is not chosen)
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
@@ -862,6 +889,8 @@ def run_loop(
         fit_now = scorer.fit(s_new)
         effects.append(replace(_effect(best, current, after, f, p, bar, fit_now.terms[len(s.terms) :]),
                                ambiguous_with=twins))
+        if best.name in restored:
+            confounded = [_judged_again(c, best.name, restored[best.name]) for c in confounded]
         progress(f"accepted {best.name}: held-out rms {current.held_out_rms_dps:.4f} -> "
                  f"{after.held_out_rms_dps:.4f} deg/s")
         steps.append(_step(scorer, s_new, f"added {best.name}"))
@@ -869,6 +898,11 @@ def run_loop(
         if s is not s_new:
             steps.append(_step(scorer, s, "base size chosen again with the effect in"))
         pool = [c for c in pool if c is not best]
+        # A group none of which removed half the error may, once this effect is in, stand out of
+        # what is left: each is judged again, once (a lag under a sensor's linear drift).
+        pool += shelved
+        restored |= {c.name: best.name for c in shelved}
+        shelved = []
     pruned_all = _prune_all(scorer, s)
     if len(pruned_all.terms) != len(s.terms):
         steps.append(_step(scorer, pruned_all, "terms that no longer pay removed"))
