@@ -114,6 +114,9 @@ class LoopSection:
     steps: tuple[LoopStep, ...]
     # The extreme rates train every fold: judged apart, in sample (None: no such blocks).
     extreme_rates_in_sample_rms_dps: float | None = None
+    # Session times (s) the sensor's bias jumped at: taken out where a channel's form met the
+    # session's drift, and not in the set (a jump is the session's, not the sensor's).
+    bias_jumps_s: tuple[float, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

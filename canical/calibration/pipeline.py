@@ -390,6 +390,7 @@ def loop_report(loop: LoopResult) -> LoopSection:
         untestable=tuple(Untestable(name, r2) for name, r2 in loop.untestable.items()),
         rounds=tuple(tuple(table) for table in loop.rounds),
         steps=tuple(loop.steps),
+        bias_jumps_s=loop.bias_jumps_s,
     )
 
 

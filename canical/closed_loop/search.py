@@ -474,6 +474,8 @@ class LoopResult:
     # so a report can be read from the rate model alone down to the set that was written.
     steps: list[LoopStep] = field(default_factory=list)
     candidates: list[Candidate] = field(default_factory=list)  # every candidate built, for the residual
+    # Session times (s) at which the bias jumped, taken out where a channel's form met the drift.
+    bias_jumps_s: tuple[float, ...] = ()
 
 
 def _step(scorer: Scorer, s: Structure, what: str) -> LoopStep:
@@ -698,8 +700,6 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     drift = drift_competitor(best, scorer.blocks)
     if drift is None:
         return None
-    # The bias jumped where no channel did: channel and drift are judged with the jumps in both.
-    s = replace(s, terms=s.terms + _drift_steps(scorer, replace(s, terms=s.terms + drift.terms)))
     footing = _Footing(scorer, s, [best, drift])
     with_channel, with_drift = footing.of(best.terms, footing.own[best.name]), footing.of(drift.terms)
     with_both = footing.of(drift.terms + best.terms)
@@ -735,9 +735,15 @@ def _judged_again(c: Confound, accepted: str, after: str) -> Confound:
         "was left"))
 
 
-def _drift_steps(scorer: Scorer, s: Structure) -> tuple[Term, ...]:
-    """Terms for the jumps of the bias in what ``s`` leaves, per plateau, where no channel jumps
-    (``s`` with the smooth drift: what is left of a slow drift or effect bends, a jump stays)."""
+def bias_jumps(scorer: Scorer, s: Structure, best: Candidate) -> tuple[Term, ...]:
+    """Terms for the jumps of the bias, where a channel's candidate is to meet the session's drift
+    (:func:`_drift_beats` judges channel and drift with them in both): found per plateau in what
+    ``s`` and the smooth drift leave (a slow drift or effect bends there, a jump stays), where no
+    channel jumps. Empty for a candidate that is not a channel's."""
+    drift = drift_competitor(best, scorer.blocks) if best.kind == CHANNEL else None
+    if drift is None:
+        return ()
+    s = replace(s, terms=s.terms + drift.terms)
     blocks = scorer.blocks
     residual = predict(scorer.fit(s), blocks) - blocks.points.rate
     channels = tuple(plateau_means(blocks, v) for name, v in blocks.aux.items() if name != SESSION_CLOCK)
@@ -841,6 +847,7 @@ def run_loop(
     steps = [_step(scorer, s, "rate model alone")]
     shelved: list[Candidate] = []  # a confounded group none of which was adopted
     restored: dict[str, str] = {}  # a shelved candidate: the effect whose acceptance restored it
+    jumps_s: set[float] = set()  # times the bias jumped (bias_jumps), for the report
     for _round in range(MAX_ROUNDS):
         current = scorer.score(s)
         progress(f"round {len(rounds) + 1}: held-out rms {current.held_out_rms_dps:.4f} deg/s, "
@@ -876,7 +883,10 @@ def run_loop(
             twins = tuple(c.name for c in group if c is not chosen)
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen
-        drift = None if best.name in prefer else _drift_beats(scorer, s, best)
+        jumps = () if best.name in prefer else bias_jumps(scorer, s, best)
+        jumps_s |= {float(t.params.knots[1]) for t in jumps if isinstance(t.params, Curve)}
+        # The bias jumped where no channel did: channel and drift are judged with the jumps in both.
+        drift = None if best.name in prefer else _drift_beats(scorer, replace(s, terms=s.terms + jumps), best)
         if drift is not None:
             confounded.append(drift)
             progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
@@ -926,6 +936,7 @@ def run_loop(
         untestable=tied,
         steps=steps,
         candidates=every_candidate,
+        bias_jumps_s=tuple(sorted(jumps_s)),
     )
 
 

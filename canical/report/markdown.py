@@ -156,6 +156,12 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
         ]
     if loop.capacity_changes:
         lines += [f"Base model grown: {', '.join(loop.capacity_changes)}.", ""]
+    if loop.bias_jumps_s:
+        at = ", ".join(f"{t:.0f} s" for t in loop.bias_jumps_s)
+        lines += [f"**The bias jumped** during the session (at {at}): where a channel's form was judged "
+                  "against the session's drift, each jump was a term of both, so that neither is judged "
+                  "on the misfit around it. No jump is in the set: it is this session's, not the sensor's.",
+                  ""]
     return lines + _unexplained(report.unexplained)
 
 

@@ -134,6 +134,7 @@ def test_a_lag_tied_with_the_drift_at_first_is_judged_again_once_time_is_in():
     assert group.adoption_rule.endswith("judged again once time:linear-drift was in, lag(temp_c) stood "
                                         "out of what was left")
     assert {t.channel for t in r.coefficients.terms if t.channel} == {"temp_c"}
+    assert r.loop.bias_jumps_s == ()  # a random walk wanders, it does not jump
     scored = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
     assert scored.rms_after < 1.5 * scored.rms_oracle
 
@@ -151,5 +152,9 @@ def test_a_lag_on_a_sensor_whose_bias_jumped_is_judged_with_the_jump_taken_out()
     r = calibrate(case.scenario.session(case.seed, 8.0), CalibrateOptions(), sensor_id="S", axis="z")
     assert "lag(temp_c)" in [e.name for e in r.loop.effects]
     assert all(t.channel != SESSION_CLOCK for t in r.coefficients.terms)
+    (jump,) = r.report.closed_loop.bias_jumps_s
+    (true,) = next(e for e in case.scenario.effects if type(e).__name__ == "BiasSteps").times_s
+    assert abs(jump - true) < 10.0  # between the plateaus either side of it (about 10 s apart)
+    assert f"**The bias jumped** during the session (at {jump:.0f} s)" in render(r.report, [])
     scored = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
     assert scored.written_channels == ("temp_c",) and scored.rms_after < 1.5 * scored.rms_oracle
