@@ -63,29 +63,43 @@ def step_terms(times: tuple[float, ...], start_s: float, end_s: float, clock: st
                  for at in times if start_s < at < end_s)
 
 
+def merge_times(known: tuple[float, ...], found: tuple[float, ...], within_s: float) -> tuple[float, ...]:
+    """``known`` and the times of ``found`` that are new, in order: one within ``within_s`` (a
+    plateau's spacing) of a known one is that jump again, which another comparison's residual put
+    at the neighbouring boundary."""
+    times = list(known)
+    for t in found:
+        if all(abs(t - k) > within_s for k in times):
+            times.append(t)
+    return tuple(sorted(times))
+
+
 def _channel_jumps(t: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Per boundary: whether the channel jumps there, by :data:`CHANNEL_JUMP_T` of its standard
     errors and :data:`CHANNEL_JUMP_SHARE` of its range (a quiet channel's bend at a ramp's turn is
     many of its tiny standard errors, yet no jump)."""
-    z = _jumps(t, v)
+    sizes, z = _jump_table(t, v)
     span = float(np.ptp(v)) if v.size else 0.0
-    sizes = np.zeros(v.size + 1)
-    for k in range(WINDOW, v.size - WINDOW + 1):
-        sizes[k] = _jump_size(t, v, k)
     return (np.abs(z) >= CHANNEL_JUMP_T) & (np.abs(sizes) >= CHANNEL_JUMP_SHARE * span)
 
 
 def _jumps(t: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Per boundary k (between values k-1 and k; 0 and n have none): the jump there in standard
-    errors, the noise read from second differences (robust to a trend and to a jump)."""
+    """Per boundary: the jump there in standard errors (:func:`_jump_table`)."""
+    return _jump_table(t, y)[1]
+
+
+def _jump_table(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per boundary k (between values k-1 and k; 0 and n have none): the jump there, and that jump
+    in standard errors, the noise read from second differences (robust to a trend and to a jump);
+    zeros where the noise is nil."""
     sigma = float(1.4826 * np.median(np.abs(np.diff(y, 2))) / np.sqrt(6.0)) if y.size > 2 else 0.0
-    z = np.zeros(y.size + 1)
+    sizes, z = np.zeros(y.size + 1), np.zeros(y.size + 1)
     if not sigma > 0:
-        return z
+        return sizes, z
     for k in range(WINDOW, y.size - WINDOW + 1):
-        size, factor = _jump_fit(t, y, k)
-        z[k] = size / (sigma * np.sqrt(factor))
-    return z
+        sizes[k], factor = _jump_fit(t, y, k)
+        z[k] = sizes[k] / (sigma * np.sqrt(factor))
+    return sizes, z
 
 
 def _jump_size(t: np.ndarray, y: np.ndarray, k: int) -> float:

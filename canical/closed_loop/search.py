@@ -60,7 +60,7 @@ from canical.closed_loop.candidates import (
     untestable,
     with_tau,
 )
-from canical.closed_loop.drift_steps import change_times, step_terms
+from canical.closed_loop.drift_steps import change_times, merge_times, step_terms
 from canical.closed_loop.findings import (
     Comparison,
     Confound,
@@ -73,7 +73,7 @@ from canical.closed_loop.findings import (
 )
 from canical.errors import CanicalError
 from canical.models.piecewise import PiecewisePoly
-from canical.models.segmented_inverse import fit_segmented_inverse
+from canical.models.segmented_inverse import JoinedDesign
 from canical.sets.term_kinds import (
     CHANNEL,
     CHANNEL_DERIVATIVE,
@@ -134,15 +134,16 @@ GAUSS_NEWTON_STEPS = 4
 
 def _solve(
     blocks: Blocks, s: Structure, terms: tuple[Term, ...], steps: int = GAUSS_NEWTON_STEPS,
-    sensitivity: float | None = None,
+    sensitivity: float | None = None, unshifted: JoinedDesign | None = None,
 ) -> tuple[PiecewisePoly, np.ndarray, float]:
     """Fit ω = f(ΔV − Σ c·column) jointly for the base model f and the coefficients c.
 
     The model is nonlinear in c (the effect shifts ΔV inside f), so it is solved by
     Gauss-Newton: at each step f is refitted on the shifted ΔV and c is corrected
     through the local slope of f. Effects are small next to the full scale, so a
-    few steps converge. ``sensitivity``: the blocks' :func:`_mean_sensitivity`, when a
-    search solves on the same blocks many times.
+    few steps converge. ``sensitivity`` and ``unshifted`` (the blocks' :func:`_mean_sensitivity`
+    and :func:`_unshifted_design`), when a search solves on the same blocks many times: the
+    first step's design is the unshifted ΔV's whatever the terms.
     """
     p = blocks.points
     cols = shift_columns(terms, blocks)
@@ -150,24 +151,26 @@ def _solve(
     slope = np.full(len(p), 1.0 / (sensitivity or _mean_sensitivity(p)))
     steps = steps if terms else 1
     for step in range(steps):
-        dv = p.dv - cols @ coef
-        fit = fit_segmented_inverse(
-            dv,
-            p.rate,
-            p.weight,
-            s.knots,
-            s.spec.order,
-            scale=s.scale,
-            span=s.span,
-            smoothness=s.spec.smoothness,
-            extra=-cols * slope[:, None],
-        )
+        joined = unshifted if step == 0 and unshifted is not None else _design(blocks, s, p.dv - cols @ coef)
+        fit = joined.fit(extra=-cols * slope[:, None])
         coef = coef + fit.extra
         if step == steps - 1 or np.max(np.abs(fit.extra * np.max(np.abs(cols), axis=0))) < 1e-6 * s.scale:
             break
         slope = fit.poly.slope(p.dv - cols @ coef)
     resid = p.rate - fit.poly.evaluate(p.dv - cols @ coef)[0]
     return fit.poly, coef, float(np.sum(p.weight * resid**2))
+
+
+def _design(blocks: Blocks, s: Structure, dv: np.ndarray) -> JoinedDesign:
+    """The structure's rate-model design on the blocks at ΔV ``dv`` (shifted by the effects)."""
+    p = blocks.points
+    return JoinedDesign.of(dv, p.rate, p.weight, s.knots, s.spec.order, scale=s.scale, span=s.span,
+                           smoothness=s.spec.smoothness)
+
+
+def _unshifted_design(blocks: Blocks, s: Structure) -> JoinedDesign:
+    """The design every solve on these blocks and size starts from (:func:`_solve`'s first step)."""
+    return _design(blocks, s, blocks.points.dv)
 
 
 def _mean_sensitivity(p: FitPoints) -> float:
@@ -205,9 +208,11 @@ def _best_tau(
     steps = GAUSS_NEWTON_STEPS if warmup else 1
 
     sensitivity = _mean_sensitivity(blocks.points)
+    unshifted = _unshifted_design(blocks, s)
 
     def rss(log_tau: float) -> float:
-        return _solve(blocks, s, with_tau(s.terms, float(np.exp(log_tau)), group), steps, sensitivity)[2]
+        terms = with_tau(s.terms, float(np.exp(log_tau)), group)
+        return _solve(blocks, s, terms, steps, sensitivity, unshifted)[2]
 
     i = int(np.argmin([rss(np.log(t)) for t in grid]))
     lo, hi = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, grid.size - 1)])
@@ -735,11 +740,11 @@ def _judged_again(c: Confound, accepted: str, after: str) -> Confound:
         "was left"))
 
 
-def bias_jumps(scorer: Scorer, s: Structure, best: Candidate) -> tuple[Term, ...]:
-    """Terms for the jumps of the bias, where a channel's candidate is to meet the session's drift
-    (:func:`_drift_beats` judges channel and drift with them in both): found per plateau in what
-    ``s`` and the smooth drift leave (a slow drift or effect bends there, a jump stays), where no
-    channel jumps. Empty for a candidate that is not a channel's."""
+def bias_jumps(scorer: Scorer, s: Structure, best: Candidate) -> tuple[float, ...]:
+    """The times the bias jumped, where a channel's candidate is to meet the session's drift
+    (:func:`_drift_beats` judges channel and drift with :func:`jump_terms` in both): found per
+    plateau in what ``s`` and the smooth drift leave (a slow drift or effect bends there, a jump
+    stays), where no channel jumps. Empty for a candidate that is not a channel's."""
     drift = drift_competitor(best, scorer.blocks) if best.kind == CHANNEL else None
     if drift is None:
         return ()
@@ -747,8 +752,18 @@ def bias_jumps(scorer: Scorer, s: Structure, best: Candidate) -> tuple[Term, ...
     blocks = scorer.blocks
     residual = predict(scorer.fit(s), blocks) - blocks.points.rate
     channels = tuple(plateau_means(blocks, v) for name, v in blocks.aux.items() if name != SESSION_CLOCK)
-    times = change_times(plateau_means(blocks, blocks.time_s), plateau_means(blocks, residual), channels)
+    return change_times(plateau_means(blocks, blocks.time_s), plateau_means(blocks, residual), channels)
+
+
+def jump_terms(blocks: Blocks, times: tuple[float, ...]) -> tuple[Term, ...]:
+    """A bias step of the session's clock at each of ``times`` (never written into a set)."""
     return step_terms(times, float(blocks.time_s.min()), float(blocks.time_s.max()), SESSION_CLOCK)
+
+
+def merged_jumps(known: tuple[float, ...], found: tuple[float, ...], blocks: Blocks) -> tuple[float, ...]:
+    """``known`` and the new times of ``found`` (:func:`merge_times`, within a plateau's spacing)."""
+    starts = np.sort(plateau_means(blocks, blocks.time_s))
+    return merge_times(known, found, float(np.median(np.diff(starts))) if starts.size > 1 else 0.0)
 
 
 def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None, rule: str) -> Confound:
@@ -847,7 +862,7 @@ def run_loop(
     steps = [_step(scorer, s, "rate model alone")]
     shelved: list[Candidate] = []  # a confounded group none of which was adopted
     restored: dict[str, str] = {}  # a shelved candidate: the effect whose acceptance restored it
-    jumps_s: set[float] = set()  # times the bias jumped (bias_jumps), for the report
+    jumps_s: tuple[float, ...] = ()  # times the bias jumped (bias_jumps), for the report
     for _round in range(MAX_ROUNDS):
         current = scorer.score(s)
         progress(f"round {len(rounds) + 1}: held-out rms {current.held_out_rms_dps:.4f} deg/s, "
@@ -884,9 +899,10 @@ def run_loop(
             progress(f"confounded {' / '.join(c.name for c in group)}: adopted {chosen.name} ({rule})")
             best = chosen
         jumps = () if best.name in prefer else bias_jumps(scorer, s, best)
-        jumps_s |= {float(t.params.knots[1]) for t in jumps if isinstance(t.params, Curve)}
+        jumps_s = merged_jumps(jumps_s, jumps, blocks)
         # The bias jumped where no channel did: channel and drift are judged with the jumps in both.
-        drift = None if best.name in prefer else _drift_beats(scorer, replace(s, terms=s.terms + jumps), best)
+        with_jumps = replace(s, terms=s.terms + jump_terms(blocks, jumps))
+        drift = None if best.name in prefer else _drift_beats(scorer, with_jumps, best)
         if drift is not None:
             confounded.append(drift)
             progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
@@ -936,7 +952,7 @@ def run_loop(
         untestable=tied,
         steps=steps,
         candidates=every_candidate,
-        bias_jumps_s=tuple(sorted(jumps_s)),
+        bias_jumps_s=jumps_s,
     )
 
 

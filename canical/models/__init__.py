@@ -25,6 +25,7 @@ __all__ = [
     "RateModel",
     "forward_poly",
     "kinds",
+    "least_squares",
     "piecewise",
     "robust_stats",
     "segmented_inverse",

@@ -19,6 +19,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.linalg import null_space
 
+from canical.models.least_squares import NormalEquations
 from canical.models.piecewise import PiecewisePoly
 
 
@@ -77,6 +78,56 @@ def _join_basis(knots: tuple[float, ...], order: int, scale: float, smoothness: 
     return basis
 
 
+@dataclass(frozen=True)
+class JoinedDesign:
+    """The weighted base columns of one fit (data, segment points, joins) and their normal
+    equations, built once where many fits differ only in their extra columns: a time constant's
+    search tries a score of lag features against the same blocks."""
+
+    knots: np.ndarray
+    order: int
+    scale: float
+    span: tuple[float, float]
+    basis: np.ndarray
+    sw: np.ndarray  # square roots of the weights
+    equations: NormalEquations
+
+    @classmethod
+    def of(
+        cls,
+        dv: np.ndarray,
+        rate: np.ndarray,
+        weight: np.ndarray,
+        knots: np.ndarray,
+        order: int,
+        *,
+        scale: float,
+        span: tuple[float, float],
+        smoothness: int | None = 0,
+    ) -> JoinedDesign:
+        """The design of ω(ΔV) on these points, joined at the knots to ``smoothness``."""
+        knots = np.sort(np.asarray(knots, dtype=float))
+        a = design(dv, knots, order, scale)
+        basis = np.eye(a.shape[1])
+        if smoothness is not None and len(knots):
+            basis = _join_basis(tuple(knots.tolist()), order, float(scale), smoothness)
+        sw = np.sqrt(np.asarray(weight, dtype=float))
+        equations = NormalEquations.of((a @ basis) * sw[:, None], rate * sw)
+        return cls(knots, order, scale, span, basis, sw, equations)
+
+    def fit(self, extra: np.ndarray | None = None) -> SegmentedFit:
+        """The weighted least-squares fit, with ``extra`` columns (unweighted) fitted jointly."""
+        equations = self.equations
+        if extra is not None and extra.size:
+            equations = equations.bordered(extra * self.sw[:, None])
+        solution = equations.solve()
+        n_base = self.basis.shape[1]
+        coeffs = self.basis @ solution[:n_base]
+        segments = coeffs.reshape(len(self.knots) + 1, self.order + 1)
+        poly = PiecewisePoly(self.knots, segments, self.scale, self.span)
+        return SegmentedFit(poly, solution[n_base:])
+
+
 def fit_segmented_inverse(
     dv: np.ndarray,
     rate: np.ndarray,
@@ -90,17 +141,5 @@ def fit_segmented_inverse(
     extra: np.ndarray | None = None,
 ) -> SegmentedFit:
     """Weighted least-squares fit of ω(ΔV) per segment, optionally joined and with extra columns."""
-    knots = np.sort(np.asarray(knots, dtype=float))
-    a = design(dv, knots, order, scale)
-    n_base = a.shape[1]
-    basis = np.eye(n_base)
-    if smoothness is not None and len(knots):
-        basis = _join_basis(tuple(knots.tolist()), order, float(scale), smoothness)
-    x = a @ basis
-    if extra is not None and extra.size:
-        x = np.hstack([x, extra])
-    sw = np.sqrt(np.asarray(weight, dtype=float))
-    solution, *_ = np.linalg.lstsq(x * sw[:, None], rate * sw, rcond=None)
-    coeffs = basis @ solution[: basis.shape[1]]
-    poly = PiecewisePoly(knots, coeffs.reshape(len(knots) + 1, order + 1), scale, span)
-    return SegmentedFit(poly, solution[basis.shape[1] :])
+    joined = JoinedDesign.of(dv, rate, weight, knots, order, scale=scale, span=span, smoothness=smoothness)
+    return joined.fit(extra)

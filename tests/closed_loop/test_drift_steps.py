@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from canical.closed_loop.drift_steps import MAX_STEPS, change_times, step_terms
+from canical.closed_loop.drift_steps import MAX_STEPS, change_times, merge_times, step_terms
 from canical.sets.term_kinds import spline_values
 
 
@@ -66,3 +66,11 @@ def test_a_step_term_is_nought_before_its_jump_and_one_after() -> None:
     values = spline_values(term.params.knots, term.params.pieces, np.array([0.0, 49.9, 50.0, 100.0]))
     assert values.tolist() == [0.0, 0.0, 1.0, 1.0]
     assert step_terms((0.0, 100.0), 0.0, 100.0, "session clock") == ()  # a jump at an end is the bias
+
+
+def test_a_jump_seen_again_at_the_neighbouring_boundary_is_listed_once() -> None:
+    """Two comparisons find the same jump a plateau apart: the report lists it once; a jump two
+    plateaus away is another jump."""
+    assert merge_times((), (329.7,), 30.0) == (329.7,)
+    assert merge_times((329.7,), (359.7, 120.0), 30.0) == (120.0, 329.7)
+    assert merge_times((329.7,), (389.7,), 30.0) == (329.7, 389.7)
