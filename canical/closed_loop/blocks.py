@@ -187,14 +187,58 @@ class ChannelSamples:
         return spline_horner(p.pieces, seg[0].astype(int), seg[1])
 
     def gated_means(self, channel: str, reference: float, knee_raw: float) -> np.ndarray:
-        """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks)."""
+        """Block means of (v − reference)·g(ΔV), the rate-gated level (all blocks).
+
+        A knee search tries hundreds of knees. Where every sample of a block is beyond the knee,
+        g = 1 − k/|ΔV| and the block's mean is mean(v − r) − k·mean((v − r)/|ΔV|), two means kept
+        per channel; where none is, it is 0; only the blocks the knee falls within (their rate
+        near it) are summed sample by sample.
+        """
         if self.dv is None:
             raise ValueError("these samples were kept without their raw output")
         key = (CHANNEL_GATED, channel, float(reference), float(knee_raw))
         if key not in self.cache:
             self._make_room()
-            self.cache[key] = self.means((self.values[channel] - reference) * rate_gate(self.dv, knee_raw))
+            level, per_dv = self._gate_parts(channel, float(reference))
+            low, high = self._abs_dv_range()
+            out = np.where(low > knee_raw, level - knee_raw * per_dv, 0.0)
+            for b in np.flatnonzero((low <= knee_raw) & (high > knee_raw)):
+                i, j = int(self.starts[b]), int(self.stops[b])
+                gated = (self.values[channel][i:j] - reference) * rate_gate(self.dv[i:j], knee_raw)
+                out[b] = self._slice_mean(i, j, gated)
+            self.cache[key] = out
         return self.cache[key]
+
+    def _gate_parts(self, channel: str, reference: float) -> tuple[np.ndarray, np.ndarray]:
+        """Block means of v − r and of (v − r)/|ΔV| (0 where ΔV is 0: no block beyond a knee has it)."""
+        key = ("gate_parts", channel, reference)
+        if key not in self.cache:
+            assert self.dv is not None
+            offset = self.values[channel] - reference
+            a = np.abs(self.dv)
+            per_dv = np.divide(offset, a, out=np.zeros_like(offset), where=a > 0)
+            self.cache[key] = np.vstack([self.means(offset), self.means(per_dv)])
+        parts = self.cache[key]
+        return parts[0], parts[1]
+
+    def _abs_dv_range(self) -> tuple[np.ndarray, np.ndarray]:
+        """The smallest and largest |ΔV| of each block's samples."""
+        if ("abs_dv_range",) not in self.cache:
+            assert self.dv is not None
+            a = np.abs(self.dv)
+            spans = [a[i:j] for i, j in zip(self.starts, self.stops, strict=True)]
+            low = [x.min() if x.size else np.inf for x in spans]
+            high = [x.max() if x.size else -np.inf for x in spans]
+            self.cache[("abs_dv_range",)] = np.array([low, high], dtype=float)
+        r = self.cache[("abs_dv_range",)]
+        return r[0], r[1]
+
+    def _slice_mean(self, i: int, j: int, values: np.ndarray) -> float:
+        """The mean of ``values``, the samples i to j (weighted as :meth:`means` weighs them)."""
+        if self.weights is None:
+            return float(values.sum() / (j - i))
+        w = self.weights[i:j]
+        return float((values * w).sum() / w.sum())
 
     def rate_spline_means(self, term: Term[Spline]) -> np.ndarray:
         """Block means of (v − reference)·R(ΔV), a channel's coefficient smooth in rate (all blocks)."""

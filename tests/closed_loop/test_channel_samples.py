@@ -47,3 +47,24 @@ def test_within_the_bound_the_samples_are_kept_as_they_are(record) -> None:
     kept = blocks.channel_samples(record["t"], {"temp_c": record["temp"]}, record["starts"], record["stops"],
                                   record["dv"])
     assert kept.weights is None and kept.time_s is record["t"]
+
+
+def per_sample_gated_means(samples: blocks.ChannelSamples, channel: str, reference: float,
+                           knee: float) -> np.ndarray:
+    """The definition: each block's mean of (v − r)·g(ΔV) taken sample by sample."""
+    assert samples.dv is not None
+    gated = (samples.values[channel] - reference) * blocks.rate_gate(samples.dv, knee)
+    return samples.means(gated)
+
+
+@pytest.mark.parametrize("bound", [None, 20_000])
+def test_a_gated_level_is_its_per_sample_mean_at_every_knee(record, monkeypatch, bound) -> None:
+    """Blocks wholly beyond the knee, wholly below it and straddling it (noise about a rate near
+    the knee), on samples as they are and on kept means: what a knee search is given is exact."""
+    if bound is not None:
+        monkeypatch.setattr(blocks, "FEATURE_SAMPLES", bound)
+    kept = blocks.channel_samples(record["t"], {"temp_c": record["temp"]}, record["starts"],
+                                  record["stops"], record["dv"])
+    for knee in (0.0, 10.0, 400.0 * 20.0 + 5.0, 400.0 * 59.0, 400.0 * 80.0):
+        np.testing.assert_allclose(kept.gated_means("temp_c", 25.0, knee),
+                                   per_sample_gated_means(kept, "temp_c", 25.0, knee), rtol=1e-9, atol=1e-9)
