@@ -46,7 +46,6 @@ from canical.calibrate.model_selection import ORDER_CHOICES, select_model
 from canical.closed_loop.blocks import Blocks
 from canical.closed_loop.candidates import (
     DRIFT_NAME,
-    WARMUP_GROUP,
     WARMUP_NAME,
     Candidate,
     bspline_basis,
@@ -182,17 +181,22 @@ def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
     """Joint least squares of base model and terms; each time constant (warm-up, channel lag)
     by grid search on these blocks, one after the other."""
     terms = s.terms
+    sensitivity = _mean_sensitivity(blocks.points)
+    unshifted = _unshifted_design(blocks, s)
     for group in tau_groups(terms):
-        terms = with_tau(terms, _best_tau(blocks, replace(s, terms=terms), duration_s, group), group)
-    poly, coef, _ = _solve(blocks, s, terms)
+        tau = _best_tau(blocks, replace(s, terms=terms), duration_s, group, sensitivity, unshifted)
+        terms = with_tau(terms, tau, group)
+    poly, coef, _ = _solve(blocks, s, terms, sensitivity=sensitivity, unshifted=unshifted)
     return Fit(poly, tuple(replace(t, coefficient=float(c)) for t, c in zip(terms, coef, strict=True)))
 
 
 def _best_tau(
-    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None] = WARMUP_GROUP
+    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None],
+    sensitivity: float, unshifted: JoinedDesign,
 ) -> float:
     """τ of one group of terms (the warm-up, or one channel's lag), or a gated channel's knee:
-    the best of a log grid, refined between its neighbours.
+    the best of a log grid, refined between its neighbours. ``sensitivity`` and ``unshifted``:
+    the blocks' (:func:`_solve`), the same for every group and the final fit.
 
     A τ off by a grid step leaves an exponential-shaped residual that a drift
     term would then "explain" (for a lag: a derivative term); refining removes
@@ -206,9 +210,6 @@ def _best_tau(
     # A lag's τ is searched on the linearised fit (one Gauss-Newton step): its terms
     # are small next to full scale, and there may be one lag per channel to search.
     steps = GAUSS_NEWTON_STEPS if warmup else 1
-
-    sensitivity = _mean_sensitivity(blocks.points)
-    unshifted = _unshifted_design(blocks, s)
 
     def rss(log_tau: float) -> float:
         terms = with_tau(s.terms, float(np.exp(log_tau)), group)
