@@ -10,13 +10,15 @@ candidates of both, lags and derivatives included, searched at that size), and a
 (``ru_maxrss`` of that child) is its own: ``numpy.loadtxt`` of the same file (the I/O floor),
 ``canical calibrate`` (the default, closed loop), ``canical apply`` of the set to the session,
 ``loadtxt`` and ``calibrate`` of the session with channels, and
-``canical noise`` of the static record through the set. Prints a table: step, wall seconds, peak
-MB, multiple of the floor; then how calibrate read each session (as samples, or as means of k)
-and the load average before and after (the machine may be shared). ``--baseline DIR`` runs the
-canical steps with that tree on PYTHONPATH too (before/after in one run). Files go to a temporary
-folder (``--tmp``, default the system's), deleted at the end.
+``canical noise`` of the static record through the set, each step ``--runs`` times. Prints a table:
+step, median wall seconds, largest peak MB, multiple of the floor (the floor's median too); then
+how calibrate read each session (as samples, or as means of k) and the load average before and
+after (the machine may be shared). ``--baseline DIR`` runs the canical steps with that tree on
+PYTHONPATH too (before/after in one run). Files go to a temporary folder (``--tmp``, default the
+system's), deleted at the end.
 
-Run: python tests/benchmarks/bench_scale.py [--rows N [N ...]] [--noise-rows N] [--baseline DIR] [--quick]
+Run: python tests/benchmarks/bench_scale.py [--rows N [N ...]] [--noise-rows N] [--baseline DIR] [--runs N]
+     [--quick]
 Prints figures; asserts nothing.
 """
 
@@ -96,7 +98,18 @@ def write_session(path: Path, rows: int, *, static: bool, dwell_s: float = DWELL
             sweep += 1
 
 
+#: Runs of each step; its median wall time and largest peak are printed (``--runs``).
+RUNS = 3
+
+
 def measure(name: str, argv: list[str], pythonpath: str, out: list[str] | None = None) -> Step:
+    """:func:`measure_once` :data:`RUNS` times: the median wall time (one slow run, the disk
+    writing back the file just generated, must not move it) and the largest peak."""
+    runs = [measure_once(name, argv, pythonpath, out if i == 0 else None) for i in range(RUNS)]
+    return Step(name, float(np.median([r.wall_s for r in runs])), max(r.peak_mb for r in runs))
+
+
+def measure_once(name: str, argv: list[str], pythonpath: str, out: list[str] | None = None) -> Step:
     """Run ``argv`` in a child process; its wall time and its own peak RSS (its stdout's lines
     appended to ``out``).
 
@@ -174,6 +187,7 @@ def load() -> str:
 
 
 def main() -> None:
+    global RUNS
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rows", type=int, nargs="+", default=[10_000_000], metavar="N",
                         help="session rows (1 kHz), one session per size given [10,000,000]")
@@ -181,8 +195,10 @@ def main() -> None:
                         help="static record rows for noise (1 kHz) [18,000,000]")
     parser.add_argument("--baseline", metavar="DIR", help="another tree to run the canical steps with too")
     parser.add_argument("--tmp", metavar="DIR", help="where the generated files go [system temp]")
-    parser.add_argument("--quick", action="store_true", help="small sizes: checks the script runs")
+    parser.add_argument("--runs", type=int, default=RUNS, help=f"runs of each step, median printed [{RUNS}]")
+    parser.add_argument("--quick", action="store_true", help="small sizes, one run: checks the script runs")
     args = parser.parse_args()
+    RUNS = 1 if args.quick else max(1, args.runs)
     sizes, noise_rows = ([100_000], 60_000) if args.quick else (args.rows, args.noise_rows)
     trees = [("", str(ROOT))]
     if args.baseline:
