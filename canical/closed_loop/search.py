@@ -763,8 +763,8 @@ def jump_terms(blocks: Blocks, times: tuple[float, ...]) -> tuple[Term, ...]:
 
 def merged_jumps(known: tuple[float, ...], found: tuple[float, ...], blocks: Blocks) -> tuple[float, ...]:
     """``known`` and the new times of ``found`` (:func:`merge_times`, within a plateau's spacing)."""
-    starts = np.sort(plateau_means(blocks, blocks.time_s))
-    return merge_times(known, found, float(np.median(np.diff(starts))) if starts.size > 1 else 0.0)
+    times = np.sort(plateau_means(blocks, blocks.time_s))
+    return merge_times(known, found, float(np.median(np.diff(times))) if times.size > 1 else 0.0)
 
 
 def _confound(check: ConfoundCheck, before: Score, chosen: Candidate | None, rule: str) -> Confound:

@@ -63,7 +63,3 @@ class NormalEquations:
         fallback: np.ndarray = np.linalg.lstsq(x, self.y, rcond=None)[0]
         return fallback
 
-
-def least_squares(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """The coefficients ``c`` minimising ``|x @ c - y|``: :meth:`NormalEquations.solve`."""
-    return NormalEquations.of(x, y).solve()
