@@ -62,4 +62,3 @@ class NormalEquations:
         x = self.x if self.extra is None else np.hstack([self.x, self.extra])
         fallback: np.ndarray = np.linalg.lstsq(x, self.y, rcond=None)[0]
         return fallback
-
