@@ -107,6 +107,8 @@ class LoopSection:
     held_out_max_before_dps: float
     held_out_max_after_dps: float
     method: str
+    #: Seconds per block the loop fitted: BLOCK_S, longer on sessions of hours (MAX_BLOCKS).
+    block_s: float
     final_spec: str
     capacity_changes: tuple[str, ...]
     untestable: tuple[Untestable, ...]

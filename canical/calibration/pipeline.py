@@ -47,7 +47,7 @@ from canical.calibration.calibration_report import (
     Written,
 )
 from canical.calibration.set_fit import set_fit
-from canical.closed_loop.blocks import BLOCK_S, make_blocks
+from canical.closed_loop.blocks import make_blocks
 from canical.closed_loop.search import LoopResult, predict, run_loop
 from canical.closed_loop.unexplained import account
 from canical.errors import CanicalError
@@ -381,10 +381,11 @@ def loop_report(loop: LoopResult) -> LoopSection:
         held_out_rms_after_dps=loop.rms_after,
         held_out_max_before_dps=float(np.nanmax(np.abs(loop.errors_before))),
         held_out_max_after_dps=float(np.nanmax(np.abs(loop.errors_after))),
-        method=(f"leave-plateaus-out cross-validation on blocks of {BLOCK_S:g} s, "
+        method=(f"leave-plateaus-out cross-validation on {loop.blocks.label}, "
                 f"{int(np.isfinite(loop.errors_after).sum())} of {len(loop.blocks)} blocks held out; "
                 "the extreme rates train every fold and are not in these figures"),
         extreme_rates_in_sample_rms_dps=loop.extreme_rms,
+        block_s=loop.blocks.block_s,
         final_spec=loop.structure.spec.describe(),
         capacity_changes=tuple(loop.capacity_changes),
         untestable=tuple(Untestable(name, r2) for name, r2 in loop.untestable.items()),

@@ -32,6 +32,15 @@ candidate tried is a pass over the kept samples, and the confound checks try hun
 10-million-row session with two channels those passes were the whole run. A mean of ten samples
 at 1 kHz spans 10 ms: a lag or a derivative's smoothing of τ ≥ 0.5 s hardly moves within it, and a
 block's mean of a channel itself is exact. Sessions within the bound are not touched.
+
+A session whose used plateaus would make more than :data:`MAX_BLOCKS` blocks of ``BLOCK_S``
+(about 50 minutes of plateaus) is cut into longer blocks, as many as the bound
+(:func:`block_length`). Why: every fit of the loop is a least-squares problem with a row per block,
+tried tens of thousands of times, so a session of hours cost its length again in every one. What
+the loop looks for changes over tens of seconds or more (a lag's τ ≥ 5 s, warm-ups, drifts, a
+channel's swings), and a block's means of the samples' transforms are exact whatever its length;
+a longer block has less noise, so the noise floor the loop's residual is judged against is
+measured on the same blocks. Sessions within the bound keep blocks of ``BLOCK_S``.
 """
 
 from __future__ import annotations
@@ -66,6 +75,8 @@ SLOPE_TAU_S = 0.5
 COARSE_STEP_S = 0.25
 #: Samples above which the channels' transforms run on means of consecutive samples (see above).
 FEATURE_SAMPLES = 250_000
+#: Blocks above which a session's blocks are made longer than ``BLOCK_S`` (:func:`block_length`).
+MAX_BLOCKS = 1500
 
 
 @dataclass(frozen=True)
@@ -279,9 +290,15 @@ class Blocks:
     slope: np.ndarray  # mean run-time rate of change of raw (raw units/s) in the block
     samples: ChannelSamples | None = None  # for stateful channel transforms
     rows: np.ndarray | None = None  # these blocks' positions among the samples' blocks
+    block_s: float = BLOCK_S  # the length each plateau is cut into (its last block longer)
 
     def __len__(self) -> int:
         return len(self.points)
+
+    @property
+    def label(self) -> str:
+        """What the loop's figures are measured on, for reports: ``2 s blocks``."""
+        return f"{self.block_s:.2g} s blocks"
 
     def take(self, index: np.ndarray) -> Blocks:
         rows = np.arange(len(self)) if self.rows is None else self.rows
@@ -295,6 +312,7 @@ class Blocks:
             self.slope[index],
             self.samples,
             rows[index],
+            self.block_s,
         )
 
     def channel_feature(self, term: Term) -> np.ndarray:
@@ -370,16 +388,26 @@ def _block_rates(ref: np.ndarray, plateaus: Plateaus, means: Callable[[np.ndarra
     return rate
 
 
+def block_length(plateaus: Plateaus, time_s: np.ndarray, keep: np.ndarray | None = None) -> float:
+    """Seconds per block: ``BLOCK_S``, or longer where the used plateaus would make more than
+    :data:`MAX_BLOCKS` of them (see the module's docstring)."""
+    used = time_s[plateaus.stop - 1] - time_s[plateaus.start]
+    if keep is not None:
+        used = used[keep]
+    return max(BLOCK_S, float(np.sum(used)) / MAX_BLOCKS)
+
+
 def make_blocks(
     session: Session,
     plateaus: Plateaus,
     v0: float,
     *,
     keep: np.ndarray | None = None,
-    block_s: float = BLOCK_S,
     direction_threshold_raw: float,
 ) -> Blocks:
-    """Cut the used plateaus (``keep`` masks plateaus, e.g. unsaturated ones) into blocks."""
+    """Cut the used plateaus (``keep`` masks plateaus, e.g. unsaturated ones) into blocks of
+    :func:`block_length`."""
+    block_s = block_length(plateaus, session.time_s, keep)
     starts, stops, owner = _block_bounds(plateaus, session.time_s, block_s)
     if keep is not None:
         sel = keep[owner]
@@ -404,5 +432,6 @@ def make_blocks(
         direction=means(direction),
         direction_threshold_raw=direction_threshold_raw,
         slope=means(slope_filter(raw, session.time_s, SLOPE_TAU_S)),
+        block_s=block_s,
         samples=channel_samples(session.time_s, session.aux, starts, stops, raw - v0),
     )

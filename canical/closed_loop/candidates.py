@@ -504,6 +504,18 @@ def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] 
     return tuple(retimed(t, tau, gated) if in_group(t, group) else t for t in terms)
 
 
+def group_tau(terms: tuple[Term, ...], group: tuple[str, str | None]) -> float | None:
+    """The group's parameter in ``terms`` (a time constant, or a gated group's knee), if they have it."""
+    gated = group[0] == CHANNEL_GATED.feature
+    for t in terms:
+        p = t.params
+        if in_group(t, group) and gated and isinstance(p, Threshold):
+            return float(p.threshold_raw)
+        if in_group(t, group) and not gated and isinstance(p, Tau):
+            return float(p.tau_s)
+    return None
+
+
 def retimed(t: Term, tau: float, gated: bool = False) -> Term:
     """``t`` with its knee (a gated term) or its time constant set to ``tau``."""
     p = t.params

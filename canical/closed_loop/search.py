@@ -50,6 +50,7 @@ from canical.closed_loop.candidates import (
     Candidate,
     bspline_basis,
     build_candidates,
+    group_tau,
     knee_grid,
     lag_grid,
     plateau_means,
@@ -177,49 +178,82 @@ def _mean_sensitivity(p: FitPoints) -> float:
     return float(np.polyfit(p.rate, p.dv, 1)[0]) or 1.0
 
 
-def fit_structure(blocks: Blocks, s: Structure, duration_s: float) -> Fit:
+def fit_structure(blocks: Blocks, s: Structure, duration_s: float, near: tuple[Term, ...] = ()) -> Fit:
     """Joint least squares of base model and terms; each time constant (warm-up, channel lag)
-    by grid search on these blocks, one after the other."""
+    by grid search on these blocks, one after the other. ``near``: fitted terms of the same
+    structure on more blocks, whose time constants each search starts next to (:meth:`_TauSearch.best`)."""
     terms = s.terms
     sensitivity = _mean_sensitivity(blocks.points)
     unshifted = _unshifted_design(blocks, s)
     for group in tau_groups(terms):
-        tau = _best_tau(blocks, replace(s, terms=terms), duration_s, group, sensitivity, unshifted)
-        terms = with_tau(terms, tau, group)
+        search = _TauSearch(blocks, replace(s, terms=terms), duration_s, group, sensitivity, unshifted)
+        terms = with_tau(terms, search.best(group_tau(near, group)), group)
     poly, coef, _ = _solve(blocks, s, terms, sensitivity=sensitivity, unshifted=unshifted)
     return Fit(poly, tuple(replace(t, coefficient=float(c)) for t, c in zip(terms, coef, strict=True)))
 
 
-def _best_tau(
-    blocks: Blocks, s: Structure, duration_s: float, group: tuple[str, str | None],
-    sensitivity: float, unshifted: JoinedDesign,
-) -> float:
-    """τ of one group of terms (the warm-up, or one channel's lag), or a gated channel's knee:
-    the best of a log grid, refined between its neighbours. ``sensitivity`` and ``unshifted``:
-    the blocks' (:func:`_solve`), the same for every group and the final fit.
+@dataclass(frozen=True)
+class _TauSearch:
+    """τ of one group of terms (the warm-up, or one channel's lag), or a gated channel's knee, on
+    these blocks: the best of a log grid, refined between its neighbours. ``sensitivity`` and
+    ``unshifted``: the blocks' (:func:`_solve`), the same for every group and the final fit.
 
     A τ off by a grid step leaves an exponential-shaped residual that a drift
     term would then "explain" (for a lag: a derivative term); refining removes
     that false second effect.
     """
-    warmup = group[0] == TIME_WARMUP.feature
-    if group[0] == CHANNEL_GATED.feature:  # a knee in raw units, searched on the same footing as a lag's τ
-        grid = knee_grid(blocks)
-    else:
-        grid = tau_grid(duration_s) if warmup else lag_grid(duration_s)
-    # A lag's τ is searched on the linearised fit (one Gauss-Newton step): its terms
-    # are small next to full scale, and there may be one lag per channel to search.
-    steps = GAUSS_NEWTON_STEPS if warmup else 1
 
-    def rss(log_tau: float) -> float:
-        terms = with_tau(s.terms, float(np.exp(log_tau)), group)
-        return _solve(blocks, s, terms, steps, sensitivity, unshifted)[2]
+    blocks: Blocks
+    s: Structure
+    duration_s: float
+    group: tuple[str, str | None]
+    sensitivity: float
+    unshifted: JoinedDesign
 
-    i = int(np.argmin([rss(np.log(t)) for t in grid]))
-    lo, hi = np.log(grid[max(i - 1, 0)]), np.log(grid[min(i + 1, grid.size - 1)])
-    xatol = 1e-3 if warmup else 1e-2
-    res = optimize.minimize_scalar(rss, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
-    return float(np.exp(res.x))
+    @property
+    def warmup(self) -> bool:
+        return self.group[0] == TIME_WARMUP.feature
+
+    def grid(self) -> np.ndarray:
+        if self.group[0] == CHANNEL_GATED.feature:  # a knee in raw units, searched like a lag's τ
+            return knee_grid(self.blocks)
+        return tau_grid(self.duration_s) if self.warmup else lag_grid(self.duration_s)
+
+    def rss(self, log_tau: float) -> float:
+        """The fit's RSS at τ. A lag's τ is searched on the linearised fit (one Gauss-Newton step):
+        its terms are small next to full scale, and there may be one lag per channel to search."""
+        terms = with_tau(self.s.terms, float(np.exp(log_tau)), self.group)
+        steps = GAUSS_NEWTON_STEPS if self.warmup else 1
+        return _solve(self.blocks, self.s, terms, steps, self.sensitivity, self.unshifted)[2]
+
+    @property
+    def xatol(self) -> float:
+        """How close in log τ the refined best is: a warm-up's τ sets a whole exponential."""
+        return 1e-3 if self.warmup else 1e-2
+
+    def refined(self, lo: float, hi: float) -> float:
+        """The best log τ between ``lo`` and ``hi``."""
+        res = optimize.minimize_scalar(self.rss, bounds=(lo, hi), method="bounded",
+                                       options={"xatol": self.xatol})
+        return float(res.x)
+
+    def best(self, near: float | None = None) -> float:
+        """The best τ. ``near``: where it was on more blocks (a cross-validation fold's τ beside the
+        whole session's); it is refined within a third of a grid step of there, and the whole grid
+        is searched only where the best lands at that bracket's edge.
+
+        Why: each structure's score searches τ once per fold, and folds hold out a fifth of the
+        plateaus, so their τ lies beside the whole session's; the grid is two thirds of a search.
+        """
+        grid = np.log(self.grid())
+        if near is not None and near > 0 and grid.size > 1:
+            half = float(grid[1] - grid[0]) / 3.0
+            lo, hi = np.log(near) - half, np.log(near) + half
+            x = self.refined(lo, hi)
+            if lo + 2 * self.xatol < x < hi - 2 * self.xatol:
+                return float(np.exp(x))
+        i = int(np.argmin([self.rss(t) for t in grid]))
+        return float(np.exp(self.refined(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])))
 
 
 def predict(fit: Fit, blocks: Blocks) -> np.ndarray:
@@ -302,16 +336,22 @@ def stretch_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...], duration
     return float(max(pooled, np.median(each)))
 
 
-def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], duration_s: float) -> np.ndarray:
+def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], duration_s: float,
+                    near: tuple[Term, ...] = ()) -> np.ndarray:
     """Each block's error against a model fitted without its plateau; NaN at blocks in no fold.
 
     Why NaN: the extreme rates train every fold (:func:`plateau_folds`), so they have no held-out
     error; a zero there would enter every rms and plot as a perfect prediction (2-3 % too good on
     a typical session). They are judged apart, in sample (:func:`extreme_rates_rms`).
+
+    ``near``: the structure's terms fitted on every block. Each fold's time constants are searched
+    within a third of a grid step of theirs (over the whole grid where a fold's best lies at that
+    bracket's edge): the held-out plateaus place where a fold's search starts, the fold's own
+    blocks choose τ and every coefficient.
     """
     errors = np.full(len(blocks), np.nan)
     for held in folds:
-        fit = fit_structure(blocks.take(~held), s, duration_s)
+        fit = fit_structure(blocks.take(~held), s, duration_s, near)
         errors[held] = predict(fit, blocks.take(held)) - blocks.points.rate[held]
     return errors
 
@@ -342,6 +382,7 @@ class Scorer:
     cache: dict[Any, Score] = field(default_factory=dict)
     losses: dict[Any, np.ndarray] = field(default_factory=dict)
     fits: dict[Any, Fit] = field(default_factory=dict)
+    held_errors: dict[Any, np.ndarray] = field(default_factory=dict)
 
     def fit(self, s: Structure) -> Fit:
         """The structure fitted to every block, once: the search asks for the same fit from
@@ -356,13 +397,19 @@ class Scorer:
         """Held-out rms, training RSS of plateau-mean residuals, number of coefficients."""
         key = s.key
         if key not in self.cache:
-            err = held_out_errors(self.blocks, s, self.folds, self.duration_s)
             fit = self.fit(s)
+            err = held_out_errors(self.blocks, s, self.folds, self.duration_s, fit.terms)
             resid = self.blocks.points.rate - predict(fit, self.blocks)
             n_par = (len(s.knots) + 1) * (s.spec.order + 1) + len(s.terms)
             self.cache[key] = Score(rms(err), plateau_rss(self.blocks, resid), n_par)
             self.losses[key] = plateau_losses(self.blocks, self.folds, err)
+            self.held_errors[key] = err
         return self.cache[key]
+
+    def errors(self, s: Structure) -> np.ndarray:
+        """Each block's held-out error (:func:`held_out_errors`; NaN at the extreme rates)."""
+        self.score(s)
+        return self.held_errors[s.key]
 
     def held_rms(self, s: Structure) -> float:
         """The structure's held-out rms, deg/s: what the loop ranks by."""
@@ -589,6 +636,29 @@ def _score_round(
                for row, (_, _, what) in zip(table, options, strict=True) if row.passes]
     passing.sort(key=lambda x: x[0])
     return table, passing
+
+
+def _base_before_channel(
+    scorer: Scorer, passing: list[tuple[float, str, Candidate | Structure]], bar: _Bar
+) -> tuple[str, Candidate | Structure]:
+    """The round's pick: the best that passes, but a channel's form only where it also passes on
+    the best bigger base that passes, else that base.
+
+    Why: what a base too small leaves (a bend of the rate curve) is a pattern over the session
+    that a flexible channel form can follow as well as one more segment can; blamed on the
+    channel, it would go to the vehicle as a bias that follows the channel. A real effect of the
+    channel is still there on the bigger base. Seen: on a 2.8 h session of a sensor whose bias
+    follows temp_c alone, a rate-gated temp_c term 0.4 % ahead of a sixth segment.
+    """
+    _, name, best = passing[0]
+    bases = [(n, b) for _, n, b in passing if isinstance(b, Structure)]
+    if not isinstance(best, Candidate) or best.kind != CHANNEL or not bases:
+        return name, best
+    base_name, base = bases[0]
+    on_base = replace(base, terms=base.terms + best.terms)
+    if _judge(scorer, scorer.score(base), on_base, best.name, bar).passes:
+        return name, best
+    return base_name, base
 
 
 #: How the loop picks one of a confounded group when the user named none (see :func:`adopt`).
@@ -872,7 +942,7 @@ def run_loop(
         rounds.append(table)
         if not passing:
             break
-        _, best_name, best = passing[0]
+        best_name, best = _base_before_channel(scorer, passing, bar)
         if isinstance(best, Structure):
             capacity_changes.append(best_name)
             s = best
@@ -946,8 +1016,8 @@ def run_loop(
         rounds=rounds,
         rms_before=base_score.held_out_rms_dps,
         rms_after=scorer.held_rms(s),
-        errors_before=held_out_errors(blocks, base_s, folds, duration_s),
-        errors_after=held_out_errors(blocks, s, folds, duration_s),
+        errors_before=scorer.errors(base_s),
+        errors_after=scorer.errors(s),
         capacity_changes=capacity_changes,
         extreme_rms=extreme_rates_rms(final_fit, blocks, folds),
         untestable=tied,

@@ -150,7 +150,7 @@ def account(
         ratio=ratio,
         limit_ratio=ratio_limit,
         unexplained=bool(ratio > ratio_limit),
-        noise_floor_method="scatter between successive 2 s blocks of one plateau (median-based)",
+        noise_floor_method=f"scatter between successive {blocks.label} of one plateau (median-based)",
         correlates=tuple(Correlate(n, float(r)) for n, r in ranked[:TOP_CORRELATED]),
     )
 

@@ -166,7 +166,7 @@ def closed_loop_demo(out: Path, seed: int) -> Path:
     result = calibrate(session, CalibrateOptions(), sensor_id="SIM-0001", axis="z")
     loop = result.loop
     assert loop is not None, "the default options close the loop"
-    print("held-out rms, deg/s (2 s blocks, whole plateaus left out), step by step:")
+    print(f"held-out rms, deg/s ({loop.blocks.label}, whole plateaus left out), step by step:")
     for e in result.report.effects:
         terms = ", ".join(f"{t.feature}/{t.form}" for t in e.terms)
         ev = e.evidence

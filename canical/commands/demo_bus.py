@@ -170,9 +170,9 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         after = loop.held_out_rms_after_dps if loop else None
         found = ", ".join(effects) or "none"
         say(f"calibrated: {result.report.written_model()}; undeclared effect(s) found: {found}")
-        if before is not None and after is not None:
-            say(f"  held-out rms (2 s blocks, whole plateaus left out): rate model alone {before:.4f}, "
-                f"written set {after:.4f} deg/s")
+        if loop is not None:
+            say(f"  held-out rms ({loop.block_s:.2g} s blocks, whole plateaus left out): rate model alone "
+                f"{before:.4f}, written set {after:.4f} deg/s")
         set_id = set_crc(result.coefficients)
         say(f"  set 0x{set_id:08x} (its id covers its creation time: new every run) -> {coeffs}")
 

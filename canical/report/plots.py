@@ -46,8 +46,9 @@ SUFFIX_UNITS = {"c": "°C", "degc": "°C", "k": "K", "v": "V", "mv": "mV", "a": 
                 "dps": "deg/s", "s": "s", "hz": "Hz", "pa": "Pa", "pct": "%"}
 #: How a channel's level candidate is named (``channel:temp_c``): what follows is the channel.
 LEVEL_PREFIX = CHANNEL_OFFSET.label("")
-#: Held out in every plot of the loop: what its errors are measured on.
-HELD_OUT = "held out: whole plateaus (2 s blocks), each predicted by a fit without it"
+def held_out(blocks: Blocks) -> str:
+    """What every plot of the loop measures its errors on."""
+    return f"held out: whole plateaus ({blocks.label}), each predicted by a fit without it"
 
 
 def channel_unit(channel: str) -> str:
@@ -126,7 +127,8 @@ def residual_vs_rate(loop: LoopResult, path: Path) -> None:
         ax.set_title(f"{what}: held-out rms {rms:.4f} deg/s", fontsize=10)
         ax.grid(True, alpha=0.3)
     axes[1].set_xlabel("table rate (deg/s)")
-    fig.suptitle(f"Error on held-out plateaus, before and after closing the loop\n({HELD_OUT})", fontsize=10)
+    fig.suptitle(f"Error on held-out plateaus, before and after closing the loop\n({held_out(loop.blocks)})",
+                 fontsize=10)
     fig.tight_layout()
     _save(fig, path)
 
@@ -154,7 +156,7 @@ def effect_plot(loop: LoopResult, effect: Effect, path: Path) -> None:
     ax.set_ylabel("rate error (deg/s)")
     ax.set_title(
         f"Effect {effect.name}: when added, held-out rms {effect.rms_before_dps:.4f} -> "
-        f"{effect.rms_after_dps:.4f} deg/s\n(points: every block, final fit; rms: {HELD_OUT})",
+        f"{effect.rms_after_dps:.4f} deg/s\n(points: every block, final fit; rms: {held_out(blocks)})",
         fontsize=10,
     )
     ax.legend(loc="best", fontsize=8)
@@ -218,7 +220,8 @@ def unexplained_figure(loop: LoopResult):
     verdict = "UNEXPLAINED" if left.unexplained else "explained"
     fig.suptitle(
         f"Held-out residual after the loop: {left.held_out_robust_rms_dps:.4f} deg/s rms (robust), "
-        f"{left.ratio:.1f}x the noise floor {left.noise_floor_dps:.4f} deg/s ({verdict})\n({HELD_OUT})",
+        f"{left.ratio:.1f}x the noise floor {left.noise_floor_dps:.4f} deg/s ({verdict})\n"
+        f"({held_out(blocks)})",
         fontsize=10,
     )
     return fig
