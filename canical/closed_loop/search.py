@@ -226,34 +226,46 @@ class _TauSearch:
         steps = GAUSS_NEWTON_STEPS if self.warmup else 1
         return _solve(self.blocks, self.s, terms, steps, self.sensitivity, self.unshifted)[2]
 
-    @property
-    def xatol(self) -> float:
-        """How close in log τ the refined best is: a warm-up's τ sets a whole exponential."""
-        return 1e-3 if self.warmup else 1e-2
-
     def refined(self, lo: float, hi: float) -> float:
-        """The best log τ between ``lo`` and ``hi``."""
-        res = optimize.minimize_scalar(self.rss, bounds=(lo, hi), method="bounded",
-                                       options={"xatol": self.xatol})
+        """The best log τ between ``lo`` and ``hi`` (a warm-up's closer: its τ sets a whole exponential)."""
+        xatol = 1e-3 if self.warmup else 1e-2
+        res = optimize.minimize_scalar(self.rss, bounds=(lo, hi), method="bounded", options={"xatol": xatol})
         return float(res.x)
 
     def best(self, near: float | None = None) -> float:
         """The best τ. ``near``: where it was on more blocks (a cross-validation fold's τ beside the
-        whole session's); it is refined within a third of a grid step of there, and the whole grid
-        is searched only where the best lands at that bracket's edge.
+        whole session's): the fold's RSS is taken at :data:`LOCAL_POINTS` τ spaced over a third of a
+        grid step either side of there, and its best is the vertex of the parabola through the
+        least and its neighbours; the whole grid is searched only where the least is at either end.
 
         Why: each structure's score searches τ once per fold, and folds hold out a fifth of the
-        plateaus, so their τ lies beside the whole session's; the grid is two thirds of a search.
+        plateaus, so their τ lies beside the whole session's. The points are the same in every
+        fold, so a channel's lag at each is computed once for all five (a pass over the samples),
+        where a refinement of its own tries τ no other fold does.
         """
         grid = np.log(self.grid())
         if near is not None and near > 0 and grid.size > 1:
-            half = float(grid[1] - grid[0]) / 3.0
-            lo, hi = np.log(near) - half, np.log(near) + half
-            x = self.refined(lo, hi)
-            if lo + 2 * self.xatol < x < hi - 2 * self.xatol:
-                return float(np.exp(x))
+            local = np.log(near) + np.linspace(-1.0, 1.0, LOCAL_POINTS) * float(grid[1] - grid[0]) / 3.0
+            rss = np.array([self.rss(t) for t in local])
+            i = int(np.argmin(rss))
+            if 0 < i < LOCAL_POINTS - 1:
+                return float(np.exp(parabola_vertex(local[i - 1 : i + 2], rss[i - 1 : i + 2])))
         i = int(np.argmin([self.rss(t) for t in grid]))
         return float(np.exp(self.refined(grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)])))
+
+
+#: τ a fold's search tries about the whole session's (:meth:`_TauSearch.best`).
+LOCAL_POINTS = 5
+
+
+def parabola_vertex(x: np.ndarray, y: np.ndarray) -> float:
+    """Where the parabola through three evenly spaced points whose middle is the least has its
+    minimum (within the outer two; the middle where the three are level)."""
+    curvature = y[0] - 2.0 * y[1] + y[2]
+    if not curvature > 0:
+        return float(x[1])
+    h = float(x[1] - x[0])
+    return float(np.clip(x[1] - 0.5 * h * (y[2] - y[0]) / curvature, x[0], x[2]))
 
 
 def predict(fit: Fit, blocks: Blocks) -> np.ndarray:
@@ -345,9 +357,9 @@ def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], durat
     a typical session). They are judged apart, in sample (:func:`extreme_rates_rms`).
 
     ``near``: the structure's terms fitted on every block. Each fold's time constants are searched
-    within a third of a grid step of theirs (over the whole grid where a fold's best lies at that
-    bracket's edge): the held-out plateaus place where a fold's search starts, the fold's own
-    blocks choose τ and every coefficient.
+    within a third of a grid step of theirs (over the whole grid where a fold's least lies at either
+    end, :meth:`_TauSearch.best`): the held-out plateaus place where a fold's search looks, the
+    fold's own blocks choose τ and every coefficient.
     """
     errors = np.full(len(blocks), np.nan)
     for held in folds:

@@ -67,8 +67,8 @@ def test_report_names_the_blocks_it_measured_on(monkeypatch):
 
 def test_a_folds_time_constant_is_searched_beside_the_sessions(lagged):
     """Started next to the whole session's τ, a fold's search finds what a search of the whole grid
-    finds; started where the best lands at the edge of the bracket (on the slope a grid step
-    above the minimum), it searches the whole grid."""
+    finds; started where the least of its points is at an end (on the slope a grid step above the
+    minimum), it searches the whole grid."""
     fit = lagged.fit
     s = search.Structure(lagged.structure.spec, lagged.structure.knots, lagged.structure.scale,
                          lagged.structure.span, fit.terms)
@@ -138,3 +138,16 @@ def test_other_picks_are_left_as_they_are():
     assert search._base_before_channel(gains_little, ROUND[2:], BAR) == ("time:linear-drift", DRIFT)
     assert search._base_before_channel(gains_little, ROUND[::2], BAR) == ("channel:temp_c", CHANNEL_LEVEL)
     assert search._base_before_channel(gains_little, ROUND[1:], BAR) == ("capacity", BIGGER)
+
+
+@pytest.mark.parametrize("vertex", [-0.7, -0.2, 0.0, 0.33, 0.99])
+def test_parabola_vertex_is_exact_on_a_parabola(vertex):
+    x = np.array([-1.0, 0.0, 1.0]) * 0.4 + 0.1
+    y = 3.0 * (x - (0.1 + 0.4 * vertex)) ** 2 + 7.0
+    assert search.parabola_vertex(x, y) == pytest.approx(0.1 + 0.4 * vertex, abs=1e-12)
+
+
+def test_parabola_vertex_stays_within_its_points():
+    x = np.array([1.0, 2.0, 3.0])
+    assert search.parabola_vertex(x, np.array([5.0, 5.0, 5.0])) == 2.0  # level: the middle
+    assert 1.0 <= search.parabola_vertex(x, np.array([1.0, 1.0 - 1e-15, 9.0])) <= 3.0
