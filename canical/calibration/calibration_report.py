@@ -120,6 +120,13 @@ class LoopSection:
     # session's drift, and not in the set (a jump is the session's, not the sensor's).
     bias_jumps_s: tuple[float, ...] = ()
 
+    @property
+    def blocks_label(self) -> str:
+        """What the figures were measured on: ``2 s blocks``."""
+        from canical.closed_loop.blocks import block_label
+
+        return block_label(self.block_s)
+
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 

@@ -298,7 +298,7 @@ class Blocks:
     @property
     def label(self) -> str:
         """What the loop's figures are measured on, for reports: ``2 s blocks``."""
-        return f"{self.block_s:.2g} s blocks"
+        return block_label(self.block_s)
 
     def take(self, index: np.ndarray) -> Blocks:
         rows = np.arange(len(self)) if self.rows is None else self.rows
@@ -386,6 +386,11 @@ def _block_rates(ref: np.ndarray, plateaus: Plateaus, means: Callable[[np.ndarra
     if plateaus.sweep_window_s > 0:
         rate = rate + (plateaus.rate_dps - plateau_means(ref, plateaus))[owner]
     return rate
+
+
+def block_label(block_s: float) -> str:
+    """Blocks of ``block_s`` seconds as every report names them: ``2 s blocks``, ``6.7 s blocks``."""
+    return f"{block_s:.2g} s blocks"
 
 
 def block_length(plateaus: Plateaus, time_s: np.ndarray, keep: np.ndarray | None = None) -> float:

@@ -507,11 +507,10 @@ def with_tau(terms: tuple[Term, ...], tau: float, group: tuple[str, str | None] 
 def group_tau(terms: tuple[Term, ...], group: tuple[str, str | None]) -> float | None:
     """The group's parameter in ``terms`` (a time constant, or a gated group's knee), if they have it."""
     gated = group[0] == CHANNEL_GATED.feature
-    for t in terms:
-        p = t.params
-        if in_group(t, group) and gated and isinstance(p, Threshold):
+    for p in (t.params for t in terms if in_group(t, group)):
+        if gated and isinstance(p, Threshold):
             return float(p.threshold_raw)
-        if in_group(t, group) and not gated and isinstance(p, Tau):
+        if not gated and isinstance(p, Tau):
             return float(p.tau_s)
     return None
 

@@ -453,8 +453,8 @@ def summary(report: CalibrationReport) -> str:
         for c in report.confounded:
             adopted = f" (ambiguous: adopted {c.adopted})" if c.adopted else ""
             lines.append(f"confounded {' / '.join(c.candidates)}{adopted}: {c.recommendation}")
-        blocks = f"{loop.block_s:.2g} s blocks"
-        lines.append(f"loop       held-out rms, deg/s ({blocks}, whole plateaus left out), step by step:")
+        lines.append(f"loop       held-out rms, deg/s ({loop.blocks_label}, whole plateaus left out), "
+                     "step by step:")
         for step in loop.steps:
             terms = f", {step.terms} effect terms" if step.terms else ""
             lines.append(f"           {step.held_out_rms_dps:.4f}  {step.step} ({step.spec}{terms})")

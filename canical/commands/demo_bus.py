@@ -171,7 +171,7 @@ def run_bus_demo(out_dir: str | Path, options: BusDemoOptions | None = None,
         found = ", ".join(effects) or "none"
         say(f"calibrated: {result.report.written_model()}; undeclared effect(s) found: {found}")
         if loop is not None:
-            say(f"  held-out rms ({loop.block_s:.2g} s blocks, whole plateaus left out): rate model alone "
+            say(f"  held-out rms ({loop.blocks_label}, whole plateaus left out): rate model alone "
                 f"{before:.4f}, written set {after:.4f} deg/s")
         set_id = set_crc(result.coefficients)
         say(f"  set 0x{set_id:08x} (its id covers its creation time: new every run) -> {coeffs}")

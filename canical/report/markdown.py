@@ -119,7 +119,7 @@ def _closed_loop(report: CalibrationReport) -> list[str]:
         "means above, so the rate model alone has a figure of its own in it. Each row is one "
         "change to the model, in the order the loop made it.",
         "",
-        f"| step | model | effect terms | held-out rms (deg/s), {loop.block_s:.2g} s blocks |",
+        f"| step | model | effect terms | held-out rms (deg/s), {loop.blocks_label} |",
         "|---|---|---|---|",
     ]
     for step in loop.steps:

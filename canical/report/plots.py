@@ -46,6 +46,8 @@ SUFFIX_UNITS = {"c": "°C", "degc": "°C", "k": "K", "v": "V", "mv": "mV", "a": 
                 "dps": "deg/s", "s": "s", "hz": "Hz", "pa": "Pa", "pct": "%"}
 #: How a channel's level candidate is named (``channel:temp_c``): what follows is the channel.
 LEVEL_PREFIX = CHANNEL_OFFSET.label("")
+
+
 def held_out(blocks: Blocks) -> str:
     """What every plot of the loop measures its errors on."""
     return f"held out: whole plateaus ({blocks.label}), each predicted by a fit without it"
