@@ -9,7 +9,7 @@ which the run time flags instead of trusting.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,13 +56,40 @@ def cross_validate(
     k: int = DEFAULT_FOLDS,
 ) -> HeldOutError:
     """Fit on each fold's training part, predict its held-out rates, pool the errors."""
-    errors = np.full(len(points), np.nan)
-    folds = []
-    for held in rate_folds(points, k):
-        model = fit(points.take(~held))
-        errors[held] = prediction_errors(model, points.take(held))
-        folds.append(float(np.sqrt(np.mean(errors[held] ** 2))))
+    held = cross_validate_sizes(points, lambda p: [fit(p)], k)[0]
+    assert held is not None  # ``fit`` raises where it cannot fit
+    return held
+
+
+def cross_validate_sizes(
+    points: FitPoints,
+    fit: Callable[[FitPoints], Sequence[RateModel | None]],
+    k: int = DEFAULT_FOLDS,
+) -> list[HeldOutError | None]:
+    """:func:`cross_validate` of several models fitted together (``fit`` returns one per size, ``None``
+    where it could not fit that size): per size, its held-out errors, or ``None`` where any fold failed."""
+    folds = rate_folds(points, k)
+    errors: list[np.ndarray | None] = []
+    fold_rms: list[list[float]] = []
+    for f, held in enumerate(folds):
+        models = fit(points.take(~held))
+        if f == 0:
+            errors = [np.full(len(points), np.nan) for _ in models]
+            fold_rms = [[] for _ in models]
+        test = points.take(held)
+        for i, model in enumerate(models):
+            e = errors[i]
+            if model is None or e is None:
+                errors[i] = None
+                continue
+            e[held] = prediction_errors(model, test)
+            fold_rms[i].append(float(np.sqrt(np.mean(e[held] ** 2))))
+    pairs = zip(errors, fold_rms, strict=True)
+    return [None if e is None else _pooled(points, e, tuple(r)) for e, r in pairs]
+
+
+def _pooled(points: FitPoints, errors: np.ndarray, fold_rms: tuple[float, ...]) -> HeldOutError:
     mask = ~np.isnan(errors)
     e = errors[mask]
-    return HeldOutError(float(np.sqrt(np.mean(e**2))), float(np.max(np.abs(e))), e, points.rate[mask],
-                        tuple(folds))
+    rms = float(np.sqrt(np.mean(e**2)))
+    return HeldOutError(rms, float(np.max(np.abs(e))), e, points.rate[mask], fold_rms)

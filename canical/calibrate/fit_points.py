@@ -10,6 +10,7 @@ error of its table rate, which a *measured* reference (encoder jitter) adds to t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -55,7 +56,12 @@ class FitPoints:
         return groups
 
     def by_rate(self) -> FitPoints:
-        """One point per distinct rate, sorted by rate: repeated sweeps merged by weight."""
+        """One point per distinct rate, sorted by rate: repeated sweeps merged by weight (merged
+        once: a model selection asks for it in every fit of every size)."""
+        return self._merged
+
+    @cached_property
+    def _merged(self) -> FitPoints:
         groups = self.rate_groups()
         n = int(groups.max()) + 1 if len(self) else 0
         w = np.bincount(groups, self.weight, n)

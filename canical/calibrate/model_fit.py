@@ -4,12 +4,13 @@ cross-validation and the closed loop all use, so that each fits models the same 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from canical.calibrate.fit_points import FitPoints
-from canical.calibrate.segment_points import EVEN_SOURCE, Extremum, choose_knots
+from canical.calibrate.segment_points import EVEN_SOURCE, Extremum, knot_sequence, knots_of
 from canical.errors import CanicalError
 from canical.models.forward_poly import ForwardPoly, fit_forward_poly
 from canical.models.kinds import FORWARD_POLY, SEGMENTED_INVERSE, SEGMENTED_LINEAR, ModelKind
@@ -69,8 +70,11 @@ def dv_span(points: FitPoints) -> tuple[float, float]:
     )
 
 
-def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
-    """Fit ``spec`` to the points (segment points chosen on the way, for the segmented-inverse model)."""
+def fit_model(points: FitPoints, spec: ModelSpec, *, sequence: list[Extremum] | None = None) -> FittedModel:
+    """Fit ``spec`` to the points (segment points chosen on the way, for the segmented-inverse model).
+
+    ``sequence``: segment points already chosen for at least as many segments (:func:`fit_sizes`).
+    """
     if len(points) < 2:
         raise CanicalError("fewer than 2 plateaus: nothing to calibrate")
     span = dv_span(points)
@@ -91,40 +95,79 @@ def fit_model(points: FitPoints, spec: ModelSpec) -> FittedModel:
         return FittedModel(linear, spec)
     if spec.kind is not SEGMENTED_INVERSE:
         raise CanicalError(f"unknown model kind {spec.kind.name!r}")
-    n_rates = np.unique(points.by_rate().rate).size
-    if n_rates < spec.order + 1:
-        raise CanicalError(
-            f"{spec.describe()}: needs at least {spec.order + 1} plateau rates, the session has {n_rates}"
-        )
-
-    def fit_with(knots: np.ndarray) -> SegmentedFit:
-        return fit_segmented_inverse(
-            points.dv,
-            points.rate,
-            points.weight,
-            knots,
-            spec.order,
-            scale=scale,
-            span=span,
-            smoothness=spec.smoothness,
-        )
-
-    merged = points.by_rate()
-
-    def refit_residual(knots: np.ndarray) -> np.ndarray:
-        fit = fit_with(knots)
-        residual: np.ndarray = merged.rate - fit.poly.evaluate(merged.dv)[0]
-        return residual
-
+    inverse = _InverseFit.of(points, spec, span)
     if spec.even_points:
-        knots, extrema = even_knots(merged, spec.n_segments, span)
+        knots, extrema = even_knots(inverse.merged, spec.n_segments, span)
     else:
-        knots, extrema = choose_knots(
-            points, spec.n_segments, min_points=spec.order + 1, refit_residual=refit_residual
-        )
-    fit = fit_with(knots)
+        chosen = (inverse.sequence(spec.n_segments) if sequence is None else sequence)[: spec.n_segments - 1]
+        knots, extrema = knots_of(chosen), sorted(chosen, key=lambda e: e.dv)
+    fit = inverse.with_knots(knots)
     actual = replace(spec, n_segments=len(knots) + 1)
     return FittedModel(fit.poly, actual, extrema)
+
+
+def fit_sizes(points: FitPoints, specs: Sequence[ModelSpec]) -> list[FittedModel | None]:
+    """Sizes differing only in their number of segments, each fitted to the points (``None`` where
+    the data cannot support it). Segment points at residual extrema are chosen once, for the
+    most segments: fewer segments' are the first of them (:func:`knot_sequence`)."""
+    sequence = _shared_sequence(points, specs)
+    return [_fit_or_none(points, spec, sequence) for spec in specs]
+
+
+def _shared_sequence(points: FitPoints, specs: Sequence[ModelSpec]) -> list[Extremum] | None:
+    """The segment points of the most segments, in the order chosen; ``None`` where each size
+    chooses its own (another kind, evenly spaced points, or a fit that fails: a size with fewer
+    segments may still succeed)."""
+    most = max(specs, key=lambda spec: spec.n_segments)
+    if most.kind is not SEGMENTED_INVERSE or most.even_points or len(points) < 2:
+        return None
+    try:
+        return _InverseFit.of(points, most, dv_span(points)).sequence(most.n_segments)
+    except (CanicalError, np.linalg.LinAlgError):
+        return None
+
+
+def _fit_or_none(points: FitPoints, spec: ModelSpec, sequence: list[Extremum] | None) -> FittedModel | None:
+    try:
+        return fit_model(points, spec, sequence=sequence)
+    except (CanicalError, np.linalg.LinAlgError):
+        return None
+
+
+@dataclass(frozen=True)
+class _InverseFit:
+    """A segmented-inverse fit of one order and joins to the points, for any segment points."""
+
+    points: FitPoints
+    merged: FitPoints
+    spec: ModelSpec
+    span: tuple[float, float]
+
+    @classmethod
+    def of(cls, points: FitPoints, spec: ModelSpec, span: tuple[float, float]) -> _InverseFit:
+        merged = points.by_rate()
+        n_rates = np.unique(merged.rate).size
+        if n_rates < spec.order + 1:
+            raise CanicalError(
+                f"{spec.describe()}: needs at least {spec.order + 1} plateau rates, the session has {n_rates}"
+            )
+        return cls(points, merged, spec, span)
+
+    def with_knots(self, knots: np.ndarray) -> SegmentedFit:
+        p = self.points
+        return fit_segmented_inverse(p.dv, p.rate, p.weight, knots, self.spec.order,
+                                     scale=max(abs(self.span[0]), abs(self.span[1])) or 1.0,
+                                     span=self.span, smoothness=self.spec.smoothness)
+
+    def residual(self, knots: np.ndarray) -> np.ndarray:
+        """Per merged rate, its rate minus the fit's with these segment points."""
+        residual: np.ndarray = self.merged.rate - self.with_knots(knots).poly.evaluate(self.merged.dv)[0]
+        return residual
+
+    def sequence(self, n_segments: int) -> list[Extremum]:
+        """Segment points at residual extrema for up to ``n_segments``, in the order chosen."""
+        return knot_sequence(self.points, n_segments, min_points=self.spec.order + 1,
+                             refit_residual=self.residual)
 
 
 def even_knots(merged: FitPoints, n_segments: int,

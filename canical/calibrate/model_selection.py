@@ -17,9 +17,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from canical.calibrate.cross_validation import HeldOutError, cross_validate
+from canical.calibrate.cross_validation import HeldOutError, cross_validate_sizes
 from canical.calibrate.fit_points import FitPoints
-from canical.calibrate.model_fit import ModelSpec, fit_model
+from canical.calibrate.model_fit import FittedModel, ModelSpec, fit_sizes
 from canical.errors import CanicalError
 from canical.models import RateModel
 
@@ -103,15 +103,23 @@ def data_monotone(points: FitPoints) -> bool:
     return bool(np.all(d > 0) or np.all(d < 0))
 
 
-def evaluate_candidate(points: FitPoints, spec: ModelSpec) -> Candidate | None:
-    """Cross-validate one size; ``None`` when the data cannot support it."""
+def evaluate_sizes(points: FitPoints, specs: list[ModelSpec]) -> list[Candidate | None]:
+    """Cross-validate sizes differing only in their segments (:func:`fit_sizes`); ``None`` for each
+    the data cannot support."""
+    def models(p: FitPoints) -> list[RateModel | None]:
+        return [None if f is None else f.model for f in fit_sizes(p, specs)]
+
     try:
-        held = cross_validate(points, lambda p: fit_model(p, spec).model)
-        full = fit_model(points, spec)
-    except (CanicalError, np.linalg.LinAlgError):
-        return None
-    if full.spec.n_segments != spec.n_segments:
-        return None  # not enough suitable extrema for this many segments
+        held = cross_validate_sizes(points, models)
+    except CanicalError:  # too few rates to cross-validate any size
+        return [None] * len(specs)
+    full = fit_sizes(points, specs)
+    return [_candidate(spec, h, f) for spec, h, f in zip(specs, held, full, strict=True)]
+
+
+def _candidate(spec: ModelSpec, held: HeldOutError | None, full: FittedModel | None) -> Candidate | None:
+    if held is None or full is None or full.spec.n_segments != spec.n_segments:
+        return None  # a fold or the whole could not fit it, or too few suitable extrema for its segments
     n_coef = spec.n_segments * (spec.order + 1)
     return Candidate(spec, held, n_coef, is_monotone(full.model, full.model.span))
 
@@ -142,9 +150,8 @@ def select_model(
 
 def _candidates(points: FitPoints, base: ModelSpec, segments: tuple[int, ...],
                 orders: tuple[int, ...]) -> list[Candidate]:
-    sizes = (replace(base, n_segments=n, order=o) for o in orders for n in segments)
-    tried = (evaluate_candidate(points, spec) for spec in sizes)
-    return [c for c in tried if c is not None]
+    tried = (evaluate_sizes(points, [replace(base, n_segments=n, order=o) for n in segments]) for o in orders)
+    return [c for of_order in tried for c in of_order if c is not None]
 
 
 def _usable(candidates: list[Candidate], monotone: bool) -> list[Candidate]:

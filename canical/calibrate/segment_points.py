@@ -136,6 +136,29 @@ def choose_knots(
     global-quadratic extrema when more segments are wanted. A candidate point is
     skipped when it would leave a segment with fewer than ``min_points`` rates.
     """
+    chosen = knot_sequence(points, n_segments, min_points=min_points, refit_residual=refit_residual,
+                           prominence_sigma=prominence_sigma)
+    return knots_of(chosen), sorted(chosen, key=lambda e: e.dv)
+
+
+def knots_of(chosen: list[Extremum]) -> np.ndarray:
+    """The segment points of chosen extrema, in ΔV order."""
+    return np.sort(np.array([e.dv for e in chosen], dtype=float))
+
+
+def knot_sequence(
+    points: FitPoints,
+    n_segments: int,
+    *,
+    min_points: int,
+    refit_residual: Callable[[np.ndarray], np.ndarray] | None = None,
+    prominence_sigma: float = PROMINENCE_SIGMA,
+) -> list[Extremum]:
+    """:func:`choose_knots`' extrema in the order they were chosen.
+
+    Each point is chosen from those before it alone, so fewer segments' points are the first of
+    this list: a model selection trying several segment counts of one order chooses them once.
+    """
     merged = points.by_rate()
     noise = rate_noise(merged)
     dv_sorted = np.sort(merged.dv)
@@ -169,4 +192,4 @@ def choose_knots(
         )
         if not try_add(cands):
             break
-    return np.sort(np.array(knots, dtype=float)), sorted(chosen, key=lambda e: e.dv)
+    return chosen

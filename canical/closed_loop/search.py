@@ -395,6 +395,7 @@ class Scorer:
     losses: dict[Any, np.ndarray] = field(default_factory=dict)
     fits: dict[Any, Fit] = field(default_factory=dict)
     held_errors: dict[Any, np.ndarray] = field(default_factory=dict)
+    resized: dict[Any, Structure] = field(default_factory=dict)
 
     def fit(self, s: Structure) -> Fit:
         """The structure fitted to every block, once: the search asks for the same fit from
@@ -564,7 +565,14 @@ def corrected_points(blocks: Blocks, fit: Fit) -> FitPoints:
 
 
 def reselect_size(scorer: Scorer, s: Structure) -> Structure:
-    """Once an effect is in, choose the base size again: the effect may have hidden what it needs."""
+    """Once an effect is in, choose the base size again: the effect may have hidden what it needs.
+    Once per structure: a round's winner is chosen again when its confounds are weighed."""
+    if s.key not in scorer.resized:
+        scorer.resized[s.key] = _reselected(scorer, s)
+    return scorer.resized[s.key]
+
+
+def _reselected(scorer: Scorer, s: Structure) -> Structure:
     corrected = corrected_points(scorer.blocks, scorer.fit(s))
     try:
         spec, _ = select_model(corrected, s.spec, orders=loop_orders(s.spec), high_orders=())
