@@ -51,7 +51,6 @@ from canical.closed_loop.candidates import (
     bspline_basis,
     build_candidates,
     group_tau,
-    in_group,
     knee_grid,
     lag_grid,
     plateau_means,
@@ -411,10 +410,6 @@ def extreme_rates_rms(fit: Fit, blocks: Blocks, folds: list[np.ndarray]) -> floa
     return rms(predict(fit, blocks.take(extreme)) - blocks.points.rate[extreme])
 
 
-#: Features whose τ a whole-session fit searches beside the last fit's (:meth:`Scorer.fit`): lags.
-NEAR_LAST_FIT = (CHANNEL_LAG.feature, CHANNEL_LAG_SPLINE.feature)
-
-
 @dataclass
 class Scorer:
     """Held-out rms and training RSS of structures, cached by their terms and size."""
@@ -427,28 +422,14 @@ class Scorer:
     fits: dict[Any, Fit] = field(default_factory=dict)
     held_errors: dict[Any, np.ndarray] = field(default_factory=dict)
     resized: dict[Any, Structure] = field(default_factory=dict)
-    #: Per channel's lag, its term in the last whole-session fit that had it.
-    last: dict[tuple[str, str | None], Term] = field(default_factory=dict)
 
     def fit(self, s: Structure) -> Fit:
         """The structure fitted to every block, once: the search asks for the same fit from
         several places (a size chosen again, its score, the round's record), each τ search a
-        tenth of a second on a long session.
-
-        A channel's lag is searched beside where the last fit that had it put it (as a fold's is
-        beside the whole session's, :meth:`_TauSearch.best`): the same candidate on another base
-        or beside other terms moves it little, and its first fit searched the whole grid. A
-        warm-up's τ and a gated channel's knee are searched on the whole grid every time: the
-        first sets a whole exponential; the second's fit changes in steps as blocks cross the knee,
-        with minima a local search can stop in (seen: a knee that let a false gated term in).
-        """
+        tenth of a second on a long session."""
         key = s.key
         if key not in self.fits:
-            groups = [g for g in tau_groups(s.terms) if g[0] in NEAR_LAST_FIT]
-            near = tuple(self.last[g] for g in groups if g in self.last)
-            fit = fit_structure(self.blocks, s, self.duration_s, near)
-            self.last.update({g: next(t for t in fit.terms if in_group(t, g)) for g in groups})
-            self.fits[key] = fit
+            self.fits[key] = fit_structure(self.blocks, s, self.duration_s)
         return self.fits[key]
 
     def score(self, s: Structure) -> Score:

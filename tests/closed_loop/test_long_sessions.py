@@ -97,23 +97,6 @@ def test_held_out_errors_kept_by_the_scorer(lagged):
     assert search.rms(errors) == scorer.held_rms(lagged.structure)
 
 
-def test_a_lag_fitted_again_is_searched_beside_its_last_fit(lagged):
-    """The lag on a smaller base is searched beside its fit on the loop's base (the scorer keeps
-    it), and lands where a search of the whole grid does."""
-    s = lagged.structure
-    duration = float(lagged.blocks.time_s.max())
-    smaller = search._with_spec(search.Scorer(lagged.blocks, [], duration), s,
-                                replace(s.spec, n_segments=s.spec.n_segments - 1))
-    assert smaller is not None
-    scorer = search.Scorer(lagged.blocks, [], duration)
-    scorer.fit(s)
-    group = next(g for g in tau_groups(s.terms) if g[1] == "temp_c")
-    assert set(scorer.last) == {group}
-    beside = group_tau(scorer.fit(smaller).terms, group)
-    whole_grid = group_tau(search.fit_structure(lagged.blocks, smaller, duration).terms, group)
-    assert beside is not None and beside == pytest.approx(whole_grid, rel=0.02)
-
-
 class _Scores:
     """A scorer whose scores are given: what :func:`search._judge` reads of one."""
 
