@@ -211,11 +211,15 @@ class _TauSearch:
     unshifted: JoinedDesign
 
     @property
+    def gated(self) -> bool:
+        return self.group[0] == CHANNEL_GATED.feature
+
+    @property
     def warmup(self) -> bool:
         return self.group[0] == TIME_WARMUP.feature
 
     def grid(self) -> np.ndarray:
-        if self.group[0] == CHANNEL_GATED.feature:  # a knee in raw units, searched like a lag's τ
+        if self.gated:  # a knee in raw units, searched like a lag's τ
             return knee_grid(self.blocks)
         return tau_grid(self.duration_s) if self.warmup else lag_grid(self.duration_s)
 
@@ -237,7 +241,7 @@ class _TauSearch:
         whole session's): the fold's RSS is taken at :data:`LOCAL_POINTS` τ spaced over a third of a
         grid step either side of there, and its best is the vertex of the parabola through the
         least and its neighbours; where the least is at either end, the search goes on past it
-        (:meth:`beyond`).
+        (:meth:`beyond`), or, for a gated channel's knee, searches the whole grid.
 
         Why: each structure's score searches τ once per fold, and folds hold out a fifth of the
         plateaus, so their τ lies beside the whole session's. The points are the same in every
@@ -253,6 +257,8 @@ class _TauSearch:
         i = int(np.argmin(rss))
         if 0 < i < LOCAL_POINTS - 1:
             return float(np.exp(parabola_vertex(local[i - 1 : i + 2], rss[i - 1 : i + 2])))
+        if self.gated:  # a knee's fit changes in steps as blocks cross it: local minima a walk stops in
+            return self.best()
         outward = 1 if i else -1
         start = (local[i - outward], local[i]), (rss[i - outward], rss[i])
         return float(np.exp(self.beyond(start, bound=float(grid[-1] if i else grid[0]))))
