@@ -291,6 +291,9 @@ class Blocks:
     samples: ChannelSamples | None = None  # for stateful channel transforms
     rows: np.ndarray | None = None  # these blocks' positions among the samples' blocks
     block_s: float = BLOCK_S  # the length each plateau is cut into (its last block longer)
+    #: What is derived from these blocks and asked for again (:meth:`take`'s subsets, the loop's
+    #: columns): a cross-validation fold's blocks are the same every time a structure is scored.
+    memo: dict[Any, Any] = field(default_factory=dict, compare=False, repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -301,6 +304,16 @@ class Blocks:
         return block_label(self.block_s)
 
     def take(self, index: np.ndarray) -> Blocks:
+        """The blocks at ``index`` (a mask or positions), the same object for the same index: its
+        own :attr:`memo` then serves every structure scored on that fold."""
+        index = np.asarray(index)
+        key = ("take", index.dtype.str, index.tobytes())
+        if key not in self.memo:
+            self.memo[key] = self._taken(index)
+        taken: Blocks = self.memo[key]
+        return taken
+
+    def _taken(self, index: np.ndarray) -> Blocks:
         rows = np.arange(len(self)) if self.rows is None else self.rows
         return Blocks(
             self.points.take(index),

@@ -181,8 +181,31 @@ def shift_columns(terms: tuple[Term, ...], blocks: Blocks) -> np.ndarray:
     """Per term, what one unit of its coefficient adds to ΔV at each block: x, or x·ΔV."""
     if not terms:
         return np.zeros((len(blocks), 0))
-    dv = blocks.points.dv
-    return np.column_stack([feature(t, blocks) * (dv if t.form == "scale" else 1.0) for t in terms])
+    return np.column_stack([shift_column(t, blocks) for t in terms])
+
+
+#: Columns :func:`shift_column` keeps per blocks before it starts again (a τ search's are many).
+KEPT_COLUMNS = 512
+
+
+def shift_column(term: Term, blocks: Blocks) -> np.ndarray:
+    """One term's column of :func:`shift_columns`, kept on the blocks (read-only) by what the term
+    computes (its coefficient aside).
+
+    Why: a time constant's search fits the structure again at every τ it tries, and each fit
+    computed every term's column again, though only the searched group's change; a fold's blocks
+    are the same for every structure scored, so a term's column there is asked for again too.
+    """
+    kept: dict[tuple[object, ...], np.ndarray] = blocks.memo.setdefault("columns", {})
+    key = (term.spec, term.form, term.params, term.reference)
+    column = kept.get(key)
+    if column is None:
+        column = feature(term, blocks) * (blocks.points.dv if term.form == "scale" else 1.0)
+        column.setflags(write=False)
+        if len(kept) >= KEPT_COLUMNS:
+            kept.clear()
+        kept[key] = column
+    return column
 
 
 def _pair(spec: TermKind, **kw) -> tuple[Term, ...]:

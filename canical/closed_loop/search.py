@@ -150,14 +150,17 @@ def _solve(
     coef = np.zeros(cols.shape[1])
     slope = np.full(len(p), 1.0 / (sensitivity or _mean_sensitivity(p)))
     steps = steps if terms else 1
+    largest = np.max(np.abs(cols), axis=0) if steps > 1 else None
+    shifted = p.dv - cols @ coef
     for step in range(steps):
-        joined = unshifted if step == 0 and unshifted is not None else _design(blocks, s, p.dv - cols @ coef)
+        joined = unshifted if step == 0 and unshifted is not None else _design(blocks, s, shifted)
         fit = joined.fit(extra=-cols * slope[:, None])
         coef = coef + fit.extra
-        if step == steps - 1 or np.max(np.abs(fit.extra * np.max(np.abs(cols), axis=0))) < 1e-6 * s.scale:
+        shifted = p.dv - cols @ coef
+        if largest is None or step == steps - 1 or np.max(np.abs(fit.extra * largest)) < 1e-6 * s.scale:
             break
-        slope = fit.poly.slope(p.dv - cols @ coef)
-    resid = p.rate - fit.poly.evaluate(p.dv - cols @ coef)[0]
+        slope = fit.poly.slope(shifted)
+    resid = p.rate - fit.poly.evaluate(shifted)[0]
     return fit.poly, coef, float(np.sum(p.weight * resid**2))
 
 

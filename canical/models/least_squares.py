@@ -45,8 +45,12 @@ class NormalEquations:
         """The problem with ``extra``'s columns after ``x``'s: only their own products are computed."""
         if self.extra is not None:
             raise ValueError("bordered twice: border the first problem with every extra column")
-        cross = self.x.T @ extra
-        gram = np.block([[self.gram, cross], [cross.T, extra.T @ extra]])
+        n = self.gram.shape[0]
+        gram = np.empty((n + extra.shape[1],) * 2)
+        gram[:n, :n] = self.gram
+        gram[:n, n:] = self.x.T @ extra
+        gram[n:, :n] = gram[:n, n:].T
+        gram[n:, n:] = extra.T @ extra
         return NormalEquations(self.x, self.y, gram, np.concatenate([self.rhs, extra.T @ self.y]), extra)
 
     def solve(self) -> np.ndarray:

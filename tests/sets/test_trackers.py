@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canical.sets.trackers import one_pole
+from canical.sets.trackers import _even_step, one_pole
 
 
 def lfilter_one_pole(x: np.ndarray, a: float, before: float) -> np.ndarray:
@@ -39,3 +39,20 @@ def test_one_pole_is_finite_up_to_the_first_sample_that_is_not():
     y = one_pole(x, 0.1, 0.0)
     np.testing.assert_allclose(y[:150], lfilter_one_pole(x[:150], 0.1, 0.0), rtol=1e-13)
     assert np.isnan(y[150:]).all()
+
+
+def _median_rule(dt: np.ndarray) -> float | None:
+    """The rule the lag's even path had before its spread check: the median, checked against all."""
+    step = float(np.median(dt))
+    return step if step > 0 and np.all(np.abs(dt - step) <= 1e-6 * step) else None
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([0.0, 1e-9, 4e-7, 9e-7, 1.1e-6, 3e-6, 1e-3]),
+       st.floats(-1e-3, 10.0), st.integers(1, 50))
+def test_the_even_steps_spread_check_decides_as_the_median_did(seed, jitter, step, n):
+    """:func:`_even_step` answers as the median's rule on steps even, jittered around the
+    millionth, negative or zero: the spread check only skips the median where it must fail."""
+    rng = np.random.default_rng(seed)
+    dt = step * (1.0 + rng.uniform(-jitter, jitter, n))
+    assert _even_step(dt) == _median_rule(dt)
