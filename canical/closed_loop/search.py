@@ -852,11 +852,9 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         return None
     footing = _Footing(scorer, s, [best, drift])
     with_channel, with_drift = footing.of(best.terms, footing.own[best.name]), footing.of(drift.terms)
-    with_both = footing.of(drift.terms + best.terms)
     r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
-    beyond = 1.0 - scorer.held_rms(with_both) / r_drift
-    p_beyond = better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift))
-    if beyond >= BEYOND_DRIFT_MIN_GAIN and p_beyond < CONFOUND_ALPHA:
+    beyond = _beyond_drift(scorer, footing, best, drift)
+    if beyond.passes(CONFOUND_ALPHA):
         return None
     gain = stretch_gain(scorer.blocks, s, best.terms, scorer.duration_s) if _has_bias(best) else None
     p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
@@ -871,8 +869,48 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         recommendation=(f"record a session in which {ch} changes in steps in random order, so that it "
                         "no longer follows the sensor's slow drift"),
         adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
-        stretch_gain=gain, beyond_drift_gain=beyond,
+        stretch_gain=gain, beyond_drift_gain=beyond.gain,
     )
+
+
+@dataclass(frozen=True)
+class BeyondDrift:
+    """What a channel's form adds on top of an equally flexible drift of the session: the share of
+    the drift's held-out error it removes, and the paired p of that gain."""
+
+    gain: float
+    p: float
+
+    def passes(self, alpha: float) -> bool:
+        """A large share (:data:`BEYOND_DRIFT_MIN_GAIN`), significant at ``alpha``."""
+        return self.gain >= BEYOND_DRIFT_MIN_GAIN and self.p < alpha
+
+
+def _beyond_drift(scorer: Scorer, footing: _Footing, cand: Candidate, drift: Candidate) -> BeyondDrift:
+    """:class:`BeyondDrift` of ``cand`` over ``drift``, each on the base size it deserves."""
+    with_drift, with_both = footing.of(drift.terms), footing.of(drift.terms + cand.terms)
+    r_drift = scorer.held_rms(with_drift)
+    return BeyondDrift(1.0 - scorer.held_rms(with_both) / r_drift,
+                       better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift)))
+
+
+def beyond_the_drift(scorer: Scorer, s: Structure, forms: list[Candidate]) -> Candidate | None:
+    """Of a channel's other forms, once its best has lost to the session's drift, the one that
+    adds most on top of a drift as flexible as itself, where that passes :func:`_drift_beats`'s
+    second rule at :data:`CONFOUND_ALPHA` shared among the forms tried; None when none does.
+
+    Why: the form that best predicts held-out plateaus on its own is the one that best follows
+    the drift (a smoothed lag of a cycling chamber fits bias steps); a transient the chamber's
+    changes cause is another form of the same channel, which no smooth drift of the session can
+    take, and it was never tried once the channel lost.
+    """
+    tried: list[tuple[BeyondDrift, Candidate]] = []
+    for form in forms:
+        drift = drift_competitor(form, scorer.blocks)
+        if drift is not None:
+            tried.append((_beyond_drift(scorer, _Footing(scorer, s, [form, drift]), form, drift), form))
+    passing = [(b.gain, form) for b, form in tried if b.passes(CONFOUND_ALPHA / len(tried))]
+    return max(passing, key=lambda gf: gf[0])[1] if passing else None
 
 
 def _judged_again(c: Confound, accepted: str, after: str) -> Confound:
@@ -1051,8 +1089,13 @@ def run_loop(
         if drift is not None:
             confounded.append(drift)
             progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
+            forms = [c for c in pool if c.channel == best.channel and c is not best]
             pool = [c for c in pool if c.channel != best.channel]
-            continue
+            beyond = beyond_the_drift(scorer, with_jumps, forms)
+            if beyond is None:
+                continue
+            progress(f"{beyond.name} explains what a drift of the session leaves: blamed instead")
+            best = beyond
         pruned = _pruned(scorer, s, best)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)
