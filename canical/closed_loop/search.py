@@ -749,14 +749,31 @@ ADOPT_MIN_GAIN = 0.5
 
 
 def _adopted_if_large(scorer: Scorer, s: Structure, before: Score,
-                      candidate: Candidate) -> tuple[Candidate | None, str]:
-    """The rule's choice among a confounded group, if it removes enough of the residual."""
+                      group: list[Candidate]) -> tuple[Candidate | None, str]:
+    """The rule's choice among a confounded group (:func:`adopt`), if it removes enough of the
+    residual, or if every form of the group is one channel's.
+
+    Why one channel's forms need no such share: the group then disagrees on the form only, not on
+    the cause, and whether the channel's effect is this session's wander instead is what the
+    session's drift decides next (:func:`_drift_beats`, every channel's adopted form meets it),
+    where a form fitted to a wander meets an equally flexible function of time. Left out, the
+    residual stays in the set (a transient under ramps: 13x the noise floor, twice a model told it).
+    """
+    candidate = adopt(scorer, s, group)
     with_it = replace(s, terms=s.terms + _pruned(scorer, s, candidate).terms)
     gain = 1.0 - scorer.held_rms(with_it) / before.held_out_rms_dps
     if gain >= ADOPT_MIN_GAIN:
         return candidate, ADOPTION_RULE
+    if _one_channel(group):
+        return candidate, (f"{ADOPTION_RULE}; it removes {gain:.0%} of the held-out error, less than "
+                           f"half, and every form is {candidate.channel}'s: the session's drift judged it")
     return None, (f"none adopted: the rule's choice, {candidate.name}, removes {gain:.0%} of the "
                   "held-out error, less than half: as likely the session's wander as an effect")
+
+
+def _one_channel(group: list[Candidate]) -> bool:
+    """Whether every candidate of the group is a form of the same channel."""
+    return all(c.kind == CHANNEL for c in group) and len({c.channel for c in group}) == 1
 
 
 #: The pseudo-channel of the session's own clock (block mean times) the drift competitor is a spline of.
@@ -911,6 +928,12 @@ def beyond_the_drift(scorer: Scorer, s: Structure, forms: list[Candidate]) -> Ca
             tried.append((_beyond_drift(scorer, _Footing(scorer, s, [form, drift]), form, drift), form))
     passing = [(b.gain, form) for b, form in tried if b.passes(CONFOUND_ALPHA / len(tried))]
     return max(passing, key=lambda gf: gf[0])[1] if passing else None
+
+
+def _lost_to_drift(c: Confound) -> Confound:
+    """A group whose adopted form then lost to the session's drift: none of it is in the set."""
+    return replace(c, adopted=None, adoption_rule=(
+        f"{c.adoption_rule}; then none: {c.adopted} does not beat a drift of the session as flexible"))
 
 
 def _judged_again(c: Confound, accepted: str, after: str) -> Confound:
@@ -1070,7 +1093,7 @@ def run_loop(
             chosen = next((c for c in group if c.name in prefer), None)
             rule = "named by the user (--prefer)" if chosen else ADOPTION_RULE
             if chosen is None:
-                chosen, rule = _adopted_if_large(scorer, s, current, adopt(scorer, s, group))
+                chosen, rule = _adopted_if_large(scorer, s, current, group)
             confounded.append(_confound(check, current, chosen, rule))
             # Shadows explain a part of the same residual: accepting one later would be a guess too.
             pool = [c for c in pool if c not in group and c not in check.shadows]
@@ -1087,6 +1110,8 @@ def run_loop(
         with_jumps = replace(s, terms=s.terms + jump_terms(blocks, jumps))
         drift = None if best.name in prefer else _drift_beats(scorer, with_jumps, best)
         if drift is not None:
+            if twins:  # the group's record: its choice is not in the set
+                confounded[-1] = _lost_to_drift(confounded[-1])
             confounded.append(drift)
             progress(f"{best.name} does not beat a drift of the session as flexible: not blamed")
             forms = [c for c in pool if c.channel == best.channel and c is not best]

@@ -77,3 +77,38 @@ def test_random_draws_of_a_confound_are_corrected(seed):
     result = calibrate(scenario.session(seed=seed, dwell_s=8.0), CalibrateOptions(), sensor_id="S", axis="z")
     left = result.report.unexplained
     assert left is not None and left.ratio <= 2.0, (result.report.confounded, left.ratio)
+
+
+def test_a_group_of_one_channels_forms_is_adopted_whatever_its_share():
+    """A thermal transient while the chamber ramps, on a sensor whose bias random-walks (case 3 of
+    the blind generator's development seeds). Three forms of temp_c tie and the rule's choice
+    removes just under half the held-out error, as a wander's forms would; but the group disagrees
+    on the form, not on the cause, and the channel beats an equally flexible drift of the session:
+    it is adopted and blamed. Left out, the residual stayed 13x the noise floor and over twice a
+    model told the true form."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import ANY, draw_case
+
+    case = draw_case(3, ANY)
+    assert (case.form, case.trajectory, case.drift) == ("transient", "ramps", "random-walk")
+    result = calibrate(case.scenario.session(case.seed, 8.0), CalibrateOptions(), sensor_id="S", axis="z")
+    (group,) = [c for c in result.report.confounded if not c.drift_of_session]
+    assert {c.channel for c in result.loop.candidates if c.name in group.candidates} == {"temp_c"}
+    assert group.adopted in group.candidates
+    assert "less than half, and every form is temp_c's" in group.adoption_rule
+    assert result.coefficients.fit["ambiguous"][0]["adopted"] == group.adopted
+    scored = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
+    assert scored.written_channels == ("temp_c",)
+    assert scored.rms_after < 1.5 * scored.rms_oracle
+
+
+def test_a_groups_choice_that_loses_to_the_drift_leaves_the_group_with_none():
+    from canical.closed_loop.findings import Confound
+    from canical.closed_loop.search import _lost_to_drift
+
+    group = Confound(("lag(temp_c)", "d/dt temp_c"), (), {}, {}, 0.01, 0.05, None, "record steps",
+                     adopted="lag(temp_c)", adoption_rule=ADOPTION_RULE)
+    lost = _lost_to_drift(group)
+    assert lost.adopted is None
+    assert lost.adoption_rule == (f"{ADOPTION_RULE}; then none: lag(temp_c) does not beat a drift of "
+                                  "the session as flexible")
