@@ -1120,7 +1120,7 @@ def run_loop(
             if beyond is None:
                 continue
             progress(f"{beyond.name} explains what a drift of the session leaves: blamed instead")
-            best = beyond
+            best, twins = beyond, ()  # not one of the group that lost: no ambiguity of its own
         pruned = _pruned(scorer, s, best)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)

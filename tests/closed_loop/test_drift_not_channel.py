@@ -215,3 +215,30 @@ def test_beyond_the_drift_a_form_needs_a_large_significant_share():
     assert BeyondDrift(BEYOND_DRIFT_MIN_GAIN, 0.001).passes(0.01)
     assert not BeyondDrift(BEYOND_DRIFT_MIN_GAIN, 0.001).passes(0.001)  # shared among the forms tried
     assert not BeyondDrift(BEYOND_DRIFT_MIN_GAIN * 0.9, 1e-6).passes(0.01)
+
+
+def test_a_form_blamed_beyond_the_drift_is_not_ambiguous_with_the_group_that_lost(monkeypatch):
+    """Case 1085 again, its smoothed lag made the head of a group of temp_c's forms (a twin added
+    to the real check): the group is adopted, its choice loses to the drift, so the group's record
+    says none; the rate of change then blamed is no member of it, and is not marked ambiguous."""
+    from canical.closed_loop import search
+    from canical.sim.blind import LISTED_EFFECT, draw_case
+
+    real = search._confounded_with
+
+    def with_a_twin(scorer, s, best, pool, min_gain):
+        check = real(scorer, s, best, pool, min_gain)
+        if check.best.name == "smooth(lag(temp_c))" and not check.twins:
+            twin = next(c for c in pool if c.name == "smooth(temp_c)")
+            check.twins.append(twin)
+            check.evidence[twin.name] = search.Comparison(scorer.held_rms(s), 0.5)
+        return check
+
+    monkeypatch.setattr(search, "_confounded_with", with_a_twin)
+    case = draw_case(1085, LISTED_EFFECT)
+    r = calibrate(case.scenario.session(case.seed, 8.0), CalibrateOptions(), sensor_id="S", axis="z")
+    group = next(c for c in r.loop.confounded if c.candidates[0] == "smooth(lag(temp_c))"
+                 and not c.drift_of_session)
+    assert group.adopted is None and "then none: " in group.adoption_rule
+    blamed = next(e for e in r.loop.effects if e.name == "d/dt temp_c")
+    assert blamed.ambiguous_with == ()
