@@ -30,7 +30,10 @@ def summarise_folders(folders: Sequence[str]) -> PowerOnSums:
     return PowerOnSums.concat([summarise(dataset.read_vehicle(Path(f))) for f in folders])
 
 
-def batches(target: Path, size: int = BATCH) -> list[list[str]]:
+def batches(target: Path, size: int | None = None) -> list[list[str]]:
+    """The dataset's vehicle folders in tasks of ``size`` (:data:`BATCH`, read when called: a default
+    bound at definition kept a test's one vehicle per task from ever taking effect)."""
+    size = size or BATCH
     folders = [str(p) for p in dataset.vehicle_folders(target)]
     return [folders[i:i + size] for i in range(0, len(folders), size)]
 
