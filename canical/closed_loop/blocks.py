@@ -291,9 +291,14 @@ class Blocks:
     samples: ChannelSamples | None = None  # for stateful channel transforms
     rows: np.ndarray | None = None  # these blocks' positions among the samples' blocks
     block_s: float = BLOCK_S  # the length each plateau is cut into (its last block longer)
-    #: What is derived from these blocks and asked for again (:meth:`take`'s subsets, the loop's
-    #: columns): a cross-validation fold's blocks are the same every time a structure is scored.
-    memo: dict[Any, Any] = field(default_factory=dict, compare=False, repr=False)
+    #: :meth:`take`'s subsets by their index: a cross-validation fold's blocks are the same object
+    #: every time a structure is scored, so what is kept on them (``columns``) serves them all.
+    #: Not init fields: blocks made by ``dataclasses.replace`` (other channels) start empty.
+    subsets: dict[tuple[str, bytes], Blocks] = field(default_factory=dict, init=False, compare=False,
+                                                     repr=False)
+    #: The loop's term columns on these blocks (``closed_loop.candidates.shift_column``).
+    columns: dict[tuple[Any, ...], np.ndarray] = field(default_factory=dict, init=False, compare=False,
+                                                       repr=False)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -305,13 +310,12 @@ class Blocks:
 
     def take(self, index: np.ndarray) -> Blocks:
         """The blocks at ``index`` (a mask or positions), the same object for the same index: its
-        own :attr:`memo` then serves every structure scored on that fold."""
+        own :attr:`columns` then serve every structure scored on that fold."""
         index = np.asarray(index)
-        key = ("take", index.dtype.str, index.tobytes())
-        if key not in self.memo:
-            self.memo[key] = self._taken(index)
-        taken: Blocks = self.memo[key]
-        return taken
+        key = (index.dtype.str, index.tobytes())
+        if key not in self.subsets:
+            self.subsets[key] = self._taken(index)
+        return self.subsets[key]
 
     def _taken(self, index: np.ndarray) -> Blocks:
         rows = np.arange(len(self)) if self.rows is None else self.rows

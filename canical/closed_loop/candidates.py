@@ -196,7 +196,7 @@ def shift_column(term: Term, blocks: Blocks) -> np.ndarray:
     computed every term's column again, though only the searched group's change; a fold's blocks
     are the same for every structure scored, so a term's column there is asked for again too.
     """
-    kept: dict[tuple[object, ...], np.ndarray] = blocks.memo.setdefault("columns", {})
+    kept = blocks.columns
     key = (term.spec, term.form, term.params, term.reference)
     column = kept.get(key)
     if column is None:

@@ -48,4 +48,14 @@ def test_the_kept_columns_are_bounded(loop_blocks):
     lag = next(c for c in loop_blocks.candidates if c.name == "lag(temp_c)").terms[0]
     for k in range(KEPT_COLUMNS + 10):
         shift_column(replace(lag, params=replace(lag.params, tau_s=5.0 + k)), blocks)
-    assert len(blocks.memo["columns"]) <= KEPT_COLUMNS
+    assert len(blocks.columns) <= KEPT_COLUMNS
+
+
+def test_blocks_made_by_replace_keep_nothing_of_the_originals(loop_blocks):
+    """Other channels, other columns: a replaced copy starts with its own empty caches."""
+    blocks = loop_blocks.blocks
+    shift_column(loop_blocks.candidates[0].terms[0], blocks)
+    blocks.take(plateau_folds(blocks)[0])
+    copy = replace(blocks, aux={**blocks.aux})
+    assert copy.columns == {} and copy.subsets == {}
+    assert copy.columns is not blocks.columns
