@@ -26,6 +26,9 @@ the effect, the report and the set's ``fit`` record.
 squared errors, plateaus in time order), at ``CONFOUND_ALPHA``; all candidates
 are compared with every base size any of them needed, so that none loses to
 another only because its own size search stopped short.
+A channel's form is blamed only where it beats a drift of the session as flexible
+(:func:`_drift_beats`), when it is accepted and again once every other effect is in
+(:func:`drift_again`).
 A channel's lag that ties with its level is the level (τ → 0), not a confound;
 a warm-up that ties with a linear drift is the drift (τ → ∞).
 What the loop leaves unexplained is judged afterwards (:mod:`canical.closed_loop.unexplained`).
@@ -930,6 +933,63 @@ def beyond_the_drift(scorer: Scorer, s: Structure, forms: list[Candidate]) -> Ca
     return max(passing, key=lambda gf: gf[0])[1] if passing else None
 
 
+@dataclass(frozen=True)
+class DriftAgain:
+    """The structure once each accepted effect has met the session's drift again with the others in
+    (:func:`drift_again`): the records of those that lost, and the bias jumps judged with them."""
+
+    structure: Structure
+    lost: tuple[Confound, ...]
+    jumps_s: tuple[float, ...]
+
+
+def drift_again(scorer: Scorer, s: Structure, accepted: list[Candidate],
+                prefer: tuple[str, ...] = ()) -> DriftAgain:
+    """Each accepted channel effect judged against the session's drift once more (:func:`_drift_beats`),
+    now on the structure with every other accepted effect in, in the order they were accepted; one
+    that loses is taken out (and the base size chosen again) before the next is judged. Nothing to do
+    with fewer than two effects, or for a form the user named (``prefer``); nor for a channel with
+    two forms in, each of which can stand in for the other (its level beside its spline), and each
+    of which met the drift when it went in.
+
+    Why: each effect met the drift on what the effects before it left. A form of a channel that
+    itself wanders can stand in, early, for part of a real effect found later (a smoothed lag of a
+    random-walking channel took a level effect under ramps, and beat the drift on top of it); once
+    the real effect is in, it explains nothing a drift of the session does not, and in the set it
+    would add that channel's wander on the vehicle. The same rule on the same evidence, with the
+    others in: backward elimination of the forward search's choices.
+    """
+    lost: list[Confound] = []
+    jumps_s: tuple[float, ...] = ()
+    if len(accepted) < 2:
+        return DriftAgain(s, (), ())
+    kept = list(accepted)
+    for cand in accepted:
+        if cand.name in prefer or cand.kind != CHANNEL or _channel_count(kept, cand.channel) > 1:
+            continue
+        mine = {id(t) for t in cand.terms}  # the same objects: the structure is grown of them
+        without = replace(s, terms=tuple(t for t in s.terms if id(t) not in mine))
+        if len(without.terms) != len(s.terms) - len(cand.terms):
+            raise AssertionError(f"{cand.name}: its columns are not the structure's")
+        jumps = bias_jumps(scorer, without, cand)
+        with_jumps = replace(without, terms=without.terms + jump_terms(scorer.blocks, jumps))
+        drift = _drift_beats(scorer, with_jumps, cand)
+        if drift is None:
+            continue
+        others = [c.name for c in kept if c is not cand]
+        was = "was" if len(others) == 1 else "were"
+        lost.append(replace(drift, adoption_rule=f"{drift.adoption_rule}, once {', '.join(others)} {was} in"))
+        kept.remove(cand)
+        jumps_s = merged_jumps(jumps_s, jumps, scorer.blocks)
+        s = reselect_size(scorer, without)
+    return DriftAgain(s, tuple(lost), jumps_s)
+
+
+def _channel_count(cands: list[Candidate], channel: str | None) -> int:
+    """How many of ``cands`` are forms of ``channel``."""
+    return sum(c.kind == CHANNEL and c.channel == channel for c in cands)
+
+
 def _lost_to_drift(c: Confound) -> Confound:
     """A group whose adopted form then lost to the session's drift: none of it is in the set."""
     return replace(c, adopted=None, adoption_rule=(
@@ -1069,6 +1129,7 @@ def run_loop(
     shelved: list[Candidate] = []  # a confounded group none of which was adopted
     restored: dict[str, str] = {}  # a shelved candidate: the effect whose acceptance restored it
     jumps_s: tuple[float, ...] = ()  # times the bias jumped (bias_jumps), for the report
+    accepted: list[Candidate] = []  # each accepted effect as its columns went in, in order
     for _round in range(MAX_ROUNDS):
         current = scorer.score(s)
         progress(f"round {len(rounds) + 1}: held-out rms {current.held_out_rms_dps:.4f} deg/s, "
@@ -1122,6 +1183,7 @@ def run_loop(
             progress(f"{beyond.name} explains what a drift of the session leaves: blamed instead")
             best, twins = beyond, ()  # not one of the group that lost: no ambiguity of its own
         pruned = _pruned(scorer, s, best)
+        accepted.append(pruned)
         s_new = replace(s, terms=s.terms + pruned.terms)
         after = scorer.score(s_new)
         f, p = f_test(current, after, scorer.n_plateaus)
@@ -1142,6 +1204,16 @@ def run_loop(
         pool += shelved
         restored |= {c.name: best.name for c in shelved}
         shelved = []
+    again = drift_again(scorer, s, accepted, prefer)
+    for lost in again.lost:
+        name = lost.candidates[0]
+        effects = [e for e in effects if e.name != name]
+        progress(f"{name} does not beat a drift of the session as flexible once the other effects are "
+                 "in: removed")
+        steps.append(_step(scorer, again.structure, f"removed {name}: a drift explains it as well"))
+    confounded += again.lost
+    jumps_s = merged_jumps(jumps_s, again.jumps_s, blocks)
+    s = again.structure
     pruned_all = _prune_all(scorer, s)
     if len(pruned_all.terms) != len(s.terms):
         steps.append(_step(scorer, pruned_all, "terms that no longer pay removed"))

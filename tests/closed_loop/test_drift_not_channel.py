@@ -242,3 +242,27 @@ def test_a_form_blamed_beyond_the_drift_is_not_ambiguous_with_the_group_that_los
     assert group.adopted is None and "then none: " in group.adoption_rule
     blamed = next(e for e in r.loop.effects if e.name == "d/dt temp_c")
     assert blamed.ambiguous_with == ()
+
+
+def test_a_wandering_channel_that_stood_in_for_a_later_effect_is_removed_once_it_is_in():
+    """A level effect of temp_c under ramps on a sensor whose bias stepped, beside a channel that
+    random-walks (case 1005 of the blind generator's development seeds). The smoothed lag of the
+    wandering channel is accepted first: it takes part of the ramps' effect and beats the drift on
+    top of it. Once temp_c is in, judged again with it in, it explains nothing a drift of the
+    session does not: it is removed and reported as drift, and only temp_c is in the set."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import LISTED_EFFECT, draw_case
+
+    case = draw_case(1005, LISTED_EFFECT)
+    assert (case.form, case.trajectory, case.drift) == ("level", "ramps", "steps")
+    r = calibrate(case.scenario.session(case.seed, 8.0), CalibrateOptions(), sensor_id="S", axis="z")
+    assert [e.name for e in r.loop.effects] == ["channel:temp_c"]
+    lost = next(c for c in r.loop.confounded if c.drift_of_session)
+    assert lost.candidates == ("smooth(lag(wander))", DRIFT_SPLINE_NAME)
+    assert lost.adopted is None and lost.adoption_rule.endswith("once channel:temp_c was in")
+    assert [s.step for s in r.loop.steps if s.step.startswith("removed")] == [
+        "removed smooth(lag(wander)): a drift explains it as well"]
+    assert "wander" not in {t.channel for t in r.coefficients.terms}
+    scored = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
+    assert scored.written_channels == ("temp_c",), scored.found
+
