@@ -934,12 +934,22 @@ def beyond_the_drift(scorer: Scorer, s: Structure, forms: list[Candidate]) -> Ca
 
 
 @dataclass(frozen=True)
+class Removed:
+    """An accepted effect that lost to the session's drift once the others were in: its record, and
+    the model once it was taken out (for the loop's steps)."""
+
+    name: str
+    record: Confound
+    structure: Structure
+
+
+@dataclass(frozen=True)
 class DriftAgain:
     """The structure once each accepted effect has met the session's drift again with the others in
-    (:func:`drift_again`): the records of those that lost, and the bias jumps judged with them."""
+    (:func:`drift_again`): the effects removed, in order, and the bias jumps judged with them."""
 
     structure: Structure
-    lost: tuple[Confound, ...]
+    removed: tuple[Removed, ...]
     jumps_s: tuple[float, ...]
 
 
@@ -959,7 +969,7 @@ def drift_again(scorer: Scorer, s: Structure, accepted: list[Candidate],
     would add that channel's wander on the vehicle. The same rule on the same evidence, with the
     others in: backward elimination of the forward search's choices.
     """
-    lost: list[Confound] = []
+    removed: list[Removed] = []
     jumps_s: tuple[float, ...] = ()
     if len(accepted) < 2:
         return DriftAgain(s, (), ())
@@ -978,11 +988,12 @@ def drift_again(scorer: Scorer, s: Structure, accepted: list[Candidate],
             continue
         others = [c.name for c in kept if c is not cand]
         was = "was" if len(others) == 1 else "were"
-        lost.append(replace(drift, adoption_rule=f"{drift.adoption_rule}, once {', '.join(others)} {was} in"))
+        record = replace(drift, adoption_rule=f"{drift.adoption_rule}, once {', '.join(others)} {was} in")
         kept.remove(cand)
         jumps_s = merged_jumps(jumps_s, jumps, scorer.blocks)
         s = reselect_size(scorer, without)
-    return DriftAgain(s, tuple(lost), jumps_s)
+        removed.append(Removed(cand.name, record, s))
+    return DriftAgain(s, tuple(removed), jumps_s)
 
 
 def _channel_count(cands: list[Candidate], channel: str | None) -> int:
@@ -1205,13 +1216,12 @@ def run_loop(
         restored |= {c.name: best.name for c in shelved}
         shelved = []
     again = drift_again(scorer, s, accepted, prefer)
-    for lost in again.lost:
-        name = lost.candidates[0]
-        effects = [e for e in effects if e.name != name]
-        progress(f"{name} does not beat a drift of the session as flexible once the other effects are "
-                 "in: removed")
-        steps.append(_step(scorer, again.structure, f"removed {name}: a drift explains it as well"))
-    confounded += again.lost
+    for gone in again.removed:
+        effects = [e for e in effects if e.name != gone.name]
+        progress(f"{gone.name} does not beat a drift of the session as flexible once the other effects "
+                 "are in: removed")
+        steps.append(_step(scorer, gone.structure, f"removed {gone.name}: a drift explains it as well"))
+        confounded.append(gone.record)
     jumps_s = merged_jumps(jumps_s, again.jumps_s, blocks)
     s = again.structure
     pruned_all = _prune_all(scorer, s)
