@@ -177,8 +177,10 @@ class Daemon:
             self.sender.close()
             return 0
         self._state = STATE_RUNNING if self.sets.complete else STATE_DEGRADED
-        self.notifier.ready(self.status_line())
+        # Logged before READY is sent: whoever waits for READY (systemd, a test) then finds the line
+        # in the log already, not written a moment later among what happens next.
         log.info("ready on %s %s, sets %s", self.config.interface, self.config.channel, self.sets.describe())
+        self.notifier.ready(self.status_line())
         now = time.monotonic()
         self._next_status = now
         self._next_watch = now + self.config.watch_period_s
