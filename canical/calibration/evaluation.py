@@ -15,14 +15,16 @@ import numpy as np
 from canical.calibrate.cross_validation import prediction_errors
 from canical.calibrate.fit_points import FitPoints, fit_points
 from canical.calibrate.plateaus import detect_plateaus, plateau_means
-from canical.calibration.pipeline import CalibrateOptions, calibrate, fit_base
-from canical.closed_loop.search import Scorer, Structure, plateau_folds, reselect_size
+from canical.calibration.pipeline import CalibrateOptions, CalibrationResult, calibrate, fit_base
+from canical.closed_loop.candidates import Candidate
+from canical.closed_loop.search import Scorer, Structure, drift_competitor, plateau_folds, reselect_size
 from canical.models.kinds import FORWARD_POLY, SEGMENTED_LINEAR
 from canical.models.piecewise import PiecewisePoly
 from canical.sessions.session import Session
 from canical.sets.coefficients import CoefficientSet
 from canical.sets.corrector import Corrector
 from canical.sets.term_kinds import CHANNEL, CHANNEL_GATED, DIRECTION_SIGN, TIME_INPUT
+from canical.sets.terms import Term
 
 # The models the paper discusses, and ours: (label, options).
 PAPER_MODELS: tuple[tuple[str, CalibrateOptions], ...] = (
@@ -127,6 +129,16 @@ class EffectScore:
     paired_p: tuple[dict[str, float], ...] = ()
     # The channels of the terms written to the set (an ambiguous adoption's too): what is blamed.
     written_channels: tuple[str, ...] = ()
+    # Held-out rms of a model given, instead of the told form, the drift of the session the loop
+    # sets against that form (nan where the truth has no channel term). Where the told form does
+    # not beat it, the session cannot tell the effect from a drift: no rule can blame the channel
+    # there without blaming drifts on channels too.
+    rms_drift_told: float = float("nan")
+
+    @property
+    def drift_separable(self) -> bool:
+        """Whether a model told the true form predicts held-out plateaus better than the drift."""
+        return bool(self.rms_oracle < self.rms_drift_told)
 
 
 def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -> EffectScore:
@@ -152,11 +164,10 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     duration = float(session.time_s[-1] - session.time_s[0])
     scorer = Scorer(loop.blocks, plateau_folds(loop.blocks), duration)
     told = _oracle_terms(scenario, loop.blocks)
-    # Told the effect, with the base size the loop ended with, or one chosen again for it.
-    same_size = Structure(loop.structure.spec, loop.structure.knots, model.scale, model.span, told)
-    base_size = Structure(result.base.fitted.spec, model.knots, model.scale, model.span, told)
-    resized = reselect_size(scorer, base_size)
-    rms_oracle = min(scorer.held_rms(same_size), scorer.held_rms(resized))
+    rms_oracle = _told_rms(scorer, result, told)
+    drift = (drift_competitor(Candidate("told", CHANNEL, None, told), loop.blocks)
+             if any(t.kind == CHANNEL for t in told) else None)
+    rms_drift = _told_rms(scorer, result, drift.terms) if drift is not None else float("nan")
     in_groups = {name.lstrip("~") for g in groups for name in g}
     correct = (
         scenario.attributed(found)
@@ -167,7 +178,18 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     assert left is not None  # the loop ran
     written = tuple(sorted({t.channel for t in result.coefficients.terms if t.channel}))
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
-                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded), written)
+                       left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded), written,
+                       rms_drift)
+
+
+def _told_rms(scorer: Scorer, result: CalibrationResult, terms: tuple[Term, ...]) -> float:
+    """Held-out rms of the rate model with ``terms``: on the base size the loop ended with, or
+    on one chosen again for them, whichever predicts better."""
+    loop, model = result.loop, result.base.fitted.model
+    assert loop is not None and isinstance(model, PiecewisePoly)  # score_scenario's own checks
+    same_size = Structure(loop.structure.spec, loop.structure.knots, model.scale, model.span, terms)
+    base_size = Structure(result.base.fitted.spec, model.knots, model.scale, model.span, terms)
+    return min(scorer.held_rms(same_size), scorer.held_rms(reselect_size(scorer, base_size)))
 
 
 def _oracle_terms(scenario, blocks):

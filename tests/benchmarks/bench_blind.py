@@ -11,7 +11,10 @@ random walk, flicker, bias steps). Scored per case:
   drifting sensor, or a trajectory of noise only);
 * confounds: groups reported, and whether the set was corrected (one adopted) or the channel's
   form lost to the session's drift;
-* held-out error against a model told the true form (where a term writes it).
+* held-out error against a model told the true form (where a term writes it);
+* separable: whether that told form itself predicts held-out plateaus better than the drift of the
+  session the loop sets against it. Where it does not, the session cannot tell the effect from the
+  sensor's drift, and the listed class's attribution is scored apart as well.
 
 Development seeds are 0-99 (``--seeds``, printed case by case). The blind seeds are drawn from
 BLIND_ROOT, picked once at random and never printed case by case: only the scores (``--blind N``),
@@ -54,7 +57,8 @@ def judge_case(case: BlindCase, dwell_s: float) -> dict[str, object]:
     return {"case": case.describe, "right": right, "false_blame": case.blame is None and (blamed or other),
             "no_effect": case.blame is None and not case.time_effect, "confounds": len(r.confounded),
             "ratio": r.rms_after / r.rms_oracle if told else float("nan"), "found": r.found,
-            "written": r.written_channels, "unexplained": r.unexplained_ratio}
+            "written": r.written_channels, "unexplained": r.unexplained_ratio,
+            "separable": r.drift_separable if case.blame else None}
 
 
 def summary(rows: list[dict[str, object]]) -> str:
@@ -79,8 +83,12 @@ def criterion(within: BlindClass, rows: list[dict[str, object]]) -> str:
         return f"\n  blamed on a channel: {blamed}/{n} (bar: at most 1 in 20)"
     if within is LISTED_EFFECT:
         ratios = np.array([r["ratio"] for r in rows], dtype=float)
+        apart = [r for r in rows if r["separable"]]
         return (f"\n  attributed: {sum(bool(r['right']) for r in rows)}/{n} (bar: every one); held-out "
-                f"within 2x of told {int(np.sum(ratios <= 2.0))}/{n}")
+                f"within 2x of told {int(np.sum(ratios <= 2.0))}/{n}"
+                f"\n  where the told form predicts better than the drift it meets: attributed "
+                f"{sum(bool(r['right']) for r in apart)}/{len(apart)}; elsewhere "
+                f"{sum(bool(r['right']) for r in rows if not r['separable'])}/{n - len(apart)}")
     return ""
 
 
@@ -101,7 +109,8 @@ def main() -> None:
             row = judge(seed, dwell)
             rows.append(row)
             print(f"  {seed:3d} {row['case']:<40} right {row['right']!s:<5} found {list(row['found'])} "
-                  f"set {list(row['written'])} ratio {row['ratio']:.2f} left {row['unexplained']:.1f}x",
+                  f"set {list(row['written'])} ratio {row['ratio']:.2f} left {row['unexplained']:.1f}x"
+                  f"{' (told form no better than the drift)' if row['separable'] is False else ''}",
                   flush=True)
         print("development: " + summary(rows))
     if args.blind:

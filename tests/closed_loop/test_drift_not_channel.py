@@ -266,3 +266,20 @@ def test_a_wandering_channel_that_stood_in_for_a_later_effect_is_removed_once_it
     scored = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
     assert scored.written_channels == ("temp_c",), scored.found
 
+
+
+@pytest.mark.parametrize(("seed", "separable"), [(1006, True), (1020, False)])
+def test_a_model_told_the_form_says_whether_the_session_separates_it_from_the_drift(seed, separable):
+    """The benchmark's measure of what a session can decide. A level under ramps on a sensor that
+    does not drift (case 1006): a model told the form predicts the held-out plateaus ten times
+    better than the drift the loop sets against it, and the loop blames the channel. A lag under
+    steps on a sensor whose bias random-walks (case 1020): the drift predicts them better than the
+    told lag itself, so no rule could blame the channel there without blaming drifts on channels,
+    and the loop reports the drift instead of writing the channel."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import LISTED_EFFECT, draw_case
+
+    r = score_scenario(draw_case(seed, LISTED_EFFECT).scenario, seed=seed, dwell_s=8.0)
+    assert r.drift_separable is separable
+    assert (r.rms_oracle * 5 < r.rms_drift_told) if separable else (r.rms_drift_told < r.rms_oracle)
+    assert r.written_channels == (("temp_c",) if separable else ())
