@@ -58,7 +58,7 @@ def judge_case(case: BlindCase, dwell_s: float) -> dict[str, object]:
             "no_effect": case.blame is None and not case.time_effect, "confounds": len(r.confounded),
             "ratio": r.rms_after / r.rms_oracle if told else float("nan"), "found": r.found,
             "written": r.written_channels, "unexplained": r.unexplained_ratio,
-            "separable": r.drift_separable if case.blame else None}
+            "separable": r.drift_separable if case.blame and case.scenario.oracle_terms else None}
 
 
 def summary(rows: list[dict[str, object]]) -> str:
