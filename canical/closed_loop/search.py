@@ -828,16 +828,23 @@ def instead_of_drift(*, r_channel: float, r_drift: float, p: float, gain: float 
     ``p`` the paired one-sided p-value of that), and, if it has a bias of the channel alone, the
     stretches of the session it was not fitted on (their share of error removed, ``gain``): by
     :data:`STRETCH_MIN_GAIN`, or by any share where the plateaus' win is significant at
-    :data:`CONFOUND_ALPHA`.
+    :data:`CONFOUND_ALPHA`. A drift whose held-out rms is :data:`TWIN_RMS_RATIO` times the
+    channel's or more does not explain the data as well, whatever the test and the stretches say.
 
     Why the second: a sensor whose bias also stepped leaves the stretches misfit whatever the
     channel's form (seen: a lag the sensor followed removed a quarter of the stretches' error and
     beat the drift at p = 0.005); a form fitted to a drift's wander, beside it, never beat the drift
     significantly on the plateaus (160 development seeds of the blind generator's drift class:
-    least p 0.011, with a share of the stretches below zero).
+    least p 0.011, with a share of the stretches below zero). Why the ratio: a transient of a
+    channel that steps sits on the few plateaus after each step, where the paired test has little
+    power and a stretch holds one or two steps (seen: the drift's rms 3.7 times the channel's at
+    p = 0.048, a quarter of the stretches' error removed); a form fitted to a drift's wander never
+    came within sight of it (those 160 seeds: the drift at most 1.27 times the form's rms).
     """
     if not r_channel < r_drift:
         return False
+    if r_drift >= TWIN_RMS_RATIO * r_channel:
+        return True
     return gain is None or gain >= STRETCH_MIN_GAIN or (p < CONFOUND_ALPHA and gain > 0.0)
 
 

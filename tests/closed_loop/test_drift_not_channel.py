@@ -188,6 +188,14 @@ def test_instead_of_the_drift_a_significant_win_needs_some_of_the_stretches():
     assert not instead_of_drift(r_channel=0.036, r_drift=0.035, p=CONFOUND_ALPHA / 2, gain=0.9)
 
 
+def test_instead_of_the_drift_a_win_by_the_twins_ratio_needs_no_test_and_no_stretch():
+    from canical.closed_loop.search import TWIN_RMS_RATIO, instead_of_drift
+
+    far = 0.028 * TWIN_RMS_RATIO
+    assert instead_of_drift(r_channel=0.028, r_drift=far, p=0.5, gain=-0.5)
+    assert not instead_of_drift(r_channel=0.028, r_drift=0.99 * far, p=0.5, gain=-0.5)
+
+
 def test_a_transient_under_bias_steps_is_blamed_once_its_smooth_lag_lost_to_the_drift():
     """A thermal transient of a cycling chamber on a sensor whose bias stepped by 0.04 and 0.12 deg/s
     (case 1085 of the blind generator's development seeds; the steps too small beside the noise to
@@ -266,6 +274,23 @@ def test_a_wandering_channel_that_stood_in_for_a_later_effect_is_removed_once_it
     scored = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
     assert scored.written_channels == ("temp_c",), scored.found
 
+
+
+def test_a_transient_far_better_than_the_drift_is_blamed_though_its_plateaus_are_few():
+    """A thermal transient under temperature steps on a sensor whose bias steps too (case 1149 of
+    the blind generator's listed class). The transient's error sits on the few plateaus after each
+    step: the paired test gives only p = 0.05 and a stretch of the session holds one or two steps,
+    yet the drift as flexible predicts the held-out plateaus nearly four times worse. The channel
+    is blamed, and the set is within twice a model told the form."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import LISTED_EFFECT, draw_case
+
+    case = draw_case(1149, LISTED_EFFECT)
+    assert (case.form, case.trajectory, case.drift) == ("transient", "steps", "steps")
+    r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
+    assert r.found == ("d/dt temp_c",)
+    assert r.written_channels == ("temp_c",)
+    assert r.rms_after < 2.0 * r.rms_oracle < r.rms_before / 2
 
 
 @pytest.mark.parametrize(("seed", "separable"), [(1006, True), (1020, False)])
