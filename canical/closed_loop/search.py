@@ -838,8 +838,8 @@ def instead_of_drift(*, r_channel: float, r_drift: float, p: float, gain: float 
     least p 0.011, with a share of the stretches below zero). Why the ratio: a transient of a
     channel that steps sits on the few plateaus after each step, where the paired test has little
     power and a stretch holds one or two steps (seen: the drift's rms 3.7 times the channel's at
-    p = 0.048, a quarter of the stretches' error removed); a form fitted to a drift's wander never
-    came within sight of it (those 160 seeds: the drift at most 1.27 times the form's rms).
+    p = 0.048, a quarter of the stretches' error removed); against a form fitted to a drift's wander,
+    the drift's rms was at most 1.27 times the form's (those 160 seeds).
     """
     if not r_channel < r_drift:
         return False
