@@ -275,7 +275,6 @@ def test_a_wandering_channel_that_stood_in_for_a_later_effect_is_removed_once_it
     assert scored.written_channels == ("temp_c",), scored.found
 
 
-
 def test_a_transient_far_better_than_the_drift_is_blamed_though_its_plateaus_are_few():
     """A thermal transient under temperature steps on a sensor whose bias steps too (case 1149 of
     the blind generator's listed class). The transient's error sits on the few plateaus after each
