@@ -16,12 +16,13 @@ random walk, flicker, bias steps). Scored per case:
   session the loop sets against it. Where it does not, the session cannot tell the effect from the
   sensor's drift, and the listed class's attribution is scored apart as well.
 
-Development seeds are 0-99 (``--seeds``, printed case by case). The blind seeds are drawn from
+Development seeds are 0-99 (``--seeds``, printed case by case, drawn from any class or, with
+``--class``, from one, whose criterion is then printed too). The blind seeds are drawn from
 BLIND_ROOT, picked once at random and never printed case by case: only the scores (``--blind N``),
 N cases of each class: any case; a drifting sensor with no channel effect (how often a drift is
 blamed on a channel); a real effect of a form the loop lists (how often it is attributed).
 
-Run: python tests/benchmarks/bench_blind.py [--seeds 0 1 ...] [--blind N] [--quick]
+Run: python tests/benchmarks/bench_blind.py [--seeds 0 1 ...] [--class drift|listed] [--blind N] [--quick]
 Prints figures; asserts nothing.
 """
 
@@ -37,6 +38,10 @@ from canical.sim.blind import ANY, DRIFT_ONLY, LISTED_EFFECT, BlindCase, BlindCl
 
 #: Picked once at random (secrets.randbits(48)); the seeds it draws are never looked at one by one.
 BLIND_ROOT = 27569707891287
+
+
+#: ``--class``: the classes a criterion is judged on, by the name the command line gives them.
+CLASSES = {"any": ANY, "drift": DRIFT_ONLY, "listed": LISTED_EFFECT}
 
 
 def judge(seed: int, dwell_s: float, within: BlindClass = ANY) -> dict[str, object]:
@@ -97,6 +102,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="*", default=list(range(20)),
                     help="development seeds (0-99)")
     ap.add_argument("--blind", type=int, default=0, help="blind seeds to draw from BLIND_ROOT (scores only)")
+    ap.add_argument("--class", dest="within", choices=sorted(CLASSES), default="any",
+                    help="the class --seeds are drawn from [any]")
     ap.add_argument("--dwell", type=float, default=8.0)
     ap.add_argument("--quick", action="store_true", help="one development seed, short dwell")
     args = ap.parse_args()
@@ -104,15 +111,15 @@ def main() -> None:
     t0 = time.perf_counter()
     if seeds:
         rows = []
-        print("development seeds, case by case:")
+        print(f"seeds of {CLASSES[args.within].name}, case by case:")
         for seed in seeds:
-            row = judge(seed, dwell)
+            row = judge(seed, dwell, CLASSES[args.within])
             rows.append(row)
             print(f"  {seed:3d} {row['case']:<40} right {row['right']!s:<5} found {list(row['found'])} "
                   f"set {list(row['written'])} ratio {row['ratio']:.2f} left {row['unexplained']:.1f}x"
                   f"{' (told form no better than the drift)' if row['separable'] is False else ''}",
                   flush=True)
-        print("development: " + summary(rows))
+        print("these seeds: " + summary(rows) + criterion(CLASSES[args.within], rows))
     if args.blind:
         for k, within in enumerate((ANY, DRIFT_ONLY, LISTED_EFFECT)):
             root = np.random.default_rng(BLIND_ROOT if k == 0 else [BLIND_ROOT, k])
