@@ -917,7 +917,8 @@ class BeyondDrift:
         steps, on a sensor whose bias steps too, sits on the few plateaus after each step, where
         the paired test has little power (seen: three quarters of the drift's error removed at
         p = 0.0126 and 0.0105); a form fitted to a drift's wander removed at most 0.41 of it (the
-        blind generator's 160 development seeds of drifting sensors, 487 such judgements).
+        blind generator's 160 development seeds of drifting sensors, 487 such judgements:
+        ``tests/benchmarks/why_drift.py``).
         """
         large = self.gain >= 1.0 - 1.0 / TWIN_RMS_RATIO
         return large or (self.gain >= BEYOND_DRIFT_MIN_GAIN and self.p < alpha)
