@@ -46,7 +46,7 @@ measured on the same blocks. Sessions within the bound keep blocks of ``BLOCK_S`
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -331,6 +331,29 @@ class Blocks:
             rows[index],
             self.block_s,
         )
+
+    def with_shifted(self, channel: str, name: str, fraction: float) -> Blocks:
+        """These blocks with a copy of ``channel`` under ``name``, shifted in time by ``fraction``
+        of the session along the channel followed by its own reverse (read around as a circle):
+        the channel's values, wander and range, no longer in step with the sensor. The samples'
+        cache is shared (its keys name the channel), the columns are not.
+
+        Why: two slowly wandering records (a channel that random-walks, a sensor's bias that steps)
+        fit each other by chance, often well; what a form takes of the channel shifted against the
+        sensor says how well (``closed_loop.search.shifted_stretch_gain``). Why the reverse: a plain
+        circle joins the record's end to its start, a jump no copy would have, which a form of the
+        channel then fits as a bias step or not at all.
+        """
+        if self.samples is None:
+            raise ValueError("these blocks were built without their samples")
+        values = self.samples.values[channel]
+        start = round(fraction * values.size)
+        shifted = np.concatenate([values, values[::-1]]).take(np.arange(start, start + values.size),
+                                                               mode="wrap")
+        samples = replace(self.samples, values={**self.samples.values, name: shifted},
+                          cache=self.samples.cache)
+        rows = slice(None) if self.rows is None else self.rows
+        return replace(self, aux={**self.aux, name: samples.means(shifted)[rows]}, samples=samples)
 
     def channel_feature(self, term: Term) -> np.ndarray:
         """Block means of a channel transform computed on samples (lag, derivative, direction, gated,
