@@ -886,8 +886,9 @@ def instead_of_drift(*, r_channel: float, r_drift: float, p: float, gain: float 
 
     Where the stretches' share alone decides, it must beat ``by_chance()``, the share the same form
     takes of its channel shifted against the sensor (:func:`shifted_stretch_gain`; called only
-    there). Why: a channel that random-walks predicts the stretches of a sensor whose bias wanders
-    or steps by chance (shares of 0.37-0.72 on 4 of those 160 seeds, all blamed), as its shifts do.
+    there). Why: a slowly wandering channel predicts the stretches of a sensor whose bias wanders
+    or steps by chance: on those 160 seeds 5 forms were blamed on the stretches alone (shares of
+    0.37-0.72), and in 3 of them the channel's shifts took as much.
     """
     if not r_channel < r_drift:
         return False
