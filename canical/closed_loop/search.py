@@ -412,8 +412,8 @@ def shifted_stretch_gain(blocks: Blocks, s: Structure, cand: Candidate, duration
 
     Why: stretches of a session fitted on the others are few (:data:`STRETCHES`), and two slowly
     wandering records, a channel that random-walks and a sensor's bias that random-walks or steps,
-    predict each other's stretches by chance (seen: shares of 0.37-0.78 on sensors with no channel
-    effect, 9 of the blind generator's drifting sensors, against a bar of a third). The channel
+    predict each other's stretches by chance (seen: shares of 0.37-0.78 taken by forms of a channel
+    the sensor did not follow, on 9 sessions of the blind generator, against a bar of a third). The channel
     shifted keeps its own wander and loses its step with the sensor: a share no shift reaches is
     the sensor's, not chance's.
     """
