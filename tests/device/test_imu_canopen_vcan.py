@@ -545,6 +545,32 @@ def test_imu_set_push_pull_round_trip_survives_power_cycle(vcan_channel: str, tm
     assert again == imu and imu_file.imu_set_crc(again) == imu_file.imu_set_crc(imu)
 
 
+def answers_in_order(msgs: list, raw_id: int, answer_id: int) -> dict[int, object]:
+    """Each ``answer_id`` frame by the raw frame (its index among the raw frames) it answers, for
+    a sender that answers every raw frame once and in order: the k-th answer is the answer to raw
+    frame j0 + k, j0 the latest first raw frame such that every answer follows its raw frame."""
+    import numpy as np
+
+    raw_at = np.array([i for i, m in enumerate(msgs) if m.arbitration_id == raw_id])
+    answers = [(i, m) for i, m in enumerate(msgs) if m.arbitration_id == answer_id]
+    answer_at = np.array([i for i, _ in answers])
+    causal = [j0 for j0 in range(raw_at.size - answer_at.size + 1)
+              if np.all(raw_at[j0:j0 + answer_at.size] < answer_at)]
+    assert causal, "the answers are more than the raw frames before them"
+    return {causal[-1] + k: m for k, (_, m) in enumerate(answers)}
+
+
+def test_answers_are_paired_in_order_though_one_comes_after_the_next_raw_frame() -> None:
+    """A daemon bound after the first raw frame, one answer late (after the next raw frame) and
+    two back to back: each answer still goes to its own raw frame, not to the one before it."""
+    from types import SimpleNamespace
+
+    order = "RRARARRAARA"
+    msgs = [SimpleNamespace(arbitration_id=1 if k == "R" else 2, at=i) for i, k in enumerate(order)]
+    paired = {raw: m.at for raw, m in answers_in_order(msgs, 1, 2).items()}
+    assert paired == {1: 2, 2: 4, 3: 7, 4: 8, 5: 10}
+
+
 @pytest.mark.vcan
 def test_device_daemon_and_apply_agree_with_an_imu_set(vcan_channel: str, tmp_path: Path) -> None:
     """An IMU set pushed to the device process; the daemon (``device:``) takes it from the device;
@@ -592,16 +618,16 @@ def test_device_daemon_and_apply_agree_with_an_imu_set(vcan_channel: str, tmp_pa
     finally:
         node.stop()
     assert f"imu set 0x{imu_file.imu_set_crc(imu):08x} from device node 0x10" in daemon.log(), daemon.log()
-    # Frame by frame: each raw frame followed by the device's and the daemon's corrected frames.
-    rows, raw_seen, dev_of, ours_of = [], None, {}, {}
+    # Frame by frame: the device sends its corrected frame right after its raw one; the daemon
+    # answers every raw frame in order, not always before the next one arrives (a loaded machine).
+    rows, raw_seen, dev_of = [], None, {}
     for m in msgs:
         if m.arbitration_id == raw_id:
             raw_seen = len(rows)
             rows.append(m)
         elif m.arbitration_id == dev_id and raw_seen is not None:
             dev_of.setdefault(raw_seen, m)
-        elif m.arbitration_id == rate_id and raw_seen is not None:
-            ours_of.setdefault(raw_seen, m)
+    ours_of = answers_in_order(msgs, raw_id, rate_id)
     both = sorted(set(dev_of) & set(ours_of))
     assert len(both) >= 300
     dev_msg, rate_msg = db.get_message_by_name("IMU_RATE"), db.get_message_by_name("CANICAL_RATE")
