@@ -38,6 +38,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -413,9 +414,9 @@ def shifted_stretch_gain(blocks: Blocks, s: Structure, cand: Candidate, duration
     Why: stretches of a session fitted on the others are few (:data:`STRETCHES`), and two slowly
     wandering records, a channel that random-walks and a sensor's bias that random-walks or steps,
     predict each other's stretches by chance (seen: shares of 0.37-0.78 taken by forms of a channel
-    the sensor did not follow, on 9 sessions of the blind generator, against a bar of a third). The channel
-    shifted keeps its own wander and loses its step with the sensor: a share no shift reaches is
-    the sensor's, not chance's.
+    the sensor did not follow, on 9 sessions of the blind generator, against a bar of a third).
+    The channel shifted keeps its own wander and loses its step with the sensor: a share no shift
+    reaches is the sensor's, not chance's.
     """
     ch = cand.channel or ""
     best = -np.inf
@@ -936,9 +937,7 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         return None
     gain = stretch_gain(scorer.blocks, s, best.terms, scorer.duration_s) if _has_bias(best) else None
     p = better_p(scorer.plateau_loss(with_channel), scorer.plateau_loss(with_drift))
-    def by_chance() -> float:
-        return shifted_stretch_gain(scorer.blocks, s, best, scorer.duration_s)
-
+    by_chance = partial(shifted_stretch_gain, scorer.blocks, s, best, scorer.duration_s)
     if instead_of_drift(r_channel=r_channel, r_drift=r_drift, p=p, gain=gain, by_chance=by_chance):
         return None
     ch = best.channel or ""

@@ -57,3 +57,11 @@ def test_runs_in_quick_mode(script: Path) -> None:
     tail = f"{result.stdout[-2000:]}\n{result.stderr[-4000:]}"
     assert result.returncode == 0, f"{script.name} --quick failed:\n{tail}"
     assert result.stdout.strip(), f"{script.name} --quick printed nothing"
+
+
+def test_why_drift_runs_on_a_seed() -> None:
+    """The evidence script behind the closed loop's drift rules (not a bench_*: no quick mode)."""
+    result = run(Path(__file__).with_name("why_drift.py"), "--class", "drift", "--seeds", "1000")
+    assert result.returncode == 0, result.stderr[-4000:]
+    assert "judgements on 1 seeds" in result.stdout
+    assert "a channel written into the set on" in result.stdout

@@ -4,6 +4,8 @@ blind class, and the largest over all seeds.
 
 The evidence behind ``BeyondDrift.passes``'s ratio: on the drift class (sensors with no channel
 effect) the largest share must stay below half, the share that passes whatever the paired test.
+The last line counts the seeds whose set carries a channel (on the drift class, each a drift
+blamed on a channel).
 
 Prints figures; asserts nothing. Run:
 python tests/benchmarks/why_drift.py --class drift --seeds $(seq 1000 1159)
@@ -55,9 +57,11 @@ def main() -> None:
     ap.add_argument("--dwell", type=float, default=8.0)
     args = ap.parse_args()
     every: list[Judged] = []
+    blamed = 0
     for seed in args.seeds:
         seen, written = shares_of(seed, args.within, args.dwell)
         every += seen
+        blamed += bool(written)
         top = max(seen, key=lambda j: j.share, default=None)
         print(f"  {seed}: {len(seen)} judged; largest "
               f"{f'{top.share:.3f} ({top.form}, p {top.p:.4f})' if top else '-'}; set {list(written)}",
@@ -67,6 +71,7 @@ def main() -> None:
         print(f"{len(every)} judgements on {len(args.seeds)} seeds; largest share {top.share:.3f} "
               f"(seed {top.seed}, {top.form}, p {top.p:.4f}); at half or more: "
               f"{sum(j.share >= 0.5 for j in every)}")
+    print(f"a channel written into the set on {blamed}/{len(args.seeds)} seeds")
 
 
 if __name__ == "__main__":
