@@ -18,12 +18,14 @@ random walk, flicker, bias steps). Scored per case:
 
 Development seeds are any seed but the blind ones (``--seeds``, printed case by case, drawn from
 any class or, with ``--class``, from one, whose criterion is then printed too; the loop was shaped
-on 0-99 of any class and 1000-1159 and a few above of the two narrower ones). The blind seeds are drawn from
-BLIND_ROOT, picked once at random and never printed case by case: only the scores (``--blind N``),
-N cases of each class: any case; a drifting sensor with no channel effect (how often a drift is
-blamed on a channel); a real effect of a form the loop lists (how often it is attributed).
+on 0-99 of any class and 1000-1159, 1400-1479 and a few others of the two narrower ones). The blind
+seeds are drawn from BLIND_ROOT, picked once at random and never printed case by case: only the
+scores (``--blind N``), N cases of each class: any case; a drifting sensor with no channel effect
+(how often a drift is blamed on a channel); a real effect of a form the loop lists (how often it is
+attributed). ``--root`` draws them from another root: a fresh blind sample, scored once.
 
-Run: python tests/benchmarks/bench_blind.py [--seeds 0 1 ...] [--class drift|listed] [--blind N] [--quick]
+Run: python tests/benchmarks/bench_blind.py [--seeds 0 1 ...] [--class drift|listed] [--blind N]
+[--root R] [--quick]
 Prints figures; asserts nothing.
 """
 
@@ -102,7 +104,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="*", default=list(range(20)),
                     help="development seeds, printed case by case (any seed but the blind ones)")
-    ap.add_argument("--blind", type=int, default=0, help="blind seeds to draw from BLIND_ROOT (scores only)")
+    ap.add_argument("--blind", type=int, default=0, help="blind seeds to draw from --root (scores only)")
+    ap.add_argument("--root", type=int, default=BLIND_ROOT,
+                    help="the root blind seeds are drawn from [BLIND_ROOT]; another (secrets.randbits(48), "
+                         "say) draws a fresh blind sample")
     ap.add_argument("--class", dest="within", choices=sorted(CLASSES), default="any",
                     help="the class --seeds are drawn from [any]")
     ap.add_argument("--dwell", type=float, default=8.0)
@@ -123,7 +128,7 @@ def main() -> None:
         print("these seeds: " + summary(rows) + criterion(CLASSES[args.within], rows))
     if args.blind:
         for k, within in enumerate((ANY, DRIFT_ONLY, LISTED_EFFECT)):
-            root = np.random.default_rng(BLIND_ROOT if k == 0 else [BLIND_ROOT, k])
+            root = np.random.default_rng(args.root if k == 0 else [args.root, k])
             rows = [judge(int(s), dwell, within) for s in root.integers(100, 2**31 - 1, args.blind)]
             print(f"blind, {within.name}: " + summary(rows) + criterion(within, rows), flush=True)
     print(f"({time.perf_counter() - t0:.0f} s)")
