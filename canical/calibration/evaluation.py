@@ -134,6 +134,8 @@ class EffectScore:
     # not beat it, the session cannot tell the effect from a drift: no rule can blame the channel
     # there without blaming drifts on channels too.
     rms_drift_told: float = float("nan")
+    # Every effect the set carries, an ambiguous adoption's too (``found`` holds the attributed).
+    adopted: tuple[str, ...] = ()
 
     @property
     def drift_separable(self) -> bool:
@@ -179,7 +181,7 @@ def score_scenario(scenario, seed: int = 0, dwell_s: float = 10.0, table=None) -
     written = tuple(sorted({t.channel for t in result.coefficients.terms if t.channel}))
     return EffectScore(scenario.name, found, groups, loop.rms_before, loop.rms_after, rms_oracle, correct,
                        left.ratio, left.unexplained, tuple(c.paired_p for c in loop.confounded), written,
-                       rms_drift)
+                       rms_drift, tuple(e.name for e in loop.effects))
 
 
 def _told_rms(scorer: Scorer, result: CalibrationResult, terms: tuple[Term, ...]) -> float:

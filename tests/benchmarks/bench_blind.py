@@ -6,7 +6,9 @@ channel (cycling, ramps, steps, a level per plateau, noise only) and a drift of 
 random walk, flicker, bias steps). Scored per case:
 
 * right attribution: an effect of the channel is blamed on it (any of its forms, in the set), a
-  warm-up is taken by a time candidate, and where no channel may be blamed none is;
+  warm-up is taken by a time candidate (in the set: a form of time adopted among confounded twins
+  counts, as a channel's form adopted so counts as blamed), and where no channel may be blamed none
+  is;
 * false blame: a channel term in the set where the case has no visible channel effect (a clean or
   drifting sensor, or a trajectory of noise only);
 * confounds: groups reported, and whether the set was corrected (one adopted) or the channel's
@@ -56,7 +58,7 @@ def judge_case(case: BlindCase, dwell_s: float) -> dict[str, object]:
     blamed = "temp_c" in r.written_channels
     other = any(c != "temp_c" for c in r.written_channels)  # a distractor blamed
     if case.time_effect:
-        right = any(n.startswith("time:") for n in r.found) and not blamed and not other
+        right = any(n.startswith("time:") for n in r.adopted) and not blamed and not other
     elif case.blame:
         right = blamed and not other
     else:
@@ -65,6 +67,7 @@ def judge_case(case: BlindCase, dwell_s: float) -> dict[str, object]:
     return {"case": case.describe, "right": right, "false_blame": case.blame is None and (blamed or other),
             "no_effect": case.blame is None and not case.time_effect, "confounds": len(r.confounded),
             "ratio": r.rms_after / r.rms_oracle if told else float("nan"), "found": r.found,
+            "twins": tuple(n for n in r.adopted if n not in r.found),
             "written": r.written_channels, "unexplained": r.unexplained_ratio,
             "separable": r.drift_separable if case.blame and case.scenario.oracle_terms else None}
 
@@ -122,6 +125,7 @@ def main() -> None:
             row = judge(seed, dwell, CLASSES[args.within])
             rows.append(row)
             print(f"  {seed:3d} {row['case']:<40} right {row['right']!s:<5} found {list(row['found'])} "
+                  f"{'adopted among twins ' + str(list(row['twins'])) + ' ' if row['twins'] else ''}"
                   f"set {list(row['written'])} ratio {row['ratio']:.2f} left {row['unexplained']:.1f}x"
                   f"{' (told form no better than the drift)' if row['separable'] is False else ''}",
                   flush=True)

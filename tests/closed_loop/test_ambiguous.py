@@ -112,3 +112,18 @@ def test_a_groups_choice_that_loses_to_the_drift_leaves_the_group_with_none():
     assert lost.adopted is None
     assert lost.adoption_rule == (f"{ADOPTION_RULE}; then none: lag(temp_c) does not beat a drift of "
                                   "the session as flexible")
+
+
+def test_a_warm_up_adopted_among_twins_is_scored_as_taken_by_time_not_as_attributed():
+    """Any-class case 32 of the blind generator: a warm-up ties with a smoothed lag of the wandering
+    distractor; time is adopted by rule. The score keeps it out of the attributions (``found``) and
+    in what the set carries (``adopted``), and the set ends as good as a model told the warm-up."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import ANY, draw_case
+
+    case = draw_case(32, ANY)
+    assert case.time_effect
+    r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
+    assert "time:warm-up" in r.adopted and "time:warm-up" not in r.found
+    assert set(r.found) <= set(r.adopted) and r.written_channels == ()
+    assert r.rms_after < 1.2 * r.rms_oracle
