@@ -1086,44 +1086,6 @@ def drift_again(scorer: Scorer, s: Structure, accepted: list[Candidate],
     return DriftAgain(s, tuple(removed), jumps_s)
 
 
-@dataclass(frozen=True)
-class TwinsSorted:
-    """A confounded group of several channels' forms that the session's drift sorted
-    (:func:`twins_sorted_by_drift`): the one form that beats it, and the records of the others."""
-
-    group: tuple[Candidate, ...]
-    cause: Candidate
-    lost: tuple[Confound, ...]
-
-
-def twins_sorted_by_drift(scorer: Scorer, s: Structure, group: list[Candidate],
-                          prefer: tuple[str, ...] = ()) -> TwinsSorted | None:
-    """Where a confounded group holds forms of two channels or more, and nothing else, each meets
-    the session's drift (:func:`_drift_beats`, with the bias jumps it finds): if exactly one beats
-    it, it is the cause and the group's tie is no ambiguity. None otherwise (a form the user named,
-    a form of time in the group, one channel's forms, or not exactly one that beats the drift):
-    the group is adopted by rule or left out, as before.
-
-    Why: a form of a channel that random-walks beside the sensor (a distractor's smoothed lag)
-    predicts the held-out plateaus of a sensor whose bias wanders as well as a real effect of
-    another channel does, and the tie left the real effect out of the set whenever the pair
-    removed less than half of the error (seen: a level of temperature steps, 43 %). A form fitted
-    to the drift explains nothing an equally flexible drift of the session does not; the real
-    effect does. A form of time is not judged so: it is a drift itself, and a gain below half that
-    it shares is as likely this session's wander (:data:`ADOPT_MIN_GAIN`).
-    """
-    if any(c.name in prefer or c.kind != CHANNEL for c in group) or len({c.channel for c in group}) < 2:
-        return None
-    verdicts = []
-    for cand in group:
-        with_jumps = replace(s, terms=s.terms + jump_terms(scorer.blocks, bias_jumps(scorer, s, cand)))
-        verdicts.append((cand, _drift_beats(scorer, with_jumps, cand)))
-    beat = [cand for cand, lost in verdicts if lost is None]
-    if len(beat) != 1:
-        return None
-    return TwinsSorted(tuple(group), beat[0], tuple(lost for _, lost in verdicts if lost is not None))
-
-
 def _channel_count(cands: list[Candidate], channel: str | None) -> int:
     """How many of ``cands`` are forms of ``channel``."""
     return sum(c.kind == CHANNEL and c.channel == channel for c in cands)
@@ -1288,14 +1250,7 @@ def run_loop(
         check = _confounded_with(scorer, s, best, pool, bar.min_gain)
         best = check.best
         twins: tuple[str, ...] = ()
-        sorted_out = twins_sorted_by_drift(scorer, s, [best, *check.twins], prefer) if check.twins else None
-        if sorted_out is not None:
-            confounded += sorted_out.lost
-            pool = [c for c in pool if c not in sorted_out.group and c not in check.shadows]
-            progress(f"confounded {' / '.join(c.name for c in sorted_out.group)}: only "
-                     f"{sorted_out.cause.name} beats a drift of the session as flexible")
-            best = sorted_out.cause
-        elif check.twins:
+        if check.twins:
             group = [best, *check.twins]
             chosen = next((c for c in group if c.name in prefer), None)
             rule = "named by the user (--prefer)" if chosen else ADOPTION_RULE

@@ -436,39 +436,3 @@ def test_a_lag_of_a_cycling_chamber_is_blamed_though_a_shift_by_its_period_predi
     r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
     assert r.written_channels == ("temp_c",), r.found
     assert r.rms_after < 1.2 * r.rms_oracle
-
-
-def test_twins_of_two_channels_are_sorted_by_the_drift_before_any_rule_adopts_one():
-    """Any-class case 73: a level of temperature steps on a sensor whose bias random-walks tied with
-    a smoothed lag of the random-walking distractor; the pair removed 43 % of the error, less than
-    half, so neither went into the set. Each meets the drift of the session: only the level beats
-    it, and it is blamed, not as one of twins; the distractor's form is recorded as the drift."""
-    from canical.calibration.evaluation import score_scenario
-    from canical.sim.blind import ANY, draw_case
-
-    case = draw_case(73, ANY)
-    session = case.scenario.session(case.seed, 8.0)
-    report = calibrate(session, CalibrateOptions(), sensor_id="S", axis="z").report
-    assert [e.name for e in report.effects] == ["channel:temp_c"]
-    assert not report.effects[0].ambiguous_with
-    lost = [c for c in report.confounded if c.drift_of_session]
-    assert [c.candidates[0] for c in lost] == ["smooth(lag(wander))"]
-    r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
-    assert r.written_channels == ("temp_c",) and r.rms_after < 1.2 * r.rms_oracle
-
-
-def test_twins_are_not_sorted_by_the_drift_with_a_form_of_time_or_a_form_the_user_named():
-    """The drift sorts only channels' forms of two channels or more: a form of time is a drift
-    itself, one channel's forms disagree on the form only, and the user's choice stands."""
-    from canical.closed_loop.candidates import Candidate
-    from canical.closed_loop.search import twins_sorted_by_drift
-    from canical.sets.term_kinds import CHANNEL, TIME
-
-    def cand(name, kind, channel):
-        return Candidate(name, kind, channel, ())
-
-    a, b = cand("lag(a)", CHANNEL, "a"), cand("lag(b)", CHANNEL, "b")
-    same = cand("smooth(a)", CHANNEL, "a")
-    time = cand("time:warm-up", TIME, None)
-    for group, prefer in [([a, time], ()), ([a, same], ()), ([a, b], ("lag(b)",))]:
-        assert twins_sorted_by_drift(None, None, group, prefer) is None  # decided before any fit
