@@ -65,3 +65,12 @@ def test_why_drift_runs_on_a_seed() -> None:
     assert result.returncode == 0, result.stderr[-4000:]
     assert "judgements on 1 seeds" in result.stdout
     assert "a channel written into the set on" in result.stdout
+
+
+def test_bench_blind_draws_a_fresh_blind_sample_from_another_root() -> None:
+    """``--root``, as the benchmarks page gives it: one blind case of each class, scores only."""
+    script = Path(__file__).with_name("bench_blind.py")
+    result = run(script, "--quick", "--root", "44777576110303", "--blind", "1")
+    assert result.returncode == 0, result.stderr[-4000:]
+    for within in ("any case", "drift, no channel effect", "listed effect"):
+        assert f"blind, {within}: right" in result.stdout

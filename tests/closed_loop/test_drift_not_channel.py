@@ -409,7 +409,7 @@ def test_a_random_walking_channel_is_not_blamed_on_stretches_its_shifts_predict_
 
 def test_a_copy_of_a_cycling_channel_shifted_by_its_period_is_the_channel_not_chance():
     """A copy in phase with its channel (either sign) is no copy out of step; others are, and so is
-    a random walk's copy away from its start."""
+    an unrelated random walk."""
     from canical.closed_loop.search import SAME_CHANNEL_CORRELATION, out_of_step
 
     t = np.linspace(0.0, 600.0, 75)
@@ -418,9 +418,10 @@ def test_a_copy_of_a_cycling_channel_shifted_by_its_period_is_the_channel_not_ch
     assert not out_of_step(cycle, -cycle)  # upside down: a form fits it as well
     assert out_of_step(cycle, np.sin(2 * np.pi * (t + 50.0) / 200.0))  # a quarter period on
     assert not out_of_step(np.ones_like(t), np.ones_like(t))  # a constant channel's copy is itself
-    walk = np.cumsum(np.random.default_rng(5).normal(size=t.size))
-    r = abs(np.corrcoef(walk, np.roll(walk, 30))[0, 1])
-    assert out_of_step(walk, np.roll(walk, 30)) == (r < SAME_CHANNEL_CORRELATION)
+    walk, other = (np.cumsum(np.random.default_rng(k).normal(size=t.size)) for k in (5, 6))
+    assert abs(np.corrcoef(walk, other)[0, 1]) < SAME_CHANNEL_CORRELATION
+    assert out_of_step(walk, other)  # a walk unrelated to the channel counts
+    assert not out_of_step(walk, 2.0 * walk + 1.0)  # the channel rescaled does not
 
 
 def test_a_lag_of_a_cycling_chamber_is_blamed_though_a_shift_by_its_period_predicts_as_well():
