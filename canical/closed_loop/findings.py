@@ -113,6 +113,10 @@ class Confound:
     # With drift_of_session: the share of the held-out error the drift leaves that the channel's
     # form removed on top of it (a real effect of a drifting sensor removes much of it).
     beyond_drift_gain: float | None = None
+    # With drift_of_session, where that share was large: the share of what a drift of a stretch of
+    # the session leaves that the form, fitted with the drift on the other stretches, removes there
+    # (a real effect carries into a stretch it did not see; a fit to this session's wander does not).
+    beyond_drift_stretch_gain: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

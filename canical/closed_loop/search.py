@@ -363,6 +363,16 @@ def stretch_folds(blocks: Blocks, k: int = STRETCHES) -> list[np.ndarray]:
     return [np.isin(blocks.plateau, chunk) for chunk in np.array_split(inner, k)]
 
 
+def judged_stretches(blocks: Blocks, folds: list[np.ndarray]) -> list[np.ndarray] | None:
+    """Of each stretch held out, the blocks whose rate the other stretches also hold (the rate model
+    does not extrapolate there); None where that leaves fewer than half of the stretches' blocks."""
+    rate = np.round(blocks.points.rate, 6)
+    judged = [held & np.isin(rate, rate[~held]) for held in folds]
+    if sum(int(m.sum()) for m in judged) < 0.5 * sum(int(m.sum()) for m in folds):
+        return None
+    return judged
+
+
 def stretch_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...], duration_s: float) -> float | None:
     """The share of the held-out error of stretches of the session that adding ``terms`` to ``s``
     removes, each stretch predicted by the whole model (coefficients and time constants) fitted on
@@ -375,9 +385,8 @@ def stretch_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...], duration
     ignores one whose channel goes beyond what the others saw (a spline extrapolating).
     """
     folds = stretch_folds(blocks)
-    rate = np.round(blocks.points.rate, 6)
-    judged = [held & np.isin(rate, rate[~held]) for held in folds]
-    if sum(int(m.sum()) for m in judged) < 0.5 * sum(int(m.sum()) for m in folds):
+    judged = judged_stretches(blocks, folds)
+    if judged is None:
         return None
     before = held_out_errors(blocks, s, folds, duration_s)
     after = held_out_errors(blocks, replace(s, terms=s.terms + terms), folds, duration_s)
@@ -446,6 +455,65 @@ def out_of_step(channel: np.ndarray, copy: np.ndarray) -> bool:
     with np.errstate(invalid="ignore", divide="ignore"):
         r = float(np.corrcoef(channel, copy)[0, 1])
     return bool(np.isfinite(r) and abs(r) < SAME_CHANNEL_CORRELATION)
+
+
+#: A drift's basis function counts on the blocks where it reaches this (B-splines, 0 to 1): one that
+#: lives only in a stretch held out has nothing to be fitted on there.
+DRIFT_SUPPORT = 1e-3
+#: The share of what a stretch's own drift leaves that a form fitted on the other stretches must
+#: remove there to be blamed beyond the drift (:func:`stretch_beyond_drift_gain`): any. A form fitted
+#: to this session's wander carries nothing into a stretch it did not see, and then only adds its
+#: own scatter (a share below zero).
+BEYOND_STRETCH_MIN_GAIN = 0.0
+
+
+def stretch_beyond_drift_gain(blocks: Blocks, s: Structure, terms: tuple[Term, ...],
+                              drift: tuple[Term, ...], duration_s: float) -> float | None:
+    """The share of what a drift of each stretch of the session leaves that ``terms`` remove there,
+    the model (``drift`` in, on the stretches it reaches) fitted on the other stretches: the larger
+    of the pooled share and the median stretch's, as in :func:`stretch_gain`. None where too few
+    plateaus can be judged.
+
+    A stretch's held-out errors, with and without ``terms``, are each taken less their weighted
+    least-squares fit of a constant and the drift's basis functions that reach the stretch: any
+    smooth function of the session's clock there, as flexible as the drift is over the session.
+
+    Why: the held-out plateaus of :class:`BeyondDrift`'s gain lie between the ones the form is fitted
+    on, so a flexible form of a channel that wanders (a smoothed lag, τ free), fitted to what a
+    random-walking bias leaves beyond the drift, predicts them as well (seen: half of what the drift
+    left, at p = 2e-4, by a distractor that random-walks). Fitted on other stretches, such a form
+    has nothing to carry into this one; a sensor's own effect has.
+    """
+    folds = stretch_folds(blocks)
+    judged = judged_stretches(blocks, folds)
+    if judged is None:
+        return None
+    basis = shift_columns(drift, blocks)
+    before: list[np.ndarray] = []
+    after: list[np.ndarray] = []
+    for held, m in zip(folds, judged, strict=True):
+        if not m.any():
+            continue
+        reached = np.max(np.abs(basis[~held]), axis=0) > DRIFT_SUPPORT
+        nuisance = replace(s, terms=s.terms + tuple(t for t, r in zip(drift, reached, strict=True) if r))
+        without = held_out_errors(blocks, nuisance, [held], duration_s)[m]
+        with_terms = held_out_errors(blocks, replace(nuisance, terms=nuisance.terms + terms), [held],
+                                     duration_s)[m]
+        local, weight = basis[m], blocks.points.weight[m]
+        before.append(_less_local_drift(without, local, weight))
+        after.append(_less_local_drift(with_terms, local, weight))
+    pooled = 1.0 - rms(np.concatenate(after)) / rms(np.concatenate(before))
+    each = [1.0 - rms(a) / rms(b) for a, b in zip(after, before, strict=True)]
+    return float(max(pooled, np.median(each)))
+
+
+def _less_local_drift(errors: np.ndarray, basis: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """``errors`` less their weighted least-squares fit of a constant and the columns of ``basis``
+    that reach these blocks (:data:`DRIFT_SUPPORT`)."""
+    x = np.column_stack([np.ones(errors.size), basis[:, np.max(np.abs(basis), axis=0) > DRIFT_SUPPORT]])
+    root = np.sqrt(weight)
+    coef = np.linalg.lstsq(x * root[:, None], errors * root, rcond=None)[0]
+    return errors - x @ coef
 
 
 def held_out_errors(blocks: Blocks, s: Structure, folds: list[np.ndarray], duration_s: float,
@@ -951,7 +1019,7 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
     footing = _Footing(scorer, s, [best, drift])
     with_channel, with_drift = footing.of(best.terms, footing.own[best.name]), footing.of(drift.terms)
     r_channel, r_drift = scorer.held_rms(with_channel), scorer.held_rms(with_drift)
-    beyond = _beyond_drift(scorer, footing, best, drift)
+    beyond = _beyond_drift(scorer, footing, best, drift, CONFOUND_ALPHA)
     if beyond.passes(CONFOUND_ALPHA):
         return None
     gain = stretch_gain(scorer.blocks, s, best.terms, scorer.duration_s) if _has_bias(best) else None
@@ -968,19 +1036,29 @@ def _drift_beats(scorer: Scorer, s: Structure, best: Candidate) -> Confound | No
         recommendation=(f"record a session in which {ch} changes in steps in random order, so that it "
                         "no longer follows the sensor's slow drift"),
         adopted=None, adoption_rule=f"drift, confounded with {ch}", drift_of_session=True,
-        stretch_gain=gain, beyond_drift_gain=beyond.gain,
+        stretch_gain=gain, beyond_drift_gain=beyond.gain, beyond_drift_stretch_gain=beyond.stretches,
     )
 
 
 @dataclass(frozen=True)
 class BeyondDrift:
     """What a channel's form adds on top of an equally flexible drift of the session: the share of
-    the drift's held-out error it removes, and the paired p of that gain."""
+    the drift's held-out error it removes, the paired p of that gain, and, where those pass and the
+    form has a bias of the channel alone, the share it predicts of stretches it was not fitted on
+    beyond their own drift (:func:`stretch_beyond_drift_gain`; None otherwise)."""
 
     gain: float
     p: float
+    stretches: float | None = None
 
     def passes(self, alpha: float) -> bool:
+        """:meth:`large` at ``alpha``, and a share of the stretches above
+        :data:`BEYOND_STRETCH_MIN_GAIN` where it was judged."""
+        return self.large(self.gain, self.p, alpha) and (
+            self.stretches is None or self.stretches > BEYOND_STRETCH_MIN_GAIN)
+
+    @staticmethod
+    def large(gain: float, p: float, alpha: float) -> bool:
         """A large share (:data:`BEYOND_DRIFT_MIN_GAIN`), significant at ``alpha``; or a share that
         leaves the drift's held-out rms :data:`TWIN_RMS_RATIO` times the pair's or more, whatever
         the test says.
@@ -990,18 +1068,25 @@ class BeyondDrift:
         the paired test has little power (seen: three quarters of the drift's error removed at
         p = 0.0126 and 0.0105); a form fitted to a drift's wander removed at most 0.41 of it (the
         blind generator's 160 development seeds of drifting sensors, 487 such judgements:
-        ``tests/benchmarks/why_drift.py``).
+        ``tests/benchmarks/why_drift.py``). A distractor's smoothed lag on a sensor whose bias
+        random-walks removed 0.51: the stretches' share then decides (:meth:`passes`).
         """
-        large = self.gain >= 1.0 - 1.0 / TWIN_RMS_RATIO
-        return large or (self.gain >= BEYOND_DRIFT_MIN_GAIN and self.p < alpha)
+        return gain >= 1.0 - 1.0 / TWIN_RMS_RATIO or (gain >= BEYOND_DRIFT_MIN_GAIN and p < alpha)
 
 
-def _beyond_drift(scorer: Scorer, footing: _Footing, cand: Candidate, drift: Candidate) -> BeyondDrift:
-    """:class:`BeyondDrift` of ``cand`` over ``drift``, each on the base size it deserves."""
+def _beyond_drift(scorer: Scorer, footing: _Footing, cand: Candidate, drift: Candidate,
+                  alpha: float) -> BeyondDrift:
+    """:class:`BeyondDrift` of ``cand`` over ``drift``, each on the base size it deserves; the
+    stretches judged only where the gain passes at ``alpha`` (eight fits, each τ searched)."""
     with_drift, with_both = footing.of(drift.terms), footing.of(drift.terms + cand.terms)
     r_drift = scorer.held_rms(with_drift)
-    return BeyondDrift(1.0 - scorer.held_rms(with_both) / r_drift,
-                       better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift)))
+    gain = 1.0 - scorer.held_rms(with_both) / r_drift
+    p = better_p(scorer.plateau_loss(with_both), scorer.plateau_loss(with_drift))
+    if not (BeyondDrift.large(gain, p, alpha) and _has_bias(cand)):
+        return BeyondDrift(gain, p)
+    base = replace(with_drift, terms=footing.s.terms)
+    return BeyondDrift(gain, p, stretch_beyond_drift_gain(scorer.blocks, base, cand.terms, drift.terms,
+                                                          scorer.duration_s))
 
 
 def beyond_the_drift(scorer: Scorer, s: Structure, forms: list[Candidate]) -> Candidate | None:
@@ -1014,12 +1099,11 @@ def beyond_the_drift(scorer: Scorer, s: Structure, forms: list[Candidate]) -> Ca
     changes cause is another form of the same channel, which no smooth drift of the session can
     take, and it was never tried once the channel lost.
     """
-    tried: list[tuple[BeyondDrift, Candidate]] = []
-    for form in forms:
-        drift = drift_competitor(form, scorer.blocks)
-        if drift is not None:
-            tried.append((_beyond_drift(scorer, _Footing(scorer, s, [form, drift]), form, drift), form))
-    passing = [(b.gain, form) for b, form in tried if b.passes(CONFOUND_ALPHA / len(tried))]
+    pairs = [(form, drift) for form in forms if (drift := drift_competitor(form, scorer.blocks)) is not None]
+    alpha = CONFOUND_ALPHA / max(len(pairs), 1)
+    tried = [(_beyond_drift(scorer, _Footing(scorer, s, [form, drift]), form, drift, alpha), form)
+             for form, drift in pairs]
+    passing = [(b.gain, form) for b, form in tried if b.passes(alpha)]
     return max(passing, key=lambda gf: gf[0])[1] if passing else None
 
 

@@ -176,6 +176,11 @@ def _drift_reason(c: Confound) -> str:
     beyond = "" if c.beyond_drift_gain is None else (
         f"; added on top of that drift it removes {max(c.beyond_drift_gain, 0.0):.0%} of what the drift "
         "leaves (a real effect of a sensor that also drifts is still there once the drift is fitted)")
+    if c.beyond_drift_gain is not None and c.beyond_drift_stretch_gain is not None:
+        beyond += (f", but fitted with the drift on the rest of the session it removes "
+                   f"{max(c.beyond_drift_stretch_gain, 0.0):.0%} of what a drift of a stretch it did not "
+                   "see leaves there (a real effect carries into it; a fit to this session's wander does "
+                   "not)")
     return (f"{name} predicts the held-out plateaus to {rms[name]:.4f} deg/s against {rms[drift]:.4f} "
             f"for a drift of the session as flexible{stretches}{beyond}. No term of either is in the set: a "
             "smooth function of this session's clock is a property of the session, not of the sensor.")

@@ -2,8 +2,10 @@
 held-out error a channel's form removes on top of it (``search.BeyondDrift``), per seed of a
 blind class, and the largest over all seeds.
 
-The evidence behind ``BeyondDrift.passes``'s ratio: on the drift class (sensors with no channel
+The evidence behind ``BeyondDrift.large``'s ratio: on the drift class (sensors with no channel
 effect) the largest share must stay below half, the share that passes whatever the paired test.
+Where a share passes, the share of stretches it was not fitted on it predicts beyond their own
+drift (``BeyondDrift.stretches``) is printed beside it.
 The last line counts the seeds whose set carries a channel (on the drift class, each a drift
 blamed on a channel).
 
@@ -29,6 +31,7 @@ class Judged:
     form: str
     share: float
     p: float
+    stretches: float | None
 
 
 def shares_of(seed: int, within: str, dwell_s: float) -> tuple[list[Judged], tuple[str, ...]]:
@@ -36,9 +39,9 @@ def shares_of(seed: int, within: str, dwell_s: float) -> tuple[list[Judged], tup
     seen: list[Judged] = []
     real = search._beyond_drift
 
-    def logged(scorer, footing, cand, drift):
-        b = real(scorer, footing, cand, drift)
-        seen.append(Judged(seed, cand.name, b.gain, b.p))
+    def logged(scorer, footing, cand, drift, alpha):
+        b = real(scorer, footing, cand, drift, alpha)
+        seen.append(Judged(seed, cand.name, b.gain, b.p, b.stretches))
         return b
 
     search._beyond_drift = logged
@@ -48,6 +51,11 @@ def shares_of(seed: int, within: str, dwell_s: float) -> tuple[list[Judged], tup
     finally:
         search._beyond_drift = real
     return seen, r.written_channels
+
+
+def stretches(j: Judged) -> str:
+    """The stretches' share beyond their drift, where it was judged."""
+    return "" if j.stretches is None else f", stretches {j.stretches:.2f}"
 
 
 def main() -> None:
@@ -64,8 +72,8 @@ def main() -> None:
         blamed += bool(written)
         top = max(seen, key=lambda j: j.share, default=None)
         print(f"  {seed}: {len(seen)} judged; largest "
-              f"{f'{top.share:.3f} ({top.form}, p {top.p:.4f})' if top else '-'}; set {list(written)}",
-              flush=True)
+              f"{f'{top.share:.3f} ({top.form}, p {top.p:.4f}{stretches(top)})' if top else '-'}; "
+              f"set {list(written)}", flush=True)
     top = max(every, key=lambda j: j.share, default=None)
     if top:
         print(f"{len(every)} judgements on {len(args.seeds)} seeds; largest share {top.share:.3f} "
