@@ -540,3 +540,51 @@ def test_the_report_says_what_a_form_carried_into_stretches_beyond_their_drift()
     assert "it removes 0% of what a drift of a stretch it did not see leaves there" in text
     assert "stretch it did not see" not in _drift_reason(
         Confound(**{**record.to_dict(), "beyond_drift_stretch_gain": None}))
+
+
+def test_twins_of_two_channels_adopt_the_one_that_stands_out_on_top_of_the_drift():
+    """Any-class case 73: a level of temperature steps on a sensor whose bias random-walks tied with
+    a smoothed lag of the random-walking distractor; the pair removed 43 % of the error, less than
+    half, so neither went into the set. On top of a drift of the session as flexible, the level
+    stands out and carries into stretches it was not fitted on; the distractor's form does neither.
+    The level is adopted, and the set ends near a model told the true form."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import ANY, draw_case
+
+    case = draw_case(73, ANY)
+    assert (case.form, case.trajectory, case.drift) == ("level", "steps", "random-walk")
+    report = calibrate(case.scenario.session(case.seed, 8.0), CalibrateOptions(), sensor_id="S",
+                       axis="z").report
+    group = next(c for c in report.confounded if "smooth(lag(wander))" in c.candidates)
+    assert group.adopted == "channel:temp_c"
+    assert "stands out on top of a drift of the session" in group.adoption_rule
+    r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
+    assert r.written_channels == ("temp_c",) and r.rms_after < 1.2 * r.rms_oracle
+
+
+def test_twins_stand_out_on_top_of_the_drift_only_as_forms_of_two_channels():
+    """Only a group of two channels' forms or more, and nothing else, is sorted this way: a form of
+    time is a drift itself, and one channel's forms disagree on the form only (decided before any
+    fit, so no scorer is needed)."""
+    from canical.closed_loop.candidates import Candidate
+    from canical.closed_loop.search import alone_beyond_drift
+    from canical.sets.term_kinds import CHANNEL, TIME
+
+    a, same = Candidate("lag(a)", CHANNEL, "a", ()), Candidate("smooth(a)", CHANNEL, "a", ())
+    b, time = Candidate("lag(b)", CHANNEL, "b", ()), Candidate("time:warm-up", TIME, None, ())
+    for group in ([a, time], [a, same], [a, b, time]):
+        assert alone_beyond_drift(None, None, group) is None  # type: ignore[arg-type]
+
+
+def test_twins_of_two_channels_are_not_sorted_on_a_small_share_of_the_stretches():
+    """Drift case 1092: temperature steps on a sensor whose bias stepped and that has no channel
+    effect. A lag of temp_c ties with the distractors' forms; on top of the drift it stands out
+    (p = 1e-6) but carries only 0.08 into the stretches beyond their drift, short of a third:
+    nothing is adopted and no channel is in the set."""
+    from canical.calibration.evaluation import score_scenario
+    from canical.sim.blind import DRIFT_ONLY, draw_case
+
+    case = draw_case(1092, DRIFT_ONLY)
+    assert (case.form, case.trajectory, case.drift) == ("none", "steps", "steps")
+    r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
+    assert r.written_channels == (), r.adopted
