@@ -275,9 +275,9 @@ def test_beyond_the_drift_a_form_with_a_bias_must_carry_into_stretches_it_did_no
 
 
 def wandering_distractor_case():
-    """Listed case 2013947148 of the blind generator (the fresh sample drawn in stop 52, now
-    development): a transient of a cycling chamber on a sensor whose bias random-walks, beside
-    the generator's ``wander`` channel, which random-walks too."""
+    """Listed case 2013947148 of the blind generator (drawn blind from another root, inspected since):
+    a transient of a cycling chamber on a sensor whose bias random-walks, beside the generator's
+    ``wander`` channel, which random-walks too."""
     from canical.sim.blind import LISTED_EFFECT, draw_case
 
     case = draw_case(2013947148, LISTED_EFFECT)
@@ -520,7 +520,6 @@ def test_a_lag_of_a_cycling_chamber_is_blamed_though_a_shift_by_its_period_predi
     r = score_scenario(case.scenario, seed=case.seed, dwell_s=8.0)
     assert r.written_channels == ("temp_c",), r.found
     assert r.rms_after < 1.2 * r.rms_oracle
-
 
 
 def test_the_report_says_what_a_form_carried_into_stretches_beyond_their_drift():
